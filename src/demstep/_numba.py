@@ -1,0 +1,29 @@
+"""numba settings in one place.
+
+``fastmath`` stays off: the energy ledger must reproduce bit for bit between runs and
+a restart must continue identically. ``cache=True`` keeps compiled kernels on disk so a
+second run starts computing at once. Setting ``NUMBA_DISABLE_JIT=1`` runs every kernel
+as plain Python (the tests use this against slow numpy references).
+"""
+
+import numba
+
+JIT_OPTIONS = dict(cache=True, fastmath=False, error_model="numpy", nogil=True)
+
+
+def njit(*args, **kwargs):
+    """``numba.njit`` with the package's options (``parallel`` opt-in per kernel)."""
+    options = {**JIT_OPTIONS, **kwargs}
+    if args and callable(args[0]):
+        return numba.njit(**options)(args[0])
+    return numba.njit(**options)
+
+
+prange = numba.prange
+
+
+def set_threads(n: int | None) -> int:
+    """Set the number of numba threads (None: all); returns the number in use."""
+    if n is not None:
+        numba.set_num_threads(max(1, min(int(n), numba.config.NUMBA_NUM_THREADS)))
+    return numba.get_num_threads()

@@ -1,0 +1,1 @@
+"""Contact laws and contact geometry: each formula is written once here."""

@@ -1,0 +1,159 @@
+"""Contact sets: which particles touch, along which normal, with which stiffness.
+
+A :class:`ContactSet` is what the time-step analysis needs of an assembly: for each
+contact the particle indices, the unit normal from particle ``i`` towards ``j`` (or
+towards the wall), the arms from each centre to the contact point and the normal and
+tangential stiffnesses. It is built from geometry (:func:`find_contacts`) or by the
+engine from its live contact list.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from demstep.contact.geometry import contact_arms_array
+from demstep.errors import InputError
+from demstep.particles import Particles
+
+#: default relative tolerance for "touching" contacts found from geometry
+DEFAULT_CONTACT_TOL = 1e-6
+
+
+@dataclass
+class ContactSet:
+    """Contacts (C of them). ``j`` is -1 for a particle-wall contact (``wall`` gives the
+    wall index, else -1). ``normal`` (C, dim) is the unit vector from i towards j or the
+    wall; ``arm_i``/``arm_j`` [L] are the distances from the centres to the contact
+    point (``arm_j`` = 0 at walls); ``k_n``/``k_s`` [M/T^2] the spring stiffnesses."""
+
+    i: np.ndarray
+    j: np.ndarray
+    normal: np.ndarray
+    arm_i: np.ndarray
+    arm_j: np.ndarray
+    k_n: np.ndarray
+    k_s: np.ndarray
+    wall: np.ndarray | None = None
+
+    def __post_init__(self):
+        c = len(self.i)
+        self.i = np.asarray(self.i, dtype=np.int64)
+        self.j = np.asarray(self.j, dtype=np.int64)
+        self.normal = np.asarray(self.normal, dtype=np.float64).reshape(c, -1)
+        self.arm_i = np.asarray(self.arm_i, dtype=np.float64)
+        self.arm_j = np.asarray(self.arm_j, dtype=np.float64)
+        self.k_n = np.broadcast_to(np.asarray(self.k_n, dtype=np.float64), (c,)).copy()
+        self.k_s = np.broadcast_to(np.asarray(self.k_s, dtype=np.float64), (c,)).copy()
+        if self.wall is None:
+            self.wall = np.full(c, -1, dtype=np.int64)
+        self.wall = np.asarray(self.wall, dtype=np.int64)
+
+    @property
+    def n(self) -> int:
+        return len(self.i)
+
+    @property
+    def dim(self) -> int:
+        return self.normal.shape[1]
+
+    @property
+    def is_wall(self) -> np.ndarray:
+        return self.j < 0
+
+    def count_per_particle(self, n_particles: int) -> np.ndarray:
+        """Number of contacts of each particle (wall contacts included)."""
+        counts = np.bincount(self.i, minlength=n_particles)
+        pp = self.j >= 0
+        counts += np.bincount(self.j[pp], minlength=n_particles)
+        return counts
+
+    def k_max(self) -> float:
+        """Largest spring stiffness, max over contacts of max(k_n, k_s) [M/T^2]."""
+        if self.n == 0:
+            raise InputError("contacts: the assembly has no contacts")
+        return float(max(self.k_n.max(), self.k_s.max()))
+
+    @classmethod
+    def concatenate(cls, parts: list["ContactSet"]) -> "ContactSet":
+        parts = [p for p in parts if p.n > 0] or parts[:1]
+        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in
+                     ("i", "j", "normal", "arm_i", "arm_j", "k_n", "k_s", "wall")))
+
+
+def find_contacts(particles: Particles, k_n: float, k_s: float | None = None,
+                  contact_tol: float = DEFAULT_CONTACT_TOL, walls=(),
+                  periodic=None) -> ContactSet:
+    """Contacts of an assembly from its geometry.
+
+    Two particles touch when their centre distance is at most (r_i + r_j)(1 + tol); a
+    particle touches a wall when its centre is within r (1 + tol) of the plane.
+    ``periodic`` is a sequence of box lengths per axis (None for a non-periodic axis);
+    periodic axes use the minimum image and the box [0, L). Stiffnesses are uniform
+    (``k_s`` defaults to ``k_n``).
+    """
+    if k_s is None:
+        k_s = k_n
+    if not np.isfinite(contact_tol) or contact_tol < 0:
+        raise InputError(f"contact-tol: must be a finite number >= 0, got {contact_tol!r}")
+    x, r = particles.x, particles.r
+    dim = particles.dim
+    parts = [_pair_contacts(x, r, contact_tol, periodic)]
+    for w_index, wall in enumerate(walls):
+        if wall.dim != dim:
+            raise InputError(f"wall {wall.name!r}: has {wall.dim} components, particles {dim}")
+        d = wall.distance(x)
+        touching = np.flatnonzero(d <= r * (1.0 + contact_tol))
+        if np.any(d[touching] <= 0):
+            k = touching[d[touching] <= 0][0]
+            raise InputError(f"wall {wall.name!r}: particle {k} centre lies on or behind the wall")
+        nrm = np.broadcast_to(-wall.normal, (len(touching), dim))
+        parts.append(ContactSet(touching, np.full(len(touching), -1), nrm, d[touching],
+                                np.zeros(len(touching)), 0.0, 0.0,
+                                np.full(len(touching), w_index)))
+    contacts = ContactSet.concatenate(parts)
+    contacts.k_n[:] = k_n
+    contacts.k_s[:] = k_s
+    return contacts
+
+
+def _pair_contacts(x, r, tol, periodic) -> ContactSet:
+    n, dim = x.shape
+    cutoff = 2.0 * r.max() * (1.0 + tol)
+    if periodic is not None:
+        if len(periodic) != dim:
+            raise InputError(f"periodic: expected {dim} box lengths, got {list(periodic)}")
+        lo = x.min(axis=0)
+        span = x.max(axis=0) - lo
+        box = np.empty(dim)
+        shifted = x - lo
+        for k, length in enumerate(periodic):
+            if length is None:
+                box[k] = 4.0 * (span[k] + cutoff) + 1.0  # large: never wraps
+            else:
+                box[k] = float(length)
+                if box[k] <= 2 * cutoff:
+                    raise InputError(f"periodic: box length {length} along axis {k} is not "
+                                     f"larger than two contact distances ({2 * cutoff:g})")
+                shifted[:, k] = np.mod(x[:, k], box[k])
+        tree = cKDTree(shifted, boxsize=box)
+        pairs = tree.query_pairs(cutoff, output_type="ndarray")
+        d = shifted[pairs[:, 1]] - shifted[pairs[:, 0]]
+        d -= box * np.round(d / box)
+    else:
+        tree = cKDTree(x)
+        pairs = tree.query_pairs(cutoff, output_type="ndarray")
+        d = x[pairs[:, 1]] - x[pairs[:, 0]]
+    i, j = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
+    dist = np.sqrt((d * d).sum(axis=1))
+    keep = dist <= (r[i] + r[j]) * (1.0 + tol)
+    i, j, d, dist = i[keep], j[keep], d[keep], dist[keep]
+    if np.any(dist <= 0):
+        k = int(np.flatnonzero(dist <= 0)[0])
+        raise InputError(f"particles: particles {i[k]} and {j[k]} have the same centre")
+    order = np.lexsort((j, i))
+    i, j, d, dist = i[order], j[order], d[order], dist[order]
+    arm_i, arm_j = contact_arms_array(r[i], r[j], dist)
+    return ContactSet(i, j, d / dist[:, None], arm_i, arm_j, 0.0, 0.0)

@@ -1,0 +1,235 @@
+"""Contact elements: stiffness, transformation and mass matrices, element eigenvalues.
+
+Two formulations, both vectorised over contacts (leading axis C):
+
+* **paper** -- O'Sullivan & Bray (2004) exactly as published: a strut with a normal
+  spring K_n and shear springs K_s acting on the relative *translation* of the two
+  particles (eqs. 6, 11), plus, with rotation, rotational springs K_s r_eff^2 that
+  are decoupled from translation (eqs. 9, 13); transformation T (eqs. 8, 10, 12);
+  lumped masses (eqs. 16-19).
+* **coupled** -- the tangential springs act on the true slip at the contact point,
+  du_s = P (u_j - u_i) - (a_i theta_i + a_j theta_j) x n (DESIGN.md 1.1), i.e. the
+  linearised equations the engine integrates. Its element eigenvalues bound the
+  assembly's (Rayleigh, eq. 4) for any polydisperse assembly.
+
+Element DOFs are ordered per particle, translations then rotations:
+(u_i, [theta_i], u_j, [theta_j]) -- as in eqs. 9 and 13. A wall contact is an element
+whose j side is rigid (its reciprocal mass is zero).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from demstep.contact.geometry import tangent_basis
+from demstep.timestep.mass_split import ElementMass
+
+
+def n_rotations(dim: int, rotation: bool) -> int:
+    """Rotational DOFs per particle: 0 without rotation, 1 for disks, 3 for spheres."""
+    return (1 if dim == 2 else 3) if rotation else 0
+
+
+def dofs_per_particle(dim: int, rotation: bool) -> int:
+    return dim + n_rotations(dim, rotation)
+
+
+# ----------------------------------------------------------------------------- paper
+
+
+def paper_effective_radii(normal: np.ndarray, arm: np.ndarray) -> np.ndarray:
+    """r_eff (C, n_rot) of eqs. 9 and 13: distance from each rotation axis through the
+    centre to the contact point [L].
+
+    2D: the one axis is normal to the plane, r_eff = r (the arm). 3D: the paper
+    defines r_eff,k about the particle's axes and illustrates it with rotation about
+    the vertical axis (its Figure 4: r for in-plane contacts, r/sqrt(3) for the upper
+    row of a rhombic packing); we take the global axes, r_eff,k = a sqrt(1 - n_k^2), so
+    the rotational block needs no transformation (T acts on translations only).
+    """
+    dim = normal.shape[1]
+    if dim == 2:
+        return arm[:, None].copy()
+    return arm[:, None] * np.sqrt(np.clip(1.0 - normal**2, 0.0, None))
+
+
+def paper_local_stiffness(k_n, k_s, r_eff_i=None, r_eff_j=None, dim: int = 3) -> np.ndarray:
+    """Local element stiffness (C, 2nd, 2nd) of eqs. 6 (2D), 9 (2D, rotation),
+    11 (3D), 13 (3D, rotation) [M/T^2; rotational entries M L^2/T^2].
+
+    Translation: K_n couples the axial DOFs (+K_n diagonal, -K_n off-diagonal), K_s the
+    transverse ones. Rotation (if r_eff given, (C, n_rot)): K_s r_eff_i^2 and
+    K_s r_eff_j^2 on the diagonal and -K_s r_eff_i r_eff_j off it, as published (the
+    physical slip couples theta_i and theta_j with a + sign; flipping the sign of a DOF
+    is a similarity with a diagonal +/-1 matrix, so the eigenvalues are the same).
+    """
+    k_n = np.atleast_1d(np.asarray(k_n, dtype=np.float64))
+    k_s = np.broadcast_to(np.asarray(k_s, dtype=np.float64), k_n.shape)
+    c = k_n.shape[0]
+    n_rot = 0 if r_eff_i is None else r_eff_i.shape[1]
+    nd = dim + n_rot
+    K = np.zeros((c, 2 * nd, 2 * nd))
+    springs = [k_n] + [k_s] * (dim - 1)
+    for a, k in enumerate(springs):
+        _couple(K, a, nd + a, k, 1.0, 1.0, -1.0)
+    for q in range(n_rot):
+        a = dim + q
+        _couple(K, a, nd + a, k_s, r_eff_i[:, q], r_eff_j[:, q], -1.0)
+    return K
+
+
+def _couple(K, a, b, k, ra, rb, sign):
+    K[:, a, a] += k * ra * ra
+    K[:, b, b] += k * rb * rb
+    K[:, a, b] += sign * k * ra * rb
+    K[:, b, a] += sign * k * ra * rb
+
+
+def paper_transformation(normal: np.ndarray, rotation: bool) -> np.ndarray:
+    """Orthogonal T (C, 2nd, 2nd) of eqs. 8, 10 and 12: per particle, the rows of the
+    translational block are the local axes (n, t[, t2]) in global coordinates
+    (direction cosines); the rotational block is the identity (eq. 10; in 3D see
+    :func:`paper_effective_radii`)."""
+    R = tangent_basis(normal)
+    c, dim, _ = R.shape
+    nd = dofs_per_particle(dim, rotation)
+    T = np.zeros((c, 2 * nd, 2 * nd))
+    for p in range(2):
+        o = p * nd
+        T[:, o:o + dim, o:o + dim] = R
+        for q in range(dim, nd):
+            T[:, o + q, o + q] = 1.0
+    return T
+
+
+def paper_element_mass(mass: ElementMass, dim: int, rotation: bool) -> np.ndarray:
+    """Diagonal of the lumped element mass matrix (C, 2nd), eqs. 16-19 [M; M L^2].
+
+    Infinite masses (walls, fixed particles) appear as ``inf``."""
+    n_rot = n_rotations(dim, rotation)
+    with np.errstate(divide="ignore"):
+        cols = ([1.0 / mass.inv_m_i] * dim + [1.0 / mass.inv_I_i] * n_rot
+                + [1.0 / mass.inv_m_j] * dim + [1.0 / mass.inv_I_j] * n_rot)
+    return np.stack(cols, axis=1)
+
+
+def paper_element_lambda(contacts, mass: ElementMass, rotation: bool) -> np.ndarray:
+    """Largest eigenvalue of M_e^-1 K_e (C,) [1/T^2] for the paper's elements, in closed
+    form (eqs. 20-21 reduce it to the local matrices, whose blocks are 2x2 rank one):
+    translation max(K_n, K_s)(1/m_i' + 1/m_j'); rotation about axis k
+    K_s (r_eff_i,k^2 / I_i' + r_eff_j,k^2 / I_j')."""
+    im = mass.inv_m_i + mass.inv_m_j
+    lam = np.maximum(contacts.k_n, contacts.k_s) * im
+    if rotation:
+        ri = paper_effective_radii(contacts.normal, contacts.arm_i)
+        rj = paper_effective_radii(contacts.normal, contacts.arm_j)
+        rot = contacts.k_s[:, None] * (ri**2 * mass.inv_I_i[:, None]
+                                       + rj**2 * mass.inv_I_j[:, None])
+        lam = np.maximum(lam, rot.max(axis=1))
+    return lam
+
+
+def paper_element_matrices(contacts, mass: ElementMass, rotation: bool):
+    """Global element stiffness T^T K_local T and mass diagonal of the paper's elements
+    (eqs. 7-19). Returns (K_global (C, 2nd, 2nd), M_diag (C, 2nd))."""
+    dim = contacts.dim
+    if rotation:
+        ri = paper_effective_radii(contacts.normal, contacts.arm_i)
+        rj = paper_effective_radii(contacts.normal, contacts.arm_j)
+    else:
+        ri = rj = None
+    K_local = paper_local_stiffness(contacts.k_n, contacts.k_s, ri, rj, dim=dim)
+    T = paper_transformation(contacts.normal, rotation)
+    K_global = np.einsum("cab,cbd,cde->cae", T.transpose(0, 2, 1), K_local, T)
+    return K_global, paper_element_mass(mass, dim, rotation)
+
+
+# --------------------------------------------------------------------------- coupled
+
+
+def coupled_strain_operator(normal, arm_i, arm_j, rotation: bool):
+    """B_i, B_j (C, dim, nd) mapping each particle's DOFs to the relative displacement
+    at the contact point in the local frame (n, t1[, t2]):
+
+    Delta = u_j - u_i - (a_i theta_i + a_j theta_j) x n  (2D: theta x n = theta t),
+    so Delta_local = B_i q_i + B_j q_j. Dimensionless / [L] for rotational columns.
+    """
+    R = tangent_basis(normal)
+    c, dim, _ = R.shape
+    n_rot = n_rotations(dim, rotation)
+    Bi = np.zeros((c, dim, dim + n_rot))
+    Bj = np.zeros((c, dim, dim + n_rot))
+    Bi[:, :, :dim] = -R
+    Bj[:, :, :dim] = R
+    if rotation:
+        if dim == 2:
+            # -(a theta z x n) = -a theta t, and t is the second local axis
+            Bi[:, 1, 2] = -arm_i
+            Bj[:, 1, 2] = -arm_j
+        else:
+            # -(a theta x n) = a [n]x theta, with [n]x the cross-product matrix of n
+            nx = _cross_matrix(normal)
+            Bi[:, :, dim:] = arm_i[:, None, None] * np.einsum("cab,cbd->cad", R, nx)
+            Bj[:, :, dim:] = arm_j[:, None, None] * np.einsum("cab,cbd->cad", R, nx)
+    return Bi, Bj
+
+
+def _cross_matrix(v):
+    c = v.shape[0]
+    X = np.zeros((c, 3, 3))
+    X[:, 0, 1], X[:, 0, 2] = -v[:, 2], v[:, 1]
+    X[:, 1, 0], X[:, 1, 2] = v[:, 2], -v[:, 0]
+    X[:, 2, 0], X[:, 2, 1] = -v[:, 1], v[:, 0]
+    return X
+
+
+def spring_diagonal(contacts) -> np.ndarray:
+    """D (C, dim): local spring stiffnesses (K_n, K_s[, K_s]) [M/T^2]."""
+    return np.concatenate([contacts.k_n[:, None],
+                           np.repeat(contacts.k_s[:, None], contacts.dim - 1, axis=1)], axis=1)
+
+
+def coupled_element_blocks(contacts, rotation: bool):
+    """Blocks K_ii, K_ij, K_jj (C, nd, nd) of the coupled element stiffness B^T D B.
+
+    K_ji = K_ij^T. For wall contacts only K_ii is meaningful."""
+    Bi, Bj = coupled_strain_operator(contacts.normal, contacts.arm_i, contacts.arm_j, rotation)
+    D = spring_diagonal(contacts)
+    DBi = D[:, :, None] * Bi
+    DBj = D[:, :, None] * Bj
+    Kii = np.einsum("cka,ckb->cab", Bi, DBi)
+    Kij = np.einsum("cka,ckb->cab", Bi, DBj)
+    Kjj = np.einsum("cka,ckb->cab", Bj, DBj)
+    return Kii, Kij, Kjj
+
+
+def coupled_element_matrices(contacts, mass: ElementMass, rotation: bool):
+    """Global coupled element stiffness (C, 2nd, 2nd) and lumped mass diagonal (C, 2nd)."""
+    Kii, Kij, Kjj = coupled_element_blocks(contacts, rotation)
+    K = np.concatenate([np.concatenate([Kii, Kij], axis=2),
+                        np.concatenate([Kij.transpose(0, 2, 1), Kjj], axis=2)], axis=1)
+    return K, paper_element_mass(mass, contacts.dim, rotation)
+
+
+def coupled_element_lambda(contacts, mass: ElementMass, rotation: bool) -> np.ndarray:
+    """Largest eigenvalue of M_e^-1 K_e (C,) [1/T^2] for coupled elements, closed form.
+
+    The non-zero eigenvalues of M^-1 B^T D B are those of D^1/2 B M^-1 B^T D^1/2, and
+    B M^-1 B^T = (1/m_i' + 1/m_j') I + (a_i^2/I_i' + a_j^2/I_j') P in the local frame,
+    so lambda = max(K_n c_m, K_s (c_m + c_r)), c_m = 1/m_i' + 1/m_j',
+    c_r = a_i^2/I_i' + a_j^2/I_j' (c_r = 0 without rotation)."""
+    c_m = mass.inv_m_i + mass.inv_m_j
+    c_r = 0.0
+    if rotation:
+        c_r = contacts.arm_i**2 * mass.inv_I_i + contacts.arm_j**2 * mass.inv_I_j
+    return np.maximum(contacts.k_n * c_m, contacts.k_s * (c_m + c_r))
+
+
+def element_lambda_numeric(K: np.ndarray, M_diag: np.ndarray) -> np.ndarray:
+    """Largest eigenvalue of M_e^-1 K_e for explicit element matrices (slow reference).
+
+    Rigid (infinite-mass) DOFs are dropped: their rows of M^-1 K vanish."""
+    with np.errstate(divide="ignore"):
+        s = np.where(np.isfinite(M_diag), 1.0 / np.sqrt(M_diag), 0.0)
+    A = s[:, :, None] * K * s[:, None, :]
+    return np.linalg.eigvalsh(A)[:, -1]
