@@ -42,7 +42,9 @@ class ContactSet:
         c = len(self.i)
         self.i = np.asarray(self.i, dtype=np.int64)
         self.j = np.asarray(self.j, dtype=np.int64)
-        self.normal = np.asarray(self.normal, dtype=np.float64).reshape(c, -1)
+        self.normal = np.asarray(self.normal, dtype=np.float64)
+        if self.normal.ndim != 2:
+            self.normal = self.normal.reshape(c, -1)
         self.arm_i = np.asarray(self.arm_i, dtype=np.float64)
         self.arm_j = np.asarray(self.arm_j, dtype=np.float64)
         self.k_n = np.broadcast_to(np.asarray(self.k_n, dtype=np.float64), (c,)).copy()

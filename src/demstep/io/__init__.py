@@ -1,0 +1,1 @@
+"""Readers and writers: assemblies (CSV, LIGGGHTS dumps, YADE text), VTK, checkpoints."""

@@ -1,0 +1,41 @@
+import numpy as np
+import pytest
+
+from demstep.contacts import ContactSet, find_contacts
+from demstep.packings import jittered_polydisperse
+from demstep.particles import Particles
+from demstep.walls import Wall
+
+
+def random_unit(rng, n, dim):
+    v = rng.standard_normal((n, dim))
+    return v / np.linalg.norm(v, axis=1)[:, None]
+
+
+def random_polydisperse(seed: int, dim: int, n: int = 30, walls: bool = False, fixed: bool = False,
+                        kn_spread: bool = True):
+    """A small polydisperse assembly in contact, with varied stiffnesses and masses."""
+    rng = np.random.default_rng(seed)
+    x, r = jittered_polydisperse(n, dim, seed=seed, jitter=0.08, spread=0.15, overlap=0.08)
+    density = rng.uniform(0.5, 3.0, len(r))  # per-particle density: masses vary independently
+    p = Particles.from_density(x, r, 1.0)
+    p.m *= density
+    p.inertia *= density
+    if fixed:
+        p.fixed[rng.integers(0, p.n)] = True
+    wall_list = []
+    if walls:
+        lo = x.min(axis=0)
+        e = np.zeros(dim)
+        e[0] = 1.0
+        wall_list.append(Wall(lo - e * 0.48, e, name="x-"))
+    c = find_contacts(p, 1.0, 1.0, walls=wall_list)
+    if kn_spread:
+        c.k_n[:] = rng.uniform(0.5, 2.0, c.n)
+        c.k_s[:] = c.k_n * rng.uniform(0.2, 1.0, c.n)
+    return p, c
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(20260122)

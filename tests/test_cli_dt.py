@@ -1,0 +1,111 @@
+"""`demstep dt`: the JSON shape, the table and one-line errors with exit status 2."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from demstep.cli import main
+from demstep.timestep import METHODS
+
+
+def run(argv, capsys):
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse errors
+        code = exc.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_json_shape_lattice(capsys):
+    code, out, err = run(["dt", "--lattice", "fcc", "--size", "2", "--json"], capsys)
+    assert code == 0, err
+    data = json.loads(out)
+    assert set(data) == {"dim", "n_particles", "n_contacts", "m_min", "k_max", "estimates"}
+    assert data["dim"] == 3 and data["n_particles"] == 16
+    assert [e["method"] for e in data["estimates"]] == list(METHODS)
+    for e in data["estimates"]:
+        assert set(e) == {"method", "dt", "alpha"}
+        assert e["dt"] > 0 and e["alpha"] == pytest.approx(e["dt"] / np.sqrt(data["m_min"] / data["k_max"]))
+
+
+def test_csv_file_and_table(tmp_path, capsys):
+    f = tmp_path / "a.csv"
+    f.write_text("x,y,r\n0,0,1\n2,0,1\n4,0,1\n1,1.7320508075688772,1\n")
+    code, out, err = run(["dt", str(f), "--kn", "10", "--density", "3"], capsys)
+    assert code == 0, err
+    assert "exact" in out and "itasca" in out and "element-coupled" in out
+    code, out, _ = run(["dt", str(f), "--kn", "10", "--json", "--no-rotation"], capsys)
+    data = json.loads(out)
+    assert data["dim"] == 2 and data["n_contacts"] == 4 and data["k_max"] == 10
+
+
+def test_csv_mass_column_used(tmp_path, capsys):
+    f = tmp_path / "a.csv"
+    f.write_text("x,y,z,r,m\n0,0,0,1,4\n2,0,0,1,4\n")
+    code, out, _ = run(["dt", str(f), "--kn", "1", "--json", "--no-rotation"], capsys)
+    data = json.loads(out)
+    exact = next(e for e in data["estimates"] if e["method"] == "exact")
+    assert data["m_min"] == 4
+    assert exact["dt"] == pytest.approx(2 * np.sqrt(2.0 / 1.0))  # m_eff = 2
+
+
+def test_plot_written(tmp_path, capsys):
+    png = tmp_path / "sub" / "dt.png"
+    code, _, err = run(["dt", "--lattice", "hex", "--size", "3", "--plot", str(png)], capsys)
+    assert code == 0, err
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_paper_table_json(capsys):
+    code, out, _ = run(["dt", "--paper-table", "--json"], capsys)
+    data = json.loads(out)
+    assert {r["lattice"] for r in data["rows"]} == {"square", "hex", "sc", "bcc", "fcc", "rhombic"}
+    for m in data["minima"]:
+        assert m["demstep"] == pytest.approx(m["paper"], rel=0.01)
+
+
+@pytest.mark.parametrize("content,needle", [
+    ("x,y\n0,0\n", "missing column 'r'"),
+    ("x,y,r\n0,0,-1\n2,0,1\n", "radius must be > 0"),
+    ("x,y,r\n0,0,0\n2,0,1\n", "radius must be > 0"),
+    ("x,y,r\n0,nan,1\n2,0,1\n", "not finite"),
+    ("x,y,r\n0,0,1\n10,0,1\n", "no contacts"),
+    ("x,y,r\n0,zero,1\n", "not a number"),
+    ("", "empty file"),
+])
+def test_bad_files(tmp_path, capsys, content, needle):
+    f = tmp_path / "bad.csv"
+    f.write_text(content)
+    code, out, err = run(["dt", str(f)], capsys)
+    assert code == 2
+    assert needle in err and err.count("\n") == 1 and "Traceback" not in err
+    assert out == ""
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["dt", "--lattice", "diamond"], "unknown lattice 'diamond'"),
+    (["dt", "/nonexistent/file.csv"], "no such file"),
+    (["dt", "--lattice", "fcc", "--kn", "-3"], "kn"),
+    (["dt", "--lattice", "fcc", "--size", "0"], "size"),
+    (["dt"], "exactly one"),
+    (["dt", "--lattice", "hex", "--mass-split", "zoned"], "zoned"),
+    (["dt", "--lattice", "fcc", "--methods", "exact,magic"], "unknown method 'magic'"),
+])
+def test_bad_options(capsys, argv, needle):
+    code, out, err = run(argv, capsys)
+    assert code == 2
+    assert needle in err and "Traceback" not in err
+
+
+def test_unreadable_file_subprocess(tmp_path):
+    f = tmp_path / "binary.csv"
+    f.write_bytes(b"\xff\xfe\x00\x01garbage")
+    proc = subprocess.run([sys.executable, "-m", "demstep.cli", "dt", str(f)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert proc.stderr.startswith("demstep: error:") and "Traceback" not in proc.stderr
+    assert proc.stderr.count("\n") == 1
