@@ -12,6 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from demstep.contacts import ContactSet
+from demstep.kernels.timestep_kernels import stiffness_diagonal_kernel
 from demstep.particles import Particles
 from demstep.timestep.elements import coupled_element_blocks, dofs_per_particle, n_rotations
 
@@ -74,17 +75,5 @@ def stiffness_diagonal(particles: Particles, contacts: ContactSet, rotation: boo
     """Diagonal of the global K (N * nd,), in closed form: per contact and particle,
     translation K_n n_k^2 + K_s (1 - n_k^2); rotation K_s a^2 (1 - n_k^2) in 3D, K_s a^2
     in 2D (the summed stiffness of YADE's GlobalStiffnessTimeStepper)."""
-    n, dim = particles.n, particles.dim
-    nd = dofs_per_particle(dim, rotation)
-    nrm2 = contacts.normal**2
-    trans = contacts.k_n[:, None] * nrm2 + contacts.k_s[:, None] * (1.0 - nrm2)
-    diag = np.zeros((n, nd))
-    pp = contacts.j >= 0
-    for idx, mask, arm in ((contacts.i, slice(None), contacts.arm_i),
-                           (contacts.j[pp], pp, contacts.arm_j[pp])):
-        np.add.at(diag[:, :dim], idx, trans[mask])
-        if rotation:
-            a2 = contacts.k_s[mask] * arm**2
-            rot = a2[:, None] if dim == 2 else a2[:, None] * (1.0 - nrm2[mask])
-            np.add.at(diag[:, dim:], idx, rot)
-    return diag.reshape(-1)
+    nd = dofs_per_particle(particles.dim, rotation)
+    return stiffness_diagonal_kernel(contacts, particles.n, nd, rotation).reshape(-1)

@@ -121,11 +121,11 @@ def paper_element_lambda(contacts, mass: ElementMass, rotation: bool) -> np.ndar
     im = mass.inv_m_i + mass.inv_m_j
     lam = np.maximum(contacts.k_n, contacts.k_s) * im
     if rotation:
-        ri = paper_effective_radii(contacts.normal, contacts.arm_i)
-        rj = paper_effective_radii(contacts.normal, contacts.arm_j)
-        rot = contacts.k_s[:, None] * (ri**2 * mass.inv_I_i[:, None]
-                                       + rj**2 * mass.inv_I_j[:, None])
-        lam = np.maximum(lam, rot.max(axis=1))
+        # the largest r_eff^2 over the axes is a^2 (1 - min_k n_k^2) in 3D, a^2 in 2D
+        factor = 1.0 if contacts.dim == 2 else 1.0 - (contacts.normal**2).min(axis=1)
+        rot = contacts.k_s * factor * (contacts.arm_i**2 * mass.inv_I_i
+                                       + contacts.arm_j**2 * mass.inv_I_j)
+        lam = np.maximum(lam, rot)
     return lam
 
 
