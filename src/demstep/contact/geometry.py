@@ -16,6 +16,13 @@ def contact_arms(r_i, r_j, distance):
     return r_i - half_overlap, r_j - half_overlap
 
 
+@njit
+def wall_contact_arm(distance):
+    """Arm [L] of a particle-wall contact: the contact point is on the wall plane, at
+    the centre's distance from it (rigid wall, no overlap split)."""
+    return distance
+
+
 def contact_arms_array(r_i, r_j, distance):
     """Vectorised :func:`contact_arms` over numpy arrays."""
     half_overlap = 0.5 * (np.asarray(r_i) + np.asarray(r_j) - np.asarray(distance))

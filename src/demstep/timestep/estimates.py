@@ -97,6 +97,23 @@ def guidance_dt(m_min: float, k_max: float, dim: int) -> float:
     return GUIDANCE_ALPHA[dim] * itasca_dt(m_min, k_max)
 
 
+_DENSEST = {2: "hex", 3: "fcc"}
+
+
+def densest_packing_alpha(dim: int, rotation: bool = True) -> float:
+    """alpha of the coupled element bound for the densest packing of equal particles
+    (hexagonal disks, FCC spheres; uniform split): the step to use before any contact
+    has formed (1/3 in 2D and about 0.218 in 3D with rotation)."""
+    from demstep.contacts import find_contacts
+    from demstep.packings import lattice
+
+    lat = lattice(_DENSEST[dim], 1.0)
+    x, box = lat.supercell(3)
+    p = Particles.from_density(x, np.ones(len(x)), 1.0)
+    c = find_contacts(p, 1.0, periodic=box)
+    return element_coupled_dt(p, c, rotation) / np.sqrt(p.m[0])
+
+
 def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bool = True,
                         mass_split: str = "uniform", rayleigh=None, methods=None,
                         lattice=None, density: float | None = None) -> TimeStepReport:

@@ -1,0 +1,160 @@
+"""The energy ledger (paper eqs. 22-25) and its balance alarm.
+
+State terms are recomputed every step: kinetic energy (translation and rotation, from
+the mean of the two half-step velocities around t) and strain energy (normal and
+tangential springs at t). Accumulated terms are summed step by step by the trapezoidal
+rule: work of body forces, applied forces and walls (external), and dissipation by
+friction, contact dashpots, local (Cundall) and global viscous damping. The energy the
+system holds when the ledger starts (or is reset) counts as external input.
+
+    W_kin + W_int = W_ext,  W_int = W_strain + W_friction + W_damping,
+    normalized difference = |W_kin + W_int - W_ext| / max(W_ext, W_int, W_kin)   (eq. 22)
+
+With the mean-velocity kinetic energy the difference is O((omega dt)^2) for a stable
+linear run, exactly zero for free fall, and grows to order one as dt approaches the
+critical step, which is what makes it an instability alarm.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from demstep.errors import InputError
+from demstep.kernels.dem import (
+    A_APPLIED, A_BODY, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL, A_WALLS, E_KIN_R,
+    E_KIN_T, E_STRAIN_N, E_STRAIN_T, N_ACC, N_ENERGY,
+)
+
+log = logging.getLogger("demstep")
+
+#: the paper's tolerance on the normalized energy difference (eq. 22)
+DEFAULT_EPS = 1e-2
+
+
+class EnergyLedger:
+    """Energies of a simulation [M L^2/T^2]; arrays shared with the compiled kernels."""
+
+    def __init__(self):
+        self.acc = np.zeros(N_ACC)
+        self.energy = np.zeros(N_ENERGY)
+
+    def reset(self):
+        """Start a new balance from the current state: the energy held now becomes the
+        initial input, accumulated terms restart at zero."""
+        held = self.kinetic + self.strain
+        self.acc[:] = 0.0
+        self.acc[A_INITIAL] = held
+
+    # state terms
+    @property
+    def kinetic_translational(self) -> float:
+        return float(self.energy[E_KIN_T])
+
+    @property
+    def kinetic_rotational(self) -> float:
+        return float(self.energy[E_KIN_R])
+
+    @property
+    def kinetic(self) -> float:
+        return self.kinetic_translational + self.kinetic_rotational
+
+    @property
+    def strain(self) -> float:
+        return float(self.energy[E_STRAIN_N] + self.energy[E_STRAIN_T])
+
+    # accumulated terms
+    @property
+    def friction(self) -> float:
+        return float(self.acc[A_FRICTION])
+
+    @property
+    def damping(self) -> float:
+        return float(self.acc[A_DASHPOT] + self.acc[A_LOCAL] + self.acc[A_GLOBAL])
+
+    @property
+    def internal(self) -> float:
+        return self.strain + self.friction + self.damping
+
+    @property
+    def external(self) -> float:
+        return float(self.acc[A_BODY] + self.acc[A_APPLIED] + self.acc[A_WALLS] + self.acc[A_INITIAL])
+
+    def imbalance(self) -> float:
+        """W_kin + W_int - W_ext (zero for a perfect ledger)."""
+        return self.kinetic + self.internal - self.external
+
+    def scale(self) -> float:
+        return max(self.external, self.internal, self.kinetic)
+
+    def balance_error(self) -> float:
+        """Normalized energy difference of eq. 22 (0 when all terms vanish)."""
+        s = self.scale()
+        return abs(self.imbalance()) / s if s > 0 else 0.0
+
+    def as_dict(self) -> dict:
+        return {
+            "kinetic_translational": self.kinetic_translational,
+            "kinetic_rotational": self.kinetic_rotational,
+            "strain_normal": float(self.energy[E_STRAIN_N]),
+            "strain_tangential": float(self.energy[E_STRAIN_T]),
+            "friction": self.friction,
+            "damping_dashpot": float(self.acc[A_DASHPOT]),
+            "damping_local": float(self.acc[A_LOCAL]),
+            "damping_global": float(self.acc[A_GLOBAL]),
+            "work_body": float(self.acc[A_BODY]),
+            "work_applied": float(self.acc[A_APPLIED]),
+            "work_walls": float(self.acc[A_WALLS]),
+            "initial": float(self.acc[A_INITIAL]),
+            "external": self.external,
+            "internal": self.internal,
+            "energy_error": self.balance_error(),
+        }
+
+
+class EnergyBalanceError(RuntimeError):
+    """The energy balance exceeded its tolerance and the monitor was set to stop."""
+
+
+@dataclass
+class EnergyMonitor:
+    """Checks eq. 22 every ``every`` steps once max(W_ext, W_int, W_kin) exceeds
+    ``floor`` [energy]; ``action`` 'warn' logs (once per excursion) and records,
+    'stop' ends the run (EnergyBalanceError, state saved)."""
+
+    eps: float = DEFAULT_EPS
+    every: int = 100
+    action: str = "warn"
+    floor: float | None = None
+    alarms: list = field(default_factory=list)
+    max_error: float = 0.0
+    _alarmed: bool = False
+
+    def __post_init__(self):
+        if self.action not in ("warn", "stop"):
+            raise InputError(f"energy monitor action: must be warn or stop, got {self.action!r}")
+        if not (self.eps > 0):
+            raise InputError(f"energy monitor eps: must be > 0, got {self.eps!r}")
+        if int(self.every) < 1:
+            raise InputError(f"energy monitor every: must be >= 1, got {self.every!r}")
+
+    def check(self, ledger: EnergyLedger, step: int, time: float, floor: float) -> float | None:
+        """Returns the error if it was evaluated (energies above the floor)."""
+        if ledger.scale() <= floor:
+            return None
+        err = ledger.balance_error()
+        self.max_error = max(self.max_error, err)
+        if err > self.eps:
+            if not self._alarmed:
+                self.alarms.append((step, time, err))
+                log.warning("energy balance error %.3g exceeds %.3g at step %d (t = %.6g)",
+                            err, self.eps, step, time)
+                self._alarmed = True
+            if self.action == "stop":
+                raise EnergyBalanceError(f"energy balance error {err:.3g} exceeds {self.eps:g} at "
+                                         f"step {step} (t = {time:.6g})")
+        else:
+            self._alarmed = False
+        return err

@@ -1,0 +1,570 @@
+"""The Simulation: particles, a contact law, walls, time-step control, and the loop.
+
+One step, in order (the compiled kernels in :mod:`demstep.kernels.dem` do 2-6)::
+
+    1. neighbour update if any particle or wall moved more than skin/2 since the last
+       build (cell list + Verlet skin; contact history carried over)
+    2. contact forces (particle-particle)
+    3. wall forces; servo walls set their velocity from the stress error
+    4. body force, applied forces, local and global damping
+    5. central-difference update: v(t+dt/2) = v(t-dt/2) + dt F/m, x(t+dt) = x(t) + dt v(t+dt/2)
+       (and omega with torque / I); walls move
+    6. energy ledger (state terms at t, work and dissipation over the last step)
+    7. time-step monitor (every N steps: estimate, adapt dt if 'auto')
+    8. energy balance monitor, divergence detector, callbacks and writers (every N steps)
+
+The half-step velocity is initialised at the first step by a half backward kick,
+v(-dt/2) = v(0) - dt/2 F(0)/m, so the given initial velocities are those at t = 0.
+Disks (2D) are integrated in the plane z = 0 with rotation about z.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from demstep.contact.geometry import contact_arms_array
+from demstep.contact.laws import ContactLaw, LinearSpring, normal_force, tangential_stiffness
+from demstep.contacts import ContactSet
+from demstep.energy import EnergyBalanceError, EnergyLedger, EnergyMonitor
+from demstep.errors import InputError, SimulationDiverged
+from demstep.kernels import dem
+from demstep.kernels.neighbors import (
+    build_pair_list, build_wall_list, pair_adjacency, transfer_history,
+)
+from demstep.particles import Particles
+from demstep.walls import Wall
+
+log = logging.getLogger("demstep")
+
+
+@dataclass
+class Damping:
+    """Local non-viscous (Cundall) damping coefficient ``local`` (0 <= local < 1) and
+    global mass-proportional viscous damping ``viscous`` = a1 [1/T] (force -a1 m v,
+    torque -a1 I omega, on the lagged half-step velocity: eq. 28 applies)."""
+
+    local: float = 0.0
+    viscous: float = 0.0
+
+    def validate(self):
+        if not (0.0 <= self.local < 1.0):
+            raise InputError(f"damping local: must lie in [0, 1), got {self.local!r}")
+        if not (math.isfinite(self.viscous) and self.viscous >= 0.0):
+            raise InputError(f"damping viscous: must be finite and >= 0, got {self.viscous!r}")
+
+
+@dataclass
+class TimeStep:
+    """How dt is chosen.
+
+    * ``mode='fixed'``: ``dt`` [T].
+    * ``mode='alpha'``: dt = ``alpha`` sqrt(m_min / K_max) (the paper's multiplier; for
+      Hertz K_max is the tangent stiffness at relative overlap ``overlap``).
+    * ``mode='auto'``: dt = ``safety`` x the current critical step by ``method``
+      (``exact`` or ``element-coupled``), re-evaluated every ``every`` steps; growth is
+      capped at ``growth`` per update, decreases are immediate. Before contacts form,
+      the coupled element bound of the densest packing (hex/FCC) is used.
+    """
+
+    mode: str = "alpha"
+    dt: float | None = None
+    alpha: float = 0.1
+    safety: float = 0.8
+    method: str = "exact"
+    every: int = 500
+    growth: float = 0.05
+    overlap: float = 0.01
+
+    @classmethod
+    def fixed(cls, dt: float) -> "TimeStep":
+        return cls(mode="fixed", dt=dt)
+
+    @classmethod
+    def from_alpha(cls, alpha: float, overlap: float = 0.01) -> "TimeStep":
+        return cls(mode="alpha", alpha=alpha, overlap=overlap)
+
+    @classmethod
+    def auto(cls, safety: float = 0.8, method: str = "exact", every: int = 500,
+             growth: float = 0.05, overlap: float = 0.01) -> "TimeStep":
+        return cls(mode="auto", safety=safety, method=method, every=every, growth=growth,
+                   overlap=overlap)
+
+    def validate(self):
+        if self.mode not in ("fixed", "alpha", "auto"):
+            raise InputError(f"timestep mode: must be fixed, alpha or auto, got {self.mode!r}")
+        if self.mode == "fixed" and not (self.dt is not None and math.isfinite(self.dt) and self.dt > 0):
+            raise InputError(f"timestep dt: must be finite and > 0, got {self.dt!r}")
+        if self.mode == "alpha" and not (math.isfinite(self.alpha) and self.alpha > 0):
+            raise InputError(f"timestep alpha: must be finite and > 0, got {self.alpha!r}")
+        if self.mode == "auto":
+            if not (0 < self.safety <= 1):
+                raise InputError(f"timestep safety: must lie in (0, 1], got {self.safety!r}")
+            if self.method not in ("exact", "element-coupled"):
+                raise InputError(f"timestep method: must be exact or element-coupled, got {self.method!r}")
+            if int(self.every) < 1:
+                raise InputError(f"timestep every: must be >= 1, got {self.every!r}")
+            if not (self.growth >= 0):
+                raise InputError(f"timestep growth: must be >= 0, got {self.growth!r}")
+
+
+@dataclass
+class _Trigger:
+    every: int
+    callback: Callable
+    next_step: int
+
+
+def _as3(a, n=None):
+    """Embed (N, 2) or (2,) data into 3D with z = 0."""
+    a = np.asarray(a, dtype=np.float64)
+    if a.shape[-1] == 3:
+        return np.ascontiguousarray(a.copy())
+    out = np.zeros(a.shape[:-1] + (3,))
+    out[..., :2] = a
+    return out
+
+
+class Simulation:
+    """An explicit DEM simulation of disks (2D) or spheres (3D).
+
+    Parameters
+    ----------
+    particles : Particles (positions [L], radii [L], masses [M], inertia [M L^2], fixed)
+    law : ContactLaw (LinearSpring or HertzMindlin); its ``mu`` may be changed between runs
+    walls : rigid walls (fixed, moving at ``velocity`` or servo-controlled)
+    gravity : body acceleration [L/T^2] (dim components)
+    periodic : box lengths per axis, None for non-periodic axes (box [0, L))
+    damping : Damping
+    timestep : TimeStep
+    velocities, angular_velocities : initial values at t = 0 [L/T], [1/T]
+    skin : Verlet skin [L] (default 0.15 x mean radius)
+    energy : EnergyMonitor (eps, interval, warn or stop)
+    jump_limit : divergence when a particle moves more than this fraction of its radius
+        in one step
+    runaway_factor : divergence when the kinetic energy exceeds this multiple of all
+        energy ever supplied (0 disables)
+    checkpoint_dir : where the state is saved on divergence (default: a temporary folder)
+    rotation : False locks every particle's rotation (translation only)
+    """
+
+    def __init__(self, particles: Particles, law: ContactLaw | None = None, walls=(),
+                 gravity=None, periodic=None, damping: Damping | None = None,
+                 timestep: TimeStep | None = None, velocities=None, angular_velocities=None,
+                 skin: float | None = None, energy: EnergyMonitor | None = None,
+                 jump_limit: float = 0.25, runaway_factor: float = 10.0,
+                 checkpoint_dir: str | os.PathLike | None = None, rotation: bool = True):
+        self.particles = particles
+        self.dim = particles.dim
+        self.law = law if law is not None else LinearSpring()
+        self.law.validate()
+        self.damping = damping if damping is not None else Damping()
+        self.damping.validate()
+        self.timestep = timestep if timestep is not None else TimeStep()
+        self.timestep.validate()
+        self.monitor = energy if energy is not None else EnergyMonitor()
+        self.rotation = bool(rotation)
+        self.jump_limit = float(jump_limit)
+        self.runaway_factor = float(runaway_factor)
+        self.checkpoint_dir = checkpoint_dir
+        n = particles.n
+        self.x = _as3(particles.x)
+        self.r = particles.r
+        self.m = particles.m.copy()
+        self.inertia = particles.inertia.copy()
+        self.v = np.zeros((n, 3)) if velocities is None else _as3(velocities)
+        self.w = np.zeros((n, 3))
+        if angular_velocities is not None:
+            av = np.asarray(angular_velocities, dtype=np.float64)
+            if self.dim == 2:
+                self.w[:, 2] = av.reshape(n)
+            else:
+                self.w[:] = av.reshape(n, 3)
+        for name, arr in (("velocities", self.v), ("angular_velocities", self.w)):
+            if arr.shape != (n, 3) or not np.isfinite(arr).all():
+                raise InputError(f"{name}: expected {n} finite vectors")
+        self.fixed = particles.fixed
+        self.v[self.fixed] = 0.0
+        self.w[self.fixed] = 0.0
+        self.force = np.zeros((n, 3))
+        self.torque = np.zeros((n, 3))
+        self.applied_force = np.zeros((n, 3))
+        self.gravity = np.zeros(3) if gravity is None else _as3(gravity)
+        if self.gravity.shape != (3,) or not np.isfinite(self.gravity).all():
+            raise InputError(f"gravity: expected {self.dim} finite components, got {gravity!r}")
+        self.periodic_len = np.zeros(3)
+        if periodic is not None:
+            if len(periodic) != self.dim:
+                raise InputError(f"periodic: expected {self.dim} entries, got {list(periodic)}")
+            for k, length in enumerate(periodic):
+                if length is not None:
+                    if not (math.isfinite(length) and length > 0):
+                        raise InputError(f"periodic: box length along {'xyz'[k]} must be > 0, got {length!r}")
+                    self.periodic_len[k] = float(length)
+        self.skin = 0.15 * float(self.r.mean()) if skin is None else float(skin)
+        if not (math.isfinite(self.skin) and self.skin > 0):
+            raise InputError(f"skin: must be finite and > 0, got {skin!r}")
+        self._set_walls(list(walls))
+        self._update_masses()
+        self.ledger = EnergyLedger()
+        self.step = 0
+        self.time = 0.0
+        self.dt = None
+        self.dt_estimate = None  # last critical-step estimate [T]
+        self.dt_prev = 0.0
+        self._first = True
+        self._triggers: list[_Trigger] = []
+        self.fd_prev = np.zeros((n, 6))
+        self.td_prev = np.zeros((n, 6))
+        self.counters = np.zeros(3)
+        self._pairs_built = False
+        self._empty_history()
+        self._next_dt_update = 0
+        self.energy_floor = None
+
+    # ------------------------------------------------------------------ setup
+    def _set_walls(self, walls: list[Wall]):
+        for wall in walls:
+            if wall.dim != self.dim:
+                raise InputError(f"wall {wall.name!r}: has {wall.dim} components, the simulation {self.dim}")
+        self.walls = walls
+        nw = len(walls)
+        self.wall_point = np.zeros((nw, 3))
+        self.wall_normal = np.zeros((nw, 3))
+        self.wall_vel = np.zeros((nw, 3))
+        self.wall_mu = np.zeros(nw)
+        self.wall_motion = np.zeros(nw, dtype=np.int64)
+        self.servo = np.zeros((nw, 4))
+        for k, wall in enumerate(walls):
+            self.wall_point[k, :self.dim] = wall.point
+            self.wall_normal[k, :self.dim] = wall.normal
+            self.wall_vel[k, :self.dim] = wall.velocity
+            self.wall_motion[k] = {"fixed": dem.WALL_FIXED, "velocity": dem.WALL_VELOCITY,
+                                   "servo": dem.WALL_SERVO}[wall.motion]
+            self.servo[k] = (wall.target_stress, wall.servo_gain, wall.max_speed, wall.area)
+            if wall.motion == "servo" and not (wall.servo_gain > 0 and wall.target_stress >= 0):
+                raise InputError(f"wall {wall.name!r}: a servo wall needs servo_gain > 0 and "
+                                 f"target_stress >= 0")
+        self.wall_force = np.zeros((nw, 3))
+        self.wall_force_prev = np.zeros((nw, 3))
+        self.wall_disp_prev = np.zeros((nw, 3))
+        self.wall_areas = np.zeros(nw)
+        self.wall_contacts = np.zeros(nw, dtype=np.int64)
+        # axis-aligned walls bounding the specimen (used for loaded areas)
+        self.box_lo = -np.ones(3, dtype=np.int64)
+        self.box_hi = -np.ones(3, dtype=np.int64)
+        for k in range(nw):
+            axis = int(np.argmax(np.abs(self.wall_normal[k])))
+            if abs(abs(self.wall_normal[k, axis]) - 1.0) < 1e-12:
+                if self.wall_normal[k, axis] > 0:
+                    self.box_lo[axis] = k
+                else:
+                    self.box_hi[axis] = k
+        if nw:
+            dist = np.einsum("pwk,wk->pw", self.x[:, None, :] - self.wall_point[None], self.wall_normal)
+            deep = dist < 0.5 * self.r[:, None]
+            if deep.any():
+                p, k = np.argwhere(deep)[0]
+                raise InputError(f"wall {walls[k].name!r}: cuts deep into particle {p} "
+                                 f"(centre {dist[p, k]:.4g} from the wall, radius {self.r[p]:.4g})")
+
+    def _update_masses(self):
+        self.inv_m = np.where(self.fixed, 0.0, 1.0 / self.m)
+        self.inv_I = np.where(self.fixed | (not self.rotation), 0.0, 1.0 / self.inertia)
+
+    def _empty_history(self):
+        z3 = np.zeros((0, 3))
+        self.pi = np.zeros(0, dtype=np.int64)
+        self.pj = np.zeros(0, dtype=np.int64)
+        self.ft, self.fd, self.etan = z3.copy(), z3.copy(), np.zeros(0)
+        self.wp = np.zeros(0, dtype=np.int64)
+        self.ww = np.zeros(0, dtype=np.int64)
+        self.wft, self.wfd, self.wetan = z3.copy(), z3.copy(), np.zeros(0)
+
+    def scale_mass(self, factor: float):
+        """Density (mass) scaling for quasi-static runs: multiply every mass and moment of
+        inertia by ``factor``; the critical step grows by sqrt(factor)."""
+        if not (math.isfinite(factor) and factor > 0):
+            raise InputError(f"mass scaling factor: must be finite and > 0, got {factor!r}")
+        self.m *= factor
+        self.inertia *= factor
+        self._update_masses()
+        self.dt = None
+
+    # ---------------------------------------------------------- neighbour lists
+    def _rebuild(self):
+        for k in range(3):
+            if self.periodic_len[k] > 0:
+                np.mod(self.x[:, k], self.periodic_len[k], out=self.x[:, k])
+        pi, pj = build_pair_list(self.x, self.r, self.skin, self.periodic_len)
+        self.ft, self.fd, self.etan = transfer_history(
+            self.pi, self.pj, pi, pj, len(self.r), self.ft, self.fd, self.etan)
+        self.pi, self.pj = pi, pj
+        self.offsets, self.entries = pair_adjacency(pi, pj, len(self.r))
+        npairs = len(pi)
+        self.pf = np.zeros((npairs, 3))
+        self.pt = np.zeros((npairs, 3))
+        self.parm = np.zeros((npairs, 2))
+        self.contact_flag = np.zeros(npairs, dtype=np.int8)
+        wp, ww = build_wall_list(self.x, self.r, self.wall_point, self.wall_normal, self.skin)
+        self.wft, self.wfd, self.wetan = transfer_history(
+            self.wp, self.ww, wp, ww, max(len(self.walls), 1), self.wft, self.wfd, self.wetan)
+        self.wp, self.ww = wp, ww
+        self.x_ref = self.x.copy()
+        self.wall_ref = self.wall_point.copy()
+        self._pairs_built = True
+        self.n_rebuilds = getattr(self, "n_rebuilds", 0) + 1
+
+    # ------------------------------------------------------------- time step
+    @property
+    def m_min(self) -> float:
+        free = ~self.fixed
+        return float(self.m[free].min()) if free.any() else float(self.m.min())
+
+    def stiffness_max(self) -> float:
+        """K_max for alpha: the law's largest stiffness (Hertz: at the TimeStep overlap)."""
+        return float(self.law.stiffness_bound(float(self.r.max()), self.timestep.overlap))
+
+    def contact_set(self) -> ContactSet:
+        """The current contacts (overlap > 0) with their tangent stiffnesses, walls included,
+        in the form the time-step analysis takes (positions projected to ``dim``)."""
+        dim = self.dim
+        params = self.law.params()
+        law_id = int(params[0])
+        parts = []
+        if len(self.pi):
+            d = self.x[self.pj] - self.x[self.pi]
+            for k in range(3):
+                if self.periodic_len[k] > 0:
+                    d[:, k] -= self.periodic_len[k] * np.rint(d[:, k] / self.periodic_len[k])
+            dist = np.linalg.norm(d, axis=1)
+            delta = self.r[self.pi] + self.r[self.pj] - dist
+            on = delta > 0
+            i, j, d, dist, delta = self.pi[on], self.pj[on], d[on], dist[on], delta[on]
+            r_star = self.r[i] * self.r[j] / (self.r[i] + self.r[j])
+            kn, kt = self._tangent_stiffness(law_id, params, delta, r_star)
+            ai, aj = contact_arms_array(self.r[i], self.r[j], dist)
+            parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt))
+        if len(self.wp):
+            dist = np.einsum("qk,qk->q", self.x[self.wp] - self.wall_point[self.ww], self.wall_normal[self.ww])
+            delta = self.r[self.wp] - dist
+            on = delta > 0
+            p, wi, dist, delta = self.wp[on], self.ww[on], dist[on], delta[on]
+            kn, kt = self._tangent_stiffness(law_id, params, delta, self.r[p])
+            parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim], dist,
+                                    np.zeros(len(p)), kn, kt, wi))
+        if not parts:
+            return ContactSet(np.zeros(0), np.zeros(0), np.zeros((0, dim)), np.zeros(0),
+                              np.zeros(0), 0.0, 0.0)
+        return ContactSet.concatenate(parts)
+
+    @staticmethod
+    def _tangent_stiffness(law_id, params, delta, r_star):
+        kn = np.array([normal_force(law_id, params, dl, rs)[1] for dl, rs in zip(delta, r_star)]) \
+            if law_id != 0 else np.full(len(delta), params[1])
+        kt = np.array([tangential_stiffness(law_id, params, dl, rs) for dl, rs in zip(delta, r_star)]) \
+            if law_id != 0 else np.full(len(delta), params[2])
+        return kn, kt
+
+    def particles_now(self) -> Particles:
+        """Current particles (positions, current masses after any scaling)."""
+        return Particles(self.x[:, :self.dim].copy(), self.r, self.m, self.inertia, self.fixed)
+
+    def critical_dt(self, method: str = "exact", rotation: bool = True) -> float | None:
+        """Critical step of the current contact state by ``method`` [T] (None: no contacts)."""
+        from demstep.timestep.estimates import element_coupled_dt, exact_dt
+
+        contacts = self.contact_set()
+        if contacts.n == 0:
+            return None
+        p = self.particles_now()
+        rotation = rotation and self.rotation
+        if method == "exact":
+            return exact_dt(p, contacts, rotation)
+        if method == "element-coupled":
+            return element_coupled_dt(p, contacts, rotation)
+        raise InputError(f"method: must be exact or element-coupled, got {method!r}")
+
+    def _densest_packing_dt(self) -> float:
+        from demstep.timestep.estimates import densest_packing_alpha
+
+        return densest_packing_alpha(self.dim) * math.sqrt(self.m_min / self.stiffness_max())
+
+    def _choose_dt(self, force: bool = False):
+        ts = self.timestep
+        if ts.mode == "fixed":
+            self.dt = float(ts.dt)
+        elif ts.mode == "alpha":
+            self.dt = ts.alpha * math.sqrt(self.m_min / self.stiffness_max())
+        else:
+            if not force and self.dt is not None and self.step < self._next_dt_update:
+                return
+            if self._pairs_built:
+                estimate = self.critical_dt(ts.method)
+            else:
+                estimate = None
+            if estimate is None:
+                estimate = self._densest_packing_dt()
+            self.dt_estimate = estimate
+            target = ts.safety * estimate
+            if self.dt is None or target < self.dt:
+                self.dt = target
+            else:
+                self.dt = min(target, self.dt * (1.0 + ts.growth))
+            self._next_dt_update = self.step + int(ts.every)
+
+    # --------------------------------------------------------------- running
+    def every(self, n: int, callback: Callable[["Simulation"], None]):
+        """Call ``callback(sim)`` every ``n`` steps (writers, monitors, user code)."""
+        if int(n) < 1:
+            raise InputError(f"every: interval must be >= 1, got {n!r}")
+        self._triggers.append(_Trigger(int(n), callback, self.step + int(n)))
+
+    def _energy_floor(self) -> float:
+        if self.monitor.floor is not None:
+            return float(self.monitor.floor)
+        # strain energy of every particle at an overlap of 1e-4 radius, springs at K_max
+        scale = len(self.r) * self.stiffness_max() * float(np.mean(self.r)) ** 2
+        return 1e-8 * 0.5 * scale
+
+    def prepare(self):
+        """Build neighbour lists and choose dt (done by run(); call to read sim.dt first)."""
+        if self.energy_floor is None:
+            self.energy_floor = self._energy_floor()
+        if not self._pairs_built:
+            self._rebuild()
+        if self.dt is None or self.timestep.mode != "auto":
+            self._choose_dt(force=True)
+
+    def run(self, steps: int | None = None, until: Callable[["Simulation"], bool] | None = None,
+            duration: float | None = None, max_steps: int | None = None,
+            check_every: int = 100, progress=None):
+        """Advance ``steps`` steps, or a simulated ``duration`` [T], or until ``until(sim)``
+        is true (checked every ``check_every`` steps, at most ``max_steps``). Returns the
+        number of steps done.
+
+        Raises SimulationDiverged (state saved) when the run blows up and
+        EnergyBalanceError when the energy monitor is set to stop."""
+        if sum(a is not None for a in (steps, until, duration)) != 1:
+            raise InputError("run: give exactly one of steps, duration or until")
+        self.prepare()
+        if duration is not None:
+            if not (math.isfinite(duration) and duration >= 0):
+                raise InputError(f"run: duration must be finite and >= 0, got {duration!r}")
+            if self.timestep.mode != "auto":
+                steps = int(math.ceil(duration / self.dt - 1e-9))
+            else:
+                t_end = self.time + duration
+                until = lambda s: s.time >= t_end * (1 - 1e-12)  # noqa: E731
+                check_every = 1
+        budget = steps if steps is not None else (max_steps if max_steps is not None else 10**12)
+        if budget < 0:
+            raise InputError(f"run: steps must be >= 0, got {budget}")
+        params = self.law.params()
+        law_id = int(params[0])
+        self.wall_mu[:] = [params[10] if w.friction is None else w.friction for w in self.walls]
+        done = 0
+        next_check = self.step + check_every
+        while done < budget:
+            chunk = budget - done
+            for t in self._triggers:
+                chunk = min(chunk, t.next_step - self.step)
+            chunk = min(chunk, self.monitor.every - self.step % self.monitor.every)
+            if until is not None:
+                chunk = min(chunk, next_check - self.step)
+            if self.timestep.mode == "auto":
+                chunk = min(chunk, max(1, self._next_dt_update - self.step))
+            chunk = max(1, chunk)
+            n_done, reason = dem.advance(
+                chunk, self.dt, self.dt_prev, self._first, self.skin,
+                self.x, self.v, self.w, self.r, self.m, self.inertia, self.inv_m, self.inv_I,
+                self.force, self.torque, self.applied_force, self.gravity,
+                self.damping.local, self.damping.viscous, self.fd_prev, self.td_prev, self.x_ref,
+                self.pi, self.pj, self.offsets, self.entries, self.ft, self.fd, self.etan,
+                self.pf, self.pt, self.parm, self.contact_flag, self.periodic_len,
+                law_id, params,
+                self.wp, self.ww, self.wft, self.wfd, self.wetan, self.wall_point, self.wall_normal,
+                self.wall_vel, self.wall_mu, self.wall_motion, self.servo, self.box_lo, self.box_hi,
+                self.dim, self.wall_force, self.wall_force_prev, self.wall_disp_prev, self.wall_ref,
+                self.wall_areas, self.wall_contacts,
+                self.ledger.acc, self.ledger.energy, self.counters, self.jump_limit,
+                self.runaway_factor, self.energy_floor)
+            self._first = False
+            self.dt_prev = self.dt
+            self.step += n_done
+            self.time += n_done * self.dt
+            done += n_done
+            if progress is not None:
+                progress(self, n_done)
+            if reason in (dem.STOP_NONFINITE, dem.STOP_RUNAWAY, dem.STOP_JUMP):
+                self._diverged(reason)
+            if reason == dem.STOP_REBUILD:
+                self._rebuild()
+            if self.step % self.monitor.every == 0:
+                try:
+                    self.monitor.check(self.ledger, self.step, self.time, self.energy_floor)
+                except EnergyBalanceError as exc:
+                    path = self._save_emergency("energy")
+                    raise EnergyBalanceError(f"{exc}; state saved to {path}") from None
+            for t in self._triggers:
+                if self.step >= t.next_step:
+                    t.callback(self)
+                    t.next_step = self.step + t.every
+            if self.timestep.mode == "auto" and self.step >= self._next_dt_update:
+                self._choose_dt()
+            if until is not None and self.step >= next_check:
+                next_check = self.step + check_every
+                if until(self):
+                    break
+        return done
+
+    # ------------------------------------------------------------ divergence
+    def _save_emergency(self, tag: str) -> str:
+        from demstep.io.checkpoint import save_checkpoint
+
+        folder = Path(self.checkpoint_dir) if self.checkpoint_dir else Path(tempfile.gettempdir())
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / f"demstep-{tag}-step{self.step}.npz"
+        save_checkpoint(self, path)
+        return str(path)
+
+    def _diverged(self, reason):
+        what = {dem.STOP_NONFINITE: "non-finite positions or energies",
+                dem.STOP_RUNAWAY: f"runaway kinetic energy ({self.ledger.kinetic:.4g}, more than "
+                                  f"{self.runaway_factor:g} x all energy supplied)",
+                dem.STOP_JUMP: f"a particle moved {self.counters[2]:.3g} radii in one step "
+                               f"(limit {self.jump_limit:g})"}[reason]
+        est = ""
+        try:
+            crit = self.critical_dt("element-coupled")
+            if crit:
+                est = f"; the coupled element bound on the critical step is {crit:.4g}"
+        except Exception:  # the state may be non-finite
+            pass
+        path = self._save_emergency("diverged")
+        raise SimulationDiverged(f"simulation diverged at step {self.step} (t = {self.time:.6g}, "
+                                 f"dt = {self.dt:.4g}): {what}{est}; state saved to {path}",
+                                 step=self.step, checkpoint=path)
+
+    # ---------------------------------------------------------------- output
+    @property
+    def n_contacts(self) -> int:
+        return int(self.counters[0] + self.counters[1])
+
+    def wall_stress(self) -> np.ndarray:
+        """Compressive normal stress on each wall [M/(L T^2)] (per unit thickness in 2D):
+        the normal force the particles exert on the wall over its loaded area."""
+        push = -np.einsum("wk,wk->w", self.wall_force, self.wall_normal)
+        dem.wall_areas(self.wall_point, self.wall_normal, self.servo, self.box_lo, self.box_hi,
+                       self.periodic_len, self.dim, self.wall_areas)
+        return push / self.wall_areas
+
+    def kinetic_energy(self) -> float:
+        return self.ledger.kinetic

@@ -1,0 +1,485 @@
+"""Explicit DEM kernels: contact forces, wall forces, central-difference update, ledger.
+
+All arrays are 3D (disks live in the plane z = 0 with rotation about z), float64,
+C-contiguous. :func:`advance` runs whole steps inside compiled code until a stop
+condition (step budget, neighbour-list expiry, divergence) and returns to Python.
+
+One step, in order (DESIGN.md 2; the engine documents the same order):
+
+1. particle-particle contact forces per Verlet pair (parallel), then gathered per
+   particle (parallel, no write conflicts);
+2. particle-wall contact forces; wall forces, stresses and servo velocities;
+3. body force, applied forces, local and global damping;
+4. central difference: v(t+dt/2) = v(t-dt/2) + dt F(t)/m, x(t+dt) = x(t) + dt v(t+dt/2),
+   likewise omega with torque / I; walls move;
+5. energy ledger: kinetic energy at t from the mean of the two half-step velocities,
+   strain energy at t, and the work and dissipation over [t - dt, t] by the
+   trapezoidal rule (second order, exact for constant forces).
+
+Slip increments use the lagged half-step velocities v(t - dt/2) (so du = x(t) - x(t-dt)
+at the contact point); damping forces likewise use v(t - dt/2), the form for which
+the paper's eq. 28 holds.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from demstep._numba import njit, prange
+from demstep.contact.geometry import contact_arms, wall_contact_arm
+from demstep.contact.laws import P_MU, dashpot_coefficients, normal_force, tangential_stiffness
+
+# ledger accumulators (float array ``acc``)
+A_BODY, A_APPLIED, A_WALLS, A_FRICTION, A_DASHPOT, A_LOCAL, A_GLOBAL, A_INITIAL = range(8)
+N_ACC = 8
+# state energies (float array ``energy``): kinetic translation / rotation, strain normal / tangential
+E_KIN_T, E_KIN_R, E_STRAIN_N, E_STRAIN_T = range(4)
+N_ENERGY = 4
+
+# stop reasons returned by advance()
+STOP_DONE, STOP_REBUILD, STOP_NONFINITE, STOP_RUNAWAY, STOP_JUMP = range(5)
+
+# wall motions
+WALL_FIXED, WALL_VELOCITY, WALL_SERVO = 0, 1, 2
+# servo parameter columns
+S_TARGET, S_GAIN, S_MAXSPEED, S_AREA = range(4)
+
+
+@njit
+def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy, vz, dt,
+                     ft, fd, etan, k):
+    """Force of one contact and its history update (the contact law applied once).
+
+    Inputs: unit normal n (i -> j), overlap ``delta`` [L] (<= 0: not touching),
+    effective radius and mass, relative velocity of j's contact point w.r.t. i's
+    (v_x, v_y, v_z) [L/T] at t - dt/2, step ``dt`` (the one that produced x(t)).
+    History row k: ``ft`` tangential spring force on j, ``fd`` dashpot force on j,
+    ``etan`` stored tangential energy. Returns (F_x, F_y, F_z) on j, the normal and
+    tangential strain energies, the friction dissipation and the dashpot dissipation
+    of the step, k_n and k_t (tangent stiffnesses, 0 when not touching).
+    """
+    dux, duy, duz = vx * dt, vy * dt, vz * dt
+    dun = dux * nx + duy * ny + duz * nz
+    dtx, dty, dtz = dux - dun * nx, duy - dun * ny, duz - dun * nz
+    # the old tangential force, rotated into the current tangent plane (magnitude kept)
+    ox, oy, oz = ft[k, 0], ft[k, 1], ft[k, 2]
+    mag_old = math.sqrt(ox * ox + oy * oy + oz * oz)
+    if mag_old > 0.0:
+        on = ox * nx + oy * ny + oz * nz
+        ox, oy, oz = ox - on * nx, oy - on * ny, oz - on * nz
+        mag = math.sqrt(ox * ox + oy * oy + oz * oz)
+        if mag > 0.0:
+            s = mag_old / mag
+            ox, oy, oz = ox * s, oy * s, oz * s
+    fdx, fdy, fdz = fd[k, 0], fd[k, 1], fd[k, 2]
+    if delta <= 0.0:
+        # separated: the stored tangential energy is released (dissipated)
+        d_fric = -0.5 * (ox * dtx + oy * dty + oz * dtz) + etan[k]
+        d_dash = -0.5 * (fdx * dux + fdy * duy + fdz * duz)
+        ft[k, 0] = 0.0
+        ft[k, 1] = 0.0
+        ft[k, 2] = 0.0
+        fd[k, 0] = 0.0
+        fd[k, 1] = 0.0
+        fd[k, 2] = 0.0
+        etan[k] = 0.0
+        return 0.0, 0.0, 0.0, 0.0, 0.0, d_fric, d_dash, 0.0, 0.0
+    f_el, k_n, e_n = normal_force(law, params, delta, r_star)
+    k_t = tangential_stiffness(law, params, delta, r_star)
+    c_n, c_t = dashpot_coefficients(law, params, m_star, k_n, k_t)
+    # normal dashpot on the lagged normal velocity (not clipped: the total may pull
+    # briefly at the end of an impact, as in the model whose restitution is e)
+    v_n = vx * nx + vy * ny + vz * nz
+    f_nd = -c_n * v_n
+    # tangential spring: trial increment, then the Coulomb slider
+    tx, ty, tz = ox - k_t * dtx, oy - k_t * dty, oz - k_t * dtz
+    mag = math.sqrt(tx * tx + ty * ty + tz * tz)
+    limit = mu * f_el
+    tdx, tdy, tdz = 0.0, 0.0, 0.0
+    if mag > limit:
+        s = limit / mag
+        tx, ty, tz = tx * s, ty * s, tz * s
+    else:
+        vtx, vty, vtz = vx - v_n * nx, vy - v_n * ny, vz - v_n * nz
+        tdx, tdy, tdz = -c_t * vtx, -c_t * vty, -c_t * vtz
+    e_t = 0.0
+    if k_t > 0.0:
+        e_t = (tx * tx + ty * ty + tz * tz) / (2.0 * k_t)
+    # work done on the tangential spring over the step (trapezoid) minus its stored change
+    w_in = -0.5 * ((ox + tx) * dtx + (oy + ty) * dty + (oz + tz) * dtz)
+    ndx, ndy, ndz = f_nd * nx + tdx, f_nd * ny + tdy, f_nd * nz + tdz
+    d_fric = w_in - (e_t - etan[k])
+    d_dash = -0.5 * ((fdx + ndx) * dux + (fdy + ndy) * duy + (fdz + ndz) * duz)
+    ft[k, 0] = tx
+    ft[k, 1] = ty
+    ft[k, 2] = tz
+    fd[k, 0] = ndx
+    fd[k, 1] = ndy
+    fd[k, 2] = ndz
+    etan[k] = e_t
+    f_total = f_el + f_nd
+    return (f_total * nx + tx + tdx, f_total * ny + ty + tdy, f_total * nz + tz + tdz,
+            e_n, e_t, d_fric, d_dash, k_n, k_t)
+
+
+@njit(parallel=True)
+def pair_forces(x, v, w, r, m, inv_m, pi, pj, periodic_len, law, params, dt,
+                ft, fd, etan, pf, pt, parm, contact_flag):
+    """Forces of all Verlet pairs. Per pair k: ``pf`` force on j, ``pt`` = n x F,
+    ``parm`` arms (a_i, a_j). Returns (strain_n, strain_t, friction, dashpot, contacts)."""
+    e_n = 0.0
+    e_t = 0.0
+    d_fric = 0.0
+    d_dash = 0.0
+    n_contacts = 0
+    mu = params[P_MU]
+    for k in prange(pi.shape[0]):
+        i = pi[k]
+        j = pj[k]
+        d0 = x[j, 0] - x[i, 0]
+        d1 = x[j, 1] - x[i, 1]
+        d2 = x[j, 2] - x[i, 2]
+        if periodic_len[0] > 0.0:
+            d0 -= periodic_len[0] * np.rint(d0 / periodic_len[0])
+        if periodic_len[1] > 0.0:
+            d1 -= periodic_len[1] * np.rint(d1 / periodic_len[1])
+        if periodic_len[2] > 0.0:
+            d2 -= periodic_len[2] * np.rint(d2 / periodic_len[2])
+        dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        delta = r[i] + r[j] - dist
+        if delta <= 0.0 and etan[k] == 0.0 and ft[k, 0] == 0.0 and ft[k, 1] == 0.0 \
+                and ft[k, 2] == 0.0 and fd[k, 0] == 0.0 and fd[k, 1] == 0.0 and fd[k, 2] == 0.0:
+            pf[k, 0] = 0.0
+            pf[k, 1] = 0.0
+            pf[k, 2] = 0.0
+            pt[k, 0] = 0.0
+            pt[k, 1] = 0.0
+            pt[k, 2] = 0.0
+            contact_flag[k] = 0
+            continue
+        nx, ny, nz = d0 / dist, d1 / dist, d2 / dist
+        a_i, a_j = contact_arms(r[i], r[j], dist)
+        # contact-point velocities: v + omega x b, b_i = a_i n, b_j = -a_j n
+        vix = v[i, 0] + a_i * (w[i, 1] * nz - w[i, 2] * ny)
+        viy = v[i, 1] + a_i * (w[i, 2] * nx - w[i, 0] * nz)
+        viz = v[i, 2] + a_i * (w[i, 0] * ny - w[i, 1] * nx)
+        vjx = v[j, 0] - a_j * (w[j, 1] * nz - w[j, 2] * ny)
+        vjy = v[j, 1] - a_j * (w[j, 2] * nx - w[j, 0] * nz)
+        vjz = v[j, 2] - a_j * (w[j, 0] * ny - w[j, 1] * nx)
+        m_star = 1.0 / (inv_m[i] + inv_m[j]) if inv_m[i] + inv_m[j] > 0.0 else m[i]
+        r_star = r[i] * r[j] / (r[i] + r[j])
+        fx, fy, fz, c_en, c_et, c_fric, c_dash, _, _ = contact_response(
+            law, params, mu, nx, ny, nz, delta, r_star, m_star,
+            vjx - vix, vjy - viy, vjz - viz, dt, ft, fd, etan, k)
+        pf[k, 0] = fx
+        pf[k, 1] = fy
+        pf[k, 2] = fz
+        pt[k, 0] = ny * fz - nz * fy
+        pt[k, 1] = nz * fx - nx * fz
+        pt[k, 2] = nx * fy - ny * fx
+        parm[k, 0] = a_i
+        parm[k, 1] = a_j
+        e_n += c_en
+        e_t += c_et
+        d_fric += c_fric
+        d_dash += c_dash
+        if delta > 0.0:
+            contact_flag[k] = 1
+            n_contacts += 1
+        else:
+            contact_flag[k] = 0
+    return e_n, e_t, d_fric, d_dash, n_contacts
+
+
+@njit(parallel=True)
+def gather_forces(offsets, entries, pf, pt, parm, force, torque):
+    """Sum pair forces per particle: force on i is -F, on j +F; torque -a (n x F)."""
+    for p in prange(offsets.shape[0] - 1):
+        fx = 0.0
+        fy = 0.0
+        fz = 0.0
+        tx = 0.0
+        ty = 0.0
+        tz = 0.0
+        for e in range(offsets[p], offsets[p + 1]):
+            k = entries[e] >> 1
+            side = entries[e] & 1
+            sign = 1.0 if side == 1 else -1.0
+            a = parm[k, side]
+            fx += sign * pf[k, 0]
+            fy += sign * pf[k, 1]
+            fz += sign * pf[k, 2]
+            tx -= a * pt[k, 0]
+            ty -= a * pt[k, 1]
+            tz -= a * pt[k, 2]
+        force[p, 0] = fx
+        force[p, 1] = fy
+        force[p, 2] = fz
+        torque[p, 0] = tx
+        torque[p, 1] = ty
+        torque[p, 2] = tz
+
+
+@njit
+def wall_forces(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu, law,
+                params, dt, wft, wfd, wetan, force, torque, wall_force, wall_contacts):
+    """Particle-wall contacts (serial: walls touch the surface layer only).
+
+    Adds to ``force``/``torque``; ``wall_force`` (W, 3) receives the force the
+    particles exert on each wall. Returns (strain_n, strain_t, friction, dashpot)."""
+    e_n = 0.0
+    e_t = 0.0
+    d_fric = 0.0
+    d_dash = 0.0
+    for wi in range(wall_force.shape[0]):
+        wall_force[wi, 0] = 0.0
+        wall_force[wi, 1] = 0.0
+        wall_force[wi, 2] = 0.0
+        wall_contacts[wi] = 0
+    for q in range(wp.shape[0]):
+        p = wp[q]
+        wi = ww[q]
+        nx, ny, nz = -wall_normal[wi, 0], -wall_normal[wi, 1], -wall_normal[wi, 2]
+        dist = -((x[p, 0] - wall_point[wi, 0]) * nx + (x[p, 1] - wall_point[wi, 1]) * ny
+                 + (x[p, 2] - wall_point[wi, 2]) * nz)
+        delta = r[p] - dist
+        if delta <= 0.0 and wetan[q] == 0.0 and wft[q, 0] == 0.0 and wft[q, 1] == 0.0 \
+                and wft[q, 2] == 0.0 and wfd[q, 0] == 0.0 and wfd[q, 1] == 0.0 and wfd[q, 2] == 0.0:
+            continue
+        a = wall_contact_arm(dist)
+        vix = v[p, 0] + a * (w[p, 1] * nz - w[p, 2] * ny)
+        viy = v[p, 1] + a * (w[p, 2] * nx - w[p, 0] * nz)
+        viz = v[p, 2] + a * (w[p, 0] * ny - w[p, 1] * nx)
+        fx, fy, fz, c_en, c_et, c_fric, c_dash, _, _ = contact_response(
+            law, params, wall_mu[wi], nx, ny, nz, delta, r[p], m[p],
+            wall_vel[wi, 0] - vix, wall_vel[wi, 1] - viy, wall_vel[wi, 2] - viz,
+            dt, wft, wfd, wetan, q)
+        force[p, 0] -= fx
+        force[p, 1] -= fy
+        force[p, 2] -= fz
+        torque[p, 0] -= a * (ny * fz - nz * fy)
+        torque[p, 1] -= a * (nz * fx - nx * fz)
+        torque[p, 2] -= a * (nx * fy - ny * fx)
+        wall_force[wi, 0] += fx
+        wall_force[wi, 1] += fy
+        wall_force[wi, 2] += fz
+        e_n += c_en
+        e_t += c_et
+        d_fric += c_fric
+        d_dash += c_dash
+        if delta > 0.0:
+            wall_contacts[wi] += 1
+    return e_n, e_t, d_fric, d_dash
+
+
+@njit
+def wall_areas(wall_point, wall_normal, servo, box_lo, box_hi, periodic_len, dim, areas):
+    """Current loaded area of each wall [L^2] (length in 2D): the fixed area if given,
+    else the product of the specimen's extents along the other axes, taken from the
+    opposing box walls or the periodic box. NaN when unknown."""
+    for wi in range(wall_point.shape[0]):
+        if servo[wi, S_AREA] > 0.0:
+            areas[wi] = servo[wi, S_AREA]
+            continue
+        axis = 0
+        best = 0.0
+        for k in range(3):
+            if abs(wall_normal[wi, k]) > best:
+                best = abs(wall_normal[wi, k])
+                axis = k
+        area = 1.0
+        for k in range(dim):
+            if k == axis:
+                continue
+            if box_lo[k] >= 0 and box_hi[k] >= 0:
+                area *= wall_point[box_hi[k], k] - wall_point[box_lo[k], k]
+            elif periodic_len[k] > 0.0:
+                area *= periodic_len[k]
+            else:
+                area = np.nan
+        areas[wi] = area
+
+
+@njit(parallel=True)
+def integrate(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt, dt_prev,
+              local_damping, global_damping, fd_prev, td_prev, x_ref, first, acc_out):
+    """Central-difference update of all particles, with damping and the particle terms of
+    the energy ledger. ``acc_out`` (8,) receives: work of gravity, of applied forces,
+    local- and global-damping dissipation, kinetic energy (translation, rotation) at t,
+    the largest squared displacement since the list was built and the largest step
+    |v| dt / r."""
+    w_body = 0.0
+    w_app = 0.0
+    d_local = 0.0
+    d_global = 0.0
+    ke_t = 0.0
+    ke_r = 0.0
+    disp2 = 0.0
+    jump = 0.0
+    for p in prange(x.shape[0]):
+        if inv_m[p] == 0.0:
+            continue
+        for k in range(3):
+            fl = force[p, k] + m[p] * gravity[k] + f_app[p, k]
+            tl = torque[p, k]
+            v_old = v[p, k]
+            w_old = w[p, k]
+            if first:
+                # initialise the half step: v(-dt/2) = v(0) - dt/2 F(0)/m
+                v_old -= 0.5 * dt * fl * inv_m[p]
+                w_old -= 0.5 * dt * tl * inv_I[p]
+            fdk = 0.0
+            tdk = 0.0
+            if local_damping > 0.0:
+                fdk -= local_damping * abs(fl) * np.sign(v_old)
+                tdk -= local_damping * abs(tl) * np.sign(w_old)
+            gdk = 0.0
+            gtk = 0.0
+            if global_damping > 0.0:
+                gdk = -global_damping * m[p] * v_old
+                gtk = -global_damping * inertia[p] * w_old
+            v_new = v_old + dt * (fl + fdk + gdk) * inv_m[p]
+            w_new = w_old + dt * (tl + tdk + gtk) * inv_I[p]
+            if not first:
+                dx = dt_prev * v_old
+                dth = dt_prev * w_old
+                w_body += m[p] * gravity[k] * dx
+                w_app += f_app[p, k] * dx
+                d_local -= 0.5 * ((fd_prev[p, k] + fdk) * dx + (td_prev[p, k] + tdk) * dth)
+                d_global -= 0.5 * ((fd_prev[p, 3 + k] + gdk) * dx + (td_prev[p, 3 + k] + gtk) * dth)
+            fd_prev[p, k] = fdk
+            td_prev[p, k] = tdk
+            fd_prev[p, 3 + k] = gdk
+            td_prev[p, 3 + k] = gtk
+            vm = 0.5 * (v_old + v_new)
+            wm = 0.5 * (w_old + w_new)
+            ke_t += 0.5 * m[p] * vm * vm
+            ke_r += 0.5 * inertia[p] * wm * wm
+            v[p, k] = v_new
+            w[p, k] = w_new
+            x[p, k] += dt * v_new
+        d2 = 0.0
+        vv = 0.0
+        for k in range(3):
+            dd = x[p, k] - x_ref[p, k]
+            d2 += dd * dd
+            vv += v[p, k] * v[p, k]
+        disp2 = max(disp2, d2)
+        jump = max(jump, math.sqrt(vv) * dt / r[p])
+    acc_out[0] = w_body
+    acc_out[1] = w_app
+    acc_out[2] = d_local
+    acc_out[3] = d_global
+    acc_out[4] = ke_t
+    acc_out[5] = ke_r
+    acc_out[6] = disp2
+    acc_out[7] = jump
+
+
+@njit
+def advance(n_steps, dt, dt_prev, first, skin,
+            x, v, w, r, m, inertia, inv_m, inv_I, force, torque, f_app, gravity,
+            local_damping, global_damping, fd_prev, td_prev, x_ref,
+            pi, pj, offsets, entries, ft, fd, etan, pf, pt, parm, contact_flag, periodic_len,
+            law, params,
+            wp, ww, wft, wfd, wetan, wall_point, wall_normal, wall_vel, wall_mu, wall_motion,
+            servo, box_lo, box_hi, dim, wall_force, wall_force_prev, wall_disp_prev, wall_ref,
+            wall_areas_out, wall_contacts,
+            acc, energy, counters, jump_limit, runaway_factor, energy_floor):
+    """Run up to ``n_steps`` steps. Returns (steps done, stop reason).
+
+    ``counters`` (3,): particle-particle contacts, particle-wall contacts, max jump."""
+    out = np.empty(8)
+    half_skin2 = 0.25 * skin * skin
+    nw = wall_point.shape[0]
+    for step in range(n_steps):
+        # 1-2. contact forces
+        # the slip increment of step n is x(t) - x(t - dt_prev); none before t = 0
+        dt_slip = 0.0 if first else dt_prev
+        e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
+            x, v, w, r, m, inv_m, pi, pj, periodic_len, law, params, dt_slip,
+            ft, fd, etan, pf, pt, parm, contact_flag)
+        gather_forces(offsets, entries, pf, pt, parm, force, torque)
+        we_n, we_t, wd_fric, wd_dash = wall_forces(
+            x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
+            law, params, dt_slip, wft, wfd, wetan, force, torque, wall_force, wall_contacts)
+        if first:
+            # no step precedes t = 0: nothing dissipated yet
+            d_fric = 0.0
+            d_dash = 0.0
+            wd_fric = 0.0
+            wd_dash = 0.0
+        # wall work over the last step (trapezoid): wall pushes particles with -F
+        if not first:
+            for wi in range(nw):
+                acc[A_WALLS] -= 0.5 * ((wall_force_prev[wi, 0] + wall_force[wi, 0]) * wall_disp_prev[wi, 0]
+                                       + (wall_force_prev[wi, 1] + wall_force[wi, 1]) * wall_disp_prev[wi, 1]
+                                       + (wall_force_prev[wi, 2] + wall_force[wi, 2]) * wall_disp_prev[wi, 2])
+        # servo-controlled walls: velocity along the normal from the stress error
+        wall_areas(wall_point, wall_normal, servo, box_lo, box_hi, periodic_len, dim,
+                   wall_areas_out)
+        for wi in range(nw):
+            if wall_motion[wi] == WALL_SERVO:
+                push = -(wall_force[wi, 0] * wall_normal[wi, 0] + wall_force[wi, 1] * wall_normal[wi, 1]
+                         + wall_force[wi, 2] * wall_normal[wi, 2])
+                stress = push / wall_areas_out[wi]
+                speed = servo[wi, S_GAIN] * (servo[wi, S_TARGET] - stress)
+                lim = servo[wi, S_MAXSPEED]
+                if speed > lim:
+                    speed = lim
+                elif speed < -lim:
+                    speed = -lim
+                for k in range(3):
+                    wall_vel[wi, k] = speed * wall_normal[wi, k]
+        # 3-4. central-difference update with damping; particle ledger terms
+        integrate(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
+                  dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first, out)
+        # walls move
+        wall_move2 = 0.0
+        for wi in range(nw):
+            d2 = 0.0
+            for k in range(3):
+                disp = dt * wall_vel[wi, k] if wall_motion[wi] != WALL_FIXED else 0.0
+                wall_point[wi, k] += disp
+                wall_disp_prev[wi, k] = disp
+                wall_force_prev[wi, k] = wall_force[wi, k]
+                dd = wall_point[wi, k] - wall_ref[wi, k]
+                d2 += dd * dd
+            wall_move2 = max(wall_move2, d2)
+        # 5. ledger
+        acc[A_BODY] += out[0]
+        acc[A_APPLIED] += out[1]
+        acc[A_LOCAL] += out[2]
+        acc[A_GLOBAL] += out[3]
+        acc[A_FRICTION] += d_fric + wd_fric
+        acc[A_DASHPOT] += d_dash + wd_dash
+        energy[E_KIN_T] = out[4]
+        energy[E_KIN_R] = out[5]
+        energy[E_STRAIN_N] = e_n + we_n
+        energy[E_STRAIN_T] = e_t + we_t
+        counters[0] = n_pp
+        wc = 0
+        for wi in range(nw):
+            wc += wall_contacts[wi]
+        counters[1] = wc
+        counters[2] = out[7]
+        if first:
+            # the energy held at t = 0 is the ledger's initial input
+            acc[A_INITIAL] = out[4] + out[5] + e_n + we_n + e_t + we_t
+        dt_prev = dt
+        first = False
+        # divergence checks
+        ke = out[4] + out[5]
+        if not (math.isfinite(ke) and math.isfinite(e_n + we_n + e_t + we_t)):
+            return step + 1, STOP_NONFINITE
+        if out[7] > jump_limit:
+            return step + 1, STOP_JUMP
+        supplied = acc[A_BODY] + acc[A_APPLIED] + acc[A_WALLS] + acc[A_INITIAL]
+        if runaway_factor > 0.0 and ke > runaway_factor * max(supplied + energy_floor, energy_floor):
+            return step + 1, STOP_RUNAWAY
+        # neighbour lists expire after skin / 2 of (particle + wall) motion
+        if math.sqrt(out[6]) + math.sqrt(wall_move2) > 0.5 * skin:
+            return step + 1, STOP_REBUILD
+    return n_steps, STOP_DONE
