@@ -1,0 +1,824 @@
+"""Case files: a whole simulation described in TOML, validated before anything runs.
+
+Units are any consistent set (M, L, T; the paper's Table I uses K = 1e11, density
+2000, radius 20). Every key is listed below with its unit; keys not listed are errors.
+
+Top level
+---------
+``name`` (str), ``description`` (str): labels for the run.
+``gravity`` = [gx, gy(, gz)]: body acceleration [L/T^2], one entry per dimension
+(default zero).
+``rotation`` (bool, default true): false locks every particle's rotation.
+``mass_scaling`` (default 1): multiply every mass and moment of inertia (density
+scaling for quasi-static runs; the critical step grows by its square root).
+
+``[periodic]``: ``x``, ``y``, ``z`` = box length [L] of each periodic axis (box
+[0, L)); omitted axes are not periodic.
+
+``[particles]``: ``generator`` chooses how particles are made, ``density`` [M/L^3]
+(3D) or [M/L^2] (2D disks, per unit thickness).
+
+* ``generator = "lattice"``: ``lattice`` (square, hex, sc, bcc, fcc, rhombic; see
+  :mod:`demstep.packings`), ``radius`` [L], ``size`` (cells per axis: an integer or a
+  list, one per dimension), ``origin`` [L] (shift), ``clip_lower``/``clip_upper`` [L]
+  (keep only centres inside this box, after the shift; e.g. 12 FCC layers of 4x4 and
+  3x3 spheres from a 4x4x6 block clipped to x, y <= 6 r).
+* ``generator = "grid"``: polydisperse random particles on a jittered grid of
+  ``count`` (points per axis) with ``spacing`` [L], radii uniform in
+  [``radius_min``, ``radius_max``] [L], ``jitter`` (fraction of the spacing, < 0.5),
+  ``seed``, ``origin`` [L]. Particles never overlap at start (checked).
+* ``generator = "file"``: ``path`` (relative to the case file) of a CSV, LIGGGHTS dump
+  or YADE text file (:mod:`demstep.io.formats`), ``format`` (auto, csv, liggghts,
+  yade), ``snapshot`` (LIGGGHTS: 0 first, -1 last). ``density`` may be omitted when the
+  file has masses.
+
+``[particles.fixed]``: particles held in place: ``indices`` (0-based) and/or the box
+``lower``/``upper`` [L] (every centre inside is fixed).
+
+``[contact]``: ``law`` = "linear" (``k_n``, ``k_s`` [M/T^2]; k_s defaults to k_n) or
+"hertz" (``youngs_modulus`` [M/(L T^2)], ``poisson_ratio``); for both ``mu``
+(particle-particle friction), ``mu_wall`` (default mu), dashpots by ``restitution``
+(normal, in (0, 1]) and ``restitution_tangential`` or by coefficients
+``damping_normal``/``damping_tangential`` [M/T].
+
+``[[walls]]``: ``name``, ``point`` [L], ``normal`` (into the domain), ``motion``
+(fixed, velocity, servo), ``velocity`` [L/T], ``target_stress`` [M/(L T^2)] (2D:
+force per unit length), ``servo_gain`` [L T/M] (omitted: automatic, correcting
+``servo_factor`` of the stress error per step at the current contact stiffness),
+``max_speed`` [L/T], ``area`` [L^2] (2D: length; omitted: from the opposite box
+walls), ``friction`` (mu of this wall).
+
+``[box]``: the 2 x dim axis-aligned walls named x-, x+, y-, y+(, z-, z+): corners
+``lower``/``upper`` [L], or (both omitted) the particles' extents plus ``margin`` [L].
+``[box.walls."z+"]`` sets a box wall's motion with the keys of ``[[walls]]`` (except
+name, point and normal).
+
+``[damping]``: ``local`` (Cundall, in [0, 1)), ``viscous`` (global mass-proportional
+a1 [1/T]).
+
+``[timestep]``: ``mode`` = "fixed" (``dt`` [T]), "alpha" (dt = ``alpha``
+sqrt(m_min/K_max), default alpha 0.1) or "auto" (``safety`` x the critical step by
+``method`` exact|element-coupled, re-evaluated ``every`` steps, growth capped at
+``growth`` per update); ``overlap`` is the relative overlap at which Hertz K_max is
+taken. ``mode`` may be omitted: "fixed" when ``dt`` is given, else "alpha".
+
+``[energy]``: the balance monitor (paper eq. 22): ``eps`` (default 1e-2), ``every``
+[steps], ``action`` = "warn" | "stop", ``floor`` [M L^2/T^2] (energies below it are
+not checked; default: automatic).
+
+``[numerics]``: ``skin`` [L] (Verlet skin; default 0.15 x mean radius), ``jump_limit``
+(divergence when a particle moves this fraction of its radius in one step),
+``runaway_factor`` (divergence when kinetic energy exceeds this multiple of the energy
+supplied; 0 disables).
+
+``[[stages]]`` (at least one), run in order: ``name``, and exactly one of ``steps``,
+``duration`` [T] or ``until_kinetic_below`` [M L^2/T^2] (checked every
+``check_every`` steps, at most ``max_steps``). Changes applied at the start of the
+stage: ``mu``, ``mu_wall``, ``damping = {local, viscous}``, ``gravity`` [L/T^2],
+``[stages.walls."name"]`` (motion, velocity, target_stress, servo_gain, max_speed,
+servo_factor, area, friction), ``reset_ledger`` (start a new energy balance from the current state).
+
+``[output]``: ``history_every`` [steps] (CSV history; 0 none), ``vtk_every`` [steps]
+(VTK frames; 0 none), ``vtk_contacts`` (write the contact network), ``checkpoint_every``
+[steps] (0: only on interruption and at the end), ``checkpoint_keep`` (periodic
+checkpoints kept; 0 keeps all).
+
+Errors (unknown keys, wrong types, non-physical values) raise
+:class:`~demstep.errors.InputError` with one line naming the key path (e.g.
+``contact.mu``) and the value.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError
+
+from demstep.errors import InputError
+
+#: the largest assembly a case file may generate (a guard against typos in ``size``)
+MAX_PARTICLES = 2_000_000
+
+AXES = "xyz"
+
+# ------------------------------------------------------------------ field types
+Positive = Annotated[float, Field(gt=0)]
+NonNegative = Annotated[float, Field(ge=0)]
+PositiveInt = Annotated[int, Field(ge=1)]
+NonNegativeInt = Annotated[int, Field(ge=0)]
+Vector = Annotated[list[float], Field(min_length=2, max_length=3)]
+Name = Annotated[str, Field(min_length=1, max_length=64)]
+
+
+class _Section(BaseModel):
+    """Strict sections: unknown keys, wrong types and non-finite numbers are errors."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False,
+                              validate_default=False)
+
+
+# -------------------------------------------------------------------- particles
+class FixedSelection(_Section):
+    """Particles held in place: by 0-based ``indices`` and/or the box [lower, upper] [L]."""
+
+    indices: list[NonNegativeInt] = []
+    lower: Vector | None = None
+    upper: Vector | None = None
+
+
+class _ParticlesBase(_Section):
+    fixed: FixedSelection | None = None
+
+
+class LatticeParticles(_ParticlesBase):
+    """A block of a regular lattice (all particles of ``radius`` [L])."""
+
+    generator: Literal["lattice"]
+    lattice: Literal["square", "hex", "sc", "bcc", "fcc", "rhombic"]
+    radius: Positive
+    size: PositiveInt | list[PositiveInt]
+    density: Positive
+    origin: Vector | None = None
+    clip_lower: Vector | None = None
+    clip_upper: Vector | None = None
+
+
+class GridParticles(_ParticlesBase):
+    """Polydisperse particles on a jittered grid (random radii, no initial overlap)."""
+
+    generator: Literal["grid"]
+    count: Annotated[list[PositiveInt], Field(min_length=2, max_length=3)]
+    spacing: Positive
+    radius_min: Positive
+    radius_max: Positive
+    density: Positive
+    jitter: Annotated[float, Field(ge=0, lt=0.5)] = 0.0
+    seed: NonNegativeInt = 0
+    origin: Vector | None = None
+
+
+class FileParticles(_ParticlesBase):
+    """Particles read from a CSV, LIGGGHTS dump or YADE text file."""
+
+    generator: Literal["file"]
+    path: Annotated[str, Field(min_length=1)]
+    format: Literal["auto", "csv", "liggghts", "yade"] = "auto"
+    snapshot: int = -1
+    density: Positive | None = None
+
+
+ParticlesSection = Annotated[Union[LatticeParticles, GridParticles, FileParticles],
+                             Field(discriminator="generator")]
+
+
+# ---------------------------------------------------------------------- contact
+class _ContactBase(_Section):
+    mu: NonNegative = 0.0
+    mu_wall: NonNegative | None = None
+    restitution: Annotated[float, Field(gt=0, le=1)] | None = None
+    restitution_tangential: Annotated[float, Field(gt=0, le=1)] | None = None
+    damping_normal: NonNegative = 0.0
+    damping_tangential: NonNegative = 0.0
+
+
+class LinearContact(_ContactBase):
+    """Linear springs ``k_n``, ``k_s`` [M/T^2] (k_s defaults to k_n)."""
+
+    law: Literal["linear"]
+    k_n: Positive
+    k_s: NonNegative | None = None
+
+
+class HertzContact(_ContactBase):
+    """Hertz-Mindlin no-slip contact of one material."""
+
+    law: Literal["hertz"]
+    youngs_modulus: Positive
+    poisson_ratio: Annotated[float, Field(gt=-1, lt=0.5)]
+
+
+ContactSection = Annotated[Union[LinearContact, HertzContact], Field(discriminator="law")]
+
+
+# ------------------------------------------------------------------------ walls
+class WallMotion(_Section):
+    """How a wall moves; omitted keys keep their value (or the default)."""
+
+    motion: Literal["fixed", "velocity", "servo"] | None = None
+    velocity: Vector | None = None
+    target_stress: NonNegative | None = None
+    servo_gain: Positive | None = None
+    servo_factor: Positive | None = None
+    max_speed: Positive | None = None
+    area: NonNegative | None = None
+    friction: NonNegative | None = None
+
+
+class WallSpec(WallMotion):
+    """A rigid plane through ``point`` [L] with ``normal`` pointing into the domain."""
+
+    name: Name
+    point: Vector
+    normal: Vector
+
+
+class BoxSection(_Section):
+    """Axis-aligned box walls x-, x+, y-, y+(, z-, z+)."""
+
+    lower: Vector | None = None
+    upper: Vector | None = None
+    margin: NonNegative = 0.0
+    walls: dict[str, WallMotion] = {}
+
+
+class PeriodicSection(_Section):
+    """Box length [L] of each periodic axis."""
+
+    x: Positive | None = None
+    y: Positive | None = None
+    z: Positive | None = None
+
+
+# --------------------------------------------------------------- integration
+class DampingSection(_Section):
+    local: Annotated[float, Field(ge=0, lt=1)] = 0.0
+    viscous: NonNegative = 0.0
+
+
+class DampingChange(_Section):
+    local: Annotated[float, Field(ge=0, lt=1)] | None = None
+    viscous: NonNegative | None = None
+
+
+class TimestepSection(_Section):
+    mode: Literal["fixed", "alpha", "auto"] | None = None
+    dt: Positive | None = None
+    alpha: Positive | None = None
+    safety: Annotated[float, Field(gt=0, le=1)] = 0.8
+    method: Literal["exact", "element-coupled"] = "exact"
+    every: PositiveInt = 500
+    growth: NonNegative = 0.05
+    overlap: Positive = 0.01
+
+
+class EnergySection(_Section):
+    eps: Positive = 1.0e-2
+    every: PositiveInt = 100
+    action: Literal["warn", "stop"] = "warn"
+    floor: Positive | None = None
+
+
+class NumericsSection(_Section):
+    skin: Positive | None = None
+    jump_limit: Positive = 0.25
+    runaway_factor: NonNegative = 10.0
+
+
+class Stage(_Section):
+    """One stage: how long it runs and what changes at its start."""
+
+    name: Name | None = None
+    steps: NonNegativeInt | None = None
+    duration: NonNegative | None = None
+    until_kinetic_below: Positive | None = None
+    check_every: PositiveInt = 100
+    max_steps: PositiveInt | None = None
+    mu: NonNegative | None = None
+    mu_wall: NonNegative | None = None
+    damping: DampingChange | None = None
+    gravity: Vector | None = None
+    walls: dict[str, WallMotion] = {}
+    reset_ledger: bool = False
+
+
+class OutputSection(_Section):
+    history_every: NonNegativeInt = 100
+    vtk_every: NonNegativeInt = 0
+    vtk_contacts: bool = True
+    checkpoint_every: NonNegativeInt = 0
+    checkpoint_keep: NonNegativeInt = 3
+
+
+class Case(_Section):
+    """A validated case (see the module docstring for every key)."""
+
+    name: Name = "demstep-run"
+    description: str = ""
+    gravity: Vector | None = None
+    rotation: bool = True
+    mass_scaling: Positive = 1.0
+    periodic: PeriodicSection | None = None
+    particles: ParticlesSection
+    contact: ContactSection
+    walls: list[WallSpec] = []
+    box: BoxSection | None = None
+    damping: DampingSection = Field(default_factory=DampingSection)
+    timestep: TimestepSection = Field(default_factory=TimestepSection)
+    energy: EnergySection = Field(default_factory=EnergySection)
+    numerics: NumericsSection = Field(default_factory=NumericsSection)
+    stages: Annotated[list[Stage], Field(min_length=1)]
+    output: OutputSection = Field(default_factory=OutputSection)
+
+    _base_dir: Path = PrivateAttr(default_factory=Path.cwd)
+    _source: str = PrivateAttr(default="")
+    _dim: int | None = PrivateAttr(default=None)
+
+    @property
+    def base_dir(self) -> Path:
+        """Folder relative paths in the case are taken from (the case file's)."""
+        return self._base_dir
+
+    @property
+    def source(self) -> str:
+        """Where the case came from (file path) for messages."""
+        return self._source
+
+    @property
+    def dim(self) -> int:
+        """Spatial dimension (2 or 3)."""
+        if self._dim is None:
+            self._dim = _particle_dim(self)
+        return self._dim
+
+    def stage_label(self, k: int) -> str:
+        """Display name of stage k."""
+        name = self.stages[k].name
+        return name if name else f"stage {k + 1}"
+
+    def wall_names(self) -> list[str]:
+        """Names of every wall, in the order the Simulation holds them."""
+        names = box_wall_names(self.dim) if self.box is not None else []
+        return names + [w.name for w in self.walls]
+
+    def resolved(self) -> dict:
+        """The case with every default filled in and paths made absolute (for TOML)."""
+        data = self.model_dump(mode="python", exclude_none=True)
+        if self.particles.generator == "file":
+            data["particles"]["path"] = str(self.particle_file())
+        return data
+
+    def particle_file(self) -> Path:
+        """Absolute path of the particle file (generator = 'file')."""
+        p = Path(self.particles.path).expanduser()
+        return p if p.is_absolute() else (self._base_dir / p).resolve()
+
+
+def box_wall_names(dim: int) -> list[str]:
+    """Names of the box walls in :func:`demstep.walls.box_walls` order."""
+    return [f"{a}{s}" for a in AXES[:dim] for s in "-+"]
+
+
+# ------------------------------------------------------------ error messages
+_BARE_KEY = re.compile(r"^[A-Za-z0-9_]+$")
+_DISCRIMINATORS = ("generator", "law")
+
+
+def _key_path(loc, data) -> str:
+    """'contact.mu', 'walls[0].normal', 'stages[1].walls."z+".velocity' from a pydantic
+    error location, skipping the union tags pydantic inserts."""
+    parts: list[str] = []
+    node = data
+    for pos, item in enumerate(loc):
+        last = pos == len(loc) - 1
+        if isinstance(node, dict) and isinstance(item, str):
+            if any(node.get(d) == item for d in _DISCRIMINATORS) and not last:
+                continue  # discriminated-union tag, e.g. 'lattice' in particles.lattice.radius
+            if item in node or last:
+                parts.append(item if _BARE_KEY.match(item) else f'"{item}"')
+                node = node.get(item)
+            continue
+        if isinstance(node, list) and isinstance(item, int):
+            parts.append(f"[{item}]")
+            node = node[item] if 0 <= item < len(node) else None
+            continue
+        # a tag of a plain union ('int', 'list[int]') or a path into a scalar
+    text = ""
+    for p in parts:
+        text += p if p.startswith("[") or not text else "." + p
+    return text or "(top level)"
+
+
+def _short(value, limit: int = 60) -> str:
+    text = repr(value).replace("\n", " ")
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _validation_message(exc: ValidationError, data) -> str:
+    errors = exc.errors()
+    # the most specific error first (unions report one error per alternative)
+    err = max(errors, key=lambda e: len(e["loc"]))
+    kind = err["type"]
+    key = _key_path(err["loc"], data)
+    ctx = err.get("ctx") or {}
+    if kind == "missing":
+        return f"{key}: required key is missing"
+    if kind == "extra_forbidden":
+        return f"{key}: unknown key"
+    if kind == "union_tag_not_found":
+        disc = str(ctx.get("discriminator", "")).strip("'")
+        return f"{key}.{disc}: required key is missing"
+    if kind == "union_tag_invalid":
+        disc = str(ctx.get("discriminator", "")).strip("'")
+        return (f"{key}.{disc}: must be one of {ctx.get('expected_tags')}, "
+                f"got {_short(ctx.get('tag'))}")
+    msg = err["msg"]
+    for prefix in ("Value error, ", "Assertion failed, "):
+        if msg.startswith(prefix):
+            msg = msg[len(prefix):]
+    msg = msg[:1].lower() + msg[1:]
+    return f"{key}: {msg}, got {_short(err.get('input'))}".replace("\n", " ")
+
+
+# --------------------------------------------------------------------- loading
+def load_case(path) -> Case:
+    """Read and validate a TOML case file (schema, physics and dimensions)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such case file")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    return case_from_text(text, base_dir=path.resolve().parent, source=str(path))
+
+
+def case_from_text(text: str, base_dir=None, source: str = "case") -> Case:
+    """Validate a case given as TOML text (relative paths from ``base_dir``)."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{source}: not valid TOML ({str(exc).splitlines()[0]})") from None
+    return case_from_dict(data, base_dir=base_dir, source=source)
+
+
+def case_from_dict(data: dict, base_dir=None, source: str = "case") -> Case:
+    """Validate a case given as a dict (as parsed from TOML)."""
+    try:
+        case = Case.model_validate(data)
+    except ValidationError as exc:
+        raise InputError(f"{source}: {_validation_message(exc, data)}") from None
+    case._base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
+    case._source = source
+    try:
+        check_case(case)
+    except InputError as exc:
+        raise InputError(f"{source}: {exc}") from None
+    return case
+
+
+def dump_case(case: Case) -> str:
+    """The resolved case as TOML text."""
+    import tomli_w
+
+    return tomli_w.dumps(case.resolved())
+
+
+# ------------------------------------------------------------------ semantics
+def _need_len(key: str, vec, dim: int):
+    if vec is not None and len(vec) != dim:
+        raise InputError(f"{key}: expected {dim} components for a {dim}D case, got {vec}")
+
+
+def _particle_dim(case: Case) -> int:
+    from demstep.packings import LATTICE_DIM
+
+    p = case.particles
+    if p.generator == "lattice":
+        return LATTICE_DIM[p.lattice]
+    if p.generator == "grid":
+        return len(p.count)
+    from demstep.io.formats import read_particle_file
+
+    path = case.particle_file()
+    if not path.is_file():
+        raise InputError(f"particles.path: no such file, got {p.path!r}")
+    return read_particle_file(path, p.format, p.snapshot).dim
+
+
+def check_case(case: Case) -> None:
+    """Cross-field checks the schema cannot express; raises InputError naming the key."""
+    p = case.particles
+    dim = case.dim
+    # particles
+    if p.generator == "lattice":
+        if isinstance(p.size, list):
+            _need_len("particles.size", p.size, dim)
+        from demstep.packings import lattice as make_lattice
+
+        nb = len(make_lattice(p.lattice, p.radius).basis)
+        sizes = p.size if isinstance(p.size, list) else [p.size] * dim
+        if nb * math.prod(sizes) > MAX_PARTICLES:
+            raise InputError(f"particles.size: more than {MAX_PARTICLES} particles, got {p.size}")
+        for key in ("origin", "clip_lower", "clip_upper"):
+            _need_len(f"particles.{key}", getattr(p, key), dim)
+    elif p.generator == "grid":
+        if math.prod(p.count) > MAX_PARTICLES:
+            raise InputError(f"particles.count: more than {MAX_PARTICLES} particles, got {p.count}")
+        _need_len("particles.origin", p.origin, dim)
+        if p.radius_min > p.radius_max:
+            raise InputError(f"particles.radius_min: must not exceed radius_max "
+                             f"({p.radius_max!r}), got {p.radius_min!r}")
+        gap = p.spacing * (1.0 - 2.0 * p.jitter)
+        if gap < 2.0 * p.radius_max:
+            raise InputError(f"particles.spacing: particles could overlap; need spacing x "
+                             f"(1 - 2 jitter) >= 2 radius_max = {2 * p.radius_max:g}, "
+                             f"got {p.spacing!r}")
+    elif p.density is None:
+        from demstep.io.formats import read_particle_file
+
+        if read_particle_file(case.particle_file(), p.format, p.snapshot).m is None:
+            raise InputError("particles.density: required (the file has no masses), got nothing")
+    if p.fixed is not None:
+        _need_len("particles.fixed.lower", p.fixed.lower, dim)
+        _need_len("particles.fixed.upper", p.fixed.upper, dim)
+        if (p.fixed.lower is None) != (p.fixed.upper is None):
+            raise InputError("particles.fixed: give both lower and upper, or neither")
+    # global vectors
+    _need_len("gravity", case.gravity, dim)
+    if case.periodic is not None and dim == 2 and case.periodic.z is not None:
+        raise InputError(f"periodic.z: a 2D case has no z axis, got {case.periodic.z!r}")
+    # timestep
+    ts = case.timestep
+    if ts.mode is None:
+        ts.mode = "fixed" if ts.dt is not None else "alpha"
+    if ts.mode == "fixed" and ts.dt is None:
+        raise InputError("timestep.dt: required with mode = 'fixed'")
+    if ts.mode == "fixed" and ts.alpha is not None:
+        raise InputError(f"timestep.alpha: not used with mode = 'fixed', got {ts.alpha!r}")
+    if ts.mode == "alpha":
+        if ts.dt is not None:
+            raise InputError(f"timestep.dt: not used with mode = 'alpha' (give dt or alpha), "
+                             f"got {ts.dt!r}")
+        if ts.alpha is None:
+            ts.alpha = 0.1
+    if ts.mode == "auto":
+        for key in ("dt", "alpha"):
+            if getattr(ts, key) is not None:
+                raise InputError(f"timestep.{key}: not used with mode = 'auto', "
+                                 f"got {getattr(ts, key)!r}")
+    # walls
+    names = box_wall_names(dim) if case.box is not None else []
+    if case.box is not None:
+        b = case.box
+        _need_len("box.lower", b.lower, dim)
+        _need_len("box.upper", b.upper, dim)
+        if (b.lower is None) != (b.upper is None):
+            raise InputError("box: give both lower and upper, or neither (particle extents)")
+        if b.lower is not None:
+            if b.margin:
+                raise InputError(f"box.margin: only used without lower/upper, got {b.margin!r}")
+            for k in range(dim):
+                if not b.upper[k] > b.lower[k]:
+                    raise InputError(f"box.upper: must exceed lower {b.lower} on every axis, "
+                                     f"got {b.upper}")
+        for wname, motion in b.walls.items():
+            if wname not in names:
+                raise InputError(f"box.walls.\"{wname}\": no such box wall (have "
+                                 f"{', '.join(names)})")
+            _check_motion(f'box.walls."{wname}"', motion, WallMotion(), dim, initial=True)
+    for k, w in enumerate(case.walls):
+        key = f"walls[{k}]"
+        if w.name in names:
+            raise InputError(f"{key}.name: duplicate wall name, got {w.name!r}")
+        names.append(w.name)
+        _need_len(f"{key}.point", w.point, dim)
+        _need_len(f"{key}.normal", w.normal, dim)
+        if not math.hypot(*w.normal) > 0:
+            raise InputError(f"{key}.normal: must be non-zero, got {w.normal}")
+        _check_motion(key, w, WallMotion(), dim, initial=True)
+    # stages: replay the wall changes so every stage's resulting state is checked
+    state: dict[str, WallMotion] = {}
+    for w in case.walls:
+        state[w.name] = w
+    if case.box is not None:
+        for nm in box_wall_names(dim):
+            state[nm] = case.box.walls.get(nm, WallMotion())
+    for k, stage in enumerate(case.stages):
+        key = f"stages[{k}]"
+        given = [n for n in ("steps", "duration", "until_kinetic_below")
+                 if getattr(stage, n) is not None]
+        if len(given) != 1:
+            raise InputError(f"{key}: give exactly one of steps, duration or "
+                             f"until_kinetic_below, got {given or 'none'}")
+        if stage.max_steps is not None and stage.until_kinetic_below is None:
+            raise InputError(f"{key}.max_steps: only used with until_kinetic_below, "
+                             f"got {stage.max_steps!r}")
+        _need_len(f"{key}.gravity", stage.gravity, dim)
+        for wname, change in stage.walls.items():
+            if wname not in state:
+                raise InputError(f"{key}.walls.\"{wname}\": no such wall (have "
+                                 f"{', '.join(state) or 'none'})")
+            state[wname] = _check_motion(f'{key}.walls."{wname}"', change, state[wname], dim,
+                                         initial=False)
+
+
+def _merged(before: WallMotion, change: WallMotion) -> WallMotion:
+    data = {k: v for k, v in before.model_dump().items() if k in WallMotion.model_fields}
+    data.update({k: v for k, v in change.model_dump().items()
+                 if v is not None and k in WallMotion.model_fields})
+    return WallMotion(**data)
+
+
+def _check_motion(key: str, change: WallMotion, before: WallMotion, dim: int,
+                  initial: bool) -> WallMotion:
+    """Check one wall's motion settings (merged over ``before``); returns the merge."""
+    _need_len(f"{key}.velocity", change.velocity, dim)
+    merged = _merged(before, change)
+    motion = merged.motion or "fixed"
+    if motion == "velocity" and merged.velocity is None:
+        raise InputError(f"{key}.velocity: required with motion = 'velocity'")
+    if motion == "velocity" and not initial and change.motion == "velocity" \
+            and change.velocity is None:
+        raise InputError(f"{key}.velocity: required when motion changes to 'velocity'")
+    if motion == "servo":
+        if merged.target_stress is None:
+            raise InputError(f"{key}.target_stress: required with motion = 'servo'")
+    return merged
+
+
+# -------------------------------------------------------------------- building
+def generate_particles(case: Case):
+    """Positions (N, dim) [L], radii (N,) [L] and masses (N,) [M] or None of the case."""
+    p = case.particles
+    dim = case.dim
+    m = None
+    if p.generator == "lattice":
+        from demstep.packings import lattice as make_lattice
+
+        lat = make_lattice(p.lattice, p.radius)
+        sizes = p.size if isinstance(p.size, list) else [p.size] * dim
+        grid = np.stack(np.meshgrid(*[np.arange(s) for s in sizes], indexing="ij"), -1)
+        origins = grid.reshape(-1, dim) * lat.cell
+        x = (origins[:, None, :] + lat.basis[None]).reshape(-1, dim)
+        if p.origin is not None:
+            x = x + np.asarray(p.origin)
+        keep = np.ones(len(x), dtype=bool)
+        tol = 1e-9 * p.radius
+        if p.clip_lower is not None:
+            keep &= (x >= np.asarray(p.clip_lower) - tol).all(axis=1)
+        if p.clip_upper is not None:
+            keep &= (x <= np.asarray(p.clip_upper) + tol).all(axis=1)
+        x = x[keep]
+        if len(x) == 0:
+            raise InputError(f"particles.clip_lower: no lattice site inside the clip box "
+                             f"[{p.clip_lower}, {p.clip_upper}]")
+        r = np.full(len(x), p.radius)
+    elif p.generator == "grid":
+        rng = np.random.default_rng(p.seed)
+        grid = np.stack(np.meshgrid(*[np.arange(c, dtype=float) for c in p.count],
+                                    indexing="ij"), -1).reshape(-1, dim)
+        x = p.spacing * (grid + 0.5 + rng.uniform(-p.jitter, p.jitter, grid.shape))
+        if p.origin is not None:
+            x = x + np.asarray(p.origin)
+        r = rng.uniform(p.radius_min, p.radius_max, len(x))
+    else:
+        from demstep.io.formats import read_particle_file
+
+        data = read_particle_file(case.particle_file(), p.format, p.snapshot)
+        x, r, m = data.x, data.r, data.m
+    return np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(r), m
+
+
+def _fixed_flags(case: Case, x: np.ndarray) -> np.ndarray:
+    flags = np.zeros(len(x), dtype=bool)
+    sel = case.particles.fixed
+    if sel is None:
+        return flags
+    for i in sel.indices:
+        if i >= len(x):
+            raise InputError(f"particles.fixed.indices: index beyond the {len(x)} particles, got {i}")
+        flags[i] = True
+    if sel.lower is not None:
+        flags |= ((x >= np.asarray(sel.lower)) & (x <= np.asarray(sel.upper))).all(axis=1)
+    return flags
+
+
+def build_law(case: Case):
+    """The contact law object of the case."""
+    from demstep.contact.laws import HertzMindlin, LinearSpring
+
+    c = case.contact
+    common = dict(mu=c.mu, mu_wall=c.mu_wall, damping_normal=c.damping_normal,
+                  damping_tangential=c.damping_tangential, restitution=c.restitution,
+                  restitution_tangential=c.restitution_tangential)
+    if c.law == "linear":
+        return LinearSpring(k_n=c.k_n, k_s=c.k_s, **common)
+    return HertzMindlin(youngs_modulus=c.youngs_modulus, poisson_ratio=c.poisson_ratio, **common)
+
+
+def _apply_motion(wall, motion: WallMotion):
+    """Set a Wall's motion settings (before the Simulation exists)."""
+    if motion.motion is not None:
+        wall.motion = motion.motion
+    if motion.velocity is not None:
+        wall.velocity = np.asarray(motion.velocity, dtype=np.float64)
+    for key in ("target_stress", "servo_gain", "servo_factor", "max_speed", "area", "friction"):
+        value = getattr(motion, key)
+        if value is not None and hasattr(wall, key):
+            setattr(wall, key, float(value))
+
+
+def build_walls(case: Case, x: np.ndarray, r: np.ndarray) -> list:
+    """The walls of the case: box walls first (x-, x+, ...), then [[walls]]."""
+    from demstep.walls import Wall, box_walls
+
+    walls = []
+    if case.box is not None:
+        b = case.box
+        if b.lower is not None:
+            lower, upper = np.asarray(b.lower), np.asarray(b.upper)
+        else:
+            lower = (x - r[:, None]).min(axis=0) - b.margin
+            upper = (x + r[:, None]).max(axis=0) + b.margin
+        walls = box_walls(lower, upper)
+        for w in walls:
+            if w.name in b.walls:
+                _apply_motion(w, b.walls[w.name])
+    for spec in case.walls:
+        w = Wall(np.asarray(spec.point), np.asarray(spec.normal), name=spec.name)
+        _apply_motion(w, spec)
+        walls.append(w)
+    return walls
+
+
+def build_simulation(case: Case, checkpoint_dir=None):
+    """A Simulation of the case at t = 0 (stage changes are applied by the runner,
+    :func:`apply_stage`)."""
+    from demstep.energy import EnergyMonitor
+    from demstep.engine import Damping, Simulation, TimeStep
+    from demstep.particles import Particles, particle_inertia
+
+    x, r, m = generate_particles(case)
+    fixed = _fixed_flags(case, x)
+    p = case.particles
+    if m is None or (p.generator == "file" and p.density is not None):
+        particles = Particles.from_density(x, r, p.density, fixed=fixed)
+    else:
+        particles = Particles(x, r, m, particle_inertia(m, r, x.shape[1]), fixed)
+    periodic = None
+    if case.periodic is not None:
+        periodic = [getattr(case.periodic, a) for a in AXES[: case.dim]]
+        if all(v is None for v in periodic):
+            periodic = None
+    ts = case.timestep
+    timestep = TimeStep(mode=ts.mode, dt=ts.dt, alpha=ts.alpha if ts.alpha is not None else 0.1,
+                        safety=ts.safety, method=ts.method, every=ts.every, growth=ts.growth,
+                        overlap=ts.overlap)
+    en = case.energy
+    sim = Simulation(
+        particles, build_law(case), walls=build_walls(case, x, r), gravity=case.gravity,
+        periodic=periodic, damping=Damping(case.damping.local, case.damping.viscous),
+        timestep=timestep, skin=case.numerics.skin,
+        energy=EnergyMonitor(eps=en.eps, every=en.every, action=en.action, floor=en.floor),
+        jump_limit=case.numerics.jump_limit, runaway_factor=case.numerics.runaway_factor,
+        checkpoint_dir=checkpoint_dir, rotation=case.rotation)
+    if case.mass_scaling != 1.0:
+        sim.scale_mass(case.mass_scaling)
+    return sim
+
+
+def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
+    """Apply the changes of stage ``k`` at its start. ``fresh`` False replays them on
+    a restart (the checkpoint then restores the state; the ledger is not reset)."""
+    from demstep.kernels import dem
+
+    stage = case.stages[k]
+    dim = sim.dim
+    if stage.mu is not None:
+        sim.law.mu = float(stage.mu)
+    if stage.mu_wall is not None:
+        sim.law.mu_wall = float(stage.mu_wall)
+    if stage.damping is not None:
+        if stage.damping.local is not None:
+            sim.damping.local = float(stage.damping.local)
+        if stage.damping.viscous is not None:
+            sim.damping.viscous = float(stage.damping.viscous)
+    if stage.gravity is not None:
+        sim.gravity[:] = 0.0
+        sim.gravity[:dim] = stage.gravity
+    codes = {"fixed": dem.WALL_FIXED, "velocity": dem.WALL_VELOCITY, "servo": dem.WALL_SERVO}
+    columns = {"target_stress": "S_TARGET", "servo_gain": "S_GAIN", "servo_factor": "S_FACTOR",
+               "max_speed": "S_MAXSPEED", "area": "S_AREA"}
+    index = {w.name: i for i, w in enumerate(sim.walls)}
+    for name, change in stage.walls.items():
+        i = index[name]
+        wall = sim.walls[i]
+        _apply_motion(wall, change)
+        sim.wall_motion[i] = codes[wall.motion]
+        if change.velocity is not None:
+            sim.wall_vel[i, :] = 0.0
+            sim.wall_vel[i, :dim] = change.velocity
+        if wall.motion == "fixed":
+            sim.wall_vel[i, :] = 0.0  # a fixed wall has no velocity (contact slip, dashpots)
+        for key, column in columns.items():
+            if hasattr(dem, column) and hasattr(wall, key):
+                sim.servo[i, getattr(dem, column)] = getattr(wall, key)
+    if fresh and stage.reset_ledger:
+        sim.ledger.reset()

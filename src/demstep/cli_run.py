@@ -1,0 +1,117 @@
+"""``demstep run`` and ``demstep plot``: subcommands for :mod:`demstep.cli`.
+
+Register them in ``demstep.cli.build_parser``::
+
+    from demstep.cli_run import add_plot_parser, add_run_parser
+    add_run_parser(sub)
+    add_plot_parser(sub)
+
+Heavy modules are imported only when a subcommand runs. Bad input raises InputError
+(the main CLI prints ``demstep: error: ...`` and exits 2) before anything is written.
+Exit status of ``run``: 0 completed, 1 diverged or stopped by the energy monitor, 130
+interrupted (SIGINT/SIGTERM; a checkpoint was saved).
+
+Until the registration is in place, ``python -m demstep.cli_run run CASE --out DIR``
+runs them alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from demstep.errors import InputError
+
+EXIT_STATUS = {"completed": 0, "diverged": 1, "energy_stop": 1, "interrupted": 130}
+
+
+def _non_negative_int(text):
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"max-steps: not an integer: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"max-steps: must be >= 0, got {text!r}")
+    return value
+
+
+def add_run_parser(subparsers):
+    """``demstep run CASE.toml --out DIR [--quiet] [--log-level L] [--restart CKPT]``."""
+    p = subparsers.add_parser(
+        "run", help="run a TOML case file: stages, outputs, checkpoints",
+        description="Run the stages of a TOML case file, writing the resolved case, a CSV "
+        "history, VTK frames and checkpoints into --out. The whole case is checked before "
+        "the folder is created. SIGINT/SIGTERM save a checkpoint and stop; --restart "
+        "continues bit for bit.")
+    p.add_argument("case", help="case file (TOML; see demstep.case for the keys)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--log-level", default="INFO", metavar="LEVEL",
+                   help="DEBUG, INFO (default), WARNING or ERROR")
+    p.add_argument("--restart", metavar="CHECKPOINT",
+                   help="continue from a checkpoint (.npz, or a run folder: its newest)")
+    p.add_argument("--max-steps", type=_non_negative_int, default=None, metavar="N",
+                   help="run at most N steps per stage (previews, smoke tests)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="allow a non-empty --out folder without --restart")
+    p.set_defaults(func=cmd_run)
+    return p
+
+
+def add_plot_parser(subparsers):
+    """``demstep plot DIR``."""
+    p = subparsers.add_parser(
+        "plot", help="plot a run's history (energies, energy error, wall stresses, dt)",
+        description="Draw PNG figures from DIR/history.csv into DIR/plots.")
+    p.add_argument("dir", help="output folder of 'demstep run'")
+    p.set_defaults(func=cmd_plot)
+    return p
+
+
+def cmd_run(args) -> int:
+    from demstep.case import load_case
+    from demstep.runner import run_case
+
+    case = load_case(args.case)
+    result = run_case(case, args.out, quiet=args.quiet, log_level=args.log_level,
+                      restart=args.restart, max_steps=args.max_steps, overwrite=args.overwrite)
+    stream = sys.stdout if result.ok else sys.stderr
+    print(f"demstep run: {result.status}: {result.message}", file=stream)
+    return EXIT_STATUS.get(result.status, 1)
+
+
+def cmd_plot(args) -> int:
+    from demstep.plotting_run import plot_run
+
+    for path in plot_run(args.dir):
+        print(path)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """A parser with only ``run`` and ``plot`` (standalone use and tests)."""
+    from demstep.cli import _Parser
+
+    parser = _Parser(prog="demstep", description="Explicit DEM with a certified time step.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    add_run_parser(sub)
+    add_plot_parser(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Entry point of ``python -m demstep.cli_run``: as ``demstep.cli.main``."""
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        print(f"demstep: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("demstep: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,524 @@
+"""Other codes' particle files: readers and writers.
+
+Three text formats carry particle centres [L] and radii [L]:
+
+* **CSV** (demstep's own): header ``x,y,r`` (2D) or ``x,y,z,r`` (3D), optional ``m``
+  column (mass [M]); any column order, extra columns ignored.
+* **LIGGGHTS / LAMMPS** ``dump custom`` text files: repeated snapshots of::
+
+      ITEM: TIMESTEP
+      1000
+      ITEM: NUMBER OF ATOMS
+      150
+      ITEM: BOX BOUNDS pp pp ff
+      0.0 200.0
+      0.0 200.0
+      0.0 400.0
+      ITEM: ATOMS id type x y z radius vx vy vz mass
+
+  Positions from ``x y z`` (or unwrapped ``xu yu zu``, or scaled ``xs ys zs`` mapped
+  through the box bounds), the radius from ``radius`` (or ``diameter``), optional
+  ``mass``, velocities ``vx vy vz`` and angular velocities ``omegax omegay omegaz``.
+  Rows are sorted by ``id``. A dump without a ``z`` column is read as 2D.
+* **YADE** text exports (``yade.export.text``, read by ``ymport.text``): one particle
+  per line, ``x y z r`` separated by blanks, further columns (e.g. a material id)
+  ignored, ``#`` starts a comment. A ``#format x_y_z_r...`` header names the columns.
+  demstep also writes and reads 2D files as ``x y r`` (header ``#format x_y_r``);
+  YADE itself is 3D only.
+
+Every reader raises :class:`~demstep.errors.InputError` with one line naming the
+file, the line and the field at fault.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from demstep.errors import InputError
+
+#: format names understood by :func:`read_particle_file` / :func:`write_particle_file`
+FORMATS = ("csv", "liggghts", "yade")
+
+_EXTENSIONS = {
+    ".csv": "csv",
+    ".liggghts": "liggghts", ".dump": "liggghts", ".lammpstrj": "liggghts",
+    ".txt": "yade", ".yade": "yade", ".spheres": "yade",
+}
+
+
+@dataclass
+class ParticleData:
+    """Particles read from a file: centres ``x`` (N, dim) [L], radii ``r`` (N,) [L],
+    masses ``m`` (N,) [M] or None, velocities ``v`` (N, dim) [L/T] or None, angular
+    velocities ``w`` (N, 3) [1/T] or None; LIGGGHTS ids/types, the dump's time step
+    number and box bounds (dim, 2) [L] when the file has them."""
+
+    x: np.ndarray
+    r: np.ndarray
+    m: np.ndarray | None = None
+    v: np.ndarray | None = None
+    w: np.ndarray | None = None
+    ids: np.ndarray | None = None
+    types: np.ndarray | None = None
+    timestep: int | None = None
+    box: np.ndarray | None = None
+    source: str = ""
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def dim(self) -> int:
+        return self.x.shape[1]
+
+
+# --------------------------------------------------------------------- helpers
+
+def _number(text: str, path, line: int, column: str) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}:{line}: column {column!r}: not a number: {text!r}") from None
+    if not np.isfinite(value):
+        raise InputError(f"{path}:{line}: column {column!r}: not finite: {text!r}")
+    return value
+
+
+def _integer(text: str, path, line: int, column: str) -> int:
+    try:
+        return int(text)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}:{line}: {column}: not an integer: {text!r}") from None
+
+
+def _check_positive(values, path, lines, column: str, what: str):
+    bad = np.flatnonzero(~(values > 0))
+    if len(bad):
+        k = bad[0]
+        raise InputError(f"{path}:{lines[k]}: column {column!r}: {what} must be > 0, "
+                         f"got {values[k]:g}")
+
+
+def _read_lines(path) -> list[str]:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return fh.read().splitlines()
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+
+
+def _write_text_atomically(path, text: str) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def _columns(x, r) -> tuple[np.ndarray, np.ndarray]:
+    x = np.asarray(x, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64).reshape(-1)
+    if x.ndim != 2 or x.shape[1] not in (2, 3) or x.shape[0] != r.shape[0]:
+        raise InputError(f"x: expected an (N, 2) or (N, 3) array matching {r.shape[0]} radii, "
+                         f"got shape {x.shape}")
+    return x, r
+
+
+# ------------------------------------------------------------------------ CSV
+
+def read_csv(path) -> ParticleData:
+    """CSV with header x,y[,z],r[,m] (any column order, extra columns ignored)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            reader = csv.reader(fh)
+            header = next(reader, None)
+            if header is None:
+                raise InputError(f"{path}: empty file")
+            header = [h.strip().lower() for h in header]
+            dim = 3 if "z" in header else 2
+            needed = ["x", "y", "r"] if dim == 2 else ["x", "y", "z", "r"]
+            missing = [c for c in needed if c not in header]
+            if missing:
+                raise InputError(f"{path}:1: missing column {missing[0]!r} (header must be "
+                                 f"x,y,r or x,y,z,r, optional m; got {','.join(header)})")
+            cols = needed + (["m"] if "m" in header else [])
+            index = [header.index(c) for c in cols]
+            rows, lines = [], []
+            for line, row in enumerate(reader, start=2):
+                if not row or all(not c.strip() for c in row):
+                    continue
+                if len(row) < len(header):
+                    raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
+                rows.append([_number(row[k], path, line, c) for k, c in zip(index, cols)])
+                lines.append(line)
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    if not rows:
+        raise InputError(f"{path}: no particles")
+    data = np.array(rows)
+    x, r = data[:, :dim], data[:, dim]
+    _check_positive(r, path, lines, "r", "radius")
+    m = None
+    if "m" in cols:
+        m = data[:, dim + 1]
+        _check_positive(m, path, lines, "m", "mass")
+    return ParticleData(np.ascontiguousarray(x), r.copy(), m, source=str(path))
+
+
+def write_csv(path, x, r, m=None) -> Path:
+    """Write particles as CSV (header x,y,r or x,y,z,r, plus m if given), atomically."""
+    x, r = _columns(x, r)
+    names = ["x", "y", "z"][: x.shape[1]] + ["r"]
+    cols = [x, r[:, None]]
+    if m is not None:
+        names.append("m")
+        cols.append(np.asarray(m, dtype=np.float64).reshape(-1, 1))
+    data = np.hstack(cols)
+    lines = [",".join(names)] + [",".join(repr(float(v)) for v in row) for row in data]
+    return _write_text_atomically(path, "\n".join(lines) + "\n")
+
+
+# ------------------------------------------------------------------- LIGGGHTS
+
+@dataclass
+class _Snapshot:
+    timestep: int
+    box: np.ndarray
+    columns: list[str]
+    rows: list[str]
+    first_line: int  # line number of the first atom row
+
+
+def _liggghts_snapshots(path) -> list[_Snapshot]:
+    lines = _read_lines(path)
+    snaps: list[_Snapshot] = []
+    k = 0
+    n_lines = len(lines)
+
+    def expect(i: int, item: str) -> str:
+        if i >= n_lines:
+            raise InputError(f"{path}:{i + 1}: expected 'ITEM: {item}', got end of file")
+        text = lines[i].strip()
+        if not text.upper().startswith(f"ITEM: {item}"):
+            raise InputError(f"{path}:{i + 1}: expected 'ITEM: {item}', got {text[:40]!r}")
+        return text
+
+    while k < n_lines:
+        if not lines[k].strip():
+            k += 1
+            continue
+        expect(k, "TIMESTEP")
+        if k + 1 >= n_lines:
+            raise InputError(f"{path}:{k + 2}: TIMESTEP: missing value")
+        timestep = _integer(lines[k + 1].strip(), path, k + 2, "TIMESTEP")
+        expect(k + 2, "NUMBER OF ATOMS")
+        if k + 3 >= n_lines:
+            raise InputError(f"{path}:{k + 4}: NUMBER OF ATOMS: missing value")
+        n_atoms = _integer(lines[k + 3].strip(), path, k + 4, "NUMBER OF ATOMS")
+        if n_atoms < 0:
+            raise InputError(f"{path}:{k + 4}: NUMBER OF ATOMS: must be >= 0, got {n_atoms}")
+        expect(k + 4, "BOX BOUNDS")
+        box = np.zeros((3, 2))
+        for a in range(3):
+            i = k + 5 + a
+            if i >= n_lines:
+                raise InputError(f"{path}:{i + 1}: BOX BOUNDS: expected 3 lines of bounds")
+            parts = lines[i].split()
+            if len(parts) < 2:
+                raise InputError(f"{path}:{i + 1}: BOX BOUNDS: expected 'lo hi', got {lines[i].strip()!r}")
+            box[a] = [_number(parts[0], path, i + 1, f"box {'xyz'[a]}lo"),
+                      _number(parts[1], path, i + 1, f"box {'xyz'[a]}hi")]
+        header = expect(k + 8, "ATOMS")
+        columns = header.split()[2:]
+        if not columns:
+            raise InputError(f"{path}:{k + 9}: ITEM: ATOMS: no column names")
+        first = k + 9
+        if first + n_atoms > n_lines:
+            raise InputError(f"{path}:{n_lines}: expected {n_atoms} atom rows after line "
+                             f"{first}, the file ends after {n_lines - first}")
+        snaps.append(_Snapshot(timestep, box, [c.lower() for c in columns],
+                               lines[first:first + n_atoms], first + 1))
+        k = first + n_atoms
+    if not snaps:
+        raise InputError(f"{path}: no snapshot (expected 'ITEM: TIMESTEP')")
+    return snaps
+
+
+def liggghts_timesteps(path) -> list[int]:
+    """The TIMESTEP of every snapshot in a LIGGGHTS dump file."""
+    return [s.timestep for s in _liggghts_snapshots(path)]
+
+
+def read_liggghts_dump(path, snapshot: int = -1, timestep: int | None = None) -> ParticleData:
+    """Read one snapshot of a LIGGGHTS ``dump custom`` file: by position ``snapshot``
+    (0 first, -1 last, the default) or by its ``timestep`` number."""
+    path = Path(path)
+    snaps = _liggghts_snapshots(path)
+    if timestep is not None:
+        found = [s for s in snaps if s.timestep == timestep]
+        if not found:
+            raise InputError(f"{path}: timestep: no snapshot at TIMESTEP {timestep} "
+                             f"(have {', '.join(str(s.timestep) for s in snaps[:10])})")
+        snap = found[-1]
+    else:
+        if not -len(snaps) <= snapshot < len(snaps):
+            raise InputError(f"{path}: snapshot: must lie in [{-len(snaps)}, {len(snaps) - 1}], "
+                             f"got {snapshot}")
+        snap = snaps[snapshot]
+    cols = snap.columns
+    if not snap.rows:
+        raise InputError(f"{path}:{snap.first_line - 1}: no particles in the snapshot")
+
+    def pick(*names):
+        for nm in names:
+            if nm in cols:
+                return nm
+        return None
+
+    axes = []
+    scaled = []
+    for a in "xyz":
+        nm = pick(a, f"{a}u", f"{a}s", f"{a}su")
+        if nm is None and a != "z":
+            raise InputError(f"{path}:{snap.first_line - 1}: ITEM: ATOMS: missing column {a!r}")
+        if nm is not None:
+            axes.append(nm)
+            scaled.append(nm.endswith("s") or nm.endswith("su"))
+    radius_col = pick("radius", "diameter")
+    if radius_col is None:
+        raise InputError(f"{path}:{snap.first_line - 1}: ITEM: ATOMS: missing column 'radius' "
+                         f"(or 'diameter')")
+    wanted = axes + [radius_col]
+    optional = [c for c in ("id", "type", "mass", "vx", "vy", "vz", "omegax", "omegay", "omegaz")
+                if c in cols]
+    index = {c: cols.index(c) for c in wanted + optional}
+    data = {c: np.empty(len(snap.rows)) for c in index}
+    lines = np.arange(snap.first_line, snap.first_line + len(snap.rows))
+    for row_k, text in enumerate(snap.rows):
+        parts = text.split()
+        line = snap.first_line + row_k
+        if len(parts) < len(cols):
+            raise InputError(f"{path}:{line}: expected {len(cols)} values, got {len(parts)}")
+        for c, i in index.items():
+            data[c][row_k] = _number(parts[i], path, line, c)
+    dim = len(axes)
+    x = np.empty((len(snap.rows), dim))
+    for a, (nm, s) in enumerate(zip(axes, scaled)):
+        lo, hi = snap.box[a]
+        x[:, a] = lo + data[nm] * (hi - lo) if s else data[nm]
+    r = data[radius_col] * (0.5 if radius_col == "diameter" else 1.0)
+    _check_positive(r, path, lines, radius_col, "radius")
+    order = np.argsort(data["id"], kind="stable") if "id" in data else np.arange(len(r))
+    if "id" in data:
+        ids = data["id"][order]
+        dup = np.flatnonzero(np.diff(ids) == 0)
+        if len(dup):
+            raise InputError(f"{path}:{lines[order[dup[0] + 1]]}: column 'id': duplicate id "
+                             f"{int(ids[dup[0]])}")
+    m = None
+    if "mass" in data:
+        m = data["mass"]
+        _check_positive(m, path, lines, "mass", "mass")
+        m = m[order]
+    v = None
+    if all(c in data for c in ("vx", "vy", "vz")[:dim]):
+        v = np.stack([data[c] for c in ("vx", "vy", "vz")[:dim]], axis=1)[order]
+    w = None
+    if all(c in data for c in ("omegax", "omegay", "omegaz")):
+        w = np.stack([data[c] for c in ("omegax", "omegay", "omegaz")], axis=1)[order]
+    return ParticleData(
+        np.ascontiguousarray(x[order]), r[order].copy(), m, v, w,
+        ids=data["id"][order].astype(np.int64) if "id" in data else None,
+        types=data["type"][order].astype(np.int64) if "type" in data else None,
+        timestep=snap.timestep, box=snap.box[:dim].copy(), source=str(path))
+
+
+def format_liggghts_snapshot(x, r, m=None, v=None, timestep: int = 0, box=None, ids=None,
+                             types=None) -> str:
+    """One ``dump custom`` snapshot as text: columns ``id type x y z radius`` then
+    ``mass`` and ``vx vy vz`` when given. 2D data is written with z = 0. ``box``
+    (dim, 2) [L] defaults to the particles' bounding box (centre -/+ radius)."""
+    x, r = _columns(x, r)
+    n, dim = x.shape
+    x3 = np.zeros((n, 3))
+    x3[:, :dim] = x
+    if box is None:
+        box = np.stack([(x - r[:, None]).min(axis=0), (x + r[:, None]).max(axis=0)], axis=1)
+    box = np.asarray(box, dtype=np.float64).reshape(-1, 2)
+    box3 = np.zeros((3, 2))
+    box3[:, 1] = 1.0
+    box3[: box.shape[0]] = box
+    if dim == 2 and box.shape[0] == 2:
+        box3[2] = (-0.5, 0.5)
+    ids = np.arange(1, n + 1) if ids is None else np.asarray(ids, dtype=np.int64)
+    types = np.ones(n, dtype=np.int64) if types is None else np.asarray(types, dtype=np.int64)
+    names = ["id", "type", "x", "y", "z", "radius"]
+    cols = [x3, r[:, None]]
+    if m is not None:
+        names.append("mass")
+        cols.append(np.asarray(m, dtype=np.float64).reshape(n, 1))
+    if v is not None:
+        v3 = np.zeros((n, 3))
+        v3[:, :dim] = np.asarray(v, dtype=np.float64).reshape(n, -1)[:, :dim]
+        names += ["vx", "vy", "vz"]
+        cols.append(v3)
+    data = np.hstack(cols)
+    out = ["ITEM: TIMESTEP", str(int(timestep)), "ITEM: NUMBER OF ATOMS", str(n),
+           "ITEM: BOX BOUNDS " + ("pp pp pp" if dim == 3 else "pp pp ff")]
+    out += [f"{lo!r} {hi!r}" for lo, hi in box3.tolist()]
+    out.append("ITEM: ATOMS " + " ".join(names))
+    for i, t, row in zip(ids.tolist(), types.tolist(), data.tolist()):
+        out.append(f"{i} {t} " + " ".join(repr(float(vv)) for vv in row))
+    return "\n".join(out) + "\n"
+
+
+def write_liggghts_dump(path, x, r, m=None, v=None, timestep: int = 0, box=None, ids=None,
+                        types=None, append: bool = False) -> Path:
+    """Write (or, with ``append``, add) one snapshot to a LIGGGHTS dump file."""
+    text = format_liggghts_snapshot(x, r, m, v, timestep, box, ids, types)
+    path = Path(path)
+    if append and path.exists():
+        with open(path, "a", encoding="utf-8") as fh:
+            fh.write(text)
+        return path
+    return _write_text_atomically(path, text)
+
+
+# ----------------------------------------------------------------------- YADE
+
+def read_yade_text(path) -> ParticleData:
+    """A YADE text export: ``x y z r`` per line (``x y r`` for demstep's 2D files),
+    ``#`` comments, extra columns ignored; ``#format x_y_z_r...`` names the columns."""
+    path = Path(path)
+    lines = _read_lines(path)
+    fmt = None
+    rows, numbers = [], []
+    ncols = None
+    for line_no, text in enumerate(lines, start=1):
+        stripped = text.strip()
+        if stripped.startswith("#"):
+            body = stripped.lstrip("#").strip()
+            if body.lower().startswith("format") and fmt is None and not rows:
+                spec = body[len("format"):].strip()
+                fmt = [c.strip().lower() for c in spec.split("_") if c.strip()]
+            continue
+        if not stripped:
+            continue
+        parts = stripped.split("#", 1)[0].split()
+        if fmt is None and ncols is None:
+            ncols = len(parts)
+            if ncols < 3:
+                raise InputError(f"{path}:{line_no}: expected 'x y z r' (or 'x y r'), "
+                                 f"got {len(parts)} values")
+        rows.append(parts)
+        numbers.append(line_no)
+    if not rows:
+        raise InputError(f"{path}: no particles")
+    if fmt is not None:
+        if "r" not in fmt or "x" not in fmt or "y" not in fmt:
+            raise InputError(f"{path}: #format: must name x, y and r columns, got {'_'.join(fmt)!r}")
+        names = ["x", "y"] + (["z"] if "z" in fmt else []) + ["r"]
+        index = [fmt.index(c) for c in names]
+        width = len(fmt)
+    else:
+        names = ["x", "y", "r"] if ncols == 3 else ["x", "y", "z", "r"]
+        index = list(range(len(names)))
+        width = len(names)
+    data = np.empty((len(rows), len(names)))
+    for k, (parts, line_no) in enumerate(zip(rows, numbers)):
+        if len(parts) < width:
+            raise InputError(f"{path}:{line_no}: expected {width} values, got {len(parts)}")
+        for c, (i, nm) in enumerate(zip(index, names)):
+            data[k, c] = _number(parts[i], path, line_no, nm)
+    dim = len(names) - 1
+    r = data[:, dim].copy()
+    _check_positive(r, path, numbers, "r", "radius")
+    return ParticleData(np.ascontiguousarray(data[:, :dim]), r, source=str(path))
+
+
+def write_yade_text(path, x, r) -> Path:
+    """Write particles as a YADE text export (``#format x_y_z_r``; 2D: ``x_y_r``)."""
+    x, r = _columns(x, r)
+    dim = x.shape[1]
+    header = "#format x_y_z_r" if dim == 3 else "#format x_y_r"
+    data = np.hstack([x, r[:, None]])
+    lines = [header] + [" ".join(repr(float(v)) for v in row) for row in data]
+    return _write_text_atomically(path, "\n".join(lines) + "\n")
+
+
+# ------------------------------------------------------------------- dispatch
+
+def detect_format(path) -> str:
+    """The format of ``path``: by extension (.csv; .liggghts/.dump/.lammpstrj;
+    .txt/.yade/.spheres), else by content (a first line 'ITEM:' is a LIGGGHTS dump,
+    a comma in the first line CSV, else YADE text)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in _EXTENSIONS:
+        return _EXTENSIONS[suffix]
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            first = ""
+            for text in fh:
+                if text.strip():
+                    first = text.strip()
+                    break
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    if first.upper().startswith("ITEM:"):
+        return "liggghts"
+    if "," in first:
+        return "csv"
+    return "yade"
+
+
+def read_particle_file(path, format: str = "auto", snapshot: int = -1) -> ParticleData:
+    """Read a particle file of any supported ``format`` ('auto' detects it)."""
+    path = Path(path)
+    if format == "auto":
+        format = detect_format(path)
+    if format == "csv":
+        return read_csv(path)
+    if format == "liggghts":
+        return read_liggghts_dump(path, snapshot=snapshot)
+    if format == "yade":
+        return read_yade_text(path)
+    raise InputError(f"format: must be auto, {', '.join(FORMATS)}, got {format!r}")
+
+
+def write_particle_file(path, x, r, m=None, format: str = "auto") -> Path:
+    """Write particles in ``format`` ('auto': from the extension, CSV if unknown)."""
+    path = Path(path)
+    if format == "auto":
+        format = _EXTENSIONS.get(path.suffix.lower(), "csv")
+    if format == "csv":
+        return write_csv(path, x, r, m)
+    if format == "liggghts":
+        return write_liggghts_dump(path, x, r, m)
+    if format == "yade":
+        return write_yade_text(path, x, r)
+    raise InputError(f"format: must be auto, {', '.join(FORMATS)}, got {format!r}")

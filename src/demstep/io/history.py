@@ -1,0 +1,169 @@
+"""The run history: one CSV row every N steps.
+
+Columns, in order:
+
+* ``step``, ``time`` [T], ``dt`` [T] (the step in use), ``dt_estimate`` [T] (the last
+  critical-step estimate of ``TimeStep(mode='auto')``; NaN otherwise);
+* every term of the energy ledger [M L^2/T^2] (:meth:`EnergyLedger.as_dict`), which
+  ends with ``energy_error`` (the normalized difference of the paper's eq. 22);
+* ``n_contacts`` (particle-particle plus particle-wall);
+* per wall ``NAME.fx``, ``NAME.fy``(, ``NAME.fz``) the force the particles exert on
+  the wall [M L/T^2] (2D: per unit thickness), ``NAME.stress`` its compressive normal
+  stress [M/(L T^2)] (:meth:`Simulation.wall_stress`; NaN when the loaded area is
+  unknown) and ``NAME.x``, ``NAME.y``(, ``NAME.z``) the position of its reference
+  point [L];
+* any extra columns given to the writer (the runner adds ``stage``).
+
+Floats are written with ``repr`` (shortest round-trip form), so a history read back
+is bit-identical to the values of the run. A writer is a callable that plugs into
+``sim.every(n, writer)``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from demstep.errors import InputError
+
+AXES = "xyz"
+
+
+def history_columns(sim, extra: dict | None = None) -> list[str]:
+    """Column names of the history of ``sim`` (plus the keys of ``extra``)."""
+    cols = ["step", "time", "dt", "dt_estimate"]
+    cols += list(sim.ledger.as_dict())
+    cols.append("n_contacts")
+    for wall in sim.walls:
+        cols += [f"{wall.name}.f{a}" for a in AXES[: sim.dim]]
+        cols.append(f"{wall.name}.stress")
+        cols += [f"{wall.name}.{a}" for a in AXES[: sim.dim]]
+    cols += list(extra or {})
+    return cols
+
+
+def history_row(sim, extra: dict | None = None) -> list:
+    """The values of one history row for the current state of ``sim``."""
+    nan = math.nan
+    row = [sim.step, float(sim.time), nan if sim.dt is None else float(sim.dt),
+           nan if sim.dt_estimate is None else float(sim.dt_estimate)]
+    row += [float(v) for v in sim.ledger.as_dict().values()]
+    row.append(sim.n_contacts)
+    if sim.walls:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            stress = sim.wall_stress()
+        for k in range(len(sim.walls)):
+            row += [float(v) for v in sim.wall_force[k, : sim.dim]]
+            row.append(float(stress[k]))
+            row += [float(v) for v in sim.wall_point[k, : sim.dim]]
+    row += [fn(sim) for fn in (extra or {}).values()]
+    return row
+
+
+def _text(value) -> str:
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
+    return str(value)
+
+
+class HistoryWriter:
+    """Append history rows to a CSV file.
+
+    ``extra`` maps additional column names to functions of the simulation. With
+    ``resume_after_step`` (a restart) an existing file keeps its rows up to that step
+    and new rows are appended; otherwise the file is started afresh."""
+
+    def __init__(self, path, sim, extra: dict[str, Callable] | None = None,
+                 resume_after_step: int | None = None):
+        self.path = Path(path)
+        self.extra = dict(extra or {})
+        self.columns = history_columns(sim, self.extra)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if resume_after_step is not None and self.path.exists():
+            self._truncate(resume_after_step)
+        else:
+            _write_atomically(self.path, ",".join(self.columns) + "\n")
+        self._fh = open(self.path, "a", newline="", encoding="utf-8")
+        self._csv = csv.writer(self._fh, lineterminator="\n")
+        self.last_step = None
+
+    def _truncate(self, step: int):
+        with open(self.path, newline="", encoding="utf-8") as fh:
+            reader = csv.reader(fh)
+            header = next(reader, None)
+            if header != self.columns:
+                raise InputError(f"{self.path}: the history's columns do not match this run")
+            kept = [row for row in reader if row and int(row[0]) <= step]
+        text = ",".join(self.columns) + "\n" + "".join(",".join(r) + "\n" for r in kept)
+        _write_atomically(self.path, text)
+
+    def write(self, sim):
+        """Write one row for the current state (once per step)."""
+        if self.last_step == sim.step:
+            return
+        self._csv.writerow([_text(v) for v in history_row(sim, self.extra)])
+        self._fh.flush()
+        self.last_step = sim.step
+
+    __call__ = write
+
+    def close(self):
+        if not self._fh.closed:
+            self._fh.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def read_history(path) -> dict[str, np.ndarray]:
+    """Columns of a history CSV as float arrays, keyed by column name."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such history file")
+    with open(path, newline="", encoding="utf-8") as fh:
+        reader = csv.reader(fh)
+        header = next(reader, None)
+        if not header:
+            raise InputError(f"{path}: empty history file")
+        rows = []
+        for line, row in enumerate(reader, start=2):
+            if not row:
+                continue
+            if len(row) != len(header):
+                raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
+            try:
+                rows.append([float(v) for v in row])
+            except ValueError:
+                bad = next(i for i, v in enumerate(row) if not _is_float(v))
+                raise InputError(f"{path}:{line}: column {header[bad]!r}: not a number: "
+                                 f"{row[bad]!r}") from None
+    data = np.array(rows, dtype=np.float64).reshape(len(rows), len(header))
+    return {name: data[:, k] for k, name in enumerate(header)}
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
+def _write_atomically(path: Path, text: str):
+    fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)

@@ -1,0 +1,266 @@
+"""VTK output for ParaView / PyVista: particles, contact network and walls per frame,
+with ``.pvd`` collection files that make each a time series.
+
+Each frame writes up to three unstructured-grid files (``.vtu``, via meshio):
+
+* ``particles_STEP.vtu``: one vertex per particle centre [L] with point data
+  ``radius`` [L], ``mass`` [M], ``velocity`` [L/T] (the central-difference half-step
+  velocity), ``angular_velocity`` [1/T], ``force`` [M L/T^2] and ``torque``
+  [M L^2/T^2] (contact forces of the last force evaluation), ``fixed`` (0/1) and
+  ``id``. Disks (2D) lie in the plane z = 0. In ParaView: Glyph, sphere, scale by
+  ``radius`` (scale factor 2: the glyph's default size is a diameter of 1).
+* ``contacts_STEP.vtu``: a line between the centres of each pair in contact, with cell
+  data ``normal_force`` [M L/T^2] (compression positive) and ``force`` (the force on
+  the second particle). Pairs that touch across a periodic boundary are left out.
+  A frame without contacts holds one zero-length line (meshio cannot read back a grid
+  without cells).
+* ``walls_STEP.vtu``: each wall as a quad (3D) or a line (2D) spanning the specimen,
+  with cell data ``force`` (exerted by the particles), ``stress``, ``velocity`` and
+  ``wall_id``.
+
+``particles.pvd``, ``contacts.pvd`` and ``walls.pvd`` list the frames with their
+simulated times [T]; they are rewritten atomically after every frame.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from demstep.errors import InputError
+
+SERIES = ("particles", "contacts", "walls")
+_FRAME = re.compile(r"_(\d+)\.vtu$")
+
+
+def _meshio():
+    import meshio
+
+    return meshio
+
+
+def particle_mesh(sim):
+    """Particles as vertices with their state as point data."""
+    meshio = _meshio()
+    n = len(sim.r)
+    return meshio.Mesh(
+        np.array(sim.x, dtype=np.float64), [("vertex", np.arange(n).reshape(-1, 1))],
+        point_data={
+            "radius": np.array(sim.r, dtype=np.float64),
+            "mass": np.array(sim.m, dtype=np.float64),
+            "velocity": np.array(sim.v, dtype=np.float64),
+            "angular_velocity": np.array(sim.w, dtype=np.float64),
+            "force": np.array(sim.force, dtype=np.float64),
+            "torque": np.array(sim.torque, dtype=np.float64),
+            "fixed": sim.fixed.astype(np.int32),
+            "id": np.arange(n, dtype=np.int64),
+        })
+
+
+def contact_lines(sim):
+    """Pairs in contact (i, j) (C, 2), their normal force (C,) [M L/T^2] (compression
+    positive) and force on j (C, 3); pairs across periodic boundaries left out."""
+    if not getattr(sim, "_pairs_built", False) or len(sim.pi) == 0:
+        return np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.zeros((0, 3))
+    on = sim.contact_flag.astype(bool)
+    i, j = sim.pi[on], sim.pj[on]
+    force = sim.pf[on]
+    d = sim.x[j] - sim.x[i]
+    wrapped = np.zeros(len(i), dtype=bool)
+    for k in range(3):
+        length = sim.periodic_len[k]
+        if length > 0:
+            shift = length * np.rint(d[:, k] / length)
+            wrapped |= shift != 0
+            d[:, k] -= shift
+    dist = np.linalg.norm(d, axis=1)
+    normal = d / np.where(dist > 0, dist, 1.0)[:, None]
+    f_n = np.einsum("ck,ck->c", force, normal)
+    keep = ~wrapped
+    return np.stack([i[keep], j[keep]], axis=1), f_n[keep], force[keep]
+
+
+def contact_mesh(sim):
+    """The contact network as lines between centres."""
+    meshio = _meshio()
+    lines, f_n, force = contact_lines(sim)
+    if len(lines) == 0:
+        lines, f_n, force = np.zeros((1, 2), dtype=np.int64), np.zeros(1), np.zeros((1, 3))
+    return meshio.Mesh(np.array(sim.x, dtype=np.float64), [("line", lines)],
+                       cell_data={"normal_force": [f_n], "force": [force]})
+
+
+def _extent(sim) -> tuple[np.ndarray, np.ndarray]:
+    lo = (sim.x - sim.r[:, None]).min(axis=0)
+    hi = (sim.x + sim.r[:, None]).max(axis=0)
+    if len(sim.walls):
+        lo = np.minimum(lo, sim.wall_point.min(axis=0))
+        hi = np.maximum(hi, sim.wall_point.max(axis=0))
+    pad = 0.02 * float(np.max(hi - lo)) + 1e-300
+    lo, hi = lo - pad, hi + pad
+    if sim.dim == 2:
+        lo[2], hi[2] = 0.0, 0.0
+    return lo, hi
+
+
+def wall_geometry(sim) -> tuple[np.ndarray, np.ndarray]:
+    """Corner points and cells (quads in 3D, lines in 2D) of every wall, spanning the
+    specimen's extent."""
+    lo, hi = _extent(sim)
+    centre = 0.5 * (lo + hi)
+    half = 0.5 * float(np.linalg.norm(hi - lo))
+    points, cells = [], []
+    for k in range(len(sim.walls)):
+        n = sim.wall_normal[k]
+        p = sim.wall_point[k]
+        axis = int(np.argmax(np.abs(n)))
+        aligned = abs(abs(n[axis]) - 1.0) < 1e-12
+        if sim.dim == 2:
+            t = np.array([-n[1], n[0], 0.0])
+            if aligned:
+                other = 1 - axis
+                a = p.copy()
+                b = p.copy()
+                a[other], b[other] = lo[other], hi[other]
+                corners = [a, b]
+            else:
+                c = centre - np.dot(centre - p, n) * n
+                corners = [c - half * t, c + half * t]
+        else:
+            if aligned:
+                u, v = [ax for ax in range(3) if ax != axis]
+                corners = []
+                for cu, cv in ((lo[u], lo[v]), (hi[u], lo[v]), (hi[u], hi[v]), (lo[u], hi[v])):
+                    q = p.copy()
+                    q[u], q[v] = cu, cv
+                    corners.append(q)
+            else:
+                helper = np.eye(3)[int(np.argmin(np.abs(n)))]
+                t1 = np.cross(n, helper)
+                t1 /= np.linalg.norm(t1)
+                t2 = np.cross(n, t1)
+                c = centre - np.dot(centre - p, n) * n
+                corners = [c + half * (s1 * t1 + s2 * t2)
+                           for s1, s2 in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+        start = len(points)
+        points += corners
+        cells.append(list(range(start, start + len(corners))))
+    return np.array(points, dtype=np.float64).reshape(-1, 3), np.array(cells, dtype=np.int64)
+
+
+def wall_mesh(sim):
+    """Walls as quads (3D) or lines (2D) with force, stress and velocity."""
+    meshio = _meshio()
+    points, cells = wall_geometry(sim)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        stress = np.array(sim.wall_stress(), dtype=np.float64)
+    kind = "quad" if sim.dim == 3 else "line"
+    return meshio.Mesh(points, [(kind, cells)], cell_data={
+        "force": [np.array(sim.wall_force, dtype=np.float64)],
+        "stress": [np.nan_to_num(stress, nan=0.0)],
+        "velocity": [np.array(sim.wall_vel, dtype=np.float64)],
+        "wall_id": [np.arange(len(sim.walls), dtype=np.int64)],
+    })
+
+
+def write_mesh(path, mesh) -> Path:
+    """Write a meshio mesh as .vtu atomically."""
+    meshio = _meshio()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".vtu", dir=path.parent)
+    os.close(fd)
+    try:
+        meshio.write(tmp, mesh, file_format="vtu")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def write_pvd(path, entries) -> Path:
+    """Write a ParaView collection: ``entries`` are (time [T], file relative to the
+    .pvd's folder) pairs."""
+    path = Path(path)
+    root = ET.Element("VTKFile", type="Collection", version="0.1", byte_order="LittleEndian")
+    coll = ET.SubElement(root, "Collection")
+    for time, file in entries:
+        ET.SubElement(coll, "DataSet", timestep=repr(float(time)), group="", part="0",
+                      file=str(file))
+    ET.indent(root)
+    text = '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+    fd, tmp = tempfile.mkstemp(suffix=".pvd", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def read_pvd(path) -> list[tuple[float, str]]:
+    """The (time, file) entries of a .pvd collection."""
+    path = Path(path)
+    try:
+        root = ET.parse(path).getroot()
+    except (OSError, ET.ParseError) as exc:
+        raise InputError(f"{path}: not a readable .pvd file ({exc})") from None
+    out = []
+    for ds in root.iter("DataSet"):
+        try:
+            out.append((float(ds.attrib["timestep"]), ds.attrib["file"]))
+        except (KeyError, ValueError):
+            raise InputError(f"{path}: DataSet: needs timestep and file attributes") from None
+    return out
+
+
+class VtkWriter:
+    """Write VTK frames into ``folder``: particles, the contact network (``contacts``)
+    and walls (when the simulation has any), each with its .pvd time series. A callable
+    that plugs into ``sim.every(n, writer)``.
+
+    ``resume_after_step`` (a restart) keeps the frames already listed up to that step."""
+
+    def __init__(self, folder, contacts: bool = True, resume_after_step: int | None = None):
+        self.folder = Path(folder)
+        self.contacts = bool(contacts)
+        self.entries: dict[str, list[tuple[float, str]]] = {s: [] for s in SERIES}
+        self.last_step = None
+        if resume_after_step is not None:
+            for series in SERIES:
+                pvd = self.folder / f"{series}.pvd"
+                if pvd.exists():
+                    self.entries[series] = [
+                        (t, f) for t, f in read_pvd(pvd)
+                        if _FRAME.search(f) and int(_FRAME.search(f).group(1)) <= resume_after_step]
+
+    def write(self, sim) -> list[Path]:
+        """Write the frame of the current step (once per step)."""
+        if self.last_step == sim.step:
+            return []
+        self.folder.mkdir(parents=True, exist_ok=True)
+        written = []
+        meshes = {"particles": particle_mesh}
+        if self.contacts:
+            meshes["contacts"] = contact_mesh
+        if len(sim.walls):
+            meshes["walls"] = wall_mesh
+        for series, make in meshes.items():
+            name = f"{series}_{sim.step:010d}.vtu"
+            written.append(write_mesh(self.folder / name, make(sim)))
+            entries = [e for e in self.entries[series] if e[1] != name]
+            entries.append((float(sim.time), name))
+            self.entries[series] = entries
+            write_pvd(self.folder / f"{series}.pvd", entries)
+        self.last_step = sim.step
+        return written
+
+    __call__ = write

@@ -1,0 +1,563 @@
+"""Run a case: stages, outputs, progress, checkpoints and restarts.
+
+:func:`run_case` validates everything (the case, the particle file, the walls against
+the particles, the restart checkpoint) before it creates the output folder, so a bad
+input leaves nothing behind. The folder then holds::
+
+    case.toml        the resolved case (every default filled in)
+    run.json         demstep version, status, steps, times, restarts
+    run.log          the log
+    history.csv      every output.history_every steps (demstep.io.history)
+    vtk/             particles/contacts/walls frames and .pvd series (demstep.io.vtk)
+    checkpoints/     stepNNNNNNNNNN.npz (demstep.io.checkpoint) + .json (where the run was)
+
+Stages run in chunks of steps (``Simulation.run(steps=n)``). Chunk ends fall on every
+output step (multiples of the intervals, counted from step 0) and on every
+``check_every`` steps of a stage (counted from the stage start); between chunks the
+runner writes outputs, updates the progress bar and reacts to SIGINT/SIGTERM by saving
+a checkpoint and stopping cleanly. Where the chunks end does not change the
+trajectory, so a run restarted from any checkpoint continues bit for bit as the
+uninterrupted run would have: the checkpoint restores the dynamic state, and the JSON
+beside it records the stage, the steps done in it and its start, from which the stage
+changes are replayed and the stage's remaining steps recomputed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import platform
+import signal
+import sys
+import tempfile
+import threading
+import time as wallclock
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+from demstep.case import Case, apply_stage, build_simulation, dump_case
+from demstep.errors import InputError, SimulationDiverged
+
+log = logging.getLogger("demstep")
+
+STATE_FORMAT = 1
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+#: default chunk: about this many particle-steps (a fraction of a second of computing)
+CHUNK_PARTICLE_STEPS = 500_000
+MIN_CHUNK_STEPS, MAX_CHUNK_STEPS = 10, 20_000
+
+
+def default_chunk_steps(n_particles: int) -> int:
+    """Steps per chunk for ``n_particles`` particles. Chunk ends must not depend on the
+    wall clock: ``Simulation.time`` is summed chunk by chunk, so a restart reproduces
+    the times of the uninterrupted run only when both chunk alike."""
+    return int(min(MAX_CHUNK_STEPS, max(MIN_CHUNK_STEPS, CHUNK_PARTICLE_STEPS // max(1, n_particles))))
+
+
+@dataclass
+class RunResult:
+    """How a run ended: ``status`` is completed, interrupted, diverged or energy_stop;
+    ``checkpoint`` is the last checkpoint written (restart from it)."""
+
+    status: str
+    out_dir: Path
+    step: int
+    time: float
+    checkpoint: Path | None = None
+    message: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "completed"
+
+
+@dataclass
+class RunPosition:
+    """Where a run is: stage index, steps done in it, its start step and time [T], and
+    its planned number of steps (None when it ends on a time or an energy condition)."""
+
+    stage: int
+    stage_step: int
+    stage_start_step: int
+    stage_start_time: float
+    stage_total: int | None
+
+
+# ------------------------------------------------------------------ checkpoints
+def state_path(checkpoint) -> Path:
+    """The JSON beside a checkpoint recording where the run was."""
+    return Path(checkpoint).with_suffix(".json")
+
+
+def write_state(checkpoint, pos: RunPosition, case: Case, sim, reason: str) -> Path:
+    from demstep import __version__
+
+    data = {"format": STATE_FORMAT, "demstep_version": __version__, "reason": reason,
+            "checkpoint": Path(checkpoint).name, "step": sim.step, "time": sim.time,
+            "stage_name": case.stage_label(pos.stage) if pos.stage < len(case.stages) else None,
+            "case_sha256": case_hash(case), **asdict(pos)}
+    return _write_text(state_path(checkpoint), json.dumps(data, indent=2) + "\n")
+
+
+def read_state(checkpoint) -> tuple[RunPosition, dict]:
+    path = state_path(checkpoint)
+    if not path.is_file():
+        raise InputError(f"restart: no run state {path.name} beside the checkpoint {checkpoint}")
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        if data.get("format") != STATE_FORMAT:
+            raise ValueError(f"format {data.get('format')!r}")
+        pos = RunPosition(int(data["stage"]), int(data["stage_step"]),
+                          int(data["stage_start_step"]), float(data["stage_start_time"]),
+                          None if data["stage_total"] is None else int(data["stage_total"]))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"restart: {path}: not a demstep run state ({exc})") from None
+    return pos, data
+
+
+def find_checkpoint(path) -> Path:
+    """A checkpoint file, or the newest checkpoint (by step) in a folder or a run folder."""
+    path = Path(path)
+    if path.is_dir():
+        folder = path / "checkpoints" if (path / "checkpoints").is_dir() else path
+        found = []
+        for js in folder.glob("*.json"):
+            try:
+                data = json.loads(js.read_text(encoding="utf-8"))
+                npz = folder / data["checkpoint"]
+                if npz.is_file():
+                    found.append((int(data["step"]), js.stat().st_mtime, npz))
+            except (ValueError, KeyError, TypeError, OSError):
+                continue
+        if not found:
+            raise InputError(f"restart: no checkpoint with a run state in {folder}")
+        return max(found)[2]
+    if not path.is_file():
+        raise InputError(f"restart: no such checkpoint, got {str(path)!r}")
+    return path
+
+
+def case_hash(case: Case) -> str:
+    return hashlib.sha256(dump_case(case).encode()).hexdigest()
+
+
+def _write_text(path, text: str) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+# ---------------------------------------------------------------- stop signals
+class StopRequest:
+    """Set by SIGINT/SIGTERM: the run saves a checkpoint and stops between chunks. A
+    second signal aborts at once (KeyboardInterrupt)."""
+
+    def __init__(self):
+        self.signal_name: str | None = None
+        self._previous = {}
+
+    def __bool__(self):
+        return self.signal_name is not None
+
+    def _handle(self, signum, frame):
+        if self.signal_name is not None:
+            raise KeyboardInterrupt
+        self.signal_name = signal.Signals(signum).name
+        log.warning("%s received: saving a checkpoint and stopping after this chunk "
+                    "(again to abort at once)", self.signal_name)
+
+    def install(self):
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handle)
+
+    def restore(self):
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous.clear()
+
+
+# ------------------------------------------------------------------- progress
+class _NoProgress:
+    def start_stage(self, label, total):
+        pass
+
+    def update(self, sim, pos, total):
+        pass
+
+    def stop(self):
+        pass
+
+
+class _RichProgress:
+    """rich progress bar per stage: steps, simulated time, dt, energy error, ETA."""
+
+    def __init__(self):
+        from rich.console import Console
+        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                                   TimeElapsedColumn, TimeRemainingColumn)
+
+        self.console = Console(stderr=True)
+        self.progress = Progress(
+            TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+            TextColumn("t={task.fields[t]}"), TextColumn("dt={task.fields[dt]}"),
+            TextColumn("err={task.fields[err]}"), TimeElapsedColumn(), TimeRemainingColumn(),
+            console=self.console, transient=False)
+        self.progress.start()
+        self.task = None
+
+    def start_stage(self, label, total):
+        self.task = self.progress.add_task(label, total=total, t="0", dt="-", err="-")
+
+    def update(self, sim, pos, total):
+        self.progress.update(self.task, completed=pos.stage_step, total=total,
+                             t=f"{sim.time:.4g}", dt=f"{sim.dt:.3g}" if sim.dt else "-",
+                             err=f"{sim.ledger.balance_error():.2e}")
+
+    def stop(self):
+        self.progress.stop()
+
+
+# ---------------------------------------------------------------------- logging
+def _setup_logging(out_dir: Path, level: str, console) -> list[logging.Handler]:
+    fmt = logging.Formatter("%(asctime)s %(levelname)s %(message)s")
+    handlers: list[logging.Handler] = []
+    fh = logging.FileHandler(out_dir / "run.log", encoding="utf-8")
+    fh.setFormatter(fmt)
+    handlers.append(fh)
+    if console is not None:
+        from rich.logging import RichHandler
+
+        handlers.append(RichHandler(console=console, show_path=False))
+    else:
+        sh = logging.StreamHandler(sys.stderr)
+        sh.setFormatter(logging.Formatter("demstep: %(levelname)s: %(message)s"))
+        handlers.append(sh)
+    for h in handlers:
+        h.setLevel(level)
+        log.addHandler(h)
+    return handlers
+
+
+# ------------------------------------------------------------------- the runner
+class _Runner:
+    def __init__(self, case, sim, out_dir, pos, max_steps, quiet, on_chunk, chunk_steps):
+        from demstep.io.history import HistoryWriter
+        from demstep.io.vtk import VtkWriter
+
+        self.case, self.sim, self.out_dir, self.pos = case, sim, out_dir, pos
+        self.max_steps = max_steps
+        self.on_chunk = on_chunk
+        self.chunk_steps = chunk_steps if chunk_steps is not None else default_chunk_steps(len(sim.r))
+        self.stop = StopRequest()
+        self.progress = _NoProgress() if quiet else _RichProgress()
+        self.ckpt_dir = out_dir / "checkpoints"
+        self.periodic_ckpts: list[Path] = []
+        out = case.output
+        resume = sim.step if pos is not None else None
+        self.history = None
+        if out.history_every:
+            self.history = HistoryWriter(out_dir / "history.csv", sim,
+                                         extra={"stage": lambda s: self.pos.stage},
+                                         resume_after_step=resume)
+        self.vtk = None
+        if out.vtk_every:
+            self.vtk = VtkWriter(out_dir / "vtk", contacts=out.vtk_contacts,
+                                 resume_after_step=resume)
+        self.last_checkpoint: Path | None = None
+
+    # ---- outputs
+    def _outputs(self):
+        sim, out = self.sim, self.case.output
+        if self.history is not None and sim.step % out.history_every == 0:
+            self.history.write(sim)
+        if self.vtk is not None and sim.step % out.vtk_every == 0:
+            self.vtk.write(sim)
+        if out.checkpoint_every and sim.step % out.checkpoint_every == 0:
+            path = self.checkpoint("periodic")
+            self.periodic_ckpts.append(path)
+            keep = out.checkpoint_keep
+            while keep and len(self.periodic_ckpts) > keep:
+                old = self.periodic_ckpts.pop(0)
+                for p in (old, state_path(old)):
+                    if p.exists() and p != self.last_checkpoint:
+                        p.unlink()
+
+    def checkpoint(self, reason: str) -> Path:
+        from demstep.io.checkpoint import save_checkpoint
+
+        path = self.ckpt_dir / f"step{self.sim.step:010d}.npz"
+        save_checkpoint(self.sim, path)
+        write_state(path, self.pos, self.case, self.sim, reason)
+        self.last_checkpoint = path
+        log.info("checkpoint (%s) at step %d: %s", reason, self.sim.step, path)
+        return path
+
+    # ---- stage bookkeeping
+    def _start_stage(self, k: int):
+        sim, stage = self.sim, self.case.stages[k]
+        apply_stage(sim, self.case, k, fresh=True)
+        sim.prepare()
+        total = None
+        if stage.steps is not None:
+            total = stage.steps
+        elif stage.duration is not None and sim.timestep.mode != "auto":
+            total = int(math.ceil(stage.duration / sim.dt - 1e-9))
+        self.pos = RunPosition(k, 0, sim.step, sim.time, total)
+        log.info("stage %d/%d '%s' starts at step %d (t = %.6g)", k + 1, len(self.case.stages),
+                 self.case.stage_label(k), sim.step, sim.time)
+
+    def _stage_budget(self) -> int | None:
+        """Steps this stage may still take at most (None: no fixed bound)."""
+        stage = self.case.stages[self.pos.stage]
+        bounds = []
+        if self.pos.stage_total is not None:
+            bounds.append(self.pos.stage_total)
+        if stage.max_steps is not None:
+            bounds.append(stage.max_steps)
+        if self.max_steps is not None:
+            bounds.append(self.max_steps)
+        return min(bounds) - self.pos.stage_step if bounds else None
+
+    def _stage_done(self) -> bool:
+        sim, pos = self.sim, self.pos
+        stage = self.case.stages[pos.stage]
+        budget = self._stage_budget()
+        if budget is not None and budget <= 0:
+            if stage.until_kinetic_below is not None:
+                log.warning("stage '%s': kinetic energy %.4g still above %.4g after %d steps",
+                            self.case.stage_label(pos.stage), sim.ledger.kinetic,
+                            stage.until_kinetic_below, pos.stage_step)
+            return True
+        if stage.duration is not None and pos.stage_total is None:
+            t_end = pos.stage_start_time + stage.duration
+            if sim.time >= t_end * (1 - 1e-12) or stage.duration == 0:
+                return True
+        if stage.until_kinetic_below is not None and pos.stage_step > 0 \
+                and pos.stage_step % stage.check_every == 0 \
+                and sim.ledger.kinetic < stage.until_kinetic_below:
+            log.info("stage '%s': kinetic energy %.4g below %.4g after %d steps",
+                     self.case.stage_label(pos.stage), sim.ledger.kinetic,
+                     stage.until_kinetic_below, pos.stage_step)
+            return True
+        return False
+
+    def _chunk(self) -> int:
+        sim, pos, out = self.sim, self.pos, self.case.output
+        stage = self.case.stages[pos.stage]
+        n = self.chunk_steps
+        for every in (self.chunk_steps, out.history_every, out.vtk_every, out.checkpoint_every):
+            if every:
+                n = min(n, every - sim.step % every)
+        budget = self._stage_budget()
+        if budget is not None:
+            n = min(n, budget)
+        if stage.until_kinetic_below is not None:
+            n = min(n, stage.check_every - pos.stage_step % stage.check_every)
+        if stage.duration is not None and pos.stage_total is None:
+            n = min(n, self._steps_within(pos.stage_start_time + stage.duration - sim.time, n))
+        return max(1, n)
+
+    def _steps_within(self, remaining: float, cap: int) -> int:
+        """Steps that surely end before ``remaining`` [T] with auto dt (dt may grow by
+        the factor 1 + growth once per 'every' steps); at least 1."""
+        ts = self.sim.timestep
+        n = cap
+        while n > 1:
+            growth = (1.0 + ts.growth) ** (n // max(1, int(ts.every)) + 2)
+            if n * self.sim.dt * growth < remaining:
+                return n
+            n //= 2
+        return 1
+
+    # ---- the loop
+    def run(self) -> RunResult:
+        from demstep.energy import EnergyBalanceError
+
+        sim, case = self.sim, self.case
+        self.stop.install()
+        try:
+            fresh_run = self.pos is None
+            start = 0 if fresh_run else self.pos.stage
+            for k in range(start, len(case.stages)):
+                # a stage with no step done has not started (its changes are not applied)
+                if fresh_run or k > start or self.pos.stage_step == 0:
+                    self._start_stage(k)
+                else:
+                    sim.prepare()
+                if fresh_run and k == 0 and self.vtk is not None:
+                    self.vtk.write(sim)  # the initial state
+                self.progress.start_stage(case.stage_label(k), self._stage_total_display())
+                while not self._stage_done():
+                    n = self._chunk()
+                    before = sim.step
+                    try:
+                        sim.run(steps=n)
+                    except SimulationDiverged as exc:
+                        self.pos.stage_step += sim.step - before
+                        return self._emergency("diverged", exc.checkpoint, str(exc))
+                    except EnergyBalanceError as exc:
+                        self.pos.stage_step += sim.step - before
+                        path = Path(sim.checkpoint_dir) / f"demstep-energy-step{sim.step}.npz"
+                        return self._emergency("energy_stop", path, str(exc))
+                    self.pos.stage_step += sim.step - before
+                    self._outputs()
+                    self.progress.update(sim, self.pos, self._stage_total_display())
+                    if self.on_chunk is not None:
+                        self.on_chunk(sim)
+                    if self.stop:
+                        path = self.checkpoint(f"signal {self.stop.signal_name}")
+                        return RunResult("interrupted", self.out_dir, sim.step, sim.time, path,
+                                         f"stopped by {self.stop.signal_name} at step "
+                                         f"{sim.step}; restart with --restart {path}")
+                self.progress.update(sim, self.pos, self._stage_total_display())
+            # completed: final outputs and a checkpoint to extend the run from
+            if self.history is not None:
+                self.history.write(sim)
+            if self.vtk is not None:
+                self.vtk.write(sim)
+            self.pos = RunPosition(len(case.stages), 0, sim.step, sim.time, 0)
+            path = self.checkpoint("completed")
+            return RunResult("completed", self.out_dir, sim.step, sim.time, path,
+                             f"completed {len(case.stages)} stage(s): {sim.step} steps, "
+                             f"t = {sim.time:.6g}, max energy error "
+                             f"{sim.monitor.max_error:.3g}")
+        finally:
+            self.stop.restore()
+            self.progress.stop()
+            if self.history is not None:
+                self.history.close()
+
+    def _stage_total_display(self):
+        budget = self._stage_budget()
+        return None if budget is None else self.pos.stage_step + budget
+
+    def _emergency(self, status, checkpoint, message) -> RunResult:
+        path = Path(checkpoint) if checkpoint else None
+        if path is not None and path.exists():
+            write_state(path, self.pos, self.case, self.sim, status)
+        log.error("%s", message)
+        return RunResult(status, self.out_dir, self.sim.step, self.sim.time, path, message)
+
+
+def _version_info() -> dict:
+    import numba
+    import numpy
+
+    from demstep import __version__
+
+    return {"demstep_version": __version__, "python": platform.python_version(),
+            "numpy": numpy.__version__, "numba": numba.__version__,
+            "platform": platform.platform()}
+
+
+def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
+             restart=None, max_steps: int | None = None, overwrite: bool = False,
+             chunk_steps: int | None = None,
+             on_chunk: Callable | None = None) -> RunResult:
+    """Run every stage of ``case`` writing into ``out_dir``.
+
+    ``restart``: a checkpoint (or a folder: its newest checkpoint) to continue from.
+    ``max_steps``: at most this many steps per stage (previews, smoke tests).
+    ``overwrite``: allow a non-empty ``out_dir`` without ``restart``.
+    ``chunk_steps``: steps between returns to Python, where outputs, progress and
+    signals are handled (default :func:`default_chunk_steps`); chunks end at multiples
+    of it. A restart reproduces the uninterrupted run bit for bit when both use the
+    same value (the default does).
+    ``on_chunk(sim)``: called after every chunk.
+
+    Raises InputError (before creating anything) for bad input. Returns a RunResult:
+    interruptions (SIGINT/SIGTERM), divergence and an energy monitor set to 'stop'
+    end the run with a checkpoint and a status, not an exception."""
+    from demstep.io.checkpoint import load_checkpoint
+
+    level = str(log_level).upper()
+    if level not in LOG_LEVELS:
+        raise InputError(f"log-level: must be one of {', '.join(LOG_LEVELS)}, got {log_level!r}")
+    if max_steps is not None and (not isinstance(max_steps, int) or max_steps < 0):
+        raise InputError(f"max-steps: must be an integer >= 0, got {max_steps!r}")
+    if chunk_steps is not None and (not isinstance(chunk_steps, int) or chunk_steps < 1):
+        raise InputError(f"chunk_steps: must be an integer >= 1, got {chunk_steps!r}")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"out: not a folder, got {str(out_dir)!r}")
+    if restart is None and not overwrite and out_dir.is_dir() and any(out_dir.iterdir()):
+        raise InputError(f"out: {out_dir} exists and is not empty (give --restart to continue "
+                         f"a run or --overwrite to replace it)")
+    # everything that can fail on input happens before the folder is created
+    sim = build_simulation(case, checkpoint_dir=out_dir / "checkpoints")
+    pos = None
+    restart_info = None
+    if restart is not None:
+        checkpoint = find_checkpoint(restart)
+        pos, state = read_state(checkpoint)
+        if pos.stage > len(case.stages):
+            raise InputError(f"restart: the checkpoint is at stage {pos.stage + 1}, the case "
+                             f"has {len(case.stages)}")
+        # replay the changes of every stage already started, then restore the state
+        started = pos.stage + 1 if pos.stage_step > 0 else pos.stage
+        for k in range(min(started, len(case.stages))):
+            apply_stage(sim, case, k, fresh=False)
+        load_checkpoint(sim, checkpoint)
+        if state.get("case_sha256") != case_hash(case):
+            log.warning("restart: the case differs from the one that wrote %s", checkpoint)
+        restart_info = {"checkpoint": str(checkpoint), "step": sim.step, "time": sim.time}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    from demstep import __version__
+
+    case_text = f"# resolved case written by demstep {__version__}\n" + dump_case(case)
+    _write_text(out_dir / "case.toml", case_text)
+    run_json = out_dir / "run.json"
+    info = {}
+    if restart is not None and run_json.is_file():
+        try:
+            info = json.loads(run_json.read_text(encoding="utf-8"))
+        except ValueError:
+            info = {}
+    info.update(_version_info())
+    info.update({"case": case.source, "case_sha256": case_hash(case), "status": "running",
+                 "started": wallclock.strftime("%Y-%m-%dT%H:%M:%S%z"), "max_steps": max_steps})
+    if restart_info:
+        info.setdefault("restarts", []).append(restart_info)
+    _write_text(run_json, json.dumps(info, indent=2) + "\n")
+
+    previous_level = log.level
+    log.setLevel(level)
+    runner = None
+    handlers = []
+    try:
+        runner = _Runner(case, sim, out_dir, pos, max_steps, quiet, on_chunk, chunk_steps)
+        handlers = _setup_logging(out_dir, level, getattr(runner.progress, "console", None))
+        log.info("demstep %s: case '%s', %d %dD particles, %d walls, %d stage(s)%s",
+                 __version__, case.name, len(sim.r), sim.dim, len(sim.walls), len(case.stages),
+                 f", restarted at step {sim.step}" if restart_info else "")
+        if pos is not None and pos.stage == len(case.stages):
+            result = RunResult("completed", out_dir, sim.step, sim.time, Path(restart_info["checkpoint"]),
+                               "nothing to run: the checkpoint is at the end of the last stage")
+        else:
+            result = runner.run()
+        log.info("%s", result.message)
+    finally:
+        for h in handlers:
+            log.removeHandler(h)
+            h.close()
+        log.setLevel(previous_level)
+    info.update({"status": result.status, "finished": wallclock.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                 "step": result.step, "time": result.time, "message": result.message,
+                 "checkpoint": None if result.checkpoint is None else str(result.checkpoint),
+                 "max_energy_error": sim.monitor.max_error})
+    _write_text(run_json, json.dumps(info, indent=2) + "\n")
+    return result
