@@ -750,7 +750,16 @@ def build_walls(case: Case, x: np.ndarray, r: np.ndarray) -> list:
 
 def build_simulation(case: Case, checkpoint_dir=None):
     """A Simulation of the case at t = 0 (stage changes are applied by the runner,
-    :func:`apply_stage`)."""
+    :func:`apply_stage`). Raises InputError (prefixed with the case file) when the
+    particles, walls or parameters do not make a valid simulation."""
+    try:
+        return _build_simulation(case, checkpoint_dir)
+    except InputError as exc:
+        prefix = f"{case.source}: " if case.source else ""
+        raise InputError(f"{prefix}{exc}") from None
+
+
+def _build_simulation(case: Case, checkpoint_dir):
     from demstep.energy import EnergyMonitor
     from demstep.engine import Damping, Simulation, TimeStep
     from demstep.particles import Particles, particle_inertia

@@ -1,0 +1,171 @@
+"""Readers and writers of other codes' particle files: CSV, LIGGGHTS dumps, YADE text."""
+
+import numpy as np
+import pytest
+
+from demstep.errors import InputError
+from demstep.io.assembly_files import read_assembly
+from demstep.io.formats import (
+    detect_format, liggghts_timesteps, read_csv, read_liggghts_dump, read_particle_file,
+    read_yade_text, write_csv, write_liggghts_dump, write_particle_file, write_yade_text,
+)
+
+
+def assembly(dim, n=17, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-5, 5, (n, dim)), rng.uniform(0.1, 0.9, n), rng.uniform(1, 3, n)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_csv_round_trip(tmp_path, dim):
+    x, r, m = assembly(dim)
+    path = write_csv(tmp_path / "a.csv", x, r, m)
+    data = read_csv(path)
+    assert np.array_equal(data.x, x) and np.array_equal(data.r, r) and np.array_equal(data.m, m)
+    data = read_csv(write_csv(tmp_path / "b.csv", x, r))
+    assert data.m is None and data.dim == dim
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_liggghts_round_trip(tmp_path, dim):
+    x, r, m = assembly(dim)
+    v = np.random.default_rng(1).normal(size=(len(r), dim))
+    path = tmp_path / "run.liggghts"
+    write_liggghts_dump(path, x, r, m, v, timestep=100)
+    write_liggghts_dump(path, x + 1.0, r, m, v, timestep=200, append=True)
+    assert liggghts_timesteps(path) == [100, 200]
+    last = read_liggghts_dump(path)
+    first = read_liggghts_dump(path, snapshot=0)
+    by_step = read_liggghts_dump(path, timestep=100)
+    assert last.timestep == 200 and first.timestep == 100
+    assert np.array_equal(first.x[:, :dim], x) and np.array_equal(by_step.x[:, :dim], x)
+    assert np.array_equal(last.x[:, :dim], x + 1.0)
+    assert np.array_equal(last.r, r) and np.array_equal(last.m, m)
+    assert np.array_equal(last.v[:, :dim], v)
+    assert list(last.ids) == list(range(1, len(r) + 1))
+
+
+def test_liggghts_reads_liggghts_layout(tmp_path):
+    """A dump as LIGGGHTS writes it: ids out of order, extra columns, scaled
+    coordinates, diameters instead of radii."""
+    text = """ITEM: TIMESTEP
+5000
+ITEM: NUMBER OF ATOMS
+3
+ITEM: BOX BOUNDS pp pp ff
+0 10
+-5 5
+0 20
+ITEM: ATOMS id type xs ys zs vx vy vz fx fy fz omegax omegay omegaz diameter mass
+3 1 0.5 0.5 0.5 0 0 -1 0 0 0 0 0 0 2.0 4.0
+1 2 0.1 0.2 0.25 1 0 0 0 0 0 0 0 1 1.0 0.5
+2 1 0.9 0.8 0.75 0 1 0 0 0 0 0 1 0 1.5 1.7
+"""
+    path = tmp_path / "dump.custom"
+    path.write_text(text)
+    assert detect_format(path) == "liggghts"  # by content
+    data = read_particle_file(path)
+    assert list(data.ids) == [1, 2, 3]
+    assert np.allclose(data.x, [[1.0, -3.0, 5.0], [9.0, 3.0, 15.0], [5.0, 0.0, 10.0]])
+    assert np.allclose(data.r, [0.5, 0.75, 1.0])
+    assert np.allclose(data.m, [0.5, 1.7, 4.0])
+    assert np.allclose(data.w[0], [0, 0, 1])
+    assert list(data.types) == [2, 1, 1]
+    via_assembly = read_assembly(path)
+    assert np.array_equal(via_assembly.x, data.x)
+
+
+def test_liggghts_without_z_is_2d(tmp_path):
+    path = tmp_path / "flat.dump"
+    path.write_text("ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n2\nITEM: BOX BOUNDS pp pp pp\n"
+                    "0 1\n0 1\n0 1\nITEM: ATOMS id x y radius\n1 0.1 0.2 0.05\n2 0.4 0.2 0.05\n")
+    data = read_liggghts_dump(path)
+    assert data.dim == 2 and np.allclose(data.x, [[0.1, 0.2], [0.4, 0.2]])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_yade_round_trip(tmp_path, dim):
+    x, r, _ = assembly(dim)
+    path = write_yade_text(tmp_path / "spheres.txt", x, r)
+    data = read_yade_text(path)
+    assert np.array_equal(data.x, x) and np.array_equal(data.r, r) and data.m is None
+
+
+def test_yade_export_with_comments_and_extra_columns(tmp_path):
+    path = tmp_path / "export.yade"
+    path.write_text("# exported by yade.export.text\n#format x_y_z_r_matId\n"
+                    "0 0 0 1 0   # first\n\n2.0 0 0 1.0 3\n")
+    data = read_yade_text(path)
+    assert np.array_equal(data.x, [[0, 0, 0], [2, 0, 0]]) and np.array_equal(data.r, [1, 1])
+    plain = tmp_path / "plain.txt"
+    plain.write_text("# no format line\n1 2 3 0.5 7\n4 5 6 0.25 7\n")
+    data = read_yade_text(plain)
+    assert np.array_equal(data.x, [[1, 2, 3], [4, 5, 6]]) and np.array_equal(data.r, [0.5, 0.25])
+
+
+@pytest.mark.parametrize("suffix,fmt", [(".csv", "csv"), (".liggghts", "liggghts"),
+                                        (".dump", "liggghts"), (".txt", "yade"), (".yade", "yade")])
+def test_dispatch_by_extension_round_trip(tmp_path, suffix, fmt):
+    x, r, _ = assembly(3, seed=4)
+    path = write_particle_file(tmp_path / f"p{suffix}", x, r)
+    assert detect_format(path) == fmt
+    data = read_assembly(path)
+    assert np.array_equal(data.x, x) and np.array_equal(data.r, r)
+
+
+def test_dispatch_by_content_without_known_extension(tmp_path):
+    x, r, _ = assembly(3, seed=5)
+    for name, writer in (("a.data", write_csv), ("b.data", write_yade_text),
+                         ("c.data", write_liggghts_dump)):
+        path = writer(tmp_path / name, x, r)
+        assert np.array_equal(read_assembly(path).x, x)
+
+
+BAD_FILES = [
+    ("bad.csv", "x,y,z,r\n0,0,0,1\n1,0,abc,1\n", "bad.csv:3: column 'z'"),
+    ("bad.csv", "x,y,z\n0,0,0\n", "bad.csv:1: missing column 'r'"),
+    ("bad.csv", "x,y,r\n0,0,-1\n", "bad.csv:2: column 'r': radius must be > 0"),
+    ("bad.txt", "0 0 0 1\n1 1 1 nan\n", "bad.txt:2: column 'r'"),
+    ("bad.txt", "0 0 0 1\n1 1 1\n", "bad.txt:2: expected 4 values"),
+    ("bad.txt", "# nothing\n", "bad.txt: no particles"),
+    ("bad.dump", "ITEM: TIMESTEP\nzero\n", "bad.dump:2: TIMESTEP: not an integer"),
+    ("bad.dump", "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n2\nITEM: BOX BOUNDS pp pp pp\n"
+                 "0 1\n0 1\n0 1\nITEM: ATOMS id x y z radius\n1 0 0 0 1\n", "bad.dump:10: expected 2 atom rows"),
+    ("bad.dump", "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n1\nITEM: BOX BOUNDS pp pp pp\n"
+                 "0 1\n0 1\n0 1\nITEM: ATOMS id x y z\n1 0 0 0\n", "missing column 'radius'"),
+    ("bad.dump", "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n1\nITEM: BOX BOUNDS pp pp pp\n"
+                 "0 1\n0 1\n0 1\nITEM: ATOMS id x y z radius\n1 0 0 x 1\n", "bad.dump:10: column 'z'"),
+    ("bad.dump", "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n2\nITEM: BOX BOUNDS pp pp pp\n"
+                 "0 1\n0 1\n0 1\nITEM: ATOMS id x y z radius\n1 0 0 0 1\n1 2 0 0 1\n",
+     "column 'id': duplicate id 1"),
+    ("bad.dump", "ITEM: NUMBER OF ATOMS\n", "bad.dump:1: expected 'ITEM: TIMESTEP'"),
+]
+
+
+@pytest.mark.parametrize("name,text,expected", BAD_FILES)
+def test_bad_files_give_one_line_naming_file_line_field(tmp_path, name, text, expected):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(InputError) as info:
+        read_assembly(path)
+    message = str(info.value)
+    assert "\n" not in message
+    assert expected in message
+
+
+def test_missing_and_binary_files(tmp_path):
+    with pytest.raises(InputError, match="no such file"):
+        read_assembly(tmp_path / "nothing.csv")
+    binary = tmp_path / "blob.txt"
+    binary.write_bytes(b"\xff\xfe\x00\x81")
+    with pytest.raises(InputError, match="not a text file"):
+        read_assembly(binary)
+
+
+def test_snapshot_out_of_range(tmp_path):
+    x, r, _ = assembly(3)
+    path = write_liggghts_dump(tmp_path / "one.dump", x, r)
+    with pytest.raises(InputError, match=r"snapshot: must lie in \[-1, 0\], got 3"):
+        read_liggghts_dump(path, snapshot=3)
+    with pytest.raises(InputError, match="no snapshot at TIMESTEP 7"):
+        read_liggghts_dump(path, timestep=7)

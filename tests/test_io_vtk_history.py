@@ -1,0 +1,133 @@
+"""VTK frames (read back with meshio), .pvd series, and the CSV history writer."""
+
+import math
+import xml.etree.ElementTree as ET
+
+import meshio
+import numpy as np
+import pytest
+
+from demstep.contact.laws import LinearSpring
+from demstep.engine import Simulation, TimeStep
+from demstep.io.history import HistoryWriter, history_columns, read_history
+from demstep.io.vtk import VtkWriter, contact_lines, read_pvd, write_pvd
+from demstep.packings import lattice
+from demstep.particles import Particles
+from demstep.walls import box_walls
+
+
+def settling(dim, periodic=False):
+    """A small lattice under gravity in a box (or a periodic strip): contacts form."""
+    lat = lattice("hex" if dim == 2 else "fcc", radius=1.0)
+    x = lat.block(3)
+    x = x + 1.0
+    p = Particles.from_density(x, np.ones(len(x)), 1.0)
+    g = np.zeros(dim)
+    g[-1] = -10.0
+    lo = x.min(axis=0) - 1.0
+    hi = x.max(axis=0) + 1.0
+    walls = box_walls(lo, hi)
+    sim = Simulation(p, LinearSpring(k_n=1e4, mu=0.3), walls=walls, gravity=g,
+                     timestep=TimeStep.from_alpha(0.1))
+    return sim
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_vtk_frames_read_back(tmp_path, dim):
+    sim = settling(dim)
+    writer = VtkWriter(tmp_path / "vtk")
+    sim.every(200, writer)
+    sim.run(steps=600)
+    files = sorted(p.name for p in (tmp_path / "vtk").glob("*.vtu"))
+    assert files == sorted(f"{s}_{k:010d}.vtu" for s in ("particles", "contacts", "walls")
+                           for k in (200, 400, 600))
+    mesh = meshio.read(tmp_path / "vtk" / "particles_0000000600.vtu")
+    assert np.array_equal(mesh.points, sim.x)
+    assert np.array_equal(mesh.point_data["radius"], sim.r)
+    assert np.array_equal(mesh.point_data["velocity"], sim.v)
+    assert np.array_equal(mesh.point_data["angular_velocity"], sim.w)
+    assert np.array_equal(mesh.point_data["force"], sim.force)
+    assert mesh.cells_dict["vertex"].shape == (len(sim.r), 1)
+    # contact network: one line per touching pair, compression positive
+    lines, f_n, _ = contact_lines(sim)
+    assert len(lines) == sim.counters[0] > 0
+    contacts = meshio.read(tmp_path / "vtk" / "contacts_0000000600.vtu")
+    assert np.array_equal(contacts.cells_dict["line"], lines)
+    assert np.array_equal(contacts.cell_data["normal_force"][0], f_n)
+    assert (f_n > 0).all()
+    # walls: quads in 3D, lines in 2D, on the wall planes
+    walls = meshio.read(tmp_path / "vtk" / "walls_0000000600.vtu")
+    kind = "quad" if dim == 3 else "line"
+    cells = walls.cells_dict[kind]
+    assert cells.shape == (2 * dim, 4 if dim == 3 else 2)
+    for k in range(2 * dim):
+        corners = walls.points[cells[k]]
+        dist = (corners - sim.wall_point[k]) @ sim.wall_normal[k]
+        assert np.allclose(dist, 0.0, atol=1e-9)
+    assert np.array_equal(walls.cell_data["force"][0], sim.wall_force)
+    # the series: three frames at their simulated times
+    for series in ("particles", "contacts", "walls"):
+        entries = read_pvd(tmp_path / "vtk" / f"{series}.pvd")
+        assert [f for _, f in entries] == [f"{series}_{k:010d}.vtu" for k in (200, 400, 600)]
+        assert entries[-1][0] == sim.time
+        root = ET.parse(tmp_path / "vtk" / f"{series}.pvd").getroot()
+        assert root.attrib["type"] == "Collection"
+
+
+def test_vtk_frame_without_contacts_is_readable(tmp_path):
+    p = Particles.from_density(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]]), np.ones(2), 1.0)
+    sim = Simulation(p, LinearSpring(k_n=1.0), timestep=TimeStep.fixed(0.01))
+    sim.run(steps=3)
+    VtkWriter(tmp_path).write(sim)
+    mesh = meshio.read(tmp_path / "contacts_0000000003.vtu")
+    assert mesh.cell_data["normal_force"][0].tolist() == [0.0]  # the placeholder line
+    assert not (tmp_path / "walls.pvd").exists()  # no walls, no wall series
+
+
+def test_vtk_resume_keeps_earlier_frames(tmp_path):
+    write_pvd(tmp_path / "particles.pvd", [(0.1, "particles_0000000010.vtu"),
+                                           (0.2, "particles_0000000020.vtu"),
+                                           (0.3, "particles_0000000030.vtu")])
+    writer = VtkWriter(tmp_path, resume_after_step=20)
+    assert [f for _, f in writer.entries["particles"]] == ["particles_0000000010.vtu",
+                                                           "particles_0000000020.vtu"]
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_history_rows_match_simulation(tmp_path, dim):
+    sim = settling(dim)
+    rows = []
+    writer = HistoryWriter(tmp_path / "history.csv", sim, extra={"label": lambda s: 7})
+    sim.every(100, writer)
+    sim.every(100, lambda s: rows.append((s.step, s.time, s.ledger.as_dict(), s.wall_stress().copy(),
+                                          s.wall_force.copy(), s.n_contacts)))
+    sim.run(steps=500)
+    writer.close()
+    h = read_history(tmp_path / "history.csv")
+    assert list(h) == history_columns(sim, {"label": None})
+    assert h["step"].tolist() == [100, 200, 300, 400, 500]
+    for k, (step, time, ledger, stress, force, nc) in enumerate(rows):
+        assert h["time"][k] == time  # repr round trip: bit-identical
+        assert h["dt"][k] == sim.dt and math.isnan(h["dt_estimate"][k])
+        for key, value in ledger.items():
+            assert h[key][k] == value
+        assert h["n_contacts"][k] == nc
+        for w, wall in enumerate(sim.walls):
+            assert h[f"{wall.name}.stress"][k] == stress[w]
+            assert h[f"{wall.name}.fx"][k] == force[w, 0]
+        assert h["label"][k] == 7
+    floor = sim.walls[2 * dim - 2]  # the bottom wall carries the weight
+    weight = sim.m.sum() * 10.0
+    assert h[f"{floor.name}.f{'xyz'[dim - 1]}"][-1] == pytest.approx(-weight, rel=0.2)
+    assert "energy_error" in h
+
+
+def test_history_resume_truncates_later_rows(tmp_path):
+    sim = settling(2)
+    path = tmp_path / "history.csv"
+    with HistoryWriter(path, sim) as writer:
+        sim.every(50, writer)
+        sim.run(steps=300)
+    with HistoryWriter(path, sim, resume_after_step=150):
+        pass
+    assert read_history(path)["step"].tolist() == [50, 100, 150]
