@@ -3,7 +3,7 @@
 State terms are recomputed every step: kinetic energy (translation and rotation, from
 the mean of the two half-step velocities around t) and strain energy (normal and
 tangential springs at t). Accumulated terms are summed step by step by the trapezoidal
-rule: work of body forces, applied forces and walls (external), and dissipation by
+rule: work of body forces, applied forces, walls and a deforming periodic box (external), and dissipation by
 friction, contact dashpots, local (Cundall) and global viscous damping. The energy the
 system holds when the ledger starts (or is reset) counts as external input.
 
@@ -24,7 +24,7 @@ import numpy as np
 
 from demstep.errors import InputError
 from demstep.kernels.dem import (
-    A_APPLIED, A_BODY, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL, A_WALLS, E_KIN_R,
+    A_APPLIED, A_BODY, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL, A_WALLS, E_KIN_R,
     E_KIN_T, E_STRAIN_N, E_STRAIN_T, N_ACC, N_ENERGY,
 )
 
@@ -80,7 +80,8 @@ class EnergyLedger:
 
     @property
     def external(self) -> float:
-        return float(self.acc[A_BODY] + self.acc[A_APPLIED] + self.acc[A_WALLS] + self.acc[A_INITIAL])
+        return float(self.acc[A_BODY] + self.acc[A_APPLIED] + self.acc[A_WALLS] + self.acc[A_BOX]
+                     + self.acc[A_INITIAL])
 
     def imbalance(self) -> float:
         """W_kin + W_int - W_ext (zero for a perfect ledger)."""
@@ -107,6 +108,7 @@ class EnergyLedger:
             "work_body": float(self.acc[A_BODY]),
             "work_applied": float(self.acc[A_APPLIED]),
             "work_walls": float(self.acc[A_WALLS]),
+            "work_box": float(self.acc[A_BOX]),
             "initial": float(self.acc[A_INITIAL]),
             "external": self.external,
             "internal": self.internal,

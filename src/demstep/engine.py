@@ -208,6 +208,11 @@ class Simulation:
                     if not (math.isfinite(length) and length > 0):
                         raise InputError(f"periodic: box length along {'xyz'[k]} must be > 0, got {length!r}")
                     self.periodic_len[k] = float(length)
+        self.box_motion = np.zeros(3, dtype=np.int64)
+        self.box_servo = np.zeros((3, 5))
+        self.box_servo[:, dem.S_MAXSPEED] = np.inf
+        self.box_ref = self.periodic_len.copy()
+        self.box_state = np.zeros((6, 3))
         self.skin = 0.15 * float(self.r.mean()) if skin is None else float(skin)
         if not (math.isfinite(self.skin) and self.skin > 0):
             raise InputError(f"skin: must be finite and > 0, got {skin!r}")
@@ -241,22 +246,21 @@ class Simulation:
         self.wall_vel = np.zeros((nw, 3))
         self.wall_mu = np.zeros(nw)
         self.wall_motion = np.zeros(nw, dtype=np.int64)
-        self.servo = np.zeros((nw, 4))
+        self.servo = np.zeros((nw, 5))
         for k, wall in enumerate(walls):
             self.wall_point[k, :self.dim] = wall.point
             self.wall_normal[k, :self.dim] = wall.normal
             self.wall_vel[k, :self.dim] = wall.velocity
             self.wall_motion[k] = {"fixed": dem.WALL_FIXED, "velocity": dem.WALL_VELOCITY,
                                    "servo": dem.WALL_SERVO}[wall.motion]
-            self.servo[k] = (wall.target_stress, wall.servo_gain, wall.max_speed, wall.area)
-            if wall.motion == "servo" and not (wall.servo_gain > 0 and wall.target_stress >= 0):
-                raise InputError(f"wall {wall.name!r}: a servo wall needs servo_gain > 0 and "
-                                 f"target_stress >= 0")
+            self.servo[k] = (wall.target_stress, wall.servo_gain, wall.max_speed, wall.area,
+                             wall.servo_factor)
         self.wall_force = np.zeros((nw, 3))
         self.wall_force_prev = np.zeros((nw, 3))
         self.wall_disp_prev = np.zeros((nw, 3))
         self.wall_areas = np.zeros(nw)
         self.wall_contacts = np.zeros(nw, dtype=np.int64)
+        self.wall_k = np.zeros(nw)
         # axis-aligned walls bounding the specimen (used for loaded areas)
         self.box_lo = -np.ones(3, dtype=np.int64)
         self.box_hi = -np.ones(3, dtype=np.int64)
@@ -319,6 +323,7 @@ class Simulation:
         self.wp, self.ww = wp, ww
         self.x_ref = self.x.copy()
         self.wall_ref = self.wall_point.copy()
+        self.box_ref = self.periodic_len.copy()
         self._pairs_built = True
         self.n_rebuilds = getattr(self, "n_rebuilds", 0) + 1
 
@@ -488,12 +493,13 @@ class Simulation:
                 self.force, self.torque, self.applied_force, self.gravity,
                 self.damping.local, self.damping.viscous, self.fd_prev, self.td_prev, self.x_ref,
                 self.pi, self.pj, self.offsets, self.entries, self.ft, self.fd, self.etan,
-                self.pf, self.pt, self.parm, self.contact_flag, self.periodic_len,
+                self.pf, self.pt, self.parm, self.contact_flag,
+                self.periodic_len, self.box_motion, self.box_servo, self.box_ref, self.box_state,
                 law_id, params,
                 self.wp, self.ww, self.wft, self.wfd, self.wetan, self.wall_point, self.wall_normal,
                 self.wall_vel, self.wall_mu, self.wall_motion, self.servo, self.box_lo, self.box_hi,
                 self.dim, self.wall_force, self.wall_force_prev, self.wall_disp_prev, self.wall_ref,
-                self.wall_areas, self.wall_contacts,
+                self.wall_areas, self.wall_contacts, self.wall_k,
                 self.ledger.acc, self.ledger.energy, self.counters, self.jump_limit,
                 self.runaway_factor, self.energy_floor)
             self._first = False
@@ -568,3 +574,62 @@ class Simulation:
 
     def kinetic_energy(self) -> float:
         return self.ledger.kinetic
+
+    def set_box(self, axis: int, motion: str = "fixed", rate: float = 0.0,
+                target_stress: float = 0.0, servo_factor: float = 0.1, servo_gain: float = 0.0,
+                max_speed: float = np.inf):
+        """Motion of the periodic length along ``axis``: 'fixed'; 'rate' (dL/dt = ``rate``
+        [L/T]); 'servo' (hold the Love stress at ``target_stress`` [M/(L T^2)], gain as for
+        servo walls: automatic with ``servo_factor`` unless ``servo_gain`` > 0). The work
+        done by the changing box enters the ledger (``work_box``)."""
+        if not (0 <= axis < self.dim) or self.periodic_len[axis] <= 0:
+            raise InputError(f"box axis {axis}: not a periodic axis of this simulation")
+        modes = {"fixed": dem.BOX_FIXED, "rate": dem.BOX_RATE, "servo": dem.BOX_SERVO}
+        if motion not in modes:
+            raise InputError(f"box motion: must be fixed, rate or servo, got {motion!r}")
+        for name, value in (("target_stress", target_stress), ("servo_factor", servo_factor),
+                            ("servo_gain", servo_gain)):
+            if not (math.isfinite(value) and value >= 0):
+                raise InputError(f"box {name}: must be finite and >= 0, got {value!r}")
+        if not (max_speed > 0) or not math.isfinite(rate):
+            raise InputError(f"box: max_speed must be > 0 and rate finite, got {max_speed!r}, {rate!r}")
+        self.box_motion[axis] = modes[motion]
+        self.box_servo[axis] = (target_stress, rate if motion == "rate" else servo_gain,
+                                max_speed, 0.0, servo_factor)
+
+    def set_wall_motion(self, index: int, motion: str, velocity=None, target_stress=None):
+        """Change wall ``index`` between stages: 'fixed', 'velocity' (``velocity`` [L/T],
+        dim components) or 'servo' (``target_stress``)."""
+        wall = self.walls[index]
+        modes = {"fixed": dem.WALL_FIXED, "velocity": dem.WALL_VELOCITY, "servo": dem.WALL_SERVO}
+        if motion not in modes:
+            raise InputError(f"wall {wall.name!r}: motion must be fixed, velocity or servo, got {motion!r}")
+        wall.motion = motion
+        self.wall_motion[index] = modes[motion]
+        if velocity is not None:
+            vel = np.asarray(velocity, dtype=np.float64).reshape(-1)
+            if vel.shape != (self.dim,) or not np.isfinite(vel).all():
+                raise InputError(f"wall {wall.name!r}: velocity must have {self.dim} finite components")
+            wall.velocity = vel
+            self.wall_vel[index] = 0.0
+            self.wall_vel[index, :self.dim] = vel
+        if motion == "fixed":
+            self.wall_vel[index] = 0.0
+        if target_stress is not None:
+            if not (math.isfinite(target_stress) and target_stress >= 0):
+                raise InputError(f"wall {wall.name!r}: target_stress must be >= 0, got {target_stress!r}")
+            wall.target_stress = float(target_stress)
+            self.servo[index, dem.S_TARGET] = float(target_stress)
+
+    def extents(self) -> np.ndarray:
+        """Specimen extents per axis [L] (periodic lengths or box-wall gaps; NaN unknown)."""
+        out = np.empty(3)
+        dem.box_extents(self.wall_point, self.box_lo, self.box_hi, self.periodic_len, self.dim, out)
+        return out[:self.dim]
+
+    def love_stress(self) -> np.ndarray:
+        """Diagonal of the average stress from particle-particle contacts [M/(L T^2)]:
+        sigma_kk = (1/V) sum over contacts of F_k d_k (Love-Weber; compression
+        positive), V the box volume (area in 2D). Wall contacts are not included."""
+        volume = float(np.prod(self.extents()))
+        return self.box_state[0, :self.dim] / volume

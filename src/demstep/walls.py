@@ -18,8 +18,9 @@ from demstep.errors import InputError
 class Wall:
     """A rigid plane. ``velocity`` [L/T] moves it (``motion='velocity'``); a servo wall
     (``motion='servo'``) moves along its normal to hold ``target_stress`` [M/(L T^2)]
-    over ``area`` [L^2] (length in 2D) with gain ``servo_gain`` [L T / M] and the speed
-    limit ``max_speed`` [L/T]."""
+    over ``area`` [L^2] (length in 2D; 0: the current box face) with gain
+    ``servo_gain`` [L T / M] (0: automatic with ``servo_factor``) and the speed limit
+    ``max_speed`` [L/T]. ``friction`` overrides the contact law's wall friction."""
 
     point: np.ndarray
     normal: np.ndarray
@@ -29,6 +30,7 @@ class Wall:
     target_stress: float = 0.0
     area: float = 0.0
     servo_gain: float = 0.0
+    servo_factor: float = 0.1
     max_speed: float = np.inf
     friction: float | None = None
 
@@ -49,6 +51,14 @@ class Wall:
         if self.motion not in ("fixed", "velocity", "servo"):
             raise InputError(f"wall {self.name!r}: motion must be fixed, velocity or servo, "
                              f"got {self.motion!r}")
+        for key in ("target_stress", "area", "servo_gain", "servo_factor"):
+            value = getattr(self, key)
+            if not (np.isfinite(value) and value >= 0):
+                raise InputError(f"wall {self.name!r}: {key} must be finite and >= 0, got {value!r}")
+        if not (self.max_speed > 0):
+            raise InputError(f"wall {self.name!r}: max_speed must be > 0, got {self.max_speed!r}")
+        if self.friction is not None and not (np.isfinite(self.friction) and self.friction >= 0):
+            raise InputError(f"wall {self.name!r}: friction must be finite and >= 0, got {self.friction!r}")
 
     @property
     def dim(self) -> int:

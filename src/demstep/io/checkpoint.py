@@ -21,8 +21,9 @@ FORMAT_VERSION = 1
 
 _ARRAYS = ("x", "v", "w", "m", "inertia", "applied_force", "gravity", "fd_prev", "td_prev",
            "pi", "pj", "ft", "fd", "etan", "wp", "ww", "wft", "wfd", "wetan", "x_ref",
-           "wall_point", "wall_vel", "wall_force", "wall_force_prev", "wall_disp_prev",
-           "wall_ref", "servo", "counters")
+           "wall_point", "wall_force", "wall_force_prev", "wall_disp_prev",
+           "wall_ref", "servo", "counters", "wall_vel", "wall_k", "periodic_len", "box_motion",
+           "box_servo", "box_ref", "box_state", "wall_motion")
 
 
 def save_checkpoint(sim, path) -> Path:

@@ -32,8 +32,8 @@ from demstep.contact.geometry import contact_arms, wall_contact_arm
 from demstep.contact.laws import P_MU, dashpot_coefficients, normal_force, tangential_stiffness
 
 # ledger accumulators (float array ``acc``)
-A_BODY, A_APPLIED, A_WALLS, A_FRICTION, A_DASHPOT, A_LOCAL, A_GLOBAL, A_INITIAL = range(8)
-N_ACC = 8
+A_BODY, A_APPLIED, A_WALLS, A_FRICTION, A_DASHPOT, A_LOCAL, A_GLOBAL, A_INITIAL, A_BOX = range(9)
+N_ACC = 9
 # state energies (float array ``energy``): kinetic translation / rotation, strain normal / tangential
 E_KIN_T, E_KIN_R, E_STRAIN_N, E_STRAIN_T = range(4)
 N_ENERGY = 4
@@ -43,8 +43,11 @@ STOP_DONE, STOP_REBUILD, STOP_NONFINITE, STOP_RUNAWAY, STOP_JUMP = range(5)
 
 # wall motions
 WALL_FIXED, WALL_VELOCITY, WALL_SERVO = 0, 1, 2
-# servo parameter columns
-S_TARGET, S_GAIN, S_MAXSPEED, S_AREA = range(4)
+# servo parameter columns: target stress, gain [L T/M] (0: automatic), speed limit,
+# fixed area (0: from the box), factor of the automatic gain
+S_TARGET, S_GAIN, S_MAXSPEED, S_AREA, S_FACTOR = range(5)
+# periodic box motions (per axis)
+BOX_FIXED, BOX_RATE, BOX_SERVO = 0, 1, 2
 
 
 @njit
@@ -125,15 +128,34 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
 
 
 @njit(parallel=True)
-def pair_forces(x, v, w, r, m, inv_m, pi, pj, periodic_len, law, params, dt,
-                ft, fd, etan, pf, pt, parm, contact_flag):
+def pair_forces(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
+                ft, fd, etan, pf, pt, parm, contact_flag, box_sums):
     """Forces of all Verlet pairs. Per pair k: ``pf`` force on j, ``pt`` = n x F,
-    ``parm`` arms (a_i, a_j). Returns (strain_n, strain_t, friction, dashpot, contacts)."""
+    ``parm`` arms (a_i, a_j). Returns (strain_n, strain_t, friction, dashpot, contacts).
+    ``box_rate`` (3,) is the rate of change of the periodic lengths over the last step:
+    the image of j across a boundary moves with v_j - n_img dL/dt.
+
+    ``box_sums`` (4, 3) receives per axis: the virial sum F_on_j,k d_k (Love stress
+    times volume), the boundary sum F_on_j,k n_img,k over pairs that cross a periodic
+    boundary (its product with a change of box length is the work done on the
+    contacts), the number of crossing contacts and the sum of their k_n."""
     e_n = 0.0
     e_t = 0.0
     d_fric = 0.0
     d_dash = 0.0
     n_contacts = 0
+    vir0 = 0.0
+    vir1 = 0.0
+    vir2 = 0.0
+    cr0 = 0.0
+    cr1 = 0.0
+    cr2 = 0.0
+    nc0 = 0.0
+    nc1 = 0.0
+    nc2 = 0.0
+    kc0 = 0.0
+    kc1 = 0.0
+    kc2 = 0.0
     mu = params[P_MU]
     for k in prange(pi.shape[0]):
         i = pi[k]
@@ -141,12 +163,18 @@ def pair_forces(x, v, w, r, m, inv_m, pi, pj, periodic_len, law, params, dt,
         d0 = x[j, 0] - x[i, 0]
         d1 = x[j, 1] - x[i, 1]
         d2 = x[j, 2] - x[i, 2]
+        n0 = 0.0
+        n1 = 0.0
+        n2 = 0.0
         if periodic_len[0] > 0.0:
-            d0 -= periodic_len[0] * np.rint(d0 / periodic_len[0])
+            n0 = np.rint(d0 / periodic_len[0])
+            d0 -= periodic_len[0] * n0
         if periodic_len[1] > 0.0:
-            d1 -= periodic_len[1] * np.rint(d1 / periodic_len[1])
+            n1 = np.rint(d1 / periodic_len[1])
+            d1 -= periodic_len[1] * n1
         if periodic_len[2] > 0.0:
-            d2 -= periodic_len[2] * np.rint(d2 / periodic_len[2])
+            n2 = np.rint(d2 / periodic_len[2])
+            d2 -= periodic_len[2] * n2
         dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         delta = r[i] + r[j] - dist
         if delta <= 0.0 and etan[k] == 0.0 and ft[k, 0] == 0.0 and ft[k, 1] == 0.0 \
@@ -165,14 +193,32 @@ def pair_forces(x, v, w, r, m, inv_m, pi, pj, periodic_len, law, params, dt,
         vix = v[i, 0] + a_i * (w[i, 1] * nz - w[i, 2] * ny)
         viy = v[i, 1] + a_i * (w[i, 2] * nx - w[i, 0] * nz)
         viz = v[i, 2] + a_i * (w[i, 0] * ny - w[i, 1] * nx)
-        vjx = v[j, 0] - a_j * (w[j, 1] * nz - w[j, 2] * ny)
-        vjy = v[j, 1] - a_j * (w[j, 2] * nx - w[j, 0] * nz)
-        vjz = v[j, 2] - a_j * (w[j, 0] * ny - w[j, 1] * nx)
+        vjx = v[j, 0] - a_j * (w[j, 1] * nz - w[j, 2] * ny) - n0 * box_rate[0]
+        vjy = v[j, 1] - a_j * (w[j, 2] * nx - w[j, 0] * nz) - n1 * box_rate[1]
+        vjz = v[j, 2] - a_j * (w[j, 0] * ny - w[j, 1] * nx) - n2 * box_rate[2]
         m_star = 1.0 / (inv_m[i] + inv_m[j]) if inv_m[i] + inv_m[j] > 0.0 else m[i]
         r_star = r[i] * r[j] / (r[i] + r[j])
-        fx, fy, fz, c_en, c_et, c_fric, c_dash, _, _ = contact_response(
+        fx, fy, fz, c_en, c_et, c_fric, c_dash, c_kn, _ = contact_response(
             law, params, mu, nx, ny, nz, delta, r_star, m_star,
             vjx - vix, vjy - viy, vjz - viz, dt, ft, fd, etan, k)
+        vir0 += fx * d0
+        vir1 += fy * d1
+        vir2 += fz * d2
+        if n0 != 0.0:
+            cr0 += fx * n0
+            if delta > 0.0:
+                nc0 += 1.0
+                kc0 += c_kn
+        if n1 != 0.0:
+            cr1 += fy * n1
+            if delta > 0.0:
+                nc1 += 1.0
+                kc1 += c_kn
+        if n2 != 0.0:
+            cr2 += fz * n2
+            if delta > 0.0:
+                nc2 += 1.0
+                kc2 += c_kn
         pf[k, 0] = fx
         pf[k, 1] = fy
         pf[k, 2] = fz
@@ -190,6 +236,18 @@ def pair_forces(x, v, w, r, m, inv_m, pi, pj, periodic_len, law, params, dt,
             n_contacts += 1
         else:
             contact_flag[k] = 0
+    box_sums[0, 0] = vir0
+    box_sums[0, 1] = vir1
+    box_sums[0, 2] = vir2
+    box_sums[1, 0] = cr0
+    box_sums[1, 1] = cr1
+    box_sums[1, 2] = cr2
+    box_sums[2, 0] = nc0
+    box_sums[2, 1] = nc1
+    box_sums[2, 2] = nc2
+    box_sums[3, 0] = kc0
+    box_sums[3, 1] = kc1
+    box_sums[3, 2] = kc2
     return e_n, e_t, d_fric, d_dash, n_contacts
 
 
@@ -224,7 +282,7 @@ def gather_forces(offsets, entries, pf, pt, parm, force, torque):
 
 @njit
 def wall_forces(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu, law,
-                params, dt, wft, wfd, wetan, force, torque, wall_force, wall_contacts):
+                params, dt, wft, wfd, wetan, force, torque, wall_force, wall_contacts, wall_k):
     """Particle-wall contacts (serial: walls touch the surface layer only).
 
     Adds to ``force``/``torque``; ``wall_force`` (W, 3) receives the force the
@@ -238,6 +296,7 @@ def wall_forces(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_m
         wall_force[wi, 1] = 0.0
         wall_force[wi, 2] = 0.0
         wall_contacts[wi] = 0
+        wall_k[wi] = 0.0
     for q in range(wp.shape[0]):
         p = wp[q]
         wi = ww[q]
@@ -252,7 +311,7 @@ def wall_forces(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_m
         vix = v[p, 0] + a * (w[p, 1] * nz - w[p, 2] * ny)
         viy = v[p, 1] + a * (w[p, 2] * nx - w[p, 0] * nz)
         viz = v[p, 2] + a * (w[p, 0] * ny - w[p, 1] * nx)
-        fx, fy, fz, c_en, c_et, c_fric, c_dash, _, _ = contact_response(
+        fx, fy, fz, c_en, c_et, c_fric, c_dash, c_kn, _ = contact_response(
             law, params, wall_mu[wi], nx, ny, nz, delta, r[p], m[p],
             wall_vel[wi, 0] - vix, wall_vel[wi, 1] - viy, wall_vel[wi, 2] - viz,
             dt, wft, wfd, wetan, q)
@@ -271,7 +330,23 @@ def wall_forces(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_m
         d_dash += c_dash
         if delta > 0.0:
             wall_contacts[wi] += 1
+            wall_k[wi] += c_kn
     return e_n, e_t, d_fric, d_dash
+
+
+@njit
+def box_extents(wall_point, box_lo, box_hi, periodic_len, dim, extents):
+    """Extent of the specimen along each axis [L]: the periodic length, else the gap
+    between the opposing box walls, else NaN; 1 for the z axis of a 2D run."""
+    for k in range(3):
+        if k >= dim:
+            extents[k] = 1.0
+        elif periodic_len[k] > 0.0:
+            extents[k] = periodic_len[k]
+        elif box_lo[k] >= 0 and box_hi[k] >= 0:
+            extents[k] = wall_point[box_hi[k], k] - wall_point[box_lo[k], k]
+        else:
+            extents[k] = np.nan
 
 
 @njit
@@ -279,6 +354,8 @@ def wall_areas(wall_point, wall_normal, servo, box_lo, box_hi, periodic_len, dim
     """Current loaded area of each wall [L^2] (length in 2D): the fixed area if given,
     else the product of the specimen's extents along the other axes, taken from the
     opposing box walls or the periodic box. NaN when unknown."""
+    extents = np.empty(3)
+    box_extents(wall_point, box_lo, box_hi, periodic_len, dim, extents)
     for wi in range(wall_point.shape[0]):
         if servo[wi, S_AREA] > 0.0:
             areas[wi] = servo[wi, S_AREA]
@@ -290,16 +367,32 @@ def wall_areas(wall_point, wall_normal, servo, box_lo, box_hi, periodic_len, dim
                 best = abs(wall_normal[wi, k])
                 axis = k
         area = 1.0
-        for k in range(dim):
-            if k == axis:
-                continue
-            if box_lo[k] >= 0 and box_hi[k] >= 0:
-                area *= wall_point[box_hi[k], k] - wall_point[box_lo[k], k]
-            elif periodic_len[k] > 0.0:
-                area *= periodic_len[k]
-            else:
-                area = np.nan
+        for k in range(3):
+            if k != axis:
+                area *= extents[k]
         areas[wi] = area
+
+
+@njit
+def servo_speed(stress, target, gain, factor, area, n_contacts, k_sum, dt, max_speed):
+    """Speed [L/T] of a servo boundary that closes the gap between ``stress`` and
+    ``target`` (positive: towards the specimen). With ``gain`` = 0 the gain is
+    automatic, factor * area / (sum of k_n of its contacts * dt): a stress error is
+    then corrected by ``factor`` of itself per step at the current stiffness."""
+    g = gain
+    if g <= 0.0:
+        if k_sum <= 0.0 or n_contacts == 0:
+            # touching nothing: approach at the speed limit (if one is set)
+            if target > stress and math.isfinite(max_speed):
+                return max_speed
+            return 0.0
+        g = factor * area / (k_sum * dt)
+    speed = g * (target - stress)
+    if speed > max_speed:
+        speed = max_speed
+    elif speed < -max_speed:
+        speed = -max_speed
+    return speed
 
 
 @njit(parallel=True)
@@ -382,41 +475,50 @@ def integrate(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravit
 def advance(n_steps, dt, dt_prev, first, skin,
             x, v, w, r, m, inertia, inv_m, inv_I, force, torque, f_app, gravity,
             local_damping, global_damping, fd_prev, td_prev, x_ref,
-            pi, pj, offsets, entries, ft, fd, etan, pf, pt, parm, contact_flag, periodic_len,
+            pi, pj, offsets, entries, ft, fd, etan, pf, pt, parm, contact_flag,
+            periodic_len, box_motion, box_servo, box_ref, box_state,
             law, params,
             wp, ww, wft, wfd, wetan, wall_point, wall_normal, wall_vel, wall_mu, wall_motion,
             servo, box_lo, box_hi, dim, wall_force, wall_force_prev, wall_disp_prev, wall_ref,
-            wall_areas_out, wall_contacts,
+            wall_areas_out, wall_contacts, wall_k,
             acc, energy, counters, jump_limit, runaway_factor, energy_floor):
     """Run up to ``n_steps`` steps. Returns (steps done, stop reason).
 
-    ``counters`` (3,): particle-particle contacts, particle-wall contacts, max jump."""
+    Periodic box: ``box_motion`` (3,) fixed / rate / servo; ``box_servo`` (3, 5) with
+    the columns of ``servo`` (rate in the gain column for BOX_RATE: dL/dt [L/T]);
+    ``box_state`` (6, 3): virial, crossing sum, crossing contacts, their k_n sum, the
+    previous crossing sum and the last change of length. ``counters`` (3,):
+    particle-particle contacts, particle-wall contacts, largest jump |v| dt / r."""
     out = np.empty(8)
-    half_skin2 = 0.25 * skin * skin
+    box_sums = np.zeros((4, 3))
+    box_rate = np.zeros(3)
+    extents = np.empty(3)
     nw = wall_point.shape[0]
     for step in range(n_steps):
-        # 1-2. contact forces
-        # the slip increment of step n is x(t) - x(t - dt_prev); none before t = 0
+        # 1-2. contact forces; the slip increment of step n is x(t) - x(t - dt_prev)
         dt_slip = 0.0 if first else dt_prev
+        for k in range(3):
+            box_rate[k] = 0.0 if first else box_state[5, k] / dt_prev
         e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
-            x, v, w, r, m, inv_m, pi, pj, periodic_len, law, params, dt_slip,
-            ft, fd, etan, pf, pt, parm, contact_flag)
+            x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt_slip,
+            ft, fd, etan, pf, pt, parm, contact_flag, box_sums)
         gather_forces(offsets, entries, pf, pt, parm, force, torque)
         we_n, we_t, wd_fric, wd_dash = wall_forces(
             x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
-            law, params, dt_slip, wft, wfd, wetan, force, torque, wall_force, wall_contacts)
-        if first:
-            # no step precedes t = 0: nothing dissipated yet
-            d_fric = 0.0
-            d_dash = 0.0
-            wd_fric = 0.0
-            wd_dash = 0.0
-        # wall work over the last step (trapezoid): wall pushes particles with -F
+            law, params, dt_slip, wft, wfd, wetan, force, torque, wall_force, wall_contacts,
+            wall_k)
+        for row in range(4):
+            for k in range(3):
+                box_state[row, k] = box_sums[row, k]
+        # boundary work over the last step (trapezoid): walls push particles with -F;
+        # a change of periodic length dL does work (crossing sum) * dL on the contacts
         if not first:
             for wi in range(nw):
                 acc[A_WALLS] -= 0.5 * ((wall_force_prev[wi, 0] + wall_force[wi, 0]) * wall_disp_prev[wi, 0]
                                        + (wall_force_prev[wi, 1] + wall_force[wi, 1]) * wall_disp_prev[wi, 1]
                                        + (wall_force_prev[wi, 2] + wall_force[wi, 2]) * wall_disp_prev[wi, 2])
+            for k in range(3):
+                acc[A_BOX] += 0.5 * (box_state[4, k] + box_sums[1, k]) * box_state[5, k]
         # servo-controlled walls: velocity along the normal from the stress error
         wall_areas(wall_point, wall_normal, servo, box_lo, box_hi, periodic_len, dim,
                    wall_areas_out)
@@ -424,20 +526,31 @@ def advance(n_steps, dt, dt_prev, first, skin,
             if wall_motion[wi] == WALL_SERVO:
                 push = -(wall_force[wi, 0] * wall_normal[wi, 0] + wall_force[wi, 1] * wall_normal[wi, 1]
                          + wall_force[wi, 2] * wall_normal[wi, 2])
-                stress = push / wall_areas_out[wi]
-                speed = servo[wi, S_GAIN] * (servo[wi, S_TARGET] - stress)
-                lim = servo[wi, S_MAXSPEED]
-                if speed > lim:
-                    speed = lim
-                elif speed < -lim:
-                    speed = -lim
+                speed = servo_speed(push / wall_areas_out[wi], servo[wi, S_TARGET], servo[wi, S_GAIN],
+                                    servo[wi, S_FACTOR], wall_areas_out[wi], wall_contacts[wi],
+                                    wall_k[wi], dt, servo[wi, S_MAXSPEED])
                 for k in range(3):
                     wall_vel[wi, k] = speed * wall_normal[wi, k]
+        # periodic box lengths: prescribed rate or servo on the Love stress
+        box_extents(wall_point, box_lo, box_hi, periodic_len, dim, extents)
+        volume = extents[0] * extents[1] * extents[2]
+        box_speed = np.zeros(3)
+        for k in range(3):
+            if periodic_len[k] > 0.0:
+                if box_motion[k] == BOX_RATE:
+                    box_speed[k] = box_servo[k, S_GAIN]
+                elif box_motion[k] == BOX_SERVO:
+                    stress = box_sums[0, k] / volume
+                    # shrinking the box (negative speed) raises the stress
+                    box_speed[k] = -servo_speed(stress, box_servo[k, S_TARGET], box_servo[k, S_GAIN],
+                                                box_servo[k, S_FACTOR], volume / periodic_len[k],
+                                                int(box_sums[2, k]), box_sums[3, k], dt,
+                                                box_servo[k, S_MAXSPEED])
         # 3-4. central-difference update with damping; particle ledger terms
         integrate(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
                   dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first, out)
-        # walls move
-        wall_move2 = 0.0
+        # walls and the periodic box move
+        boundary_move = 0.0
         for wi in range(nw):
             d2 = 0.0
             for k in range(3):
@@ -447,7 +560,12 @@ def advance(n_steps, dt, dt_prev, first, skin,
                 wall_force_prev[wi, k] = wall_force[wi, k]
                 dd = wall_point[wi, k] - wall_ref[wi, k]
                 d2 += dd * dd
-            wall_move2 = max(wall_move2, d2)
+            boundary_move = max(boundary_move, math.sqrt(d2))
+        for k in range(3):
+            box_state[4, k] = box_sums[1, k]
+            box_state[5, k] = dt * box_speed[k]
+            periodic_len[k] += dt * box_speed[k]
+            boundary_move += abs(periodic_len[k] - box_ref[k])
         # 5. ledger
         acc[A_BODY] += out[0]
         acc[A_APPLIED] += out[1]
@@ -476,10 +594,10 @@ def advance(n_steps, dt, dt_prev, first, skin,
             return step + 1, STOP_NONFINITE
         if out[7] > jump_limit:
             return step + 1, STOP_JUMP
-        supplied = acc[A_BODY] + acc[A_APPLIED] + acc[A_WALLS] + acc[A_INITIAL]
+        supplied = acc[A_BODY] + acc[A_APPLIED] + acc[A_WALLS] + acc[A_BOX] + acc[A_INITIAL]
         if runaway_factor > 0.0 and ke > runaway_factor * max(supplied + energy_floor, energy_floor):
             return step + 1, STOP_RUNAWAY
-        # neighbour lists expire after skin / 2 of (particle + wall) motion
-        if math.sqrt(out[6]) + math.sqrt(wall_move2) > 0.5 * skin:
+        # neighbour lists expire after skin / 2 of particle, wall or box motion
+        if math.sqrt(out[6]) + boundary_move > 0.5 * skin:
             return step + 1, STOP_REBUILD
     return n_steps, STOP_DONE
