@@ -13,7 +13,7 @@ import meshio
 import numpy as np
 import pytest
 
-from demstep.case import apply_stage, build_simulation, case_from_text, load_case
+from demstep.case import apply_stage, build_simulation, load_case
 from demstep.cli_run import main as cli_main
 from demstep.io.checkpoint import load_checkpoint, save_checkpoint
 from demstep.io.history import read_history
@@ -333,3 +333,35 @@ def test_sigterm_in_a_subprocess_saves_a_checkpoint(tmp_path):
     checkpoint = find_checkpoint(out)
     pos, state = read_state(checkpoint)
     assert state["reason"] == "signal SIGTERM" and pos.stage == 0 and pos.stage_step > 0
+
+
+def test_overwrite_replaces_earlier_outputs_only(tmp_path):
+    case = small_case(tmp_path)
+    out = tmp_path / "out"
+    run_case(case, out, quiet=True, max_steps=60)
+    (out / "notes.txt").write_text("mine")
+    (out / "checkpoints" / "step9999999999.json").write_text("{}")
+    result = run_case(case, out, quiet=True, max_steps=30, overwrite=True)
+    assert result.status == "completed"
+    assert (out / "notes.txt").read_text() == "mine"  # not an output: kept
+    assert not (out / "checkpoints" / "step9999999999.json").exists()
+    assert read_history(out / "history.csv")["step"][-1] == result.step
+
+
+def test_folder_restart_skips_failed_checkpoints(tmp_path):
+    case = small_case(tmp_path)
+    out = tmp_path / "out"
+    good = run_interrupted(case, out, 100).checkpoint
+    bad = out / "checkpoints" / "demstep-diverged-step999.npz"
+    bad.write_bytes(good.read_bytes())
+    (bad.with_suffix(".json")).write_text(json.dumps({"format": 1, "reason": "diverged",
+                                                      "checkpoint": bad.name, "step": 999}))
+    assert find_checkpoint(out) == good
+
+
+def test_progress_bar_runs(tmp_path, capsys):
+    case = small_case(tmp_path)
+    result = run_case(case, tmp_path / "out", quiet=False, max_steps=50, log_level="DEBUG")
+    assert result.status == "completed"
+    log_text = (tmp_path / "out" / "run.log").read_text()
+    assert "stage 3/3 'hold'" in log_text and "checkpoint (completed)" in log_text

@@ -30,6 +30,7 @@ import logging
 import math
 import os
 import platform
+import re
 import signal
 import sys
 import tempfile
@@ -55,7 +56,8 @@ def default_chunk_steps(n_particles: int) -> int:
     """Steps per chunk for ``n_particles`` particles. Chunk ends must not depend on the
     wall clock: ``Simulation.time`` is summed chunk by chunk, so a restart reproduces
     the times of the uninterrupted run only when both chunk alike."""
-    return int(min(MAX_CHUNK_STEPS, max(MIN_CHUNK_STEPS, CHUNK_PARTICLE_STEPS // max(1, n_particles))))
+    steps = CHUNK_PARTICLE_STEPS // max(1, n_particles)
+    return int(min(MAX_CHUNK_STEPS, max(MIN_CHUNK_STEPS, steps)))
 
 
 @dataclass
@@ -119,8 +121,13 @@ def read_state(checkpoint) -> tuple[RunPosition, dict]:
     return pos, data
 
 
+#: reasons of checkpoints written when a run failed; a folder restart skips them
+FAILED = ("diverged", "energy_stop")
+
+
 def find_checkpoint(path) -> Path:
-    """A checkpoint file, or the newest checkpoint (by step) in a folder or a run folder."""
+    """A checkpoint file, or the newest good checkpoint (by step; not one saved at a
+    divergence or an energy stop) in a checkpoint folder or a run folder."""
     path = Path(path)
     if path.is_dir():
         folder = path / "checkpoints" if (path / "checkpoints").is_dir() else path
@@ -129,7 +136,7 @@ def find_checkpoint(path) -> Path:
             try:
                 data = json.loads(js.read_text(encoding="utf-8"))
                 npz = folder / data["checkpoint"]
-                if npz.is_file():
+                if npz.is_file() and data.get("reason") not in FAILED:
                     found.append((int(data["step"]), js.stat().st_mtime, npz))
             except (ValueError, KeyError, TypeError, OSError):
                 continue
@@ -261,7 +268,7 @@ class _Runner:
         self.case, self.sim, self.out_dir, self.pos = case, sim, out_dir, pos
         self.max_steps = max_steps
         self.on_chunk = on_chunk
-        self.chunk_steps = chunk_steps if chunk_steps is not None else default_chunk_steps(len(sim.r))
+        self.chunk_steps = chunk_steps or default_chunk_steps(len(sim.r))
         self.stop = StopRequest()
         self.progress = _NoProgress() if quiet else _RichProgress()
         self.ckpt_dir = out_dir / "checkpoints"
@@ -335,6 +342,13 @@ class _Runner:
     def _stage_done(self) -> bool:
         sim, pos = self.sim, self.pos
         stage = self.case.stages[pos.stage]
+        if stage.until_kinetic_below is not None and pos.stage_step > 0 \
+                and pos.stage_step % stage.check_every == 0 \
+                and sim.ledger.kinetic < stage.until_kinetic_below:
+            log.info("stage '%s': kinetic energy %.4g below %.4g after %d steps",
+                     self.case.stage_label(pos.stage), sim.ledger.kinetic,
+                     stage.until_kinetic_below, pos.stage_step)
+            return True
         budget = self._stage_budget()
         if budget is not None and budget <= 0:
             if stage.until_kinetic_below is not None:
@@ -343,16 +357,10 @@ class _Runner:
                             stage.until_kinetic_below, pos.stage_step)
             return True
         if stage.duration is not None and pos.stage_total is None:
+            # as Simulation.run(duration=...): the first step at or past the end time
             t_end = pos.stage_start_time + stage.duration
             if sim.time >= t_end * (1 - 1e-12) or stage.duration == 0:
                 return True
-        if stage.until_kinetic_below is not None and pos.stage_step > 0 \
-                and pos.stage_step % stage.check_every == 0 \
-                and sim.ledger.kinetic < stage.until_kinetic_below:
-            log.info("stage '%s': kinetic energy %.4g below %.4g after %d steps",
-                     self.case.stage_label(pos.stage), sim.ledger.kinetic,
-                     stage.until_kinetic_below, pos.stage_step)
-            return True
         return False
 
     def _chunk(self) -> int:
@@ -411,7 +419,8 @@ class _Runner:
                         return self._emergency("diverged", exc.checkpoint, str(exc))
                     except EnergyBalanceError as exc:
                         self.pos.stage_step += sim.step - before
-                        path = Path(sim.checkpoint_dir) / f"demstep-energy-step{sim.step}.npz"
+                        saved = re.search(r"state saved to (.+)$", str(exc))
+                        path = Path(saved.group(1)) if saved else None
                         return self._emergency("energy_stop", path, str(exc))
                     self.pos.stage_step += sim.step - before
                     self._outputs()
@@ -453,6 +462,21 @@ class _Runner:
         return RunResult(status, self.out_dir, self.sim.step, self.sim.time, path, message)
 
 
+#: what a run writes into its folder (removed by ``overwrite``; nothing else is touched)
+OUTPUTS = ("case.toml", "run.json", "run.log", "history.csv", "vtk", "checkpoints", "plots")
+
+
+def _remove_outputs(out_dir: Path):
+    import shutil
+
+    for name in OUTPUTS:
+        path = out_dir / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
+
+
 def _version_info() -> dict:
     import numba
     import numpy
@@ -472,7 +496,8 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
 
     ``restart``: a checkpoint (or a folder: its newest checkpoint) to continue from.
     ``max_steps``: at most this many steps per stage (previews, smoke tests).
-    ``overwrite``: allow a non-empty ``out_dir`` without ``restart``.
+    ``overwrite``: allow a non-empty ``out_dir`` without ``restart`` (the outputs of
+    an earlier run there, :data:`OUTPUTS`, are removed first).
     ``chunk_steps``: steps between returns to Python, where outputs, progress and
     signals are handled (default :func:`default_chunk_steps`); chunks end at multiples
     of it. A restart reproduces the uninterrupted run bit for bit when both use the
@@ -501,6 +526,7 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
     sim = build_simulation(case, checkpoint_dir=out_dir / "checkpoints")
     pos = None
     restart_info = None
+    case_changed = False
     if restart is not None:
         checkpoint = find_checkpoint(restart)
         pos, state = read_state(checkpoint)
@@ -511,10 +537,17 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
         started = pos.stage + 1 if pos.stage_step > 0 else pos.stage
         for k in range(min(started, len(case.stages))):
             apply_stage(sim, case, k, fresh=False)
-        load_checkpoint(sim, checkpoint)
-        if state.get("case_sha256") != case_hash(case):
-            log.warning("restart: the case differs from the one that wrote %s", checkpoint)
+        try:
+            load_checkpoint(sim, checkpoint)
+        except (KeyError, ValueError) as exc:
+            if isinstance(exc, InputError):
+                raise
+            raise InputError(f"restart: {checkpoint}: not a checkpoint of this demstep "
+                             f"({type(exc).__name__}: {exc})") from None
+        case_changed = state.get("case_sha256") != case_hash(case)
         restart_info = {"checkpoint": str(checkpoint), "step": sim.step, "time": sim.time}
+    if restart is None and overwrite:
+        _remove_outputs(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     from demstep import __version__
 
@@ -544,8 +577,12 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
         log.info("demstep %s: case '%s', %d %dD particles, %d walls, %d stage(s)%s",
                  __version__, case.name, len(sim.r), sim.dim, len(sim.walls), len(case.stages),
                  f", restarted at step {sim.step}" if restart_info else "")
+        if restart_info and case_changed:
+            log.warning("restart: the case differs from the one that wrote %s",
+                        restart_info["checkpoint"])
         if pos is not None and pos.stage == len(case.stages):
-            result = RunResult("completed", out_dir, sim.step, sim.time, Path(restart_info["checkpoint"]),
+            result = RunResult("completed", out_dir, sim.step, sim.time,
+                               Path(restart_info["checkpoint"]),
                                "nothing to run: the checkpoint is at the end of the last stage")
         else:
             result = runner.run()
