@@ -232,7 +232,9 @@ def test_paper_case_layout():
     assert sim.m[0] == pytest.approx(2000 * 4 / 3 * np.pi * 20.0**3)
     layers = np.unique(np.round(sim.x[:, 2], 6))
     counts = [int(np.sum(np.isclose(sim.x[:, 2], z))) for z in layers]
-    assert len(layers) == 12 and counts == [16, 9] * 6
+    assert len(layers) == 6 and counts == [25] * 6
+    assert sim.periodic_len.tolist() == [200.0, 200.0, 0.0]
+    assert [w.name for w in sim.walls] == ["bottom", "top"]
 
 
 def test_polydisperse_packing_example_reads():
@@ -365,3 +367,22 @@ def test_progress_bar_runs(tmp_path, capsys):
     assert result.status == "completed"
     log_text = (tmp_path / "out" / "run.log").read_text()
     assert "stage 3/3 'hold'" in log_text and "checkpoint (completed)" in log_text
+
+
+def test_paper_case_restarts_bit_for_bit(tmp_path):
+    """Periodic servo lengths, a stage time step and a ledger reset survive a restart."""
+    case = load_case(EXAMPLES / "fcc_plane_strain.toml")
+    case.output.checkpoint_every = 0
+    straight = run_case(case, tmp_path / "a", quiet=True, max_steps=300, chunk_steps=40)
+    stopped = run_interrupted(case, tmp_path / "b", 450, max_steps=300)
+    assert stopped.status == "interrupted" and read_state(stopped.checkpoint)[0].stage == 1
+    resumed = run_case(case, tmp_path / "b", quiet=True, max_steps=300, chunk_steps=40,
+                       restart=stopped.checkpoint)
+    assert resumed.status == "completed"
+    ha, hb = read_history(tmp_path / "a" / "history.csv"), read_history(tmp_path / "b" / "history.csv")
+    assert "box.Lx" in ha and "love.zz" in ha
+    for key in ha:
+        assert np.array_equal(ha[key], hb[key], equal_nan=True), key
+    a, b = np.load(straight.checkpoint), np.load(resumed.checkpoint)
+    for key in ("x", "v", "w", "periodic_len", "box_state", "acc", "energy", "wall_point"):
+        assert np.array_equal(a[key], b[key]), key

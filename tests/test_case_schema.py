@@ -207,3 +207,40 @@ def test_stage_gravity_and_ledger_reset():
     assert sim.gravity.tolist() == [0.0, -9.81, 0.0]
     held = sim.ledger.kinetic + sim.ledger.strain
     assert sim.ledger.external == pytest.approx(held)  # reset_ledger: the balance restarts
+
+
+FCC = tomllib.loads((EXAMPLES / "fcc_plane_strain.toml").read_text())
+
+
+@pytest.mark.parametrize("path,value,expected", [
+    (("stages", 0, "periodic", "z"), {"motion": "fixed"},
+     "stages[0].periodic.z: not a periodic axis of the case (periodic: x, y)"),
+    (("stages", 0, "periodic", "x"), {"motion": "rate"}, "stages[0].periodic.x.rate: required"),
+    (("stages", 0, "periodic", "x"), {"motion": "servo"},
+     "stages[0].periodic.x.target_stress: required"),
+    (("stages", 0, "periodic", "x"), {"motion": "shear"}, "stages[0].periodic.x.motion"),
+    (("stages", 1, "timestep"), {"alpha": 0.1, "dt": 1e-3}, "stages[1].timestep.alpha: not used"),
+    (("stages", 1, "timestep"), {"mode": "fixed"}, "stages[1].timestep.dt: required"),
+])
+def test_periodic_and_timestep_stage_changes_refused(path, value, expected):
+    data = copy.deepcopy(FCC)
+    setitem(path, value)(data)
+    with pytest.raises(InputError) as info:
+        case_from_dict(data, source="fcc.toml")
+    assert expected in str(info.value) and "\n" not in str(info.value)
+
+
+def test_periodic_and_timestep_stage_changes_reach_the_simulation():
+    case = load_case(EXAMPLES / "fcc_plane_strain.toml")
+    sim = build_simulation(case)
+    assert (sim.box_motion == dem.BOX_FIXED).all()
+    apply_stage(sim, case, 0)
+    assert sim.box_motion[:2].tolist() == [dem.BOX_SERVO, dem.BOX_SERVO]
+    assert sim.box_servo[0, dem.S_TARGET] == 1.0e6 and sim.box_servo[0, dem.S_MAXSPEED] == 0.77
+    sim.run(steps=20)
+    dt_stage1 = sim.dt
+    apply_stage(sim, case, 1)
+    assert sim.box_motion[:2].tolist() == [dem.BOX_SERVO, dem.BOX_FIXED]
+    assert sim.timestep.mode == "alpha" and sim.timestep.alpha == 0.1 and sim.dt is None
+    sim.prepare()
+    assert sim.dt == dt_stage1

@@ -75,8 +75,12 @@ supplied; 0 disables).
 ``duration`` [T] or ``until_kinetic_below`` [M L^2/T^2] (checked every
 ``check_every`` steps, at most ``max_steps``). Changes applied at the start of the
 stage: ``mu``, ``mu_wall``, ``damping = {local, viscous}``, ``gravity`` [L/T^2],
-``[stages.walls."name"]`` (motion, velocity, target_stress, servo_gain, max_speed,
-servo_factor, area, friction), ``reset_ledger`` (start a new energy balance from the current state).
+``[stages.walls."name"]`` (motion, velocity, target_stress, servo_gain, servo_factor,
+max_speed, area, friction), ``[stages.periodic.x]`` (how a periodic length changes:
+``motion`` fixed|rate|servo, ``rate`` [L/T], ``target_stress`` [M/(L T^2)] on the Love
+stress, ``servo_gain`` [L T/M] or ``servo_factor``, ``max_speed`` [L/T]),
+``[stages.timestep]`` (a new [timestep] section from this stage on), ``reset_ledger``
+(start a new energy balance from the current state).
 
 ``[output]``: ``history_every`` [steps] (CSV history; 0 none), ``vtk_every`` [steps]
 (VTK frames; 0 none), ``vtk_contacts`` (write the contact network), ``checkpoint_every``
@@ -279,6 +283,20 @@ class NumericsSection(_Section):
     runaway_factor: NonNegative = 10.0
 
 
+class BoxAxisMotion(_Section):
+    """How the length of one periodic axis changes: 'fixed', 'rate' (dL/dt = ``rate``
+    [L/T]) or 'servo' (hold the Love stress at ``target_stress`` [M/(L T^2)], with
+    ``servo_gain`` [L T/M] or, when it is 0 or omitted, the automatic gain correcting
+    ``servo_factor`` of the error per step; at most ``max_speed`` [L/T])."""
+
+    motion: Literal["fixed", "rate", "servo"]
+    rate: float | None = None
+    target_stress: NonNegative | None = None
+    servo_gain: NonNegative = 0.0
+    servo_factor: Positive = 0.1
+    max_speed: Positive | None = None
+
+
 class Stage(_Section):
     """One stage: how long it runs and what changes at its start."""
 
@@ -293,6 +311,8 @@ class Stage(_Section):
     damping: DampingChange | None = None
     gravity: Vector | None = None
     walls: dict[str, WallMotion] = {}
+    periodic: dict[str, BoxAxisMotion] = {}
+    timestep: TimestepSection | None = None
     reset_ledger: bool = False
 
 
@@ -544,25 +564,7 @@ def check_case(case: Case) -> None:
     _need_len("gravity", case.gravity, dim)
     if case.periodic is not None and dim == 2 and case.periodic.z is not None:
         raise InputError(f"periodic.z: a 2D case has no z axis, got {case.periodic.z!r}")
-    # timestep
-    ts = case.timestep
-    if ts.mode is None:
-        ts.mode = "fixed" if ts.dt is not None else "alpha"
-    if ts.mode == "fixed" and ts.dt is None:
-        raise InputError("timestep.dt: required with mode = 'fixed'")
-    if ts.mode == "fixed" and ts.alpha is not None:
-        raise InputError(f"timestep.alpha: not used with mode = 'fixed', got {ts.alpha!r}")
-    if ts.mode == "alpha":
-        if ts.dt is not None:
-            raise InputError(f"timestep.dt: not used with mode = 'alpha' (give dt or alpha), "
-                             f"got {ts.dt!r}")
-        if ts.alpha is None:
-            ts.alpha = 0.1
-    if ts.mode == "auto":
-        for key in ("dt", "alpha"):
-            if getattr(ts, key) is not None:
-                raise InputError(f"timestep.{key}: not used with mode = 'auto', "
-                                 f"got {getattr(ts, key)!r}")
+    _resolve_timestep("timestep", case.timestep)
     # walls
     names = box_wall_names(dim) if case.box is not None else []
     if case.box is not None:
@@ -611,12 +613,46 @@ def check_case(case: Case) -> None:
             raise InputError(f"{key}.max_steps: only used with until_kinetic_below, "
                              f"got {stage.max_steps!r}")
         _need_len(f"{key}.gravity", stage.gravity, dim)
+        if stage.timestep is not None:
+            _resolve_timestep(f"{key}.timestep", stage.timestep)
+        periodic_axes = [a for a in AXES[:dim]
+                         if case.periodic is not None and getattr(case.periodic, a) is not None]
+        for axis, change in stage.periodic.items():
+            akey = f"{key}.periodic.{axis}" if _BARE_KEY.match(axis) else f'{key}.periodic."{axis}"'
+            if axis not in periodic_axes:
+                raise InputError(f"{akey}: not a periodic axis of the case (periodic: "
+                                 f"{', '.join(periodic_axes) or 'none'})")
+            if change.motion == "rate" and change.rate is None:
+                raise InputError(f"{akey}.rate: required with motion = 'rate'")
+            if change.motion == "servo" and change.target_stress is None:
+                raise InputError(f"{akey}.target_stress: required with motion = 'servo'")
         for wname, change in stage.walls.items():
             if wname not in state:
                 raise InputError(f"{key}.walls.\"{wname}\": no such wall (have "
                                  f"{', '.join(state) or 'none'})")
             state[wname] = _check_motion(f'{key}.walls."{wname}"', change, state[wname], dim,
                                          initial=False)
+
+
+def _resolve_timestep(key: str, ts: "TimestepSection") -> None:
+    """Fill in ``mode`` (and the default alpha) and refuse keys the mode does not use."""
+    if ts.mode is None:
+        ts.mode = "fixed" if ts.dt is not None else "alpha"
+    if ts.mode == "fixed" and ts.dt is None:
+        raise InputError(f"{key}.dt: required with mode = 'fixed'")
+    if ts.mode == "fixed" and ts.alpha is not None:
+        raise InputError(f"{key}.alpha: not used with mode = 'fixed', got {ts.alpha!r}")
+    if ts.mode == "alpha":
+        if ts.dt is not None:
+            raise InputError(f"{key}.dt: not used with mode = 'alpha' (give dt or alpha), "
+                             f"got {ts.dt!r}")
+        if ts.alpha is None:
+            ts.alpha = 0.1
+    if ts.mode == "auto":
+        for name in ("dt", "alpha"):
+            if getattr(ts, name) is not None:
+                raise InputError(f"{key}.{name}: not used with mode = 'auto', "
+                                 f"got {getattr(ts, name)!r}")
 
 
 def _merged(before: WallMotion, change: WallMotion) -> WallMotion:
@@ -725,6 +761,15 @@ def _apply_motion(wall, motion: WallMotion):
             setattr(wall, key, float(value))
 
 
+def build_timestep(ts: TimestepSection):
+    """The engine's TimeStep for a (resolved) [timestep] section."""
+    from demstep.engine import TimeStep
+
+    return TimeStep(mode=ts.mode, dt=ts.dt, alpha=ts.alpha if ts.alpha is not None else 0.1,
+                    safety=ts.safety, method=ts.method, every=ts.every, growth=ts.growth,
+                    overlap=ts.overlap)
+
+
 def build_walls(case: Case, x: np.ndarray, r: np.ndarray) -> list:
     """The walls of the case: box walls first (x-, x+, ...), then [[walls]]."""
     from demstep.walls import Wall, box_walls
@@ -776,10 +821,7 @@ def _build_simulation(case: Case, checkpoint_dir):
         periodic = [getattr(case.periodic, a) for a in AXES[: case.dim]]
         if all(v is None for v in periodic):
             periodic = None
-    ts = case.timestep
-    timestep = TimeStep(mode=ts.mode, dt=ts.dt, alpha=ts.alpha if ts.alpha is not None else 0.1,
-                        safety=ts.safety, method=ts.method, every=ts.every, growth=ts.growth,
-                        overlap=ts.overlap)
+    timestep = build_timestep(case.timestep)
     en = case.energy
     sim = Simulation(
         particles, build_law(case), walls=build_walls(case, x, r), gravity=case.gravity,
@@ -829,5 +871,15 @@ def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
         for key, column in columns.items():
             if hasattr(dem, column) and hasattr(wall, key):
                 sim.servo[i, getattr(dem, column)] = getattr(wall, key)
+    for axis, change in stage.periodic.items():
+        sim.set_box(AXES.index(axis), change.motion,
+                    rate=change.rate if change.rate is not None else 0.0,
+                    target_stress=change.target_stress or 0.0, servo_factor=change.servo_factor,
+                    servo_gain=change.servo_gain,
+                    max_speed=change.max_speed if change.max_speed is not None else np.inf)
+    if stage.timestep is not None:
+        sim.timestep = build_timestep(stage.timestep)
+        sim.timestep.validate()
+        sim.dt = None  # chosen anew by the next run (a restart restores it)
     if fresh and stage.reset_ledger:
         sim.ledger.reset()

@@ -6,7 +6,8 @@
   work against time [M L^2/T^2];
 * ``energy_error.png``: the normalized energy difference (paper eq. 22) on a log
   scale with the paper's tolerance 1e-2;
-* ``wall_stress.png``: the compressive normal stress on every wall [M/(L T^2)];
+* ``wall_stress.png``: the compressive normal stress on every wall and, with periodic
+  axes, the Love stress of the contacts [M/(L T^2)];
 * ``timestep.png``: dt and, for automatic steps, the critical-step estimate [T].
 
 Stage boundaries are drawn as dotted vertical lines.
@@ -72,16 +73,17 @@ def plot_run(out_dir) -> list[Path]:
     _stage_lines(ax, h)
     written.append(save_figure(fig, folder / "energy_error.png"))
 
-    stress_cols = [c for c in h if c.endswith(".stress")]
+    stress_cols = [c for c in h if c.endswith(".stress") or c.startswith("love.")]
     fig, ax = plt.subplots(figsize=(7, 4))
     for c in stress_cols:
-        ax.plot(t, h[c], label=c[: -len(".stress")])
+        label = c[: -len(".stress")] if c.endswith(".stress") else f"Love {c[5:]}"
+        ax.plot(t, h[c], label=label, ls="--" if c.startswith("love.") else "-")
     if not stress_cols:
         ax.text(0.5, 0.5, "no walls", ha="center", va="center", transform=ax.transAxes)
     else:
         ax.legend(fontsize=8)
     ax.set_xlabel("time [T]")
-    ax.set_ylabel("wall stress [M/(L T^2)]")
+    ax.set_ylabel("stress [M/(L T^2)]")
     _stage_lines(ax, h)
     written.append(save_figure(fig, folder / "wall_stress.png"))
 

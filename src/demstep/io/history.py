@@ -12,6 +12,9 @@ Columns, in order:
   stress [M/(L T^2)] (:meth:`Simulation.wall_stress`; NaN when the loaded area is
   unknown) and ``NAME.x``, ``NAME.y``(, ``NAME.z``) the position of its reference
   point [L];
+* with periodic axes: ``box.Lx`` ... the current periodic lengths [L] and ``love.xx``,
+  ``love.yy``(, ``love.zz``) the Love-Weber stress of the contacts [M/(L T^2)]
+  (:meth:`Simulation.love_stress`; NaN along an axis of unknown extent);
 * any extra columns given to the writer (the runner adds ``stage``).
 
 Floats are written with ``repr`` (shortest round-trip form), so a history read back
@@ -44,8 +47,16 @@ def history_columns(sim, extra: dict | None = None) -> list[str]:
         cols += [f"{wall.name}.f{a}" for a in AXES[: sim.dim]]
         cols.append(f"{wall.name}.stress")
         cols += [f"{wall.name}.{a}" for a in AXES[: sim.dim]]
+    for a in _periodic_axes(sim):
+        cols.append(f"box.L{a}")
+    if _periodic_axes(sim) and hasattr(sim, "love_stress"):
+        cols += [f"love.{a}{a}" for a in AXES[: sim.dim]]
     cols += list(extra or {})
     return cols
+
+
+def _periodic_axes(sim) -> list[str]:
+    return [AXES[k] for k in range(sim.dim) if sim.periodic_len[k] > 0]
 
 
 def history_row(sim, extra: dict | None = None) -> list:
@@ -62,6 +73,11 @@ def history_row(sim, extra: dict | None = None) -> list:
             row += [float(v) for v in sim.wall_force[k, : sim.dim]]
             row.append(float(stress[k]))
             row += [float(v) for v in sim.wall_point[k, : sim.dim]]
+    periodic = _periodic_axes(sim)
+    row += [float(sim.periodic_len[AXES.index(a)]) for a in periodic]
+    if periodic and hasattr(sim, "love_stress"):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            row += [float(v) for v in sim.love_stress()]
     row += [fn(sim) for fn in (extra or {}).values()]
     return row
 
