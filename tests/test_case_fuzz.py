@@ -1,6 +1,7 @@
 """Fuzz the case loader: random mutations of valid case files (keys deleted, types
-changed, numbers negated or scaled, unknown keys added) either load and build a
-Simulation or raise InputError with a one-line message; never another exception."""
+changed, numbers negated or scaled, unknown keys added) either load, build a
+Simulation and apply every stage, or raise InputError with a one-line message naming
+the file; never another exception."""
 
 import copy
 import math
@@ -13,7 +14,7 @@ import tomli_w
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from demstep.case import build_simulation, load_case
+from demstep.case import apply_stage, build_simulation, load_case
 from demstep.errors import InputError
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
@@ -150,6 +151,8 @@ def test_mutated_cases_load_or_raise_input_error(case_dir, data):
     try:
         case = load_case(path)
         sim = build_simulation(case)
+        for k in range(len(case.stages)):
+            apply_stage(sim, case, k)
     except InputError as exc:
         message = str(exc)
         assert message and "\n" not in message, message
