@@ -244,3 +244,28 @@ def test_periodic_and_timestep_stage_changes_reach_the_simulation():
     assert sim.timestep.mode == "alpha" and sim.timestep.alpha == 0.1 and sim.dt is None
     sim.prepare()
     assert sim.dt == dt_stage1
+
+
+def test_lattice_clip_gives_the_4x4_3x3_layout():
+    text = """
+[particles]
+generator = "lattice"
+lattice = "fcc"
+radius = 20.0
+size = [4, 4, 6]
+clip_upper = [120.0, 120.0, 400.0]
+density = 2000.0
+[contact]
+law = "linear"
+k_n = 1.0e11
+[box]
+[[stages]]
+steps = 1
+"""
+    sim = build_simulation(case_from_text(text))
+    layers = np.unique(np.round(sim.x[:, 2], 6))
+    counts = [int(np.sum(np.isclose(sim.x[:, 2], z))) for z in layers]
+    assert len(sim.r) == 150 and counts == [16, 9] * 6
+    assert sim.wall_point[0, 0] == -20.0 and sim.wall_point[1, 0] == 140.0  # touching walls
+    with pytest.raises(InputError, match="no lattice site inside the clip box"):
+        build_simulation(case_from_text(text.replace("clip_upper = [120.0", "clip_upper = [-50.0")))
