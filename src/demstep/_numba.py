@@ -6,6 +6,8 @@ second run starts computing at once. Setting ``NUMBA_DISABLE_JIT=1`` runs every 
 as plain Python (the tests use this against slow numpy references).
 """
 
+import types
+
 import numba
 
 # TBB's scheduler costs milliseconds per parallel region on small machines (measured:
@@ -24,6 +26,18 @@ def njit(*args, **kwargs):
 
 
 prange = numba.prange
+
+
+def compile_parallel_and_serial(func):
+    """Two compiled versions of one loop driver: threaded (prange) and serial.
+
+    The serial one is compiled from a copy of the function with its own qualified name,
+    so the two never share an on-disk cache entry."""
+    serial = types.FunctionType(func.__code__, func.__globals__, func.__name__ + "_serial",
+                                func.__defaults__, func.__closure__)
+    serial.__qualname__ = func.__qualname__ + "_serial"
+    serial.__doc__ = func.__doc__
+    return njit(parallel=True)(func), njit(serial)
 
 
 def set_threads(n: int | None) -> int:

@@ -153,6 +153,8 @@ class Simulation:
         energy ever supplied (0 disables)
     checkpoint_dir : where the state is saved on divergence (default: a temporary folder)
     rotation : False locks every particle's rotation (translation only)
+    parallel : threaded kernels (True), serial (False), or automatic (None: threaded
+        from PARALLEL_MIN_PARTICLES particles on when numba has more than one thread)
     """
 
     def __init__(self, particles: Particles, law: ContactLaw | None = None, walls=(),
@@ -160,7 +162,8 @@ class Simulation:
                  timestep: TimeStep | None = None, velocities=None, angular_velocities=None,
                  skin: float | None = None, energy: EnergyMonitor | None = None,
                  jump_limit: float = 0.25, runaway_factor: float = 10.0,
-                 checkpoint_dir: str | os.PathLike | None = None, rotation: bool = True):
+                 checkpoint_dir: str | os.PathLike | None = None, rotation: bool = True,
+                 parallel: bool | None = None):
         self.particles = particles
         self.dim = particles.dim
         self.law = law if law is not None else LinearSpring()
@@ -171,6 +174,7 @@ class Simulation:
         self.timestep.validate()
         self.monitor = energy if energy is not None else EnergyMonitor()
         self.rotation = bool(rotation)
+        self.parallel = parallel
         self.jump_limit = float(jump_limit)
         self.runaway_factor = float(runaway_factor)
         self.checkpoint_dir = checkpoint_dir
@@ -501,7 +505,7 @@ class Simulation:
                 self.dim, self.wall_force, self.wall_force_prev, self.wall_disp_prev, self.wall_ref,
                 self.wall_areas, self.wall_contacts, self.wall_k,
                 self.ledger.acc, self.ledger.energy, self.counters, self.jump_limit,
-                self.runaway_factor, self.energy_floor)
+                self.runaway_factor, self.energy_floor, self._parallel())
             self._first = False
             self.dt_prev = self.dt
             self.step += n_done
@@ -530,6 +534,16 @@ class Simulation:
                 if until(self):
                     break
         return done
+
+    #: below this many particles the serial kernels are faster than threaded ones
+    PARALLEL_MIN_PARTICLES = 5000
+
+    def _parallel(self) -> bool:
+        import numba
+
+        if self.parallel is not None:
+            return bool(self.parallel)
+        return numba.get_num_threads() > 1 and len(self.r) >= self.PARALLEL_MIN_PARTICLES
 
     # ------------------------------------------------------------ divergence
     def _save_emergency(self, tag: str) -> str:

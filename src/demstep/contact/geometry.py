@@ -5,7 +5,7 @@ import numpy as np
 from demstep._numba import njit
 
 
-@njit
+@njit(inline="always")
 def contact_arms(r_i, r_j, distance):
     """Distances [L] from each centre to the contact point of two overlapping particles.
 
@@ -16,7 +16,7 @@ def contact_arms(r_i, r_j, distance):
     return r_i - half_overlap, r_j - half_overlap
 
 
-@njit
+@njit(inline="always")
 def wall_contact_arm(distance):
     """Arm [L] of a particle-wall contact: the contact point is on the wall plane, at
     the centre's distance from it (rigid wall, no overlap split)."""

@@ -35,7 +35,7 @@ P_LAW, P_KN, P_KS, P_MU, P_ESTAR, P_GSTAR, P_CN, P_CT, P_BETA_N, P_BETA_T, P_MU_
 N_PARAMS = 11
 
 
-@njit
+@njit(inline="always")
 def normal_force(law, params, delta, r_star):
     """Elastic normal force F_n [M L/T^2], tangent stiffness k_n [M/T^2] and stored
     energy [M L^2/T^2] at overlap ``delta`` [L] (> 0) and effective radius r_star [L]."""
@@ -48,7 +48,7 @@ def normal_force(law, params, delta, r_star):
         (8.0 / 15.0) * e_star * root * delta * delta
 
 
-@njit
+@njit(inline="always")
 def tangential_stiffness(law, params, delta, r_star):
     """Tangential spring stiffness k_t [M/T^2]: K_s (linear) or 8 G* sqrt(R* delta)."""
     if law == LAW_LINEAR:
@@ -56,7 +56,7 @@ def tangential_stiffness(law, params, delta, r_star):
     return 8.0 * params[P_GSTAR] * math.sqrt(r_star * delta)
 
 
-@njit
+@njit(inline="always")
 def dashpot_coefficients(law, params, m_star, k_n, k_t):
     """Normal and tangential dashpot coefficients c_n, c_t [M/T]."""
     c_n = params[P_CN]

@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from demstep._numba import njit, prange
+from demstep._numba import compile_parallel_and_serial, njit, prange
 from demstep.contact.geometry import contact_arms, wall_contact_arm
 from demstep.contact.laws import P_MU, dashpot_coefficients, normal_force, tangential_stiffness
 
@@ -50,7 +50,7 @@ S_TARGET, S_GAIN, S_MAXSPEED, S_AREA, S_FACTOR = range(5)
 BOX_FIXED, BOX_RATE, BOX_SERVO = 0, 1, 2
 
 
-@njit
+@njit(inline="always")
 def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy, vz, dt,
                      ft, fd, etan, k):
     """Force of one contact and its history update (the contact law applied once).
@@ -127,18 +127,82 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
             e_n, e_t, d_fric, d_dash, k_n, k_t)
 
 
-@njit(parallel=True)
-def pair_forces(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
-                ft, fd, etan, pf, pt, parm, contact_flag, box_sums):
-    """Forces of all Verlet pairs. Per pair k: ``pf`` force on j, ``pt`` = n x F,
-    ``parm`` arms (a_i, a_j). Returns (strain_n, strain_t, friction, dashpot, contacts).
-    ``box_rate`` (3,) is the rate of change of the periodic lengths over the last step:
-    the image of j across a boundary moves with v_j - n_img dL/dt.
+@njit(inline="always")
+def _pair_force(k, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, mu, dt,
+                ft, fd, etan, pf, pt, parm, contact_flag):
+    """One Verlet pair: writes its force row and returns its contributions (strain n/t,
+    friction, dashpot, in contact, virial x/y/z, crossing sums x/y/z, crossing
+    contacts x/y/z, their k_n x/y/z)."""
+    i = pi[k]
+    j = pj[k]
+    d0 = x[j, 0] - x[i, 0]
+    d1 = x[j, 1] - x[i, 1]
+    d2 = x[j, 2] - x[i, 2]
+    n0 = 0.0
+    n1 = 0.0
+    n2 = 0.0
+    if periodic_len[0] > 0.0:
+        n0 = np.rint(d0 / periodic_len[0])
+        d0 -= periodic_len[0] * n0
+    if periodic_len[1] > 0.0:
+        n1 = np.rint(d1 / periodic_len[1])
+        d1 -= periodic_len[1] * n1
+    if periodic_len[2] > 0.0:
+        n2 = np.rint(d2 / periodic_len[2])
+        d2 -= periodic_len[2] * n2
+    dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    delta = r[i] + r[j] - dist
+    if delta <= 0.0 and etan[k] == 0.0 and ft[k, 0] == 0.0 and ft[k, 1] == 0.0 \
+            and ft[k, 2] == 0.0 and fd[k, 0] == 0.0 and fd[k, 1] == 0.0 and fd[k, 2] == 0.0:
+        pf[k, 0] = 0.0
+        pf[k, 1] = 0.0
+        pf[k, 2] = 0.0
+        pt[k, 0] = 0.0
+        pt[k, 1] = 0.0
+        pt[k, 2] = 0.0
+        contact_flag[k] = 0
+        return 0.0, 0.0, 0.0, 0.0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 0.0, 0.0, 0.0
+    nx, ny, nz = d0 / dist, d1 / dist, d2 / dist
+    a_i, a_j = contact_arms(r[i], r[j], dist)
+    # contact-point velocities: v + omega x b, b_i = a_i n, b_j = -a_j n; the image of j
+    # across a periodic boundary moves with v_j - n_img dL/dt
+    vix = v[i, 0] + a_i * (w[i, 1] * nz - w[i, 2] * ny)
+    viy = v[i, 1] + a_i * (w[i, 2] * nx - w[i, 0] * nz)
+    viz = v[i, 2] + a_i * (w[i, 0] * ny - w[i, 1] * nx)
+    vjx = v[j, 0] - a_j * (w[j, 1] * nz - w[j, 2] * ny) - n0 * box_rate[0]
+    vjy = v[j, 1] - a_j * (w[j, 2] * nx - w[j, 0] * nz) - n1 * box_rate[1]
+    vjz = v[j, 2] - a_j * (w[j, 0] * ny - w[j, 1] * nx) - n2 * box_rate[2]
+    m_star = 1.0 / (inv_m[i] + inv_m[j]) if inv_m[i] + inv_m[j] > 0.0 else m[i]
+    r_star = r[i] * r[j] / (r[i] + r[j])
+    fx, fy, fz, c_en, c_et, c_fric, c_dash, c_kn, _ = contact_response(
+        law, params, mu, nx, ny, nz, delta, r_star, m_star,
+        vjx - vix, vjy - viy, vjz - viz, dt, ft, fd, etan, k)
+    pf[k, 0] = fx
+    pf[k, 1] = fy
+    pf[k, 2] = fz
+    pt[k, 0] = ny * fz - nz * fy
+    pt[k, 1] = nz * fx - nx * fz
+    pt[k, 2] = nx * fy - ny * fx
+    parm[k, 0] = a_i
+    parm[k, 1] = a_j
+    touching = 1 if delta > 0.0 else 0
+    contact_flag[k] = touching
+    c0 = 1 if (n0 != 0.0 and touching == 1) else 0
+    c1 = 1 if (n1 != 0.0 and touching == 1) else 0
+    c2 = 1 if (n2 != 0.0 and touching == 1) else 0
+    return (c_en, c_et, c_fric, c_dash, touching, fx * d0, fy * d1, fz * d2,
+            fx * n0, fy * n1, fz * n2, c0, c1, c2, c0 * c_kn, c1 * c_kn, c2 * c_kn)
 
-    ``box_sums`` (4, 3) receives per axis: the virial sum F_on_j,k d_k (Love stress
-    times volume), the boundary sum F_on_j,k n_img,k over pairs that cross a periodic
-    boundary (its product with a change of box length is the work done on the
-    contacts), the number of crossing contacts and the sum of their k_n."""
+
+def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
+               ft, fd, etan, pf, pt, parm, contact_flag, box_sums):
+    """Forces of all Verlet pairs (compiled twice: parallel and serial). Per pair k:
+    ``pf`` force on j, ``pt`` = n x F, ``parm`` arms (a_i, a_j). Returns (strain_n,
+    strain_t, friction, dashpot, contacts). ``box_sums`` (4, 3) receives per axis the
+    virial sum F_on_j,k d_k (Love stress times volume), the boundary sum
+    F_on_j,k n_img,k over pairs crossing a periodic boundary (times a change of box
+    length: the work done on the contacts), the number of crossing contacts and the
+    sum of their k_n. ``box_rate`` (3,): rate of change of the periodic lengths."""
     e_n = 0.0
     e_t = 0.0
     d_fric = 0.0
@@ -150,92 +214,37 @@ def pair_forces(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, param
     cr0 = 0.0
     cr1 = 0.0
     cr2 = 0.0
-    nc0 = 0.0
-    nc1 = 0.0
-    nc2 = 0.0
+    nc0 = 0
+    nc1 = 0
+    nc2 = 0
     kc0 = 0.0
     kc1 = 0.0
     kc2 = 0.0
     mu = params[P_MU]
+    lengths = (periodic_len[0], periodic_len[1], periodic_len[2])
+    rates = (box_rate[0], box_rate[1], box_rate[2])
     for k in prange(pi.shape[0]):
-        i = pi[k]
-        j = pj[k]
-        d0 = x[j, 0] - x[i, 0]
-        d1 = x[j, 1] - x[i, 1]
-        d2 = x[j, 2] - x[i, 2]
-        n0 = 0.0
-        n1 = 0.0
-        n2 = 0.0
-        if periodic_len[0] > 0.0:
-            n0 = np.rint(d0 / periodic_len[0])
-            d0 -= periodic_len[0] * n0
-        if periodic_len[1] > 0.0:
-            n1 = np.rint(d1 / periodic_len[1])
-            d1 -= periodic_len[1] * n1
-        if periodic_len[2] > 0.0:
-            n2 = np.rint(d2 / periodic_len[2])
-            d2 -= periodic_len[2] * n2
-        dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        delta = r[i] + r[j] - dist
-        if delta <= 0.0 and etan[k] == 0.0 and ft[k, 0] == 0.0 and ft[k, 1] == 0.0 \
-                and ft[k, 2] == 0.0 and fd[k, 0] == 0.0 and fd[k, 1] == 0.0 and fd[k, 2] == 0.0:
-            pf[k, 0] = 0.0
-            pf[k, 1] = 0.0
-            pf[k, 2] = 0.0
-            pt[k, 0] = 0.0
-            pt[k, 1] = 0.0
-            pt[k, 2] = 0.0
-            contact_flag[k] = 0
-            continue
-        nx, ny, nz = d0 / dist, d1 / dist, d2 / dist
-        a_i, a_j = contact_arms(r[i], r[j], dist)
-        # contact-point velocities: v + omega x b, b_i = a_i n, b_j = -a_j n
-        vix = v[i, 0] + a_i * (w[i, 1] * nz - w[i, 2] * ny)
-        viy = v[i, 1] + a_i * (w[i, 2] * nx - w[i, 0] * nz)
-        viz = v[i, 2] + a_i * (w[i, 0] * ny - w[i, 1] * nx)
-        vjx = v[j, 0] - a_j * (w[j, 1] * nz - w[j, 2] * ny) - n0 * box_rate[0]
-        vjy = v[j, 1] - a_j * (w[j, 2] * nx - w[j, 0] * nz) - n1 * box_rate[1]
-        vjz = v[j, 2] - a_j * (w[j, 0] * ny - w[j, 1] * nx) - n2 * box_rate[2]
-        m_star = 1.0 / (inv_m[i] + inv_m[j]) if inv_m[i] + inv_m[j] > 0.0 else m[i]
-        r_star = r[i] * r[j] / (r[i] + r[j])
-        fx, fy, fz, c_en, c_et, c_fric, c_dash, c_kn, _ = contact_response(
-            law, params, mu, nx, ny, nz, delta, r_star, m_star,
-            vjx - vix, vjy - viy, vjz - viz, dt, ft, fd, etan, k)
-        vir0 += fx * d0
-        vir1 += fy * d1
-        vir2 += fz * d2
-        if n0 != 0.0:
-            cr0 += fx * n0
-            if delta > 0.0:
-                nc0 += 1.0
-                kc0 += c_kn
-        if n1 != 0.0:
-            cr1 += fy * n1
-            if delta > 0.0:
-                nc1 += 1.0
-                kc1 += c_kn
-        if n2 != 0.0:
-            cr2 += fz * n2
-            if delta > 0.0:
-                nc2 += 1.0
-                kc2 += c_kn
-        pf[k, 0] = fx
-        pf[k, 1] = fy
-        pf[k, 2] = fz
-        pt[k, 0] = ny * fz - nz * fy
-        pt[k, 1] = nz * fx - nx * fz
-        pt[k, 2] = nx * fy - ny * fx
-        parm[k, 0] = a_i
-        parm[k, 1] = a_j
+        (c_en, c_et, c_fric, c_dash, touching, v0, v1, v2, q0, q1, q2, c0, c1, c2,
+         k0, k1, k2) = _pair_force(k, x, v, w, r, m, inv_m, pi, pj, lengths, rates,
+                                   law, params, mu, dt, ft, fd, etan, pf, pt, parm,
+                                   contact_flag)
         e_n += c_en
         e_t += c_et
         d_fric += c_fric
         d_dash += c_dash
-        if delta > 0.0:
-            contact_flag[k] = 1
-            n_contacts += 1
-        else:
-            contact_flag[k] = 0
+        n_contacts += touching
+        vir0 += v0
+        vir1 += v1
+        vir2 += v2
+        cr0 += q0
+        cr1 += q1
+        cr2 += q2
+        nc0 += c0
+        nc1 += c1
+        nc2 += c2
+        kc0 += k0
+        kc1 += k1
+        kc2 += k2
     box_sums[0, 0] = vir0
     box_sums[0, 1] = vir1
     box_sums[0, 2] = vir2
@@ -251,33 +260,38 @@ def pair_forces(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, param
     return e_n, e_t, d_fric, d_dash, n_contacts
 
 
-@njit(parallel=True)
-def gather_forces(offsets, entries, pf, pt, parm, force, torque):
-    """Sum pair forces per particle: force on i is -F, on j +F; torque -a (n x F)."""
+@njit(inline="always")
+def _gather_one(p, offsets, entries, pf, pt, parm, force, torque):
+    """Sum the pair forces of particle p: force on i is -F, on j +F; torque -a (n x F)."""
+    fx = 0.0
+    fy = 0.0
+    fz = 0.0
+    tx = 0.0
+    ty = 0.0
+    tz = 0.0
+    for e in range(offsets[p], offsets[p + 1]):
+        k = entries[e] >> 1
+        side = entries[e] & 1
+        sign = 1.0 if side == 1 else -1.0
+        a = parm[k, side]
+        fx += sign * pf[k, 0]
+        fy += sign * pf[k, 1]
+        fz += sign * pf[k, 2]
+        tx -= a * pt[k, 0]
+        ty -= a * pt[k, 1]
+        tz -= a * pt[k, 2]
+    force[p, 0] = fx
+    force[p, 1] = fy
+    force[p, 2] = fz
+    torque[p, 0] = tx
+    torque[p, 1] = ty
+    torque[p, 2] = tz
+
+
+def _gather_loop(offsets, entries, pf, pt, parm, force, torque):
+    """Pair forces summed per particle (no write conflicts: one writer per particle)."""
     for p in prange(offsets.shape[0] - 1):
-        fx = 0.0
-        fy = 0.0
-        fz = 0.0
-        tx = 0.0
-        ty = 0.0
-        tz = 0.0
-        for e in range(offsets[p], offsets[p + 1]):
-            k = entries[e] >> 1
-            side = entries[e] & 1
-            sign = 1.0 if side == 1 else -1.0
-            a = parm[k, side]
-            fx += sign * pf[k, 0]
-            fy += sign * pf[k, 1]
-            fz += sign * pf[k, 2]
-            tx -= a * pt[k, 0]
-            ty -= a * pt[k, 1]
-            tz -= a * pt[k, 2]
-        force[p, 0] = fx
-        force[p, 1] = fy
-        force[p, 2] = fz
-        torque[p, 0] = tx
-        torque[p, 1] = ty
-        torque[p, 2] = tz
+        _gather_one(p, offsets, entries, pf, pt, parm, force, torque)
 
 
 @njit
@@ -395,14 +409,76 @@ def servo_speed(stress, target, gain, factor, area, n_contacts, k_sum, dt, max_s
     return speed
 
 
-@njit(parallel=True)
-def integrate(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt, dt_prev,
-              local_damping, global_damping, fd_prev, td_prev, x_ref, first, acc_out):
-    """Central-difference update of all particles, with damping and the particle terms of
-    the energy ledger. ``acc_out`` (8,) receives: work of gravity, of applied forces,
-    local- and global-damping dissipation, kinetic energy (translation, rotation) at t,
-    the largest squared displacement since the list was built and the largest step
-    |v| dt / r."""
+@njit(inline="always")
+def _integrate_one(p, x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
+                   dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first):
+    """Central-difference update of particle p with damping; returns its ledger terms
+    (work of gravity, of applied forces, local and global damping dissipation, kinetic
+    energy of translation and rotation at t), its squared displacement since the list
+    was built and its step |v| dt / r."""
+    w_body = 0.0
+    w_app = 0.0
+    d_local = 0.0
+    d_global = 0.0
+    ke_t = 0.0
+    ke_r = 0.0
+    if inv_m[p] == 0.0:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    for k in range(3):
+        fl = force[p, k] + m[p] * gravity[k] + f_app[p, k]
+        tl = torque[p, k]
+        v_old = v[p, k]
+        w_old = w[p, k]
+        if first:
+            # initialise the half step: v(-dt/2) = v(0) - dt/2 F(0)/m
+            v_old -= 0.5 * dt * fl * inv_m[p]
+            w_old -= 0.5 * dt * tl * inv_I[p]
+        fdk = 0.0
+        tdk = 0.0
+        if local_damping > 0.0:
+            fdk -= local_damping * abs(fl) * np.sign(v_old)
+            tdk -= local_damping * abs(tl) * np.sign(w_old)
+        gdk = 0.0
+        gtk = 0.0
+        if global_damping > 0.0:
+            gdk = -global_damping * m[p] * v_old
+            gtk = -global_damping * inertia[p] * w_old
+        v_new = v_old + dt * (fl + fdk + gdk) * inv_m[p]
+        w_new = w_old + dt * (tl + tdk + gtk) * inv_I[p]
+        if not first:
+            dx = dt_prev * v_old
+            dth = dt_prev * w_old
+            w_body += m[p] * gravity[k] * dx
+            w_app += f_app[p, k] * dx
+            d_local -= 0.5 * ((fd_prev[p, k] + fdk) * dx + (td_prev[p, k] + tdk) * dth)
+            d_global -= 0.5 * ((fd_prev[p, 3 + k] + gdk) * dx + (td_prev[p, 3 + k] + gtk) * dth)
+        fd_prev[p, k] = fdk
+        td_prev[p, k] = tdk
+        fd_prev[p, 3 + k] = gdk
+        td_prev[p, 3 + k] = gtk
+        vm = 0.5 * (v_old + v_new)
+        wm = 0.5 * (w_old + w_new)
+        ke_t += 0.5 * m[p] * vm * vm
+        ke_r += 0.5 * inertia[p] * wm * wm
+        v[p, k] = v_new
+        w[p, k] = w_new
+        x[p, k] += dt * v_new
+    d2 = 0.0
+    vv = 0.0
+    for k in range(3):
+        dd = x[p, k] - x_ref[p, k]
+        d2 += dd * dd
+        vv += v[p, k] * v[p, k]
+    return w_body, w_app, d_local, d_global, ke_t, ke_r, d2, math.sqrt(vv) * dt / r[p]
+
+
+def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
+                    dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first,
+                    acc_out):
+    """Central-difference update of all particles with damping and the particle terms
+    of the ledger. ``acc_out`` (8,): work of gravity, of applied forces, local and
+    global damping dissipation, kinetic energy (translation, rotation) at t, the
+    largest squared displacement since the list was built, the largest |v| dt / r."""
     w_body = 0.0
     w_app = 0.0
     d_local = 0.0
@@ -412,55 +488,17 @@ def integrate(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravit
     disp2 = 0.0
     jump = 0.0
     for p in prange(x.shape[0]):
-        if inv_m[p] == 0.0:
-            continue
-        for k in range(3):
-            fl = force[p, k] + m[p] * gravity[k] + f_app[p, k]
-            tl = torque[p, k]
-            v_old = v[p, k]
-            w_old = w[p, k]
-            if first:
-                # initialise the half step: v(-dt/2) = v(0) - dt/2 F(0)/m
-                v_old -= 0.5 * dt * fl * inv_m[p]
-                w_old -= 0.5 * dt * tl * inv_I[p]
-            fdk = 0.0
-            tdk = 0.0
-            if local_damping > 0.0:
-                fdk -= local_damping * abs(fl) * np.sign(v_old)
-                tdk -= local_damping * abs(tl) * np.sign(w_old)
-            gdk = 0.0
-            gtk = 0.0
-            if global_damping > 0.0:
-                gdk = -global_damping * m[p] * v_old
-                gtk = -global_damping * inertia[p] * w_old
-            v_new = v_old + dt * (fl + fdk + gdk) * inv_m[p]
-            w_new = w_old + dt * (tl + tdk + gtk) * inv_I[p]
-            if not first:
-                dx = dt_prev * v_old
-                dth = dt_prev * w_old
-                w_body += m[p] * gravity[k] * dx
-                w_app += f_app[p, k] * dx
-                d_local -= 0.5 * ((fd_prev[p, k] + fdk) * dx + (td_prev[p, k] + tdk) * dth)
-                d_global -= 0.5 * ((fd_prev[p, 3 + k] + gdk) * dx + (td_prev[p, 3 + k] + gtk) * dth)
-            fd_prev[p, k] = fdk
-            td_prev[p, k] = tdk
-            fd_prev[p, 3 + k] = gdk
-            td_prev[p, 3 + k] = gtk
-            vm = 0.5 * (v_old + v_new)
-            wm = 0.5 * (w_old + w_new)
-            ke_t += 0.5 * m[p] * vm * vm
-            ke_r += 0.5 * inertia[p] * wm * wm
-            v[p, k] = v_new
-            w[p, k] = w_new
-            x[p, k] += dt * v_new
-        d2 = 0.0
-        vv = 0.0
-        for k in range(3):
-            dd = x[p, k] - x_ref[p, k]
-            d2 += dd * dd
-            vv += v[p, k] * v[p, k]
-        disp2 = max(disp2, d2)
-        jump = max(jump, math.sqrt(vv) * dt / r[p])
+        a0, a1, a2, a3, a4, a5, a6, a7 = _integrate_one(
+            p, x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
+            dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first)
+        w_body += a0
+        w_app += a1
+        d_local += a2
+        d_global += a3
+        ke_t += a4
+        ke_r += a5
+        disp2 = max(disp2, a6)
+        jump = max(jump, a7)
     acc_out[0] = w_body
     acc_out[1] = w_app
     acc_out[2] = d_local
@@ -469,6 +507,13 @@ def integrate(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravit
     acc_out[5] = ke_r
     acc_out[6] = disp2
     acc_out[7] = jump
+
+
+# every loop driver compiled twice: in parallel (prange) and serially, for small
+# systems and for sweeps that run one simulation per core
+pair_forces, pair_forces_serial = compile_parallel_and_serial(_pair_loop)
+gather_forces, gather_forces_serial = compile_parallel_and_serial(_gather_loop)
+integrate, integrate_serial = compile_parallel_and_serial(_integrate_loop)
 
 
 @njit
@@ -481,8 +526,9 @@ def advance(n_steps, dt, dt_prev, first, skin,
             wp, ww, wft, wfd, wetan, wall_point, wall_normal, wall_vel, wall_mu, wall_motion,
             servo, box_lo, box_hi, dim, wall_force, wall_force_prev, wall_disp_prev, wall_ref,
             wall_areas_out, wall_contacts, wall_k,
-            acc, energy, counters, jump_limit, runaway_factor, energy_floor):
-    """Run up to ``n_steps`` steps. Returns (steps done, stop reason).
+            acc, energy, counters, jump_limit, runaway_factor, energy_floor, parallel):
+    """Run up to ``n_steps`` steps (``parallel``: threaded loops, else serial ones).
+    Returns (steps done, stop reason).
 
     Periodic box: ``box_motion`` (3,) fixed / rate / servo; ``box_servo`` (3, 5) with
     the columns of ``servo`` (rate in the gain column for BOX_RATE: dL/dt [L/T]);
@@ -492,6 +538,10 @@ def advance(n_steps, dt, dt_prev, first, skin,
     out = np.empty(8)
     box_sums = np.zeros((4, 3))
     box_rate = np.zeros(3)
+    # law parameters as a tuple of scalars: loop invariants the compiler can hoist
+    # (an array might alias the arrays written in the loops; measured 10x slower)
+    law_params = (params[0], params[1], params[2], params[3], params[4], params[5],
+                  params[6], params[7], params[8], params[9], params[10])
     extents = np.empty(3)
     nw = wall_point.shape[0]
     for step in range(n_steps):
@@ -499,13 +549,19 @@ def advance(n_steps, dt, dt_prev, first, skin,
         dt_slip = 0.0 if first else dt_prev
         for k in range(3):
             box_rate[k] = 0.0 if first else box_state[5, k] / dt_prev
-        e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
-            x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt_slip,
-            ft, fd, etan, pf, pt, parm, contact_flag, box_sums)
-        gather_forces(offsets, entries, pf, pt, parm, force, torque)
+        if parallel:
+            e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
+                x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, law_params, dt_slip,
+                ft, fd, etan, pf, pt, parm, contact_flag, box_sums)
+            gather_forces(offsets, entries, pf, pt, parm, force, torque)
+        else:
+            e_n, e_t, d_fric, d_dash, n_pp = pair_forces_serial(
+                x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, law_params, dt_slip,
+                ft, fd, etan, pf, pt, parm, contact_flag, box_sums)
+            gather_forces_serial(offsets, entries, pf, pt, parm, force, torque)
         we_n, we_t, wd_fric, wd_dash = wall_forces(
             x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
-            law, params, dt_slip, wft, wfd, wetan, force, torque, wall_force, wall_contacts,
+            law, law_params, dt_slip, wft, wfd, wetan, force, torque, wall_force, wall_contacts,
             wall_k)
         for row in range(4):
             for k in range(3):
@@ -547,8 +603,13 @@ def advance(n_steps, dt, dt_prev, first, skin,
                                                 int(box_sums[2, k]), box_sums[3, k], dt,
                                                 box_servo[k, S_MAXSPEED])
         # 3-4. central-difference update with damping; particle ledger terms
-        integrate(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
-                  dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first, out)
+        if parallel:
+            integrate(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
+                      dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first, out)
+        else:
+            integrate_serial(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity,
+                             dt, dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref,
+                             first, out)
         # walls and the periodic box move
         boundary_move = 0.0
         for wi in range(nw):
