@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from demstep.contacts import ContactSet, find_contacts
+from demstep.contacts import find_contacts
 from demstep.packings import jittered_polydisperse
 from demstep.particles import Particles
 from demstep.walls import Wall

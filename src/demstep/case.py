@@ -806,7 +806,7 @@ def build_simulation(case: Case, checkpoint_dir=None):
 
 def _build_simulation(case: Case, checkpoint_dir):
     from demstep.energy import EnergyMonitor
-    from demstep.engine import Damping, Simulation, TimeStep
+    from demstep.engine import Damping, Simulation
     from demstep.particles import Particles, particle_inertia
 
     x, r, m = generate_particles(case)
@@ -838,7 +838,6 @@ def _build_simulation(case: Case, checkpoint_dir):
 def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
     """Apply the changes of stage ``k`` at its start. ``fresh`` False replays them on
     a restart (the checkpoint then restores the state; the ledger is not reset)."""
-    from demstep.kernels import dem
 
     stage = case.stages[k]
     dim = sim.dim
@@ -854,23 +853,15 @@ def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
     if stage.gravity is not None:
         sim.gravity[:] = 0.0
         sim.gravity[:dim] = stage.gravity
-    codes = {"fixed": dem.WALL_FIXED, "velocity": dem.WALL_VELOCITY, "servo": dem.WALL_SERVO}
-    columns = {"target_stress": "S_TARGET", "servo_gain": "S_GAIN", "servo_factor": "S_FACTOR",
-               "max_speed": "S_MAXSPEED", "area": "S_AREA"}
     index = {w.name: i for i, w in enumerate(sim.walls)}
     for name, change in stage.walls.items():
         i = index[name]
         wall = sim.walls[i]
         _apply_motion(wall, change)
-        sim.wall_motion[i] = codes[wall.motion]
-        if change.velocity is not None:
-            sim.wall_vel[i, :] = 0.0
-            sim.wall_vel[i, :dim] = change.velocity
-        if wall.motion == "fixed":
-            sim.wall_vel[i, :] = 0.0  # a fixed wall has no velocity (contact slip, dashpots)
-        for key, column in columns.items():
-            if hasattr(dem, column) and hasattr(wall, key):
-                sim.servo[i, getattr(dem, column)] = getattr(wall, key)
+        sim.set_wall_motion(i, wall.motion, velocity=change.velocity,
+                            target_stress=wall.target_stress, servo_gain=wall.servo_gain,
+                            servo_factor=wall.servo_factor, max_speed=wall.max_speed,
+                            area=wall.area, friction=wall.friction)
     for axis, change in stage.periodic.items():
         sim.set_box(AXES.index(axis), change.motion,
                     rate=change.rate if change.rate is not None else 0.0,

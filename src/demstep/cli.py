@@ -171,6 +171,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     _add_dt(sub)
+    from demstep.cli_run import add_plot_parser, add_run_parser
+
+    add_run_parser(sub)
+    add_plot_parser(sub)
     return parser
 
 

@@ -117,7 +117,12 @@ class EnergyLedger:
 
 
 class EnergyBalanceError(RuntimeError):
-    """The energy balance exceeded its tolerance and the monitor was set to stop."""
+    """The energy balance exceeded its tolerance and the monitor was set to stop;
+    ``checkpoint`` is the path of the state saved then (if any)."""
+
+    def __init__(self, message: str, checkpoint: str | None = None):
+        super().__init__(message)
+        self.checkpoint = checkpoint
 
 
 @dataclass

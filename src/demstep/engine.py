@@ -228,6 +228,7 @@ class Simulation:
         self.dt = None
         self.dt_estimate = None  # last critical-step estimate [T]
         self.dt_prev = 0.0
+        self._time_ref = (0, 0.0, None)  # (step, time, dt) when dt last changed
         self._first = True
         self._triggers: list[_Trigger] = []
         self.fd_prev = np.zeros((n, 6))
@@ -508,8 +509,12 @@ class Simulation:
                 self.runaway_factor, self.energy_floor, self._parallel())
             self._first = False
             self.dt_prev = self.dt
+            # time from the last change of dt, so that it does not depend on where runs
+            # are split (a restart continues bit for bit)
+            if self.dt != self._time_ref[2]:
+                self._time_ref = (self.step, self.time, self.dt)
             self.step += n_done
-            self.time += n_done * self.dt
+            self.time = self._time_ref[1] + (self.step - self._time_ref[0]) * self.dt
             done += n_done
             if progress is not None:
                 progress(self, n_done)
@@ -522,7 +527,7 @@ class Simulation:
                     self.monitor.check(self.ledger, self.step, self.time, self.energy_floor)
                 except EnergyBalanceError as exc:
                     path = self._save_emergency("energy")
-                    raise EnergyBalanceError(f"{exc}; state saved to {path}") from None
+                    raise EnergyBalanceError(f"{exc}; state saved to {path}", checkpoint=path) from None
             for t in self._triggers:
                 if self.step >= t.next_step:
                     t.callback(self)
@@ -611,29 +616,45 @@ class Simulation:
         self.box_servo[axis] = (target_stress, rate if motion == "rate" else servo_gain,
                                 max_speed, 0.0, servo_factor)
 
-    def set_wall_motion(self, index: int, motion: str, velocity=None, target_stress=None):
+    def set_wall_motion(self, index: int, motion: str, velocity=None, target_stress=None,
+                        servo_gain=None, servo_factor=None, max_speed=None, area=None,
+                        friction=None):
         """Change wall ``index`` between stages: 'fixed', 'velocity' (``velocity`` [L/T],
-        dim components) or 'servo' (``target_stress``)."""
+        dim components) or 'servo' (``target_stress`` [M/(L T^2)], ``servo_gain``,
+        ``servo_factor``, ``max_speed``, ``area`` as in :class:`demstep.walls.Wall`);
+        ``friction`` overrides the law's wall friction (takes effect at the next run)."""
         wall = self.walls[index]
         modes = {"fixed": dem.WALL_FIXED, "velocity": dem.WALL_VELOCITY, "servo": dem.WALL_SERVO}
         if motion not in modes:
             raise InputError(f"wall {wall.name!r}: motion must be fixed, velocity or servo, got {motion!r}")
-        wall.motion = motion
-        self.wall_motion[index] = modes[motion]
         if velocity is not None:
             vel = np.asarray(velocity, dtype=np.float64).reshape(-1)
             if vel.shape != (self.dim,) or not np.isfinite(vel).all():
                 raise InputError(f"wall {wall.name!r}: velocity must have {self.dim} finite components")
             wall.velocity = vel
-            self.wall_vel[index] = 0.0
-            self.wall_vel[index, :self.dim] = vel
-        if motion == "fixed":
-            self.wall_vel[index] = 0.0
-        if target_stress is not None:
-            if not (math.isfinite(target_stress) and target_stress >= 0):
-                raise InputError(f"wall {wall.name!r}: target_stress must be >= 0, got {target_stress!r}")
-            wall.target_stress = float(target_stress)
-            self.servo[index, dem.S_TARGET] = float(target_stress)
+        columns = {"target_stress": dem.S_TARGET, "servo_gain": dem.S_GAIN,
+                   "servo_factor": dem.S_FACTOR, "area": dem.S_AREA}
+        for key, value in (("target_stress", target_stress), ("servo_gain", servo_gain),
+                           ("servo_factor", servo_factor), ("area", area)):
+            if value is not None:
+                if not (math.isfinite(value) and value >= 0):
+                    raise InputError(f"wall {wall.name!r}: {key} must be finite and >= 0, got {value!r}")
+                setattr(wall, key, float(value))
+                self.servo[index, columns[key]] = float(value)
+        if max_speed is not None:
+            if not (max_speed > 0):
+                raise InputError(f"wall {wall.name!r}: max_speed must be > 0, got {max_speed!r}")
+            wall.max_speed = float(max_speed)
+            self.servo[index, dem.S_MAXSPEED] = float(max_speed)
+        if friction is not None:
+            if not (math.isfinite(friction) and friction >= 0):
+                raise InputError(f"wall {wall.name!r}: friction must be finite and >= 0, got {friction!r}")
+            wall.friction = float(friction)
+        wall.motion = motion
+        self.wall_motion[index] = modes[motion]
+        self.wall_vel[index] = 0.0
+        if motion == "velocity":
+            self.wall_vel[index, :self.dim] = wall.velocity
 
     def extents(self) -> np.ndarray:
         """Specimen extents per axis [L] (periodic lengths or box-wall gaps; NaN unknown)."""

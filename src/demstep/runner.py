@@ -30,7 +30,6 @@ import logging
 import math
 import os
 import platform
-import re
 import signal
 import sys
 import tempfile
@@ -419,8 +418,7 @@ class _Runner:
                         return self._emergency("diverged", exc.checkpoint, str(exc))
                     except EnergyBalanceError as exc:
                         self.pos.stage_step += sim.step - before
-                        saved = re.search(r"state saved to (.+)$", str(exc))
-                        path = Path(saved.group(1)) if saved else None
+                        path = Path(exc.checkpoint) if exc.checkpoint else None
                         return self._emergency("energy_stop", path, str(exc))
                     self.pos.stage_step += sim.step - before
                     self._outputs()

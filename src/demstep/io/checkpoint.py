@@ -17,7 +17,7 @@ import numpy as np
 
 from demstep.errors import InputError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 _ARRAYS = ("x", "v", "w", "m", "inertia", "applied_force", "gravity", "fd_prev", "td_prev",
            "pi", "pj", "ft", "fd", "etan", "wp", "ww", "wft", "wfd", "wetan", "x_ref",
@@ -39,7 +39,9 @@ def save_checkpoint(sim, path) -> Path:
                 scalars=np.array([sim.step, sim.time, np.nan if sim.dt is None else sim.dt,
                                   sim.dt_prev, float(sim._first), sim.monitor.max_error,
                                   float(sim._next_dt_update),
-                                  np.nan if sim.dt_estimate is None else sim.dt_estimate]),
+                                  np.nan if sim.dt_estimate is None else sim.dt_estimate,
+                                  float(sim._time_ref[0]), sim._time_ref[1],
+                                  np.nan if sim._time_ref[2] is None else sim._time_ref[2]]),
                 law=sim.law.params(), format=np.array([FORMAT_VERSION]),
                 version=np.array([__version__]))
     fd, tmp = tempfile.mkstemp(suffix=".npz.tmp", dir=path.parent)
@@ -75,7 +77,7 @@ def load_checkpoint(sim, path):
             setattr(sim, name, np.ascontiguousarray(data[name]))
         sim.ledger.acc[:] = data["acc"]
         sim.ledger.energy[:] = data["energy"]
-        step, time, dt, dt_prev, first, max_err, next_dt, dt_est = data["scalars"]
+        step, time, dt, dt_prev, first, max_err, next_dt, dt_est, t_step, t_time, t_dt = data["scalars"]
     sim.step = int(step)
     sim.time = float(time)
     sim.dt = None if np.isnan(dt) else float(dt)
@@ -84,6 +86,7 @@ def load_checkpoint(sim, path):
     sim.monitor.max_error = float(max_err)
     sim._next_dt_update = int(next_dt)
     sim.dt_estimate = None if np.isnan(dt_est) else float(dt_est)
+    sim._time_ref = (int(t_step), float(t_time), None if np.isnan(t_dt) else float(t_dt))
     sim._update_masses()
     sim.offsets, sim.entries = pair_adjacency(sim.pi, sim.pj, len(sim.r))
     n = len(sim.pi)
@@ -93,6 +96,6 @@ def load_checkpoint(sim, path):
     sim.contact_flag = np.zeros(n, dtype=np.int8)
     sim._pairs_built = True
     sim.energy_floor = None
-    for t in sim._triggers:
-        t.next_step = sim.step + t.every
+    for t in sim._triggers:  # the next multiple of each interval, as in an unbroken run
+        t.next_step = (sim.step // t.every + 1) * t.every
     return sim
