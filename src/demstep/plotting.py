@@ -6,6 +6,8 @@ import os
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 
 def _pyplot():
     import matplotlib
@@ -53,4 +55,90 @@ def plot_estimates(report, path, title: str | None = None) -> Path:
     ax.set_title(title or f"{report.dim}D, {report.n_particles} particles, "
                           f"{report.n_contacts} contacts, {rot}")
     ax.tick_params(axis="x", rotation=25)
+    return save_figure(fig, path)
+
+
+def plot_critical_step_table(table: dict, path) -> Path:
+    """Figures 8/9 as grouped bars: alpha of each method per lattice."""
+    plt = _pyplot()
+    rows = table["rows"]
+    cols = table["columns"]
+    fig, ax = plt.subplots(figsize=(10, 4.2))
+    width = 0.8 / len(cols)
+    cmap = plt.get_cmap("tab10")
+    for k, col in enumerate(cols):
+        vals = [np.nan if r["alpha"][col] is None else r["alpha"][col] for r in rows]
+        ax.bar(np.arange(len(rows)) + (k - len(cols) / 2 + 0.5) * width, vals, width,
+               label=col, color=cmap(k % 10))
+    ax.set_xticks(np.arange(len(rows)))
+    ax.set_xticklabels([f"{r['lattice']}\n(nc={r['coordination']})" for r in rows])
+    ax.set_ylabel(r"$\alpha = \Delta t_{crit} / \sqrt{m/K}$")
+    ax.set_title("Critical time step of regular packings (paper Figs. 8, 9) beside exact values")
+    ax.legend(ncol=4, fontsize=7, loc="upper right")
+    ax.grid(axis="y", alpha=0.3)
+    return save_figure(fig, path)
+
+
+def _fcc_label(r):
+    rot = "" if r.get("rotation", True) else ", rotation blocked"
+    return f"alpha = {r['alpha']:.2f}{rot} ({r['status']})"
+
+
+def plot_fcc_ratio(results, theory: float, path) -> Path:
+    """Stress ratio sigma_zz / sigma_xx against axial strain (paper Fig. 11)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    for r in results:
+        if "curves" not in r:
+            continue
+        c = r["curves"]
+        ls = "-" if r.get("rotation", True) else "--"
+        ax.plot(100 * np.asarray(c["strain"]), c["ratio"], ls, lw=1.2, label=_fcc_label(r))
+    ax.axhline(theory, color="k", lw=1, ls=":", label=f"Thornton (1979): {theory:.2f}")
+    ax.set_xlabel("axial strain [%]")
+    ax.set_ylabel(r"$\sigma_{zz} / \sigma_{xx}$")
+    ax.set_ylim(0, max(theory * 1.4, 1))
+    ax.set_title("FCC plane-strain compression, mu = 0.3")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    return save_figure(fig, path)
+
+
+def plot_fcc_energy(results, eps: float, path) -> Path:
+    """Normalized energy difference (eq. 22) against axial strain (paper Fig. 12)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    for r in results:
+        if "curves" not in r:
+            continue
+        c = r["curves"]
+        err = np.maximum(np.asarray(c["energy_error"], dtype=float), 1e-12)
+        ls = "-" if r.get("rotation", True) else "--"
+        ax.semilogy(100 * np.asarray(c["strain"]), err, ls, lw=1.2, label=_fcc_label(r))
+    ax.axhline(eps, color="r", lw=1, ls=":", label=f"limit {eps:g}")
+    ax.set_xlabel("axial strain [%]")
+    ax.set_ylabel("normalized energy difference (eq. 22)")
+    ax.set_title("Energy balance of the FCC runs")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3, which="both")
+    return save_figure(fig, path)
+
+
+def plot_stability(results, path) -> Path:
+    """Measured stability threshold against each estimate, per specimen."""
+    plt = _pyplot()
+    ok = [r for r in results if "alpha_empirical" in r]
+    fig, ax = plt.subplots(figsize=(8, 4.2))
+    methods = ["exact", "element-coupled", "element-paper", "nodal"]
+    markers = {"exact": "o", "element-coupled": "v", "element-paper": "s", "nodal": "^"}
+    x = np.arange(len(ok))
+    ax.bar(x, [r["alpha_empirical"] for r in ok], 0.6, color="0.85", label="measured threshold")
+    for m in methods:
+        ax.plot(x, [r["estimates"].get(m, np.nan) for r in ok], markers[m], label=m)
+    ax.set_xticks(x)
+    ax.set_xticklabels([r["lattice"] for r in ok])
+    ax.set_ylabel(r"$\alpha$")
+    ax.set_title("Smallest unstable alpha (bisection) against the estimates")
+    ax.legend(fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
     return save_figure(fig, path)

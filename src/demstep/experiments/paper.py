@@ -1,0 +1,278 @@
+"""`demstep paper`: the paper's validation end to end, and one step further.
+
+1. The critical-step table of Figures 8 and 9 (element estimates beside exact values).
+2. The FCC plane-strain alpha study of Figures 11 and 12 (alpha = 0.05, 0.35, 0.40,
+   0.45, 0.75), with the exact critical step of the specimen with and without rotation,
+   and two supplementary runs with rotation blocked.
+3. The measured stability threshold of every regular lattice and of the FCC specimen
+   against every estimate.
+4. report.md and report.html with PNG figures, CSV data beside them, the resolved
+   parameters and the package version.
+
+Runs are independent tasks mapped on Dask (:func:`demstep.sweep.dask_map`), so both
+cores work; stage 1 of the FCC test is shared through a checkpoint.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import platform
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from demstep.errors import InputError
+
+ALPHAS = (0.05, 0.35, 0.40, 0.45, 0.75)
+#: supplementary runs with particle rotation blocked (translation-only model)
+ALPHAS_NO_ROTATION = (0.35, 0.45)
+
+
+@dataclass
+class PaperSettings:
+    """Resolved parameters of `demstep paper` (recorded in the report)."""
+
+    quick: bool = False
+    strain: float = 0.02
+    alphas: tuple = ALPHAS
+    alphas_no_rotation: tuple = ALPHAS_NO_ROTATION
+    stability_rtol: float = 2e-3
+    stability_steps: int = 3000
+    stability_names: tuple = ("square", "hex", "sc", "bcc", "fcc", "rhombic", "fcc-specimen")
+    workers: int = 2
+    scheduler: str | None = None
+    fcc: dict = field(default_factory=dict)
+
+    @classmethod
+    def make(cls, quick: bool = False, **kw) -> "PaperSettings":
+        from demstep.experiments.fcc_plane_strain import FCCConfig
+
+        s = cls(quick=quick, **kw)
+        if quick:
+            s.strain = 0.004
+            s.stability_rtol = 1e-2
+            s.stability_steps = 2000
+        s.fcc = asdict(FCCConfig(strain=s.strain))
+        return s
+
+
+# ---------------------------------------------------------------- tasks (picklable)
+
+def fcc_task(item):
+    """One stage-2 run from the shared stage-1 checkpoint. item = (config dict, path)."""
+    from demstep.experiments.fcc_plane_strain import FCCConfig, build_fcc, run_stage2
+    from demstep.io.checkpoint import load_checkpoint
+
+    cfg_dict, stage1_path = item
+    cfg = FCCConfig(**cfg_dict)
+    sim = build_fcc(cfg)
+    load_checkpoint(sim, stage1_path)
+    if not cfg.rotation:
+        sim.w[:] = 0.0
+    start = time.perf_counter()
+    result = run_stage2(sim, cfg)
+    out = asdict(result)
+    out["curves"] = {k: np.asarray(v).tolist() for k, v in result.curves.items()}
+    out["wall_time"] = time.perf_counter() - start
+    return out
+
+
+def stability_task(item):
+    """Bisection for one specimen. item = (name, rtol, steps)."""
+    from demstep.experiments.stability import stability_threshold
+
+    name, rtol, steps = item
+    start = time.perf_counter()
+    result = stability_threshold(name, rtol=rtol, steps=steps)
+    out = result.to_json()
+    out["bracket"] = list(result.bracket)
+    out["trials"] = result.trials
+    out["wall_time"] = time.perf_counter() - start
+    return out
+
+
+def _map(func, items, settings, progress, label):
+    """Map on Dask when available, in order; failures come back as exceptions."""
+    try:
+        from demstep.sweep import dask_map
+    except ImportError:  # pragma: no cover - the sweep module ships with the package
+        dask_map = None
+    if dask_map is None or settings.workers <= 1 and settings.scheduler is None:
+        results = []
+        for item in items:
+            try:
+                results.append(func(item))
+            except Exception as exc:  # recorded, the study goes on
+                results.append(exc)
+            if progress:
+                progress(label)
+        return results
+    raw = dask_map(func, items, scheduler=settings.scheduler, workers=settings.workers,
+                   progress=(lambda *a: progress(label)) if progress else None)
+    return [_unwrap(r) for r in raw]
+
+
+def _unwrap(r):
+    """dask_map returns results or failure records; turn failures into exceptions."""
+    failed = getattr(r, "failed", None)
+    if failed is None and isinstance(r, dict) and "failed" in r and "error" in r:
+        failed = r["failed"]
+    if failed:
+        err = getattr(r, "error", None) or (r.get("error") if isinstance(r, dict) else None)
+        return RuntimeError(str(err))
+    return getattr(r, "value", r) if not isinstance(r, dict) or "failed" not in r else r.get("value")
+
+
+# ------------------------------------------------------------------------ driver
+
+def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | None = None,
+              show_progress: bool = True) -> dict:
+    """Run the whole validation into ``out_dir``; returns the summary dictionary."""
+    from demstep import __version__
+    from demstep.experiments.fcc_plane_strain import FCCConfig, run_stage1, thornton_peak_ratio
+    from demstep.io.checkpoint import save_checkpoint
+    from demstep.timestep.paper_table import paper_table, table_json
+
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out: {out} exists and is not a folder")
+    if workers < 1:
+        raise InputError(f"--workers: must be >= 1, got {workers}")
+    settings = PaperSettings.make(quick=quick, workers=workers, scheduler=scheduler)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "data").mkdir(exist_ok=True)
+    started = time.perf_counter()
+    n_tasks = 3 + len(settings.alphas) + len(settings.alphas_no_rotation) + len(settings.stability_names)
+    progress, finish = _progress(show_progress, n_tasks)
+
+    # 1. Figures 8 and 9
+    rows = paper_table()
+    table = table_json(rows)
+    _write_json(out / "data" / "critical_steps.json", table)
+    _write_table_csv(out / "data" / "critical_steps.csv", table)
+    progress("critical-step table")
+
+    # 2. the FCC alpha study
+    base = FCCConfig(**settings.fcc)
+    stage1 = run_stage1(base)
+    stage1_path = out / "data" / "fcc_stage1.npz"
+    save_checkpoint(stage1, stage1_path)
+    progress("FCC stage 1 (isotropic confinement)")
+    items = [(asdict(FCCConfig(**{**settings.fcc, "alpha": a})), str(stage1_path))
+             for a in settings.alphas]
+    items += [(asdict(FCCConfig(**{**settings.fcc, "alpha": a, "rotation": False})), str(stage1_path))
+              for a in settings.alphas_no_rotation]
+    fcc_results = _map(fcc_task, items, settings, progress, "FCC plane strain")
+    fcc_summary = []
+    for item, res in zip(items, fcc_results):
+        cfg = item[0]
+        if isinstance(res, Exception):
+            fcc_summary.append({"alpha": cfg["alpha"], "rotation": cfg["rotation"],
+                                "status": "failed", "message": str(res)})
+            continue
+        tag = f"alpha_{cfg['alpha']:.2f}" + ("" if cfg["rotation"] else "_norotation")
+        _write_curves(out / "data" / f"fcc_{tag}.csv", res["curves"])
+        fcc_summary.append({"alpha": cfg["alpha"], "rotation": cfg["rotation"],
+                            "peak_ratio": res["peak_ratio"], "peak_strain": res["peak_strain"],
+                            "theory": res["theory"], "max_energy_error": res["max_energy_error"],
+                            "status": res["status"], "steps": res["steps"], "dt": res["dt"],
+                            "alpha_exact_rotation": res["alpha_exact_rotation"],
+                            "alpha_exact_translation": res["alpha_exact_translation"],
+                            "alpha_element_coupled": res["alpha_element_coupled"],
+                            "wall_time": res["wall_time"], "message": res["message"],
+                            "curves": res["curves"]})
+    # 3. stability thresholds
+    st_items = [(name, settings.stability_rtol, settings.stability_steps)
+                for name in settings.stability_names]
+    st_results = _map(stability_task, st_items, settings, progress, "stability threshold")
+    stability = []
+    for (name, _, _), res in zip(st_items, st_results):
+        if isinstance(res, Exception):
+            stability.append({"lattice": name, "status": "failed", "message": str(res)})
+        else:
+            stability.append(res)
+    _write_json(out / "data" / "stability.json", stability)
+
+    # 4. figures and report
+    from demstep import plotting
+
+    figures = {
+        "critical_steps": plotting.plot_critical_step_table(table, out / "critical_steps.png"),
+        "stress_ratio": plotting.plot_fcc_ratio(fcc_summary, thornton_peak_ratio(base.mu),
+                                                out / "fcc_stress_ratio.png"),
+        "energy_error": plotting.plot_fcc_energy(fcc_summary, base.energy_eps,
+                                                 out / "fcc_energy_error.png"),
+        "stability": plotting.plot_stability(stability, out / "stability.png"),
+    }
+    progress("figures")
+    summary = {
+        "version": __version__, "python": platform.python_version(),
+        "machine": platform.machine(), "wall_time_s": None,
+        "settings": asdict(settings),
+        "fcc": [{k: v for k, v in r.items() if k != "curves"} for r in fcc_summary],
+        "stability": stability,
+        "critical_step_minima": table["minima"],
+    }
+    summary["wall_time_s"] = time.perf_counter() - started
+    _write_json(out / "summary.json", summary)
+    from demstep.experiments.report import write_report
+
+    write_report(out, summary, table, figures)
+    progress("report")
+    finish()
+    return summary
+
+
+# ------------------------------------------------------------------------ output
+
+def _progress(show: bool, total: int):
+    if not show:
+        return (lambda label: None), (lambda: None)
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    bar = Progress(TextColumn("[bold]demstep paper[/bold] {task.description}"), BarColumn(),
+                   TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn(), transient=False)
+    bar.start()
+    task = bar.add_task("starting", total=total)
+
+    def step(label):
+        bar.update(task, advance=1, description=label)
+
+    return step, bar.stop
+
+
+def _write_json(path: Path, data):
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, default=_json_default))
+    tmp.replace(path)
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, tuple):
+        return list(o)
+    raise TypeError(type(o))
+
+
+def _write_curves(path: Path, curves: dict):
+    keys = list(curves)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(keys)
+        for row in zip(*(curves[k] for k in keys)):
+            w.writerow([repr(float(v)) for v in row])
+
+
+def _write_table_csv(path: Path, table: dict):
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["lattice", "dim", "coordination"] + table["columns"])
+        for r in table["rows"]:
+            w.writerow([r["lattice"], r["dim"], r["coordination"]]
+                       + ["" if r["alpha"][c] is None else r["alpha"][c] for c in table["columns"]])
