@@ -190,6 +190,7 @@ def test_dask_map_local_cluster_order_errors_threads_and_shutdown():
     results = dask_map(math.sqrt, [4.0, -1.0, 9.0, 16.0], workers=2,
                        progress=lambda k, r: seen.append(k))
     assert [r.ok for r in results] == [True, False, True, True]
+    assert [r.failed for r in results] == [False, True, False, False]
     assert [r.value for r in results] == [2.0, None, 3.0, 4.0]
     assert results[1].error.startswith("ValueError: math domain error")
     assert "Traceback" in results[1].traceback

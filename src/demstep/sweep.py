@@ -81,13 +81,18 @@ log = logging.getLogger("demstep")
 @dataclass
 class TaskResult:
     """The outcome of one item of :func:`dask_map`: ``ok`` and the ``value`` returned,
-    or ``ok`` False with ``error`` (one line, ``"ValueError: ..."``) and the worker's
-    ``traceback``."""
+    or ``ok`` False (``failed`` True) with ``error`` (one line, ``"ValueError: ..."``)
+    and the worker's ``traceback``."""
 
     ok: bool
     value: Any = None
     error: str = ""
     traceback: str = ""
+
+    @property
+    def failed(self) -> bool:
+        """``not ok``."""
+        return not self.ok
 
     def unwrap(self):
         """The value, or a RuntimeError carrying the error of a failed item."""
