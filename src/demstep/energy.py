@@ -10,6 +10,9 @@ system holds when the ledger starts (or is reset) counts as external input.
     W_kin + W_int = W_ext,  W_int = W_strain + W_friction + W_damping,
     normalized difference = |W_kin + W_int - W_ext| / max(W_ext, W_int, W_kin)   (eq. 22)
 
+The ledger describes time t of the last force evaluation: after a step the positions
+are already at t + dt (the kinetic energy at t needs v(t + dt/2)).
+
 With the mean-velocity kinetic energy the difference is O((omega dt)^2) for a stable
 linear run, exactly zero for free fall, and grows to order one as dt approaches the
 critical step, which is what makes it an instability alarm.

@@ -1,0 +1,87 @@
+"""Slow pure-numpy references of the engine's kernels, written independently of them."""
+
+import numpy as np
+
+
+def brute_force_pairs(x, r, skin, box=None):
+    """All pairs (i < j) with |x_j - x_i| < r_i + r_j + skin (minimum image if box)."""
+    d = x[None, :, :] - x[:, None, :]
+    if box is not None:
+        box = np.asarray(box, dtype=float)
+        per = box > 0
+        d[..., per] -= box[per] * np.round(d[..., per] / box[per])
+    dist = np.linalg.norm(d, axis=2)
+    reach = r[:, None] + r[None, :] + skin
+    i, j = np.nonzero(np.triu(dist < reach, 1))
+    return set(zip(i.tolist(), j.tolist()))
+
+
+def linear_pair_forces(x, v, w, r, m, pairs, k_n, k_s, mu, c_n, c_t, dt, ft, fd, etan):
+    """Linear spring-dashpot with Coulomb friction, for each pair (i, j), numpy only.
+
+    Returns force on j (P, 3), new tangential force, new dashpot force, new tangential
+    energy, and the per-pair strain (normal, tangential), friction and dashpot terms."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    d = x[j] - x[i]
+    dist = np.linalg.norm(d, axis=1)
+    n = d / dist[:, None]
+    overlap = r[i] + r[j] - dist
+    arm_i = (dist + r[i] - r[j]) / 2.0  # contact point in the middle of the overlap
+    arm_j = dist - arm_i
+    vc_i = v[i] + np.cross(w[i], arm_i[:, None] * n)
+    vc_j = v[j] + np.cross(w[j], -arm_j[:, None] * n)
+    vrel = vc_j - vc_i
+    du = vrel * dt
+    du_n = np.sum(du * n, axis=1)
+    du_t = du - du_n[:, None] * n
+    # old spring force projected on the new tangent plane, magnitude kept
+    old = ft - np.sum(ft * n, axis=1)[:, None] * n
+    norm_ft = np.linalg.norm(ft, axis=1)
+    norm_old = np.linalg.norm(old, axis=1)
+    scale = np.divide(norm_ft, norm_old, out=np.ones_like(norm_ft), where=norm_old > 0)
+    old = old * scale[:, None]
+    touching = overlap > 0
+    f_el = k_n * overlap
+    v_n = np.sum(vrel * n, axis=1)
+    f_nd = -c_n * v_n
+    trial = old - k_s * du_t
+    limit = mu * f_el
+    mag = np.linalg.norm(trial, axis=1)
+    sliding = mag > limit
+    new_t = np.where(sliding[:, None], trial * (limit / np.where(mag > 0, mag, 1))[:, None], trial)
+    v_t = vrel - v_n[:, None] * n
+    damp_t = np.where(sliding[:, None], 0.0, -c_t * v_t)
+    e_t = np.sum(new_t**2, axis=1) / (2 * k_s)
+    new_fd = f_nd[:, None] * n + damp_t
+    force = (f_el + f_nd)[:, None] * n + new_t + damp_t
+    w_in = -0.5 * np.sum((old + new_t) * du_t, axis=1)
+    friction = w_in - (e_t - etan)
+    dashpot = -0.5 * np.sum((fd + new_fd) * du, axis=1)
+    # pairs apart: no force, history released
+    apart = ~touching
+    force[apart] = 0.0
+    friction[apart] = (-0.5 * np.sum(old * du_t, axis=1) + etan)[apart]
+    dashpot[apart] = (-0.5 * np.sum(fd * du, axis=1))[apart]
+    new_t[apart] = 0.0
+    new_fd[apart] = 0.0
+    e_t[apart] = 0.0
+    e_n = np.where(touching, 0.5 * k_n * overlap**2, 0.0)
+    return force, new_t, new_fd, e_t, e_n, friction, dashpot, arm_i, arm_j, n
+
+
+def gather(pairs, force, n, arm_i, arm_j, n_particles):
+    """Per-particle force and torque from pair forces (force on j, -force on i)."""
+    f = np.zeros((n_particles, 3))
+    t = np.zeros((n_particles, 3))
+    np.add.at(f, pairs[:, 1], force)
+    np.add.at(f, pairs[:, 0], -force)
+    np.add.at(t, pairs[:, 0], np.cross(arm_i[:, None] * n, -force))
+    np.add.at(t, pairs[:, 1], np.cross(-arm_j[:, None] * n, force))
+    return f, t
+
+
+def leapfrog(x, v, w, m, inertia, force, torque, gravity, dt):
+    """One central-difference step (no damping)."""
+    v_new = v + dt * (force / m[:, None] + gravity)
+    w_new = w + dt * torque / inertia[:, None]
+    return x + dt * v_new, v_new, w_new

@@ -1,0 +1,129 @@
+"""Engine features: stability edge, automatic dt, fixed particles, applied forces, mass
+scaling, moving and servo boundaries in the energy ledger, checkpoints."""
+
+import math
+
+import numpy as np
+import pytest
+
+from demstep.contact.laws import HertzMindlin, LinearSpring
+from demstep.engine import Damping, Simulation, TimeStep
+from demstep.energy import EnergyMonitor
+from demstep.experiments.stability import build_specimen, is_unstable, specimen_estimates
+from demstep.particles import Particles
+from demstep.walls import Wall, box_walls
+
+
+@pytest.mark.parametrize("name", ["hex", "fcc"])
+def test_stability_edge_at_exact_critical_step(name):
+    """Pre-compressed lattice, contacts never open: bounded at 0.98 x the exact critical
+    step, growing at 1.05 x (DESIGN 1.2)."""
+    exact = specimen_estimates(name)["exact"]
+    assert not is_unstable(name, 0.98 * exact, steps=3000)
+    assert is_unstable(name, 1.05 * exact, steps=3000)
+
+
+def dense_box(k=1e5, law=None, radii=(0.98, 1.02), **kw):
+    rng = np.random.default_rng(0)
+    x = np.stack(np.meshgrid(*[np.arange(4) * 1.95] * 3, indexing="ij"), -1).reshape(-1, 3)
+    p = Particles.from_density(x + 1.0, rng.uniform(*radii, len(x)), 1.0)
+    walls = box_walls(np.zeros(3), np.full(3, 4 * 1.95))
+    return Simulation(p, law or LinearSpring(k_n=k, mu=0.3), walls=walls,
+                      velocities=rng.normal(0, 0.1, (len(x), 3)), **kw)
+
+
+def test_auto_timestep_follows_exact_estimate_with_capped_growth():
+    sim = dense_box(timestep=TimeStep.auto(safety=0.5, method="exact", every=50, growth=0.02))
+    sim.prepare()
+    first = sim.dt
+    crit = sim.critical_dt("exact")
+    assert first == pytest.approx(0.5 * crit, rel=1e-12)
+    dts = []
+    sim.every(50, lambda s: dts.append((s.dt, s.dt_estimate)))
+    sim.run(steps=1000)
+    for (a, _), (b, est) in zip(dts, dts[1:]):
+        assert b <= a * 1.02 * (1 + 1e-12)  # growth capped
+        assert b <= 0.5 * est * (1 + 1e-12)  # never above safety x estimate
+
+
+def test_auto_timestep_before_contacts_uses_densest_packing():
+    from demstep.timestep.estimates import densest_packing_alpha
+
+    x = np.array([[0.0, 0, 0], [5.0, 0, 0]])
+    p = Particles.from_density(x, np.ones(2), 1.0)
+    sim = Simulation(p, LinearSpring(k_n=100.0), timestep=TimeStep.auto(safety=1.0))
+    sim.prepare()
+    assert sim.dt == pytest.approx(densest_packing_alpha(3) * math.sqrt(sim.m_min / 100.0))
+    assert densest_packing_alpha(3) == pytest.approx(0.2182, abs=1e-4)
+    assert densest_packing_alpha(2) == pytest.approx(1 / 3, rel=1e-9)
+
+
+def test_fixed_particle_stays_and_supports():
+    x = np.array([[0.0, 0, 0], [0, 0, 1.99]])
+    p = Particles.from_density(x, np.ones(2), 1.0, fixed=[True, False])
+    sim = Simulation(p, LinearSpring(k_n=1e4), gravity=[0, 0, -9.81],
+                     damping=Damping(local=0.5), timestep=TimeStep.from_alpha(0.1))
+    sim.run(steps=5000)
+    assert np.array_equal(sim.x[0], [0, 0, 0])
+    m = p.m[1]
+    assert sim.x[1, 2] == pytest.approx(2.0 - m * 9.81 / 1e4, rel=1e-9)
+
+
+def test_applied_force_work_enters_the_ledger():
+    p = Particles.from_density(np.zeros((1, 3)), np.ones(1), 1.0)
+    sim = Simulation(p, LinearSpring(), timestep=TimeStep.fixed(1e-3))
+    sim.applied_force[0] = [2.0, 0.0, 0.0]
+    sim.run(steps=1000)
+    t = sim.time
+    a = 2.0 / p.m[0]
+    assert sim.x[0, 0] == pytest.approx(0.5 * a * t * t, rel=1e-12)
+    # the ledger describes the last force evaluation, t - dt (one step behind x)
+    assert sim.ledger.acc[1] == pytest.approx(2.0 * 0.5 * a * (t - sim.dt) ** 2, rel=1e-9)
+    assert sim.ledger.balance_error() < 1e-12
+
+
+def test_mass_scaling_scales_critical_step():
+    sim = dense_box()
+    sim.prepare()
+    before = sim.critical_dt("exact")
+    sim.scale_mass(4.0)
+    assert sim.critical_dt("exact") == pytest.approx(2 * before, rel=1e-10)
+
+
+def test_moving_and_servo_walls_close_the_ledger():
+    """A specimen compressed by a moving lid with a servo side wall: the work of both
+    walls balances the stored and dissipated energy."""
+    sim = dense_box(k=1e5, radii=(0.93, 0.97), timestep=TimeStep.from_alpha(0.05),
+                    energy=EnergyMonitor(every=1))
+    sim.prepare()
+    top = next(i for i, w in enumerate(sim.walls) if w.name == "z+")
+    side = next(i for i, w in enumerate(sim.walls) if w.name == "x+")
+    sim.set_wall_motion(top, "velocity", velocity=[0, 0, -0.2])
+    sim.set_wall_motion(side, "servo", target_stress=500.0, max_speed=0.05)
+    sim.run(steps=6000)
+    assert sim.wall_stress()[top] > 500.0  # the lid has loaded the specimen
+    assert sim.ledger.acc[2] > 0.5 * sim.ledger.external  # walls did the work
+    assert sim.monitor.max_error < 5e-3
+
+
+def test_periodic_box_rate_work_closes_the_ledger():
+    sim, = [build_specimen("fcc", 0.1)]
+    sim.monitor = EnergyMonitor(every=1)
+    sim.set_box(2, "rate", rate=-1e-3)
+    sim.set_box(0, "servo", target_stress=float(sim.love_stress()[0]) if sim._pairs_built else 1e3,
+                max_speed=1e-3)
+    sim.run(steps=3000)
+    assert abs(sim.ledger.acc[8]) > 0.5 * abs(sim.ledger.external - sim.ledger.acc[7])
+    assert sim.monitor.max_error < 1e-3
+
+
+def test_hertz_energy_balance_second_order():
+    errs = []
+    for alpha in (0.1, 0.05):
+        law = HertzMindlin(youngs_modulus=1e6, poisson_ratio=0.3, mu=0.3)
+        sim = dense_box(law=law, timestep=TimeStep.from_alpha(alpha, overlap=0.02),
+                        energy=EnergyMonitor(every=1))
+        sim.run(duration=20.0)
+        errs.append(sim.monitor.max_error)
+    assert errs[0] < 1e-2
+    assert errs[0] / errs[1] > 2.5  # second order (4) with some noise from collisions
