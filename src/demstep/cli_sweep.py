@@ -102,7 +102,8 @@ def cmd_sweep(args) -> int:
             text = (f"{row.get('status')}, max energy error {_fmt(row.get('max_energy_error'))}"
                     f", {_fmt(row.get('wall_time_s'), '.1f')} s")
             if row.get("status") not in ("completed", None):
-                text += f": {row.get('error', '')}"
+                error = str(row.get("error", ""))
+                text += f": {error[:157] + '...' if len(error) > 160 else error}"
         print(f"[{done}/{total}] {run_id}: {text}", file=sys.stderr, flush=True)
 
     result = run_sweep(args.case, args.out, params=args.param, runs_file=args.runs,

@@ -50,6 +50,8 @@ import math
 import os
 import platform
 import re
+import sys
+import threading
 import time as wallclock
 import tomllib
 import traceback
@@ -578,7 +580,7 @@ def run_task(task: RunTask) -> dict:
     try:
         case = case_from_dict(copy.deepcopy(task.data), base_dir=task.base_dir,
                               source=task.source)
-        with open(os.devnull, "w") as sink, contextlib.redirect_stderr(sink):
+        with _quiet_stderr():
             result = run_case(case, run_dir, quiet=True, log_level=task.log_level,
                               max_steps=task.max_steps, overwrite=True)
         status = result.status
@@ -589,6 +591,37 @@ def run_task(task: RunTask) -> dict:
     wall = wallclock.perf_counter() - start
     _record_run(run_dir, task, status, wall, error, trace)
     return summarize_run(run_dir, task.peak, status=status, error=error, wall_time=wall)
+
+
+class _ThreadQuietStream:
+    """A stand-in for ``sys.stderr`` that drops what the threads marked quiet write and
+    passes everything else on (worker threads may run tasks side by side)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self._local = threading.local()
+
+    def write(self, text):
+        if getattr(self._local, "quiet", False):
+            return len(text)
+        return self._stream.write(text)
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def _quiet_stderr():
+    """Silence this thread's writes to sys.stderr (the runner's console log: each run
+    keeps its run.log) without touching the worker's other threads."""
+    if not isinstance(sys.stderr, _ThreadQuietStream):
+        sys.stderr = _ThreadQuietStream(sys.stderr)
+    stream = sys.stderr
+    stream._local.quiet = True
+    try:
+        yield
+    finally:
+        stream._local.quiet = False
 
 
 def _record_run(run_dir: Path, task: RunTask, status: str, wall: float, error: str,
