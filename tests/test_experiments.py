@@ -195,3 +195,15 @@ def test_paper_quick_end_to_end(tmp_path, capsys):
         assert r["alpha_empirical"] == pytest.approx(r["estimates"]["exact"], rel=0.02)
     report = (out / "report.md").read_text()
     assert "Thornton" in report and "Resolved parameters" in report
+
+
+def test_engine_api_example_runs():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).parents[1] / "examples" / "engine_api.py"
+    spec = importlib.util.spec_from_file_location("engine_api", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    sim = mod.main(steps=600)
+    assert sim.step == 600 and sim.monitor.max_error < 1e-2

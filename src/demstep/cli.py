@@ -305,6 +305,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_run_parser(sub)
     add_plot_parser(sub)
+    from demstep.cli_sweep import add_sweep_parser
+
+    add_sweep_parser(sub)
     return parser
 
 
