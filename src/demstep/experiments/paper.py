@@ -67,6 +67,7 @@ def fcc_task(item):
     from demstep.io.checkpoint import load_checkpoint
 
     cfg_dict, stage1_path = item
+    _quiet_logs()
     cfg = FCCConfig(**cfg_dict)
     sim = build_fcc(cfg)
     load_checkpoint(sim, stage1_path)
@@ -85,6 +86,7 @@ def stability_task(item):
     from demstep.experiments.stability import stability_threshold
 
     name, rtol, steps = item
+    _quiet_logs()
     start = time.perf_counter()
     result = stability_threshold(name, rtol=rtol, steps=steps)
     out = result.to_json()
@@ -92,6 +94,13 @@ def stability_task(item):
     out["trials"] = result.trials
     out["wall_time"] = time.perf_counter() - start
     return out
+
+
+def _quiet_logs():
+    """The energy monitor's warnings are recorded in the results; keep the console clean."""
+    import logging
+
+    logging.getLogger("demstep").setLevel(logging.ERROR)
 
 
 def _map(func, items, settings, progress, label):
@@ -145,7 +154,7 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
     out.mkdir(parents=True, exist_ok=True)
     (out / "data").mkdir(exist_ok=True)
     started = time.perf_counter()
-    n_tasks = 3 + len(settings.alphas) + len(settings.alphas_no_rotation) + len(settings.stability_names)
+    n_tasks = 4 + len(settings.alphas) + len(settings.alphas_no_rotation) + len(settings.stability_names)
     progress, finish = _progress(show_progress, n_tasks)
 
     # 1. Figures 8 and 9
