@@ -311,8 +311,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> int:
-    parser = build_parser()
+def run_parser(parser: argparse.ArgumentParser, argv=None) -> int:
+    """Parse ``argv`` and run the chosen subcommand: InputError -> one line, exit 2."""
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
@@ -322,6 +322,10 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("demstep: interrupted", file=sys.stderr)
         return 130
+
+
+def main(argv=None) -> int:
+    return run_parser(build_parser(), argv)
 
 
 if __name__ == "__main__":

@@ -132,15 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     """Entry point of ``python -m demstep.cli_sweep``: as ``demstep.cli.main``."""
-    args = build_parser().parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except InputError as exc:
-        print(f"demstep: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("demstep: interrupted", file=sys.stderr)
-        return 130
+    from demstep.cli import run_parser
+
+    return run_parser(build_parser(), argv)
 
 
 if __name__ == "__main__":

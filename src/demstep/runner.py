@@ -28,11 +28,9 @@ import hashlib
 import json
 import logging
 import math
-import os
 import platform
 import signal
 import sys
-import tempfile
 import threading
 import time as wallclock
 from dataclasses import asdict, dataclass
@@ -40,6 +38,7 @@ from pathlib import Path
 from typing import Callable
 
 from demstep.case import Case, apply_stage, build_simulation, dump_case
+from demstep.io.atomic import write_text_atomic
 from demstep.errors import InputError, SimulationDiverged
 
 log = logging.getLogger("demstep")
@@ -154,15 +153,7 @@ def case_hash(case: Case) -> str:
 def _write_text(path, text: str) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return write_text_atomic(path, text)
 
 
 # ---------------------------------------------------------------- stop signals

@@ -254,9 +254,9 @@ def _progress(show: bool, total: int):
 
 
 def _write_json(path: Path, data):
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=_json_default))
-    tmp.replace(path)
+    from demstep.io.atomic import write_text_atomic
+
+    write_text_atomic(path, json.dumps(data, indent=2, default=_json_default))
 
 
 def _json_default(o):

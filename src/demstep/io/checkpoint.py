@@ -10,12 +10,12 @@ reference positions, wall state, the energy ledger, step, time and time step.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from demstep.errors import InputError
+from demstep.io.atomic import atomic_path
 
 FORMAT_VERSION = 2
 
@@ -44,16 +44,11 @@ def save_checkpoint(sim, path) -> Path:
                                   np.nan if sim._time_ref[2] is None else sim._time_ref[2]]),
                 law=sim.law.params(), format=np.array([FORMAT_VERSION]),
                 version=np.array([__version__]))
-    fd, tmp = tempfile.mkstemp(suffix=".npz.tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
+    with atomic_path(path, suffix=".npz.tmp") as tmp:
+        with open(tmp, "wb") as fh:
             np.savez(fh, **data)
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 

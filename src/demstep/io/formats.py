@@ -33,13 +33,12 @@ file, the line and the field at fault.
 from __future__ import annotations
 
 import csv
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from demstep.io.atomic import write_text_atomic
 from demstep.errors import InputError
 
 #: format names understood by :func:`read_particle_file` / :func:`write_particle_file`
@@ -119,15 +118,7 @@ def _read_lines(path) -> list[str]:
 def _write_text_atomically(path, text: str) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return write_text_atomic(path, text)
 
 
 def _columns(x, r) -> tuple[np.ndarray, np.ndarray]:

@@ -26,13 +26,12 @@ from __future__ import annotations
 
 import csv
 import math
-import os
-import tempfile
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
+from demstep.io.atomic import write_text_atomic
 from demstep.errors import InputError
 
 AXES = "xyz"
@@ -175,11 +174,4 @@ def _is_float(text: str) -> bool:
 
 
 def _write_atomically(path: Path, text: str):
-    fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    write_text_atomic(path, text)

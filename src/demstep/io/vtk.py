@@ -24,14 +24,13 @@ simulated times [T]; they are rewritten atomically after every frame.
 
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 
+from demstep.io.atomic import atomic_path, write_text_atomic
 from demstep.errors import InputError
 
 SERIES = ("particles", "contacts", "walls")
@@ -172,15 +171,8 @@ def write_mesh(path, mesh) -> Path:
     """Write a meshio mesh as .vtu atomically."""
     meshio = _meshio()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".vtu", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".vtu") as tmp:
         meshio.write(tmp, mesh, file_format="vtu")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 
@@ -195,15 +187,7 @@ def write_pvd(path, entries) -> Path:
                       file=str(file))
     ET.indent(root)
     text = '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
-    fd, tmp = tempfile.mkstemp(suffix=".pvd", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return write_text_atomic(path, text)
 
 
 def read_pvd(path) -> list[tuple[float, str]]:
