@@ -11,7 +11,7 @@ from demstep.engine import Damping, Simulation, TimeStep
 from demstep.energy import EnergyMonitor
 from demstep.experiments.stability import build_specimen, is_unstable, specimen_estimates
 from demstep.particles import Particles
-from demstep.walls import Wall, box_walls
+from demstep.walls import box_walls
 
 
 @pytest.mark.parametrize("name", ["hex", "fcc"])

@@ -53,7 +53,6 @@ def test_specimen_is_150_touching_spheres():
 
 @pytest.fixture(scope="module")
 def stage1():
-    from demstep.io.checkpoint import save_checkpoint
 
     cfg = FCCConfig(strain=0.004)
     sim = run_stage1(cfg)

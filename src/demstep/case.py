@@ -710,7 +710,7 @@ def generate_particles(case: Case):
         rng = np.random.default_rng(p.seed)
         grid = np.stack(np.meshgrid(*[np.arange(c, dtype=float) for c in p.count],
                                     indexing="ij"), -1).reshape(-1, dim)
-        x = p.spacing * (grid + 0.5 + rng.uniform(-p.jitter, p.jitter, grid.shape))
+        x = p.spacing * (grid + 0.5 + p.jitter * rng.uniform(-1.0, 1.0, grid.shape))
         if p.origin is not None:
             x = x + np.asarray(p.origin)
         r = rng.uniform(p.radius_min, p.radius_max, len(x))

@@ -36,9 +36,7 @@ from demstep.contacts import ContactSet
 from demstep.energy import EnergyBalanceError, EnergyLedger, EnergyMonitor
 from demstep.errors import InputError, SimulationDiverged
 from demstep.kernels import dem
-from demstep.kernels.neighbors import (
-    build_pair_list, build_wall_list, pair_adjacency, transfer_history,
-)
+from demstep.kernels.neighbors import build_pair_list, build_wall_list, transfer_history
 from demstep.particles import Particles
 from demstep.walls import Wall
 
@@ -316,12 +314,7 @@ class Simulation:
         self.ft, self.fd, self.etan = transfer_history(
             self.pi, self.pj, pi, pj, len(self.r), self.ft, self.fd, self.etan)
         self.pi, self.pj = pi, pj
-        self.offsets, self.entries = pair_adjacency(pi, pj, len(self.r))
-        npairs = len(pi)
-        self.pf = np.zeros((npairs, 3))
-        self.pt = np.zeros((npairs, 3))
-        self.parm = np.zeros((npairs, 2))
-        self.contact_flag = np.zeros(npairs, dtype=np.int8)
+        self._chunks = None
         wp, ww = build_wall_list(self.x, self.r, self.wall_point, self.wall_normal, self.skin)
         self.wft, self.wfd, self.wetan = transfer_history(
             self.wp, self.ww, wp, ww, max(len(self.walls), 1), self.wft, self.wfd, self.wetan)
@@ -481,6 +474,7 @@ class Simulation:
         law_id = int(params[0])
         self.wall_mu[:] = [params[10] if w.friction is None else w.friction for w in self.walls]
         done = 0
+        parallel = self._parallel()
         next_check = self.step + check_every
         while done < budget:
             chunk = budget - done
@@ -497,8 +491,7 @@ class Simulation:
                 self.x, self.v, self.w, self.r, self.m, self.inertia, self.inv_m, self.inv_I,
                 self.force, self.torque, self.applied_force, self.gravity,
                 self.damping.local, self.damping.viscous, self.fd_prev, self.td_prev, self.x_ref,
-                self.pi, self.pj, self.offsets, self.entries, self.ft, self.fd, self.etan,
-                self.pf, self.pt, self.parm, self.contact_flag,
+                self.pi, self.pj, *self._force_buffers(parallel), self.ft, self.fd, self.etan,
                 self.periodic_len, self.box_motion, self.box_servo, self.box_ref, self.box_state,
                 law_id, params,
                 self.wp, self.ww, self.wft, self.wfd, self.wetan, self.wall_point, self.wall_normal,
@@ -506,7 +499,7 @@ class Simulation:
                 self.dim, self.wall_force, self.wall_force_prev, self.wall_disp_prev, self.wall_ref,
                 self.wall_areas, self.wall_contacts, self.wall_k,
                 self.ledger.acc, self.ledger.energy, self.counters, self.jump_limit,
-                self.runaway_factor, self.energy_floor, self._parallel())
+                self.runaway_factor, self.energy_floor, parallel)
             self._first = False
             self.dt_prev = self.dt
             # time from the last change of dt, so that it does not depend on where runs
@@ -542,6 +535,33 @@ class Simulation:
 
     #: below this many particles the serial kernels are faster than threaded ones
     PARALLEL_MIN_PARTICLES = 5000
+
+    def _force_buffers(self, parallel: bool):
+        """Pair chunks (one per thread, equal numbers of pairs) and their force/torque
+        buffers (chunks, N, 3); rebuilt when the pair list or the thread count changes."""
+        import numba
+
+        n_chunks = numba.get_num_threads() if parallel else 1
+        if self._chunks is None or len(self._chunks) != n_chunks + 1:
+            self._chunks = np.linspace(0, len(self.pi), n_chunks + 1).astype(np.int64)
+            self._force_buf = np.zeros((n_chunks, len(self.r), 3))
+            self._torque_buf = np.zeros((n_chunks, len(self.r), 3))
+        return self._chunks, self._force_buf, self._torque_buf
+
+    def contact_forces(self):
+        """Pairs in contact now: (i, j) (C, 2), the force on j (C, 3) [M L/T^2] (elastic at
+        the current positions plus the stored tangential spring and dashpot forces) and
+        the unit normals (C, 3) from i to j."""
+        from demstep.kernels.dem import pair_contact_forces
+
+        if not self._pairs_built or len(self.pi) == 0:
+            return np.zeros((0, 2), dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3))
+        force = np.zeros((len(self.pi), 3))
+        normal = np.zeros((len(self.pi), 3))
+        on = pair_contact_forces(self.x, self.r, self.pi, self.pj, self.periodic_len,
+                                 int(self.law.params()[0]), tuple(self.law.params()),
+                                 self.ft, self.fd, force, normal)
+        return np.stack([self.pi[on], self.pj[on]], axis=1), force[on], normal[on]
 
     def _parallel(self) -> bool:
         import numba

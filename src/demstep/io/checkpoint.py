@@ -54,8 +54,6 @@ def save_checkpoint(sim, path) -> Path:
 
 def load_checkpoint(sim, path):
     """Restore the state saved in ``path`` into ``sim`` (built from the same case)."""
-    from demstep.kernels.neighbors import pair_adjacency
-
     path = Path(path)
     try:
         data = np.load(path, allow_pickle=False)
@@ -83,12 +81,7 @@ def load_checkpoint(sim, path):
     sim.dt_estimate = None if np.isnan(dt_est) else float(dt_est)
     sim._time_ref = (int(t_step), float(t_time), None if np.isnan(t_dt) else float(t_dt))
     sim._update_masses()
-    sim.offsets, sim.entries = pair_adjacency(sim.pi, sim.pj, len(sim.r))
-    n = len(sim.pi)
-    sim.pf = np.zeros((n, 3))
-    sim.pt = np.zeros((n, 3))
-    sim.parm = np.zeros((n, 2))
-    sim.contact_flag = np.zeros(n, dtype=np.int8)
+    sim._chunks = None
     sim._pairs_built = True
     sim.energy_floor = None
     for t in sim._triggers:  # the next multiple of each interval, as in an unbroken run

@@ -66,19 +66,14 @@ def contact_lines(sim):
     positive) and force on j (C, 3); pairs across periodic boundaries left out."""
     if not getattr(sim, "_pairs_built", False) or len(sim.pi) == 0:
         return np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.zeros((0, 3))
-    on = sim.contact_flag.astype(bool)
-    i, j = sim.pi[on], sim.pj[on]
-    force = sim.pf[on]
+    pairs, force, normal = sim.contact_forces()
+    i, j = pairs[:, 0], pairs[:, 1]
     d = sim.x[j] - sim.x[i]
     wrapped = np.zeros(len(i), dtype=bool)
     for k in range(3):
         length = sim.periodic_len[k]
         if length > 0:
-            shift = length * np.rint(d[:, k] / length)
-            wrapped |= shift != 0
-            d[:, k] -= shift
-    dist = np.linalg.norm(d, axis=1)
-    normal = d / np.where(dist > 0, dist, 1.0)[:, None]
+            wrapped |= np.rint(d[:, k] / length) != 0
     f_n = np.einsum("ck,ck->c", force, normal)
     keep = ~wrapped
     return np.stack([i[keep], j[keep]], axis=1), f_n[keep], force[keep]

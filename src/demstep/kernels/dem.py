@@ -6,8 +6,8 @@ condition (step budget, neighbour-list expiry, divergence) and returns to Python
 
 One step, in order (DESIGN.md 2; the engine documents the same order):
 
-1. particle-particle contact forces per Verlet pair (parallel), then gathered per
-   particle (parallel, no write conflicts);
+1. particle-particle contact forces per Verlet pair, accumulated per particle in one
+   buffer per thread (no write conflicts), then summed;
 2. particle-wall contact forces; wall forces, stresses and servo velocities;
 3. body force, applied forces, local and global damping;
 4. central difference: v(t+dt/2) = v(t-dt/2) + dt F(t)/m, x(t+dt) = x(t) + dt v(t+dt/2),
@@ -117,11 +117,13 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
 
 
 def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
-               ft, fd, etan, pf, pt, parm, contact_flag, box_sums):
-    """Forces of all Verlet pairs (compiled twice: parallel and serial). Per pair k:
-    ``pf`` force on j, ``pt`` = n x F, ``parm`` arms (a_i, a_j); history ``ft``, ``fd``,
-    ``etan`` (see :func:`contact_response`). Returns (strain_n, strain_t, friction,
-    dashpot, contacts). ``box_sums`` (4, 3) receives per axis the virial sum
+               ft, fd, etan, chunks, force_buf, torque_buf, box_sums):
+    """Forces of all Verlet pairs (compiled twice: parallel and serial), history ``ft``,
+    ``fd``, ``etan`` (see :func:`contact_response`). The pairs are cut into chunks
+    (``chunks``: pair-index boundaries, one chunk per thread); chunk c accumulates the
+    force (on j +F, on i -F) and torque (-a n x F on each) of its pairs into
+    ``force_buf[c]``/``torque_buf[c]`` (N, 3), which it zeroes first: no two threads
+    write the same memory. Returns (strain_n, strain_t, friction, dashpot, contacts). ``box_sums`` (4, 3) receives per axis the virial sum
     F_on_j,k d_k (Love stress times volume), the boundary sum F_on_j,k n_img,k over pairs
     crossing a periodic boundary (times a change of box length: the work done on the
     contacts), the number of crossing contacts and the sum of their k_n. ``box_rate``
@@ -147,95 +149,94 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     mu = params[P_MU]
     len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
     rate0, rate1, rate2 = box_rate[0], box_rate[1], box_rate[2]
-    for k in prange(pi.shape[0]):
-        i = pi[k]
-        j = pj[k]
-        d0 = x[j, 0] - x[i, 0]
-        d1 = x[j, 1] - x[i, 1]
-        d2 = x[j, 2] - x[i, 2]
-        n0 = 0.0
-        n1 = 0.0
-        n2 = 0.0
-        if len0 > 0.0:
-            n0 = np.rint(d0 / len0)
-            d0 -= len0 * n0
-        if len1 > 0.0:
-            n1 = np.rint(d1 / len1)
-            d1 -= len1 * n1
-        if len2 > 0.0:
-            n2 = np.rint(d2 / len2)
-            d2 -= len2 * n2
-        dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        delta = r[i] + r[j] - dist
-        ox, oy, oz = ft[k, 0], ft[k, 1], ft[k, 2]
-        fdx, fdy, fdz = fd[k, 0], fd[k, 1], fd[k, 2]
-        e_old = etan[k]
-        if delta <= 0.0 and e_old == 0.0 and ox == 0.0 and oy == 0.0 and oz == 0.0 \
-                and fdx == 0.0 and fdy == 0.0 and fdz == 0.0:
-            # apart and without history: no force
-            pf[k, 0] = 0.0
-            pf[k, 1] = 0.0
-            pf[k, 2] = 0.0
-            pt[k, 0] = 0.0
-            pt[k, 1] = 0.0
-            pt[k, 2] = 0.0
-            contact_flag[k] = 0
-            continue
-        nx, ny, nz = d0 / dist, d1 / dist, d2 / dist
-        a_i, a_j = contact_arms(r[i], r[j], dist)
-        # contact-point velocities: v + omega x b, b_i = a_i n, b_j = -a_j n
-        vix = v[i, 0] + a_i * (w[i, 1] * nz - w[i, 2] * ny)
-        viy = v[i, 1] + a_i * (w[i, 2] * nx - w[i, 0] * nz)
-        viz = v[i, 2] + a_i * (w[i, 0] * ny - w[i, 1] * nx)
-        vjx = v[j, 0] - a_j * (w[j, 1] * nz - w[j, 2] * ny) - n0 * rate0
-        vjy = v[j, 1] - a_j * (w[j, 2] * nx - w[j, 0] * nz) - n1 * rate1
-        vjz = v[j, 2] - a_j * (w[j, 0] * ny - w[j, 1] * nx) - n2 * rate2
-        inv_sum = inv_m[i] + inv_m[j]
-        m_star = 1.0 / inv_sum if inv_sum > 0.0 else m[i]
-        r_star = r[i] * r[j] / (r[i] + r[j])
-        (fx, fy, fz, c_en, c_et, c_fric, c_dash, c_kn, _, tx, ty, tz, ndx, ndy, ndz,
-         e_new) = contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star,
-                                   vjx - vix, vjy - viy, vjz - viz, dt, ox, oy, oz,
-                                   fdx, fdy, fdz, e_old)
-        ft[k, 0] = tx
-        ft[k, 1] = ty
-        ft[k, 2] = tz
-        fd[k, 0] = ndx
-        fd[k, 1] = ndy
-        fd[k, 2] = ndz
-        etan[k] = e_new
-        pf[k, 0] = fx
-        pf[k, 1] = fy
-        pf[k, 2] = fz
-        pt[k, 0] = ny * fz - nz * fy
-        pt[k, 1] = nz * fx - nx * fz
-        pt[k, 2] = nx * fy - ny * fx
-        parm[k, 0] = a_i
-        parm[k, 1] = a_j
-        e_n += c_en
-        e_t += c_et
-        d_fric += c_fric
-        d_dash += c_dash
-        vir0 += fx * d0
-        vir1 += fy * d1
-        vir2 += fz * d2
-        cr0 += fx * n0
-        cr1 += fy * n1
-        cr2 += fz * n2
-        if delta > 0.0:
-            contact_flag[k] = 1
-            n_contacts += 1
-            if n0 != 0.0:
-                nc0 += 1
-                kc0 += c_kn
-            if n1 != 0.0:
-                nc1 += 1
-                kc1 += c_kn
-            if n2 != 0.0:
-                nc2 += 1
-                kc2 += c_kn
-        else:
-            contact_flag[k] = 0
+    for c in prange(chunks.shape[0] - 1):
+        fb = force_buf[c]
+        tb = torque_buf[c]
+        fb[:] = 0.0
+        tb[:] = 0.0
+        for k in range(chunks[c], chunks[c + 1]):
+            i = pi[k]
+            j = pj[k]
+            d0 = x[j, 0] - x[i, 0]
+            d1 = x[j, 1] - x[i, 1]
+            d2 = x[j, 2] - x[i, 2]
+            n0 = 0.0
+            n1 = 0.0
+            n2 = 0.0
+            if len0 > 0.0:
+                n0 = np.rint(d0 / len0)
+                d0 -= len0 * n0
+            if len1 > 0.0:
+                n1 = np.rint(d1 / len1)
+                d1 -= len1 * n1
+            if len2 > 0.0:
+                n2 = np.rint(d2 / len2)
+                d2 -= len2 * n2
+            dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            delta = r[i] + r[j] - dist
+            ox, oy, oz = ft[k, 0], ft[k, 1], ft[k, 2]
+            fdx, fdy, fdz = fd[k, 0], fd[k, 1], fd[k, 2]
+            e_old = etan[k]
+            if delta <= 0.0 and e_old == 0.0 and ox == 0.0 and oy == 0.0 and oz == 0.0 \
+                    and fdx == 0.0 and fdy == 0.0 and fdz == 0.0:
+                continue  # apart and without history: no force
+            nx, ny, nz = d0 / dist, d1 / dist, d2 / dist
+            a_i, a_j = contact_arms(r[i], r[j], dist)
+            # contact-point velocities: v + omega x b, b_i = a_i n, b_j = -a_j n
+            vix = v[i, 0] + a_i * (w[i, 1] * nz - w[i, 2] * ny)
+            viy = v[i, 1] + a_i * (w[i, 2] * nx - w[i, 0] * nz)
+            viz = v[i, 2] + a_i * (w[i, 0] * ny - w[i, 1] * nx)
+            vjx = v[j, 0] - a_j * (w[j, 1] * nz - w[j, 2] * ny) - n0 * rate0
+            vjy = v[j, 1] - a_j * (w[j, 2] * nx - w[j, 0] * nz) - n1 * rate1
+            vjz = v[j, 2] - a_j * (w[j, 0] * ny - w[j, 1] * nx) - n2 * rate2
+            inv_sum = inv_m[i] + inv_m[j]
+            m_star = 1.0 / inv_sum if inv_sum > 0.0 else m[i]
+            r_star = r[i] * r[j] / (r[i] + r[j])
+            (fx, fy, fz, c_en, c_et, c_fric, c_dash, c_kn, _, tx, ty, tz, ndx, ndy, ndz,
+             e_new) = contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star,
+                                       vjx - vix, vjy - viy, vjz - viz, dt, ox, oy, oz,
+                                       fdx, fdy, fdz, e_old)
+            ft[k, 0] = tx
+            ft[k, 1] = ty
+            ft[k, 2] = tz
+            fd[k, 0] = ndx
+            fd[k, 1] = ndy
+            fd[k, 2] = ndz
+            etan[k] = e_new
+            fb[j, 0] += fx
+            fb[j, 1] += fy
+            fb[j, 2] += fz
+            fb[i, 0] -= fx
+            fb[i, 1] -= fy
+            fb[i, 2] -= fz
+            cx, cy, cz = ny * fz - nz * fy, nz * fx - nx * fz, nx * fy - ny * fx
+            tb[i, 0] -= a_i * cx
+            tb[i, 1] -= a_i * cy
+            tb[i, 2] -= a_i * cz
+            tb[j, 0] -= a_j * cx
+            tb[j, 1] -= a_j * cy
+            tb[j, 2] -= a_j * cz
+            e_n += c_en
+            e_t += c_et
+            d_fric += c_fric
+            d_dash += c_dash
+            vir0 += fx * d0
+            vir1 += fy * d1
+            vir2 += fz * d2
+            cr0 += fx * n0
+            cr1 += fy * n1
+            cr2 += fz * n2
+            if delta > 0.0:
+                n_contacts += 1
+                if n0 != 0.0:
+                    nc0 += 1
+                    kc0 += c_kn
+                if n1 != 0.0:
+                    nc1 += 1
+                    kc1 += c_kn
+                if n2 != 0.0:
+                    nc2 += 1
+                    kc2 += c_kn
     box_sums[0, 0] = vir0
     box_sums[0, 1] = vir1
     box_sums[0, 2] = vir2
@@ -251,33 +252,43 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     return e_n, e_t, d_fric, d_dash, n_contacts
 
 
-def _gather_loop(offsets, entries, pf, pt, parm, force, torque):
-    """Pair forces summed per particle (one writer per particle, no conflicts): force on
-    i is -F, on j +F; torque -a (n x F)."""
-    for p in prange(offsets.shape[0] - 1):
-        fx = 0.0
-        fy = 0.0
-        fz = 0.0
-        tx = 0.0
-        ty = 0.0
-        tz = 0.0
-        for e in range(offsets[p], offsets[p + 1]):
-            k = entries[e] >> 1
-            side = entries[e] & 1
-            sign = 1.0 if side == 1 else -1.0
-            a = parm[k, side]
-            fx += sign * pf[k, 0]
-            fy += sign * pf[k, 1]
-            fz += sign * pf[k, 2]
-            tx -= a * pt[k, 0]
-            ty -= a * pt[k, 1]
-            tz -= a * pt[k, 2]
-        force[p, 0] = fx
-        force[p, 1] = fy
-        force[p, 2] = fz
-        torque[p, 0] = tx
-        torque[p, 1] = ty
-        torque[p, 2] = tz
+def _reduce_loop(force_buf, torque_buf, force, torque):
+    """Sum the per-chunk buffers into the particle forces and torques."""
+    for p in prange(force.shape[0]):
+        for k in range(3):
+            f = 0.0
+            t = 0.0
+            for c in range(force_buf.shape[0]):
+                f += force_buf[c, p, k]
+                t += torque_buf[c, p, k]
+            force[p, k] = f
+            torque[p, k] = t
+
+
+@njit
+def pair_contact_forces(x, r, pi, pj, periodic_len, law, params, ft, fd, force, normal):
+    """For output: force on j of every touching pair (elastic at the current positions
+    plus the stored tangential and dashpot forces) and the unit normal; returns the
+    boolean mask of touching pairs."""
+    on = np.zeros(pi.shape[0], dtype=np.bool_)
+    for k in range(pi.shape[0]):
+        i = pi[k]
+        j = pj[k]
+        d = np.empty(3)
+        for a in range(3):
+            d[a] = x[j, a] - x[i, a]
+            if periodic_len[a] > 0.0:
+                d[a] -= periodic_len[a] * np.rint(d[a] / periodic_len[a])
+        dist = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        delta = r[i] + r[j] - dist
+        if delta <= 0.0:
+            continue
+        on[k] = True
+        f_el, _, _ = normal_force(law, params, delta, r[i] * r[j] / (r[i] + r[j]))
+        for a in range(3):
+            normal[k, a] = d[a] / dist
+            force[k, a] = f_el * d[a] / dist + ft[k, a] + fd[k, a]
+    return on
 
 
 @njit
@@ -483,7 +494,7 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
 # every loop driver compiled twice: in parallel (prange) and serially, for small
 # systems and for sweeps that run one simulation per core
 pair_forces, pair_forces_serial = compile_parallel_and_serial(_pair_loop)
-gather_forces, gather_forces_serial = compile_parallel_and_serial(_gather_loop)
+reduce_forces, reduce_forces_serial = compile_parallel_and_serial(_reduce_loop)
 integrate, integrate_serial = compile_parallel_and_serial(_integrate_loop)
 
 
@@ -491,7 +502,7 @@ integrate, integrate_serial = compile_parallel_and_serial(_integrate_loop)
 def advance(n_steps, dt, dt_prev, first, skin,
             x, v, w, r, m, inertia, inv_m, inv_I, force, torque, f_app, gravity,
             local_damping, global_damping, fd_prev, td_prev, x_ref,
-            pi, pj, offsets, entries, ft, fd, etan, pf, pt, parm, contact_flag,
+            pi, pj, chunks, force_buf, torque_buf, ft, fd, etan,
             periodic_len, box_motion, box_servo, box_ref, box_state,
             law, params,
             wp, ww, wft, wfd, wetan, wall_point, wall_normal, wall_vel, wall_mu, wall_motion,
@@ -523,13 +534,18 @@ def advance(n_steps, dt, dt_prev, first, skin,
         if parallel:
             e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
                 x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, law_params, dt_slip,
-                ft, fd, etan, pf, pt, parm, contact_flag, box_sums)
-            gather_forces(offsets, entries, pf, pt, parm, force, torque)
+                ft, fd, etan, chunks, force_buf, torque_buf, box_sums)
         else:
             e_n, e_t, d_fric, d_dash, n_pp = pair_forces_serial(
                 x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, law_params, dt_slip,
-                ft, fd, etan, pf, pt, parm, contact_flag, box_sums)
-            gather_forces_serial(offsets, entries, pf, pt, parm, force, torque)
+                ft, fd, etan, chunks, force_buf, torque_buf, box_sums)
+        if force_buf.shape[0] == 1:
+            force[:] = force_buf[0]
+            torque[:] = torque_buf[0]
+        elif parallel:
+            reduce_forces(force_buf, torque_buf, force, torque)
+        else:
+            reduce_forces_serial(force_buf, torque_buf, force, torque)
         we_n, we_t, wd_fric, wd_dash = wall_forces(
             x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
             law, law_params, dt_slip, wft, wfd, wetan, force, torque, wall_force, wall_contacts,

@@ -191,28 +191,3 @@ def transfer_history(old_a, old_b, new_a, new_b, n_b: int, *old_arrays):
         for o, arr in zip(out, old_arrays):
             o[hit] = arr[pos_c[hit]]
     return out
-
-
-@njit
-def _adjacency(pi, pj, n):
-    """CSR of pair indices per particle: entries k (pair) with side 0 (as i) / 1 (as j)."""
-    counts = np.zeros(n + 1, dtype=np.int64)
-    for k in range(pi.shape[0]):
-        counts[pi[k] + 1] += 1
-        counts[pj[k] + 1] += 1
-    for p in range(n):
-        counts[p + 1] += counts[p]
-    fill = counts[:-1].copy()
-    entries = np.empty(counts[n], dtype=np.int64)
-    for k in range(pi.shape[0]):
-        entries[fill[pi[k]]] = 2 * k
-        fill[pi[k]] += 1
-        entries[fill[pj[k]]] = 2 * k + 1
-        fill[pj[k]] += 1
-    return counts, entries
-
-
-def pair_adjacency(pi, pj, n: int):
-    """For each particle, the pairs it belongs to: (offsets (n+1,), entries) with
-    entry = 2 * pair + side (side 0: particle is i, 1: particle is j)."""
-    return _adjacency(pi, pj, int(n))
