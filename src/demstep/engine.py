@@ -31,7 +31,7 @@ from typing import Callable
 import numpy as np
 
 from demstep.contact.geometry import contact_arms_array
-from demstep.contact.laws import ContactLaw, LinearSpring, normal_force, tangential_stiffness
+from demstep.contact.laws import ContactLaw, LinearSpring
 from demstep.contacts import ContactSet
 from demstep.energy import EnergyBalanceError, EnergyLedger, EnergyMonitor
 from demstep.errors import InputError, SimulationDiverged
@@ -370,11 +370,11 @@ class Simulation:
 
     @staticmethod
     def _tangent_stiffness(law_id, params, delta, r_star):
-        kn = np.array([normal_force(law_id, params, dl, rs)[1] for dl, rs in zip(delta, r_star)]) \
-            if law_id != 0 else np.full(len(delta), params[1])
-        kt = np.array([tangential_stiffness(law_id, params, dl, rs) for dl, rs in zip(delta, r_star)]) \
-            if law_id != 0 else np.full(len(delta), params[2])
-        return kn, kt
+        """Tangent stiffnesses k_n, k_t [M/T^2] of contacts at overlaps ``delta``."""
+        from demstep.kernels.dem import tangent_stiffnesses
+
+        return tangent_stiffnesses(law_id, tuple(params), np.ascontiguousarray(delta, float),
+                                   np.ascontiguousarray(r_star, float))
 
     def particles_now(self) -> Particles:
         """Current particles (positions, current masses after any scaling)."""
