@@ -282,8 +282,8 @@ def cmd_paper(args) -> int:
     for r in summary["fcc"]:
         rot = "" if r["rotation"] else " (rotation blocked)"
         peak = r.get("peak_ratio")
-        print(f"  alpha {r['alpha']:.2f}{rot}: {r['status']}, peak ratio "
-              f"{'-' if peak is None else format(peak, '.3f')}, max energy difference "
+        shown = "-" if peak is None or peak != peak or r["status"] == "unstable" else f"{peak:.3f}"
+        print(f"  alpha {r['alpha']:.2f}{rot}: {r['status']}, peak ratio {shown}, max energy difference "
               f"{r.get('max_energy_error', float('nan')):.2e}")
     return 0
 

@@ -97,6 +97,12 @@ class Report:
         return "\n".join(out)
 
 
+def _no_peak(r) -> bool:
+    """No meaningful peak: failed, diverged (the stresses end in garbage) or NaN."""
+    peak = r.get("peak_ratio")
+    return peak is None or peak != peak or r.get("status") in ("unstable", "failed")
+
+
 def _f(v, fmt=".4f"):
     return "-" if v is None else format(v, fmt)
 
@@ -150,10 +156,9 @@ def write_report(out: Path, summary: dict, table: dict, figures: dict) -> None:
     rep.table(["alpha", "rotation", "status", "peak ratio", "vs 4.88", "strain at peak",
                "max energy difference", "steps", "wall time [s]"],
               [[f"{r['alpha']:.2f}", "free" if r["rotation"] else "blocked", r["status"],
-                _f(r.get("peak_ratio"), ".3f"),
-                "-" if r.get("peak_ratio") is None or r["peak_ratio"] != r["peak_ratio"]
-                else f"{100 * (r['peak_ratio'] / r['theory'] - 1):+.1f} %",
-                _f(r.get("peak_strain"), ".4%"), _f(r.get("max_energy_error"), ".2e"),
+                "-" if _no_peak(r) else f"{r['peak_ratio']:.3f}",
+                "-" if _no_peak(r) else f"{100 * (r['peak_ratio'] / r['theory'] - 1):+.1f} %",
+                "-" if _no_peak(r) else f"{r['peak_strain']:.4%}", _f(r.get("max_energy_error"), ".2e"),
                 r.get("steps", "-"), _f(r.get("wall_time"), ".1f")] for r in fcc])
     rep.image(figures["stress_ratio"].name, "Stress ratio against axial strain (Fig. 11)")
     rep.image(figures["energy_error"].name, "Normalized energy difference (Fig. 12)")
