@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from demstep.contact.geometry import contact_arms_array
 from demstep.errors import InputError
@@ -122,6 +121,8 @@ def find_contacts(particles: Particles, k_n: float, k_s: float | None = None,
 
 
 def _pair_contacts(x, r, tol, periodic) -> ContactSet:
+    from scipy.spatial import cKDTree  # imported here: the engine does not need it
+
     n, dim = x.shape
     cutoff = 2.0 * r.max() * (1.0 + tol)
     if periodic is not None:
