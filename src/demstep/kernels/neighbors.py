@@ -50,25 +50,29 @@ def _bin(coords, ncell):
     return start, members
 
 
-@njit
-def _neighbours_of(p, x, r, coords, ncell, periodic_len, start, members, skin, out, count_only):
-    """Pairs (p, q > p) within reach; writes q into out (unless count_only); returns count."""
+@njit(inline="always")
+def _neighbours_of(p, x, r, coords, ncell, len0, len1, len2, start, members, skin, out,
+                   offset, count_only):
+    """Pairs (p, q > p) within reach; writes q into out[offset:] (unless count_only);
+    returns the count. Inlined: array arguments to a called function would cost a
+    reference-count update per particle."""
     found = 0
+    xp0, xp1, xp2 = x[p, 0], x[p, 1], x[p, 2]
     for dx in range(-1, 2):
         cx = coords[p, 0] + dx
-        if periodic_len[0] > 0.0:
+        if len0 > 0.0:
             cx = (cx + ncell[0]) % ncell[0]
         elif cx < 0 or cx >= ncell[0]:
             continue
         for dy in range(-1, 2):
             cy = coords[p, 1] + dy
-            if periodic_len[1] > 0.0:
+            if len1 > 0.0:
                 cy = (cy + ncell[1]) % ncell[1]
             elif cy < 0 or cy >= ncell[1]:
                 continue
             for dz in range(-1, 2):
                 cz = coords[p, 2] + dz
-                if periodic_len[2] > 0.0:
+                if len2 > 0.0:
                     cz = (cz + ncell[2]) % ncell[2]
                 elif cz < 0 or cz >= ncell[2]:
                     continue
@@ -77,16 +81,19 @@ def _neighbours_of(p, x, r, coords, ncell, periodic_len, start, members, skin, o
                     q = members[m]
                     if q <= p:
                         continue
-                    d2 = 0.0
-                    for k in range(3):
-                        d = x[q, k] - x[p, k]
-                        if periodic_len[k] > 0.0:
-                            d -= periodic_len[k] * np.rint(d / periodic_len[k])
-                        d2 += d * d
+                    d0 = x[q, 0] - xp0
+                    d1 = x[q, 1] - xp1
+                    d2 = x[q, 2] - xp2
+                    if len0 > 0.0:
+                        d0 -= len0 * np.rint(d0 / len0)
+                    if len1 > 0.0:
+                        d1 -= len1 * np.rint(d1 / len1)
+                    if len2 > 0.0:
+                        d2 -= len2 * np.rint(d2 / len2)
                     reach = r[p] + r[q] + skin
-                    if d2 < reach * reach:
+                    if d0 * d0 + d1 * d1 + d2 * d2 < reach * reach:
                         if not count_only:
-                            out[found] = q
+                            out[offset + found] = q
                         found += 1
     return found
 
@@ -94,22 +101,31 @@ def _neighbours_of(p, x, r, coords, ncell, periodic_len, start, members, skin, o
 @njit(parallel=True)
 def _build_pairs(x, r, lo, cell, ncell, periodic_len, skin):
     n = x.shape[0]
+    len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
     coords = _cell_coords(x, lo, cell, ncell)
     start, members = _bin(coords, ncell)
     counts = np.zeros(n + 1, dtype=np.int64)
     dummy = np.empty(0, dtype=np.int64)
     for p in prange(n):
-        counts[p + 1] = _neighbours_of(p, x, r, coords, ncell, periodic_len, start, members,
-                                       skin, dummy, True)
+        counts[p + 1] = _neighbours_of(p, x, r, coords, ncell, len0, len1, len2, start,
+                                       members, skin, dummy, 0, True)
     for p in range(n):
         counts[p + 1] += counts[p]
     pj = np.empty(counts[n], dtype=np.int64)
     pi = np.empty(counts[n], dtype=np.int64)
     for p in prange(n):
-        seg = pj[counts[p]:counts[p + 1]]
-        _neighbours_of(p, x, r, coords, ncell, periodic_len, start, members, skin, seg, False)
-        seg.sort()
-        for k in range(counts[p], counts[p + 1]):
+        lo_k, hi_k = counts[p], counts[p + 1]
+        _neighbours_of(p, x, r, coords, ncell, len0, len1, len2, start, members, skin, pj,
+                       lo_k, False)
+        # insertion sort of the (few) neighbours of p: the list is sorted by (i, j)
+        for a in range(lo_k + 1, hi_k):
+            key = pj[a]
+            b = a - 1
+            while b >= lo_k and pj[b] > key:
+                pj[b + 1] = pj[b]
+                b -= 1
+            pj[b + 1] = key
+        for k in range(lo_k, hi_k):
             pi[k] = p
     return pi, pj
 
@@ -178,16 +194,27 @@ def build_wall_list(x, r, wall_point, wall_normal, skin: float):
     return _build_wall_pairs(x, r, wall_point, wall_normal, float(skin))
 
 
+@njit
+def _transfer(old_key, new_key):
+    """Position in the old list of each new key (-1 if absent); both lists sorted."""
+    pos = np.full(new_key.shape[0], -1, dtype=np.int64)
+    a = 0
+    for b in range(new_key.shape[0]):
+        while a < old_key.shape[0] and old_key[a] < new_key[b]:
+            a += 1
+        if a < old_key.shape[0] and old_key[a] == new_key[b]:
+            pos[b] = a
+    return pos
+
+
 def transfer_history(old_a, old_b, new_a, new_b, n_b: int, *old_arrays):
     """Carry per-pair arrays (e.g. tangential springs) from an old sorted pair list to a
-    new one; pairs that are new get zeros. Keys are a * n_b + b."""
-    old_key = old_a * n_b + old_b
-    new_key = new_a * n_b + new_b
-    out = [np.zeros((len(new_key),) + arr.shape[1:], dtype=arr.dtype) for arr in old_arrays]
-    if len(old_key) and len(new_key):
-        pos = np.searchsorted(old_key, new_key)
-        pos_c = np.minimum(pos, len(old_key) - 1)
-        hit = old_key[pos_c] == new_key
-        for o, arr in zip(out, old_arrays):
-            o[hit] = arr[pos_c[hit]]
+    new one; pairs that are new get zeros. Keys are a * n_b + b (both lists sorted)."""
+    pos = _transfer(old_a * n_b + old_b, new_a * n_b + new_b)
+    hit = pos >= 0
+    out = []
+    for arr in old_arrays:
+        o = np.zeros((len(pos),) + arr.shape[1:], dtype=arr.dtype)
+        o[hit] = arr[pos[hit]]
+        out.append(o)
     return out
