@@ -1,0 +1,715 @@
+"""Side-by-side DEM benchmark: demstep against LIGGGHTS and YADE on the same problems.
+
+    python benchmarks/peers.py --problem dense|settle --n 100000 --threads 1 \
+        [--repeat 3] [--steps 1000] [--codes demstep,liggghts,yade] [--json]
+    python benchmarks/peers.py --check [--n 500]      # do the codes agree? (small case)
+
+Problems (identical input in every code; positions are generated once and written to
+files the peers read):
+
+* ``dense``: spheres of radius 0.5 x 1.001 on the FCC lattice of
+  ``demstep.packings.lattice('fcc', 0.5).block(side)`` (nearest-neighbour distance 1,
+  so all 12 nearest-neighbour contacts per interior sphere overlap by 0.001), inside
+  the six fixed walls touching the outer spheres; no gravity, no damping.
+* ``settle``: spheres of radius 0.5 on a simple-cubic grid of spacing 1.5 (no
+  contacts; a square footprint, at most 8 layers) in a box of a floor and four side
+  walls (open top), gravity -9.81 along z, normal dashpots for a restitution of 0.5.
+
+Both: linear springs k_n = k_s = 1e6, friction 0.5 (walls too), density 2500, rotation
+on, dt = 0.1 sqrt(m / k_n), Verlet skin 0.15 r (demstep's default) in every code.
+The exact peer settings are in :func:`liggghts_input` and :data:`YADE_SCRIPT`.
+
+Only the stepping is timed: every code first runs ``--warmup`` steps (numba compiles
+or loads its cache, neighbour lists are built), then ``--steps`` steps are timed:
+demstep ``sim.run(steps=...)``, LIGGGHTS the "Loop time" of its second ``run``,
+YADE ``O.run(steps, True)``. Each measurement is its own process; its peak memory is
+the largest sum of the resident set sizes of its process tree (sampled every 20 ms,
+MPI launchers excluded) or the kernel's ru_maxrss of the child, whichever is larger.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+CODES = ("demstep", "liggghts", "yade")
+LAUNCHERS = {"mpirun", "mpiexec", "orterun", "prterun", "prte", "orted", "prted"}
+RESULT_TAG = "BENCH_RESULT "
+
+
+# ----------------------------------------------------------------------------- problems
+def make_problem(problem: str, n_target: int, skin: float | None = None):
+    """Positions (N, 3) and a JSON-able spec of the problem (same for every code)."""
+    k_n = k_s = 1.0e6
+    mu = 0.5
+    density = 2500.0
+    if problem == "dense":
+        from demstep.packings import lattice
+
+        side = max(2, int(round((n_target / 2.0) ** (1.0 / 3.0))))
+        x = lattice("fcc", 0.5).block(side)
+        radius = 0.5 * 1.001
+        lo = x.min(axis=0) - radius
+        hi = x.max(axis=0) + radius
+        walls = []
+        for k in range(3):
+            walls.append({"axis": k, "pos": float(lo[k]), "sense": 1})
+            walls.append({"axis": k, "pos": float(hi[k]), "sense": -1})
+        gravity = [0.0, 0.0, 0.0]
+        restitution = None
+        domain_lo = (lo - 1.0).tolist()
+        domain_hi = (hi + 1.0).tolist()
+        shape = [side, side, side]
+    elif problem == "settle":
+        radius = 0.5
+        spacing = 1.5
+        # at most 8 layers: the top layer falls ~0.25 + 0.5 x 7 = 3.75 before it lands
+        # (8.6 m/s), so impacts on these soft springs overlap by < 0.45 r. A tall column
+        # (e.g. 29 layers for 1e5 spheres) makes impacts overlap by more than r:
+        # spheres tunnel through each other and the floor (LIGGGHTS then loses them).
+        nz = max(1, min(8, int(round((n_target / 4.0) ** (1.0 / 3.0)))))
+        nxy = max(1, int(round(math.sqrt(n_target / nz))))
+        g = np.stack(np.meshgrid(np.arange(nxy), np.arange(nxy), np.arange(nz), indexing="ij"), -1)
+        x = 0.5 * spacing + spacing * g.reshape(-1, 3).astype(float)
+        length = nxy * spacing
+        walls = [{"axis": 0, "pos": 0.0, "sense": 1}, {"axis": 0, "pos": length, "sense": -1},
+                 {"axis": 1, "pos": 0.0, "sense": 1}, {"axis": 1, "pos": length, "sense": -1},
+                 {"axis": 2, "pos": 0.0, "sense": 1}]
+        gravity = [0.0, 0.0, -9.81]
+        restitution = 0.5
+        domain_lo = [-1.0, -1.0, -1.0]
+        domain_hi = [length + 1.0, length + 1.0, nz * spacing + 2.0]
+        shape = [nxy, nxy, nz]
+    else:
+        raise SystemExit(f"unknown problem {problem!r}: dense or settle")
+    mass = density * 4.0 / 3.0 * math.pi * radius**3
+    dt = 0.1 * math.sqrt(mass / k_n)
+    spec = {"problem": problem, "n": int(len(x)), "shape": shape, "radius": radius,
+            "density": density, "mass": mass, "k_n": k_n, "k_s": k_s, "mu": mu, "mu_wall": mu,
+            "restitution": restitution, "gravity": gravity, "dt": dt, "walls": walls,
+            "skin": 0.15 * radius if skin is None else float(skin),
+            "domain_lo": domain_lo, "domain_hi": domain_hi}
+    if restitution is not None:
+        ln = math.log(restitution)
+        beta = -ln / math.sqrt(math.pi**2 + ln**2)
+        spec["beta"] = beta
+        # demstep: c_n = 2 beta sqrt(m* k_n), m* = m/2 (two spheres), m (sphere-wall)
+        spec["c_pp"] = 2.0 * beta * math.sqrt(0.5 * mass * k_n)
+        spec["c_pw"] = 2.0 * beta * math.sqrt(mass * k_n)
+    return np.ascontiguousarray(x, dtype=np.float64), spec
+
+
+def write_problem(folder: Path, x, spec):
+    np.save(folder / "x.npy", x)
+    (folder / "spec.json").write_text(json.dumps(spec, indent=1))
+
+
+# ----------------------------------------------------------------------------- demstep
+DEMSTEP_CHILD = r"""
+import json, sys, time
+from pathlib import Path
+import numpy as np
+import demstep  # before numba.set_num_threads: demstep chooses the threading layer
+import numba
+from demstep.contact.laws import LinearSpring
+from demstep.engine import Simulation, TimeStep
+from demstep.particles import Particles
+from demstep.walls import Wall
+
+folder, threads, warmup, steps, dump = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == "1"
+numba.set_num_threads(threads)
+spec = json.loads((folder / "spec.json").read_text())
+x = np.load(folder / "x.npy")
+t_setup = time.perf_counter()
+particles = Particles.from_density(x, np.full(len(x), spec["radius"]), spec["density"])
+law = LinearSpring(k_n=spec["k_n"], k_s=spec["k_s"], mu=spec["mu"], restitution=spec["restitution"])
+walls = []
+for w in spec["walls"]:
+    point = np.zeros(3); point[w["axis"]] = w["pos"]
+    normal = np.zeros(3); normal[w["axis"]] = w["sense"]
+    walls.append(Wall(point, normal))
+sim = Simulation(particles, law, walls, gravity=spec["gravity"], timestep=TimeStep.fixed(spec["dt"]),
+                 skin=spec["skin"])
+if warmup:
+    sim.run(steps=warmup)
+t_setup = time.perf_counter() - t_setup
+rebuilds0 = getattr(sim, "n_rebuilds", 0)
+c0, t0 = time.process_time(), time.perf_counter()
+sim.run(steps=steps)
+elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
+if dump:
+    np.save(folder / "final_demstep_x.npy", sim.x)
+    np.save(folder / "final_demstep_v.npy", sim.v)
+    np.save(folder / "final_demstep_wall_force.npy", sim.wall_force)
+print("BENCH_RESULT " + json.dumps({
+    "elapsed": elapsed, "cpu_s": cpu, "steps": steps, "n": len(x), "threads": numba.get_num_threads(),
+    "threading_layer": numba.threading_layer(), "setup_s": t_setup,
+    "rebuilds": getattr(sim, "n_rebuilds", 0) - rebuilds0, "contacts": sim.n_contacts,
+    "demstep": str(Path(demstep.__file__).parent)}), flush=True)
+"""
+
+
+def demstep_command(folder, threads, warmup, steps, dump, demstep_src):
+    env = dict(os.environ)
+    if demstep_src:
+        env["PYTHONPATH"] = str(demstep_src) + os.pathsep + env.get("PYTHONPATH", "")
+    cmd = [sys.executable, "-c", DEMSTEP_CHILD, str(folder), str(threads), str(warmup),
+           str(steps), "1" if dump else "0"]
+    return cmd, env, threads
+
+
+# ----------------------------------------------------------------------------- LIGGGHTS
+def liggghts_data(folder: Path, x, spec):
+    """LAMMPS data file, atom_style granular: id type diameter density x y z."""
+    lo, hi = spec["domain_lo"], spec["domain_hi"]
+    d = 2.0 * spec["radius"]
+    rows = np.empty((len(x), 7))
+    rows[:, 0] = np.arange(1, len(x) + 1)
+    rows[:, 1] = 1
+    rows[:, 2] = d
+    rows[:, 3] = spec["density"]
+    rows[:, 4:] = x
+    with open(folder / "data.bench", "w") as f:
+        f.write("demstep peers benchmark\n\n")
+        f.write(f"{len(x)} atoms\n2 atom types\n\n")
+        for k, a in enumerate("xyz"):
+            f.write(f"{lo[k]!r} {hi[k]!r} {a}lo {a}hi\n")
+        f.write("\nAtoms\n\n")
+        np.savetxt(f, rows, fmt=["%d", "%d", "%.17g", "%.17g", "%.17g", "%.17g", "%.17g"])
+
+
+def liggghts_input(spec, warmup, steps, dump):
+    """The LIGGGHTS script. Atom type 1: the spheres; type 2: the walls' material (so that
+    the sphere-wall dashpot can differ from the sphere-sphere one, as in demstep)."""
+    kn, ks, mu, muw = spec["k_n"], spec["k_s"], spec["mu"], spec["mu_wall"]
+    if spec["restitution"] is None:
+        g11 = g12 = 0.0
+    else:
+        # hooke/stiffness, absolute_damping off: c_n = meff * gamman, meff = m/2 for two
+        # spheres, m for sphere-wall; demstep: c_n = 2 beta sqrt(m* k_n)
+        m = spec["mass"]
+        g11 = spec["c_pp"] / (0.5 * m)
+        g12 = spec["c_pw"] / m
+    model = "model hooke/stiffness tangential history"
+    lines = [
+        "atom_style granular",
+        "atom_modify map array",
+        "boundary f f f",
+        "newton off",
+        "communicate single vel yes",
+        "units si",
+        "read_data data.bench",
+        f"neighbor {spec['skin']!r} bin",
+        "neigh_modify delay 0",
+        f"pair_style gran {model} tangential_damping off",
+        "pair_coeff * *",
+        f"fix m1 all property/global kn peratomtypepair 2 {kn!r} {kn!r} {kn!r} {kn!r}",
+        f"fix m2 all property/global kt peratomtypepair 2 {ks!r} {ks!r} {ks!r} {ks!r}",
+        f"fix m3 all property/global gamman peratomtypepair 2 {g11!r} {g12!r} {g12!r} {g12!r}",
+        "fix m4 all property/global gammat peratomtypepair 2 0.0 0.0 0.0 0.0",
+        f"fix m5 all property/global coefficientFriction peratomtypepair 2 {mu!r} {muw!r} {muw!r} {muw!r}",
+    ]
+    for i, w in enumerate(spec["walls"]):
+        plane = "xyz"[w["axis"]] + "plane"
+        lines.append(f"fix wall{i} all wall/gran {model} primitive type 2 {plane} {w['pos']!r} "
+                     f"tangential_damping off")
+    gx, gy, gz = spec["gravity"]
+    gmag = math.sqrt(gx * gx + gy * gy + gz * gz)
+    if gmag > 0:
+        lines.append(f"fix gravi all gravity {gmag!r} vector {gx / gmag!r} {gy / gmag!r} {gz / gmag!r}")
+    lines += [
+        "fix integr all nve/sphere",
+        f"timestep {spec['dt']!r}",
+        "thermo_style custom step atoms ke",
+        "thermo_modify lost ignore norm no",
+        f"thermo {max(1, steps)}",
+    ]
+    if warmup:
+        lines.append(f"run {warmup}")
+    if dump:
+        lines += [f"dump dfin all custom {steps} final.dump id x y z vx vy vz",
+                  "dump_modify dfin sort id"]
+    # CPU time of the timed run: /proc/<liggghts>/stat before and after (process 0 only)
+    lines += ["shell sh cpustat.sh cpu_before.txt", f"run {steps}", "shell sh cpustat.sh cpu_after.txt"]
+    return "\n".join(lines) + "\n"
+
+
+# copies /proc/<pid>/stat of the nearest ancestor named liggghts* to the file $1
+CPUSTAT_SH = """p=$PPID
+while [ "$p" -gt 1 ]; do
+  comm=$(cut -d' ' -f2 /proc/$p/stat)
+  case "$comm" in *liggghts*) cat /proc/$p/stat > "$1"; exit 0;; esac
+  p=$(cut -d' ' -f4 /proc/$p/stat)
+done
+"""
+
+
+def liggghts_cpu(folder: Path):
+    """CPU seconds (user + system) of LIGGGHTS process 0 during the timed run, or None."""
+    try:
+        before, after = ((folder / f).read_text().rsplit(")", 1)[1].split()
+                         for f in ("cpu_before.txt", "cpu_after.txt"))
+    except (OSError, IndexError):
+        return None
+    # fields after the command name: state is field 3 of stat, utime 14, stime 15
+    ticks = os.sysconf("SC_CLK_TCK")
+    return (int(after[11]) + int(after[12]) - int(before[11]) - int(before[12])) / ticks
+
+
+def liggghts_command(folder, x, spec, threads, warmup, steps, dump):
+    liggghts_data(folder, x, spec)
+    (folder / "in.bench").write_text(liggghts_input(spec, warmup, steps, dump))
+    (folder / "cpustat.sh").write_text(CPUSTAT_SH)
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [shutil.which("liggghts"), "-in", "in.bench", "-log", "log.bench"]
+    if threads > 1:
+        env.update(OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1")
+        cmd = [shutil.which("mpirun"), "-np", str(threads), "--oversubscribe"] + cmd
+    return cmd, env, threads
+
+
+LOOP_RE = re.compile(r"Loop time of ([0-9.eE+-]+) on (\d+) procs for (\d+) steps with (\d+) atoms")
+
+
+def liggghts_result(stdout, steps):
+    loops = LOOP_RE.findall(stdout)
+    timed = [lp for lp in loops if int(lp[2]) == steps]
+    if not timed:
+        raise RuntimeError("LIGGGHTS: no 'Loop time' line for the timed run:\n" + stdout[-3000:])
+    t, procs, nsteps, natoms = timed[-1]
+    out = {"elapsed": float(t), "steps": int(nsteps), "n": int(natoms), "threads": int(procs)}
+    m = re.search(r"Neighbor list builds = (\d+)", stdout.split("Loop time")[-1])
+    if m:
+        out["rebuilds"] = int(m.group(1))
+    return out
+
+
+# ----------------------------------------------------------------------------- YADE
+YADE_SCRIPT = r"""
+import json, math, sys, time
+import numpy as np
+from yade import utils
+
+folder = FOLDER
+spec = json.load(open(folder + "/spec.json"))
+x = np.load(folder + "/x.npy")
+warmup, steps, dump = WARMUP, STEPS, DUMP
+r, rho, kn, ks = spec["radius"], spec["density"], spec["k_n"], spec["k_s"]
+if spec["restitution"] is None:
+    # linear springs with explicit stiffness: FrictPhys with kn, ks given by value
+    mat = O.materials.append(FrictMat(young=kn / r, poisson=ks / kn, density=rho,
+                                      frictionAngle=math.atan(spec["mu"])))
+    wmat = O.materials.append(FrictMat(young=kn / r, poisson=ks / kn, density=rho,
+                                       frictionAngle=math.atan(spec["mu_wall"])))
+    ip2 = Ip2_FrictMat_FrictMat_FrictPhys(kn=MatchMaker(algo="val", val=kn),
+                                          ks=MatchMaker(algo="val", val=ks))
+    law = Law2_ScGeom_FrictPhys_CundallStrack()
+else:
+    # linear spring-dashpot with explicit kn, ks, cn, cs; ViscElPhys combines the two
+    # materials' values in series (1/k = 1/k1 + 1/k2): spheres carry 2 kn, 2 ks, 2 c_pp
+    # so that sphere-sphere gives kn, ks, c_pp; the wall material gives c_pw against a sphere
+    c_pp, c_pw = spec["c_pp"], spec["c_pw"]
+    mat = O.materials.append(ViscElMat(kn=2 * kn, ks=2 * ks, cn=2 * c_pp, cs=0.0, density=rho,
+                                       frictionAngle=math.atan(spec["mu"])))
+    wmat = O.materials.append(ViscElMat(kn=2 * kn, ks=2 * ks, cn=1.0 / (1.0 / c_pw - 0.5 / c_pp),
+                                        cs=0.0, density=rho, frictionAngle=math.atan(spec["mu_wall"])))
+    ip2 = Ip2_ViscElMat_ViscElMat_ViscElPhys()
+    law = Law2_ScGeom_ViscElPhys_Basic()
+t_setup = time.perf_counter()
+O.bodies.append([utils.sphere((float(p[0]), float(p[1]), float(p[2])), r, material=mat) for p in x])
+for w in spec["walls"]:
+    pos = [0.0, 0.0, 0.0]
+    pos[w["axis"]] = w["pos"]
+    O.bodies.append(utils.wall(tuple(pos), axis=w["axis"], sense=w["sense"], material=wmat))
+O.engines = [
+    ForceResetter(),
+    InsertionSortCollider([Bo1_Sphere_Aabb(), Bo1_Wall_Aabb()], verletDist=0.5 * spec["skin"]),
+    InteractionLoop([Ig2_Sphere_Sphere_ScGeom(), Ig2_Wall_Sphere_ScGeom()], [ip2], [law]),
+    NewtonIntegrator(damping=0.0, gravity=tuple(spec["gravity"])),
+]
+O.dt = spec["dt"]
+if warmup:
+    O.run(warmup, True)
+t_setup = time.perf_counter() - t_setup
+c0, t0 = time.process_time(), time.perf_counter()
+O.run(steps, True)
+elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
+if dump:
+    n = len(x)
+    np.save(folder + "/final_yade_x.npy", np.array([list(O.bodies[i].state.pos) for i in range(n)]))
+    np.save(folder + "/final_yade_v.npy", np.array([list(O.bodies[i].state.vel) for i in range(n)]))
+contacts = sum(1 for i in O.interactions if i.isReal)
+print("BENCH_RESULT " + json.dumps({"elapsed": elapsed, "cpu_s": cpu, "steps": steps, "n": len(x),
+      "threads": int(__import__("os").environ.get("OMP_NUM_THREADS", "1")),
+      "setup_s": t_setup, "contacts": contacts}), flush=True)
+"""
+
+
+def yade_command(folder, threads, warmup, steps, dump):
+    script = (YADE_SCRIPT.replace("FOLDER", repr(str(folder))).replace("WARMUP", str(warmup))
+              .replace("STEPS", str(steps)).replace("DUMP", "True" if dump else "False"))
+    (folder / "bench_yade.py").write_text(script)
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+    env.pop("DISPLAY", None)
+    cmd = [shutil.which("yade"), "-j", str(threads), "-n", "-x", str(folder / "bench_yade.py")]
+    return cmd, env, threads
+
+
+# ----------------------------------------------------------------------------- running
+def _busy_seconds():
+    import psutil
+
+    t = psutil.cpu_times()
+    return sum(t) - t.idle - getattr(t, "iowait", 0.0)
+
+
+def wait_idle(limit_s, threshold=0.2):
+    """Wait (at most ``limit_s``) until other processes use less than ``threshold`` of
+    the machine's CPUs over a 2 s window; returns the last busy fraction seen."""
+    import psutil
+
+    t_end = time.time() + limit_s
+    while True:
+        busy = psutil.cpu_percent(interval=2.0) / 100.0
+        if busy < threshold or time.time() >= t_end:
+            return busy
+        time.sleep(3.0)
+
+
+def run_measured(cmd, env, cwd, timeout):
+    """Run ``cmd``; returns (rc, stdout, stderr, peak RSS [MB], wall time [s], foreign
+    load: the CPU time other processes used during the run / (wall time x CPUs))."""
+    import psutil
+
+    out_path, err_path = Path(cwd) / "stdout.txt", Path(cwd) / "stderr.txt"
+    with open(out_path, "w") as fo, open(err_path, "w") as fe:
+        busy0 = _busy_seconds()
+        self0 = sum(os.times()[:2])  # this driver (its sampling thread) is not foreign
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, env=env, cwd=cwd, stdout=fo, stderr=fe)
+        peak = [0]
+        done = threading.Event()
+
+        def sample():
+            try:
+                root = psutil.Process(proc.pid)
+            except psutil.Error:
+                return
+            while not done.is_set():
+                total = 0
+                try:
+                    procs = [root] + root.children(recursive=True)
+                except psutil.Error:
+                    procs = []
+                for p in procs:
+                    try:
+                        if p.name() in LAUNCHERS:
+                            continue
+                        total += p.memory_info().rss
+                    except psutil.Error:
+                        pass
+                peak[0] = max(peak[0], total)
+                done.wait(0.02)
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        deadline = t0 + timeout
+        rusage = None
+        while True:
+            pid, status, ru = os.wait4(proc.pid, os.WNOHANG)
+            if pid:
+                proc.returncode = os.waitstatus_to_exitcode(status)
+                rusage = ru
+                break
+            if time.perf_counter() > deadline:
+                proc.kill()
+                _, status, ru = os.wait4(proc.pid, 0)
+                proc.returncode = -9
+                rusage = ru
+                break
+            time.sleep(0.05)
+        wall = time.perf_counter() - t0
+        done.set()
+        sampler.join()
+        busy = _busy_seconds() - busy0 - (sum(os.times()[:2]) - self0)
+    maxrss = rusage.ru_maxrss * 1024 if rusage else 0  # Linux: kB
+    rss_mb = max(peak[0], maxrss) / 2**20
+    own = (rusage.ru_utime + rusage.ru_stime) if rusage else 0.0
+    foreign = max(0.0, busy - own) / (wall * (os.cpu_count() or 1))
+    return proc.returncode, out_path.read_text(), err_path.read_text(), rss_mb, wall, foreign
+
+
+def parse_tagged(stdout):
+    for line in reversed(stdout.splitlines()):
+        if line.startswith(RESULT_TAG):
+            return json.loads(line[len(RESULT_TAG):])
+    raise RuntimeError("no result line in the output:\n" + stdout[-3000:])
+
+
+def available(code):
+    if code == "demstep":
+        return True
+    if code == "liggghts":
+        return shutil.which("liggghts") is not None
+    if code == "yade":
+        return shutil.which("yade") is not None
+    return False
+
+
+def mpi_available():
+    return shutil.which("mpirun") is not None
+
+
+def run_once(code, workdir, x, spec, threads, warmup, steps, dump, demstep_src, timeout,
+             idle_wait=0.0):
+    """One measurement of ``code`` in its own process, in a fresh folder."""
+    folder = Path(tempfile.mkdtemp(prefix=f"{code}-", dir=workdir))
+    write_problem(folder, x, spec)
+    if code == "demstep":
+        cmd, env, used = demstep_command(folder, threads, warmup, steps, dump, demstep_src)
+    elif code == "liggghts":
+        cmd, env, used = liggghts_command(folder, x, spec, threads, warmup, steps, dump)
+    else:
+        cmd, env, used = yade_command(folder, threads, warmup, steps, dump)
+    if idle_wait > 0:
+        wait_idle(idle_wait)
+    load1 = os.getloadavg()[0]
+    rc, out, err, rss, wall, foreign = run_measured(cmd, env, folder, timeout)
+    if rc != 0:
+        raise RuntimeError(f"{code} failed (exit {rc}) in {folder}:\n{out[-2000:]}\n{err[-3000:]}")
+    if code == "liggghts":
+        res = liggghts_result(out, steps)
+        if res["n"] != spec["n"]:
+            raise RuntimeError(f"LIGGGHTS lost {spec['n'] - res['n']} of {spec['n']} atoms "
+                               f"(left the domain) in {folder}")
+        cpu = liggghts_cpu(folder)
+        if cpu is not None and res["threads"] == 1:
+            res["cpu_s"] = cpu
+    else:
+        res = parse_tagged(out)
+    res.update(rss_mb=rss, wall_s=wall, folder=str(folder), load1=load1, foreign_load=foreign)
+    return res
+
+
+def benchmark(args):
+    workdir = Path(tempfile.mkdtemp(prefix="demstep-peers-"))
+    x, spec = make_problem(args.problem, args.n, args.skin)
+    codes = [c for c in args.codes.split(",") if c]
+    notes = []
+    todo = []
+    for code in codes:
+        if not available(code):
+            notes.append(f"{code}: not installed, skipped")
+        elif code == "liggghts" and args.threads > 1 and not mpi_available():
+            notes.append("liggghts: MPI code and no mpirun found: not measured with > 1 process")
+        else:
+            todo.append(code)
+    # repeats interleaved (code A, B, C, A, B, C, ...) so that any load from other
+    # processes on the machine falls on every code alike
+    runs = {code: [] for code in todo}
+    for rep in range(args.repeat):
+        for code in todo:
+            discarded = []
+            while True:
+                res = run_once(code, workdir, x, spec, args.threads, args.warmup, args.steps, False,
+                               args.demstep_src, args.timeout, args.idle_wait)
+                res["psps"] = res["n"] * res["steps"] / res["elapsed"]
+                if res["foreign_load"] <= args.max_foreign or len(discarded) >= args.retries:
+                    break
+                discarded.append(res)
+                print(f"  {code:9s} run {rep + 1}/{args.repeat}: other processes used "
+                      f"{100 * res['foreign_load']:.0f} % of the machine: repeated",
+                      file=sys.stderr, flush=True)
+            if discarded:  # out of retries: keep the least disturbed attempt
+                res = min(discarded + [res], key=lambda r: r["foreign_load"])
+            res["discarded"] = len(discarded)
+            runs[code].append(res)
+            if not args.json:
+                print(f"  {code:9s} run {rep + 1}/{args.repeat}: {res['elapsed']:.3f} s "
+                      f"({res['psps']:.4g} particle-steps/s, {res['rss_mb']:.0f} MB, "
+                      f"foreign load {100 * res['foreign_load']:.0f} %)", file=sys.stderr, flush=True)
+    results = []
+    for code in todo:
+        psps = [r["psps"] for r in runs[code]]
+        entry = {"code": code, "psps_median": statistics.median(psps),
+                 "rss_mb": max(r["rss_mb"] for r in runs[code]),
+                 "psps_min": min(psps), "psps_max": max(psps), "n": runs[code][0]["n"],
+                 "threads": runs[code][0]["threads"], "steps": args.steps,
+                 "elapsed_s": [r["elapsed"] for r in runs[code]],
+                 "foreign_load": [round(r["foreign_load"], 3) for r in runs[code]],
+                 "discarded_runs": sum(r["discarded"] for r in runs[code])}
+        if all("cpu_s" in r for r in runs[code]):
+            entry["cpu_s"] = [r["cpu_s"] for r in runs[code]]
+            if entry["threads"] == 1:
+                # one thread: CPU time of the timed run barely depends on other load
+                entry["psps_cpu_median"] = statistics.median(
+                    r["n"] * r["steps"] / r["cpu_s"] for r in runs[code])
+        for key in ("rebuilds", "contacts", "threading_layer"):
+            if key in runs[code][-1]:
+                entry[key] = runs[code][-1][key]
+        results.append(entry)
+    by = {r["code"]: r for r in results}
+    ratio = None
+    if "demstep" in by and "liggghts" in by:
+        ratio = by["demstep"]["psps_median"] / by["liggghts"]["psps_median"]
+    if not args.keep:
+        shutil.rmtree(workdir, ignore_errors=True)
+    return {"problem": args.problem, "n": spec["n"], "threads": args.threads, "results": results,
+            "ratio_vs_liggghts": ratio}, notes, spec
+
+
+def print_table(report, notes, spec):
+    print(f"problem {report['problem']}: N = {report['n']}, {spec['shape']} "
+          f"(dt = {spec['dt']:.6g}, skin = {spec['skin']:g}), threads {report['threads']}")
+    head = (f"{'code':10s} {'N':>8s} {'threads':>7s} {'particle-steps/s (median, min-max)':>38s} "
+            f"{'peak MB':>8s} {'vs LIGGGHTS':>11s} {'foreign load':>12s} {'p-s/CPU-s':>10s}")
+    print(head)
+    print("-" * len(head))
+    lig = next((r for r in report["results"] if r["code"] == "liggghts"), None)
+    for r in report["results"]:
+        rel = f"{r['psps_median'] / lig['psps_median']:.3f}" if lig else "-"
+        rng = f"{r['psps_median']:.4g} ({r['psps_min']:.4g}-{r['psps_max']:.4g})"
+        fl = "max {:.0f} %".format(100 * max(r["foreign_load"]))
+        cpu = f"{r['psps_cpu_median']:.4g}" if "psps_cpu_median" in r else "-"
+        print(f"{r['code']:10s} {r['n']:8d} {r['threads']:7d} {rng:>38s} {r['rss_mb']:8.0f} {rel:>11s} "
+              f"{fl:>12s} {cpu:>10s}")
+    if report["ratio_vs_liggghts"] is not None:
+        print(f"demstep / LIGGGHTS = {report['ratio_vs_liggghts']:.3f} (wall clock)")
+    print("foreign load: CPU used by other processes during a run / (wall time x CPUs); "
+          "p-s/CPU-s: particle-steps per CPU second of the timed run (1 thread)")
+    for note in notes:
+        print("note:", note)
+
+
+# ----------------------------------------------------------------------------- check
+def read_liggghts_dump(path, n):
+    lines = Path(path).read_text().splitlines()
+    last = max(i for i, line in enumerate(lines) if line.startswith("ITEM: ATOMS"))
+    cols = lines[last].split()[2:]
+    data = np.array([list(map(float, line.split())) for line in lines[last + 1:last + 1 + n]])
+    data = data[np.argsort(data[:, cols.index("id")])]
+    return (data[:, [cols.index(c) for c in ("x", "y", "z")]],
+            data[:, [cols.index(c) for c in ("vx", "vy", "vz")]])
+
+
+def observables(x0, x, v, spec):
+    """Code-independent measures computed from the final state alone."""
+    m, r, kn = spec["mass"], spec["radius"], spec["k_n"]
+    ke = 0.5 * m * float((v * v).sum())
+    disp = np.linalg.norm(x - x0, axis=1)
+    out = {"ke_translational": ke, "max_displacement": float(disp.max()),
+           "rms_displacement": float(np.sqrt((disp**2).mean())), "mean_z": float(x[:, 2].mean())}
+    if spec["problem"] == "dense":
+        top = next(w for w in spec["walls"] if w["axis"] == 0 and w["sense"] == -1)
+        overlap = np.maximum(0.0, r - (top["pos"] - x[:, 0]))
+        out["wall_force_xplus"] = float(kn * overlap.sum())  # elastic normal force on x+
+    else:
+        floor = next(w for w in spec["walls"] if w["axis"] == 2)
+        out["floor_contacts"] = int((x[:, 2] - floor["pos"] < r).sum())
+    return out
+
+
+def check(args):
+    workdir = Path(tempfile.mkdtemp(prefix="demstep-check-"))
+    codes = [c for c in args.codes.split(",") if c and available(c)]
+    report = {}
+    for problem in ("dense", "settle"):
+        x0, spec = make_problem(problem, args.n, args.skin)
+        finals = {}
+        for code in codes:
+            res = run_once(code, workdir, x0, spec, 1, 0, args.steps, True, args.demstep_src,
+                           args.timeout)
+            folder = Path(res["folder"])
+            if code == "liggghts":
+                x, v = read_liggghts_dump(folder / "final.dump", spec["n"])
+            else:
+                x, v = np.load(folder / f"final_{code}_x.npy"), np.load(folder / f"final_{code}_v.npy")
+            finals[code] = (x, v)
+            obs = observables(x0, x, v, spec)
+            if code == "demstep":
+                wf = np.load(folder / "final_demstep_wall_force.npy")
+                k = next(i for i, w in enumerate(spec["walls"]) if w["axis"] == 0 and w["sense"] == -1)
+                obs["demstep_wall_force_xplus_total"] = float(wf[k, 0])
+            report.setdefault(problem, {"n": spec["n"], "steps": args.steps})[code] = obs
+        ref = "demstep" if "demstep" in finals else codes[0]
+        xr, _ = finals[ref]
+        scale = np.sqrt((np.linalg.norm(xr - x0, axis=1) ** 2).mean())
+        for code, (x, _) in finals.items():
+            diff = np.linalg.norm(x - xr, axis=1)
+            report[problem][code]["rms_position_diff_vs_" + ref] = float(np.sqrt((diff**2).mean()))
+            report[problem][code]["rms_position_diff_relative"] = float(np.sqrt((diff**2).mean()) / scale)
+    if not args.keep:
+        shutil.rmtree(workdir, ignore_errors=True)
+    return report
+
+
+def print_check(report):
+    for problem, rows in report.items():
+        print(f"{problem}: N = {rows['n']}, {rows['steps']} steps from rest (no warm-up)")
+        codes = [c for c in rows if c not in ("n", "steps")]
+        keys = list(dict.fromkeys(k for c in codes for k in rows[c]))
+        print(f"  {'quantity':34s}" + "".join(f"{c:>16s}" for c in codes))
+        for k in keys:
+            vals = "".join(f"{rows[c][k]:16.6g}" if k in rows[c] else f"{'-':>16s}" for c in codes)
+            print(f"  {k:34s}{vals}")
+
+
+# ----------------------------------------------------------------------------- main
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--problem", choices=("dense", "settle"), default="dense")
+    ap.add_argument("--n", type=int, default=None, help="target number of spheres (nearest feasible)")
+    ap.add_argument("--threads", type=int, default=1, help="demstep numba threads, LIGGGHTS MPI ranks, YADE OpenMP threads")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--steps", type=int, default=1000)
+    ap.add_argument("--warmup", type=int, default=10, help="untimed steps before the timed run")
+    ap.add_argument("--skin", type=float, default=None, help="Verlet skin for every code (default 0.15 r)")
+    ap.add_argument("--codes", default=",".join(CODES))
+    ap.add_argument("--demstep-src", default=None,
+                    help="folder put first on PYTHONPATH of the demstep child (e.g. a snapshot's src/)")
+    ap.add_argument("--timeout", type=float, default=3600.0, help="per-run limit [s]")
+    ap.add_argument("--idle-wait", type=float, default=0.0,
+                    help="before each run wait up to this many seconds for the machine to be idle")
+    ap.add_argument("--max-foreign", type=float, default=1.0,
+                    help="repeat a run when other processes used more than this fraction of the "
+                         "machine's CPUs during it (e.g. 0.1 on a shared machine)")
+    ap.add_argument("--retries", type=int, default=3, help="repeats allowed per run for --max-foreign")
+    ap.add_argument("--keep", action="store_true", help="keep the work folders")
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--check", action="store_true", help="physics agreement on a small case instead")
+    args = ap.parse_args(argv)
+    if args.demstep_src:
+        sys.path.insert(0, str(Path(args.demstep_src).resolve()))
+        args.demstep_src = str(Path(args.demstep_src).resolve())
+    if args.check:
+        args.n = args.n or 500
+        report = check(args)
+        if args.json:
+            print(json.dumps(report, indent=1))
+        else:
+            print_check(report)
+        return
+    args.n = args.n or 100_000
+    report, notes, spec = benchmark(args)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print_table(report, notes, spec)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,134 @@
+"""Where does a demstep step go? Times the compiled kernels of one step separately.
+
+    python benchmarks/profile_demstep.py --problem dense --n 100000 --threads 1 [--reps 30]
+
+Builds the problem of ``peers.py``, runs ``--warmup`` steps (compilation, a realistic
+contact state), then times, on copies of the simulation's arrays:
+``pair_forces``, ``gather_forces``, ``wall_forces``, ``integrate`` (each called
+``--reps`` times) and one neighbour-list rebuild (``Simulation._rebuild`` and its
+parts), and compares their sum with the time per step of ``sim.run``. Kernel arguments
+are matched by parameter name, so the script follows signature changes as long as
+the names stay those of the engine's attributes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--problem", choices=("dense", "settle"), default="dense")
+    ap.add_argument("--n", type=int, default=100_000)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--reps", type=int, default=30)
+    ap.add_argument("--warmup", type=int, default=10)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+
+    import demstep  # noqa: F401  (chooses the threading layer before numba starts threads)
+    import numba
+
+    from demstep.contact.laws import LinearSpring
+    from demstep.engine import Simulation, TimeStep
+    from demstep.kernels import dem, neighbors
+    from demstep.particles import Particles
+    from demstep.walls import Wall
+    from peers import make_problem
+
+    numba.set_num_threads(args.threads)
+    x, spec = make_problem(args.problem, args.n)
+    particles = Particles.from_density(x, np.full(len(x), spec["radius"]), spec["density"])
+    law = LinearSpring(k_n=spec["k_n"], k_s=spec["k_s"], mu=spec["mu"], restitution=spec["restitution"])
+    walls = []
+    for wd in spec["walls"]:
+        point = np.zeros(3)
+        point[wd["axis"]] = wd["pos"]
+        normal = np.zeros(3)
+        normal[wd["axis"]] = wd["sense"]
+        walls.append(Wall(point, normal))
+    sim = Simulation(particles, law, walls, gravity=spec["gravity"],
+                     timestep=TimeStep.fixed(spec["dt"]), skin=spec["skin"])
+    sim.run(steps=args.warmup)
+
+    # a whole step, as the benchmark times it
+    t = time.perf_counter()
+    r0 = sim.n_rebuilds
+    sim.run(steps=args.reps)
+    t_step = (time.perf_counter() - t) / args.reps
+    rebuilds_per_step = (sim.n_rebuilds - r0) / args.reps
+
+    params = sim.law.params()
+    names = {
+        "periodic_len": sim.periodic_len, "law": int(params[0]), "params": params,
+        "dt": sim.dt, "dt_prev": sim.dt, "f_app": sim.applied_force,
+        "local_damping": sim.damping.local, "global_damping": sim.damping.viscous,
+        "first": False, "acc_out": np.empty(8),
+    }
+
+    def arg(name):
+        if name in names:
+            return names[name]
+        value = getattr(sim, name)
+        return value.copy() if isinstance(value, np.ndarray) else value
+
+    def bench(kernel):
+        sig = inspect.signature(kernel.py_func)
+        values = [arg(p) for p in sig.parameters]
+        kernel(*values)  # compiled already; first call checks types
+        t = time.perf_counter()
+        for _ in range(args.reps):
+            kernel(*values)
+        return (time.perf_counter() - t) / args.reps
+
+    out = {"problem": args.problem, "n": len(x), "threads": numba.get_num_threads(),
+           "pairs": int(len(sim.pi)), "contacts": sim.n_contacts, "wall_pairs": int(len(sim.wp)),
+           "step_s": t_step, "rebuilds_per_step": rebuilds_per_step, "kernels_s": {}}
+    for name in ("pair_forces", "gather_forces", "wall_forces", "integrate"):
+        out["kernels_s"][name] = bench(getattr(dem, name))
+
+    # one neighbour rebuild and its parts
+    parts = {}
+    t = time.perf_counter()
+    pi, pj = neighbors.build_pair_list(sim.x, sim.r, sim.skin, sim.periodic_len)
+    parts["build_pair_list"] = time.perf_counter() - t
+    t = time.perf_counter()
+    neighbors.transfer_history(sim.pi, sim.pj, pi, pj, len(sim.r), sim.ft, sim.fd, sim.etan)
+    parts["transfer_history"] = time.perf_counter() - t
+    t = time.perf_counter()
+    neighbors.pair_adjacency(pi, pj, len(sim.r))
+    parts["pair_adjacency"] = time.perf_counter() - t
+    t = time.perf_counter()
+    neighbors.build_wall_list(sim.x, sim.r, sim.wall_point, sim.wall_normal, sim.skin)
+    parts["build_wall_list"] = time.perf_counter() - t
+    t = time.perf_counter()
+    sim._rebuild()
+    parts["_rebuild_total"] = time.perf_counter() - t
+    out["rebuild_s"] = parts
+    out["kernel_sum_s"] = sum(out["kernels_s"].values())
+    if args.json:
+        print(json.dumps(out))
+        return
+    n = len(x)
+    print(f"{args.problem}: N = {n}, {out['pairs']} Verlet pairs, {out['contacts']} contacts, "
+          f"{out['wall_pairs']} wall pairs, {out['threads']} thread(s)")
+    print(f"  whole step (sim.run)      {1e3 * t_step:9.3f} ms  {1e9 * t_step / n:7.1f} ns/particle"
+          f"  (rebuilds per step {rebuilds_per_step:.2f})")
+    for name, s in out["kernels_s"].items():
+        print(f"  {name:25s} {1e3 * s:9.3f} ms  {1e9 * s / n:7.1f} ns/particle  {100 * s / t_step:5.1f} %")
+    print(f"  {'sum of the kernels':25s} {1e3 * out['kernel_sum_s']:9.3f} ms")
+    for name, s in parts.items():
+        print(f"  rebuild: {name:16s} {1e3 * s:9.3f} ms")
+
+
+if __name__ == "__main__":
+    main()
