@@ -102,7 +102,7 @@ def main(argv=None):
     pi, pj = neighbors.build_pair_list(sim.x, sim.r, sim.skin, sim.periodic_len)
     parts["build_pair_list"] = time.perf_counter() - t
     t = time.perf_counter()
-    neighbors.transfer_history(sim.pi, sim.pj, pi, pj, len(sim.r), sim.ft, sim.fd, sim.etan)
+    neighbors.transfer_history(sim.pi, sim.pj, pi, pj, sim.ft, sim.fd, sim.etan)
     parts["transfer_history"] = time.perf_counter() - t
     t = time.perf_counter()
     neighbors.pair_adjacency(pi, pj, len(sim.r))

@@ -37,11 +37,37 @@ def test_pair_list_equals_brute_force(dim, periodic):
     assert np.all(np.diff(key) > 0)  # sorted by (i, j), no duplicates
 
 
+@pytest.mark.parametrize("n_threads", [1, 3])
+def test_pair_list_chunks_and_buffer_overflow(n_threads):
+    """Dense polydisperse cloud in a periodic box of exactly three cells along x: the
+    per-thread buffers overflow first (the build reports the size it needs), the
+    rebuilt list equals brute force whatever the number of chunks."""
+    from demstep.kernels.neighbors import _build_pairs
+
+    rng = np.random.default_rng(11)
+    n = 300
+    r = rng.uniform(0.2, 0.6, n)
+    skin = 0.1
+    reach = (2 * r.max() + skin) * (1 + 1e-9)
+    box = np.array([3 * reach + 1e-6, 0.0, 0.0])
+    x = np.column_stack([rng.uniform(0, box[0], n), rng.uniform(0, 5, n), rng.uniform(0, 5, n)])
+    lo = np.array([0.0, x[:, 1].min() - 1e-9, x[:, 2].min() - 1e-9])
+    ncell = np.array([3, max(1, int(5 // reach)), max(1, int(5 // reach))], dtype=np.int64)
+    inv_cell = np.array([3 / box[0], ncell[1] / 5.1, ncell[2] / 5.1])
+    args = (x, r, lo, inv_cell, ncell, box, skin, n_threads)
+    pi, pj, needed = _build_pairs(*args, 5)
+    assert needed > 5 and len(pi) == 0
+    pi, pj, again = _build_pairs(*args, int(needed))
+    assert again == 0
+    assert set(zip(pi.tolist(), pj.tolist())) == reference.brute_force_pairs(x, r, skin, box)
+    assert np.all(np.diff(pi * n + pj) > 0)
+
+
 def test_transfer_history_keeps_common_pairs():
     old_i, old_j = np.array([0, 0, 1, 3]), np.array([1, 2, 2, 4])
     hist = np.arange(8.0).reshape(4, 2)
     new_i, new_j = np.array([0, 1, 2, 3]), np.array([2, 2, 3, 4])
-    (out,) = transfer_history(old_i, old_j, new_i, new_j, 5, hist)
+    (out,) = transfer_history(old_i, old_j, new_i, new_j, hist)
     assert np.array_equal(out, [[2, 3], [4, 5], [0, 0], [6, 7]])
 
 

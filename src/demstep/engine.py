@@ -310,14 +310,17 @@ class Simulation:
         for k in range(3):
             if self.periodic_len[k] > 0:
                 np.mod(self.x[:, k], self.periodic_len[k], out=self.x[:, k])
-        pi, pj = build_pair_list(self.x, self.r, self.skin, self.periodic_len)
+        built = self._pairs_built
+        pi, pj = build_pair_list(self.x, self.r, self.skin, self.periodic_len,
+                                 expected_pairs=len(self.pi) if built else None)
         self.ft, self.fd, self.etan = transfer_history(
-            self.pi, self.pj, pi, pj, len(self.r), self.ft, self.fd, self.etan)
+            self.pi, self.pj, pi, pj, self.ft, self.fd, self.etan)
         self.pi, self.pj = pi, pj
         self._chunks = None
-        wp, ww = build_wall_list(self.x, self.r, self.wall_point, self.wall_normal, self.skin)
+        wp, ww = build_wall_list(self.x, self.r, self.wall_point, self.wall_normal, self.skin,
+                                 expected_pairs=len(self.wp) if built else None)
         self.wft, self.wfd, self.wetan = transfer_history(
-            self.wp, self.ww, wp, ww, max(len(self.walls), 1), self.wft, self.wfd, self.wetan)
+            self.wp, self.ww, wp, ww, self.wft, self.wfd, self.wetan)
         self.wp, self.ww = wp, ww
         self.x_ref = self.x.copy()
         self.wall_ref = self.wall_point.copy()
@@ -544,8 +547,10 @@ class Simulation:
         n_chunks = numba.get_num_threads() if parallel else 1
         if self._chunks is None or len(self._chunks) != n_chunks + 1:
             self._chunks = np.linspace(0, len(self.pi), n_chunks + 1).astype(np.int64)
-            self._force_buf = np.zeros((n_chunks, len(self.r), 3))
-            self._torque_buf = np.zeros((n_chunks, len(self.r), 3))
+            shape = (n_chunks, len(self.r), 3)
+            if getattr(self, "_force_buf", None) is None or self._force_buf.shape != shape:
+                self._force_buf = np.zeros(shape)
+                self._torque_buf = np.zeros(shape)
         return self._chunks, self._force_buf, self._torque_buf
 
     def contact_forces(self):

@@ -8,6 +8,7 @@ contact history carries over a rebuild by a merge (:func:`transfer_history`).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from demstep._numba import njit, prange
@@ -15,28 +16,22 @@ from demstep.errors import InputError
 
 
 @njit
-def _cell_coords(x, lo, cell, ncell):
+def _bin(x, lo, inv_cell, ncell):
+    """Counting sort of the particles by cell: (cell of each particle, start (ncells+1,),
+    members (N,) particle indices in cell order)."""
     n = x.shape[0]
-    coords = np.empty((n, 3), dtype=np.int64)
-    for p in range(n):
-        for k in range(3):
-            c = int(np.floor((x[p, k] - lo[k]) / cell[k]))
-            if c < 0:
-                c = 0
-            if c >= ncell[k]:
-                c = ncell[k] - 1
-            coords[p, k] = c
-    return coords
-
-
-@njit
-def _bin(coords, ncell):
-    n = coords.shape[0]
     ncells = ncell[0] * ncell[1] * ncell[2]
     cell_of = np.empty(n, dtype=np.int64)
     start = np.zeros(ncells + 1, dtype=np.int64)
     for p in range(n):
-        c = (coords[p, 0] * ncell[1] + coords[p, 1]) * ncell[2] + coords[p, 2]
+        c = 0
+        for k in range(3):
+            ck = int(np.floor((x[p, k] - lo[k]) * inv_cell[k]))
+            if ck < 0:
+                ck = 0
+            if ck >= ncell[k]:
+                ck = ncell[k] - 1
+            c = c * ncell[k] + ck
         cell_of[p] = c
         start[c + 1] += 1
     for c in range(ncells):
@@ -50,74 +45,116 @@ def _bin(coords, ncell):
     return start, members
 
 
-@njit(inline="always")
-def _neighbours_of(p, x, r, coords, ncell, len0, len1, len2, start, members, skin, out,
-                   offset, count_only):
-    """Pairs (p, q > p) within reach; writes q into out[offset:] (unless count_only);
-    returns the count. Inlined: array arguments to a called function would cost a
-    reference-count update per particle."""
-    found = 0
-    xp0, xp1, xp2 = x[p, 0], x[p, 1], x[p, 2]
-    for dx in range(-1, 2):
-        cx = coords[p, 0] + dx
-        if len0 > 0.0:
-            cx = (cx + ncell[0]) % ncell[0]
-        elif cx < 0 or cx >= ncell[0]:
-            continue
-        for dy in range(-1, 2):
-            cy = coords[p, 1] + dy
-            if len1 > 0.0:
-                cy = (cy + ncell[1]) % ncell[1]
-            elif cy < 0 or cy >= ncell[1]:
-                continue
-            for dz in range(-1, 2):
-                cz = coords[p, 2] + dz
-                if len2 > 0.0:
-                    cz = (cz + ncell[2]) % ncell[2]
-                elif cz < 0 or cz >= ncell[2]:
-                    continue
-                c = (cx * ncell[1] + cy) * ncell[2] + cz
-                for m in range(start[c], start[c + 1]):
-                    q = members[m]
-                    if q <= p:
-                        continue
-                    d0 = x[q, 0] - xp0
-                    d1 = x[q, 1] - xp1
-                    d2 = x[q, 2] - xp2
-                    if len0 > 0.0:
-                        d0 -= len0 * np.rint(d0 / len0)
-                    if len1 > 0.0:
-                        d1 -= len1 * np.rint(d1 / len1)
-                    if len2 > 0.0:
-                        d2 -= len2 * np.rint(d2 / len2)
-                    reach = r[p] + r[q] + skin
-                    if d0 * d0 + d1 * d1 + d2 * d2 < reach * reach:
-                        if not count_only:
-                            out[offset + found] = q
-                        found += 1
-    return found
-
-
 @njit(parallel=True)
-def _build_pairs(x, r, lo, cell, ncell, periodic_len, skin):
+def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capacity):
+    """One sweep of a half stencil (each cell against itself and its 13 forward
+    neighbours), each of ``n_threads`` chunks over its own run of cells, pairs written
+    to per-chunk buffers of ``capacity``; then a counting sort into rows i < j, each row sorted.
+    Returns (pi, pj, needed): ``needed`` > 0 (pi, pj empty) when a buffer overflowed."""
     n = x.shape[0]
     len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
-    coords = _cell_coords(x, lo, cell, ncell)
-    start, members = _bin(coords, ncell)
-    counts = np.zeros(n + 1, dtype=np.int64)
-    dummy = np.empty(0, dtype=np.int64)
-    for p in prange(n):
-        counts[p + 1] = _neighbours_of(p, x, r, coords, ncell, len0, len1, len2, start,
-                                       members, skin, dummy, 0, True)
+    n0, n1, n2 = ncell[0], ncell[1], ncell[2]
+    ncells = n0 * n1 * n2
+    start, members = _bin(x, lo, inv_cell, ncell)
+    # positions and radii in cell order: the inner loop reads contiguous memory
+    xs = np.empty((n, 3))
+    rs = np.empty(n)
+    for m in range(n):
+        q = members[m]
+        xs[m, 0], xs[m, 1], xs[m, 2] = x[q, 0], x[q, 1], x[q, 2]
+        rs[m] = r[q]
+    # runs of cells holding about equal numbers of particles
+    bounds = np.empty(n_threads + 1, dtype=np.int64)
+    bounds[0] = 0
+    c = 0
+    for t in range(1, n_threads):
+        target = (n * t) // n_threads
+        while c < ncells and start[c] < target:
+            c += 1
+        bounds[t] = c
+    bounds[n_threads] = ncells
+    buf_a = np.empty((n_threads, capacity), dtype=np.int64)
+    buf_b = np.empty((n_threads, capacity), dtype=np.int64)
+    found = np.zeros(n_threads, dtype=np.int64)
+    for t in prange(n_threads):
+        k = 0
+        for c in range(bounds[t], bounds[t + 1]):
+            if start[c] == start[c + 1]:
+                continue
+            cz = c % n2
+            cy = (c // n2) % n1
+            cx = c // (n1 * n2)
+            for dx in range(0, 2):
+                ox = cx + dx
+                if ox >= n0:
+                    if len0 > 0.0:
+                        ox -= n0
+                    else:
+                        continue
+                for dy in range(-1, 2):
+                    if dx == 0 and dy < 0:
+                        continue
+                    oy = cy + dy
+                    if oy < 0 or oy >= n1:
+                        if len1 > 0.0:
+                            oy = (oy + n1) % n1
+                        else:
+                            continue
+                    for dz in range(-1, 2):
+                        if dx == 0 and dy == 0 and dz < 0:
+                            continue
+                        oz = cz + dz
+                        if oz < 0 or oz >= n2:
+                            if len2 > 0.0:
+                                oz = (oz + n2) % n2
+                            else:
+                                continue
+                        c2 = (ox * n1 + oy) * n2 + oz
+                        own = dx == 0 and dy == 0 and dz == 0
+                        for m in range(start[c], start[c + 1]):
+                            x0, x1, x2, rm = xs[m, 0], xs[m, 1], xs[m, 2], rs[m]
+                            first = m + 1 if own else start[c2]
+                            for m2 in range(first, start[c2 + 1]):
+                                d0 = xs[m2, 0] - x0
+                                d1 = xs[m2, 1] - x1
+                                d2 = xs[m2, 2] - x2
+                                if len0 > 0.0:
+                                    d0 -= len0 * np.rint(d0 / len0)
+                                if len1 > 0.0:
+                                    d1 -= len1 * np.rint(d1 / len1)
+                                if len2 > 0.0:
+                                    d2 -= len2 * np.rint(d2 / len2)
+                                reach = rm + rs[m2] + skin
+                                if d0 * d0 + d1 * d1 + d2 * d2 < reach * reach:
+                                    if k < capacity:
+                                        p, q = members[m], members[m2]
+                                        if p < q:
+                                            buf_a[t, k], buf_b[t, k] = p, q
+                                        else:
+                                            buf_a[t, k], buf_b[t, k] = q, p
+                                    k += 1
+        found[t] = k
+    needed = found.max()
+    if needed > capacity:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64), needed
+    # counting sort by i, then each (short) row by j
+    row = np.zeros(n + 1, dtype=np.int64)
+    for t in range(n_threads):
+        for k in range(found[t]):
+            row[buf_a[t, k] + 1] += 1
     for p in range(n):
-        counts[p + 1] += counts[p]
-    pj = np.empty(counts[n], dtype=np.int64)
-    pi = np.empty(counts[n], dtype=np.int64)
+        row[p + 1] += row[p]
+    total = row[n]
+    pi = np.empty(total, dtype=np.int64)
+    pj = np.empty(total, dtype=np.int64)
+    fill = row[:-1].copy()
+    for t in range(n_threads):
+        for k in range(found[t]):
+            a = buf_a[t, k]
+            pj[fill[a]] = buf_b[t, k]
+            fill[a] += 1
     for p in prange(n):
-        lo_k, hi_k = counts[p], counts[p + 1]
-        _neighbours_of(p, x, r, coords, ncell, len0, len1, len2, start, members, skin, pj,
-                       lo_k, False)
-        # insertion sort of the (few) neighbours of p: the list is sorted by (i, j)
+        lo_k, hi_k = row[p], row[p + 1]
         for a in range(lo_k + 1, hi_k):
             key = pj[a]
             b = a - 1
@@ -127,13 +164,16 @@ def _build_pairs(x, r, lo, cell, ncell, periodic_len, skin):
             pj[b + 1] = key
         for k in range(lo_k, hi_k):
             pi[k] = p
-    return pi, pj
+    return pi, pj, 0
 
 
-def build_pair_list(x, r, skin: float, periodic_len):
+def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None = None):
     """Verlet pairs (pi, pj), i < j, sorted by (i, j). ``x`` (N, 3); ``periodic_len``
-    (3,) box lengths, 0 for non-periodic axes (periodic boxes start at 0)."""
-    reach = 2.0 * float(r.max()) + skin
+    (3,) box lengths, 0 for non-periodic axes (periodic boxes start at 0);
+    ``expected_pairs`` (e.g. the previous list's length) sizes the work buffers."""
+    # cells a hair wider than the longest reach: rounding cannot split a pair in reach
+    # over two cells that are not neighbours
+    reach = (2.0 * float(r.max()) + skin) * (1.0 + 1e-9)
     periodic_len = np.asarray(periodic_len, dtype=np.float64)
     lo = x.min(axis=0) - 1e-9
     hi = x.max(axis=0) + 1e-9
@@ -159,62 +199,88 @@ def build_pair_list(x, r, skin: float, periodic_len):
         ncell[k] = max(1, ncell[k] // 2)
         cell[k] = (periodic_len[k] if periodic_len[k] > 0 else hi[k] - lo[k]) / ncell[k]
         cell[k] = max(cell[k], reach)
-    return _build_pairs(x, r, lo, cell, ncell, periodic_len, float(skin))
+    n_threads = numba.get_num_threads()
+    expected = 4 * len(r) if expected_pairs is None else int(expected_pairs)
+    capacity = int(1.5 * expected / n_threads) + 1024
+    args = (x, r, lo, 1.0 / cell, ncell, periodic_len, float(skin), n_threads)
+    pi, pj, needed = _build_pairs(*args, capacity)
+    if needed:  # a thread's buffer was too small: once more with the size it needed
+        pi, pj, needed = _build_pairs(*args, int(needed))
+    return pi, pj
 
 
 @njit
-def _build_wall_pairs(x, r, wall_point, wall_normal, skin):
+def _build_wall_pairs(x, r, wall_point, wall_normal, skin, capacity):
+    """(particle, wall) pairs within reach in one pass; (empty, empty, needed) when more
+    than ``capacity`` were found."""
     n = x.shape[0]
     nw = wall_point.shape[0]
-    count = 0
-    for w in range(nw):
-        for p in range(n):
-            d = 0.0
-            for k in range(3):
-                d += (x[p, k] - wall_point[w, k]) * wall_normal[w, k]
-            if d < r[p] + skin:
-                count += 1
-    wp = np.empty(count, dtype=np.int64)
-    ww = np.empty(count, dtype=np.int64)
+    wp = np.empty(capacity, dtype=np.int64)
+    ww = np.empty(capacity, dtype=np.int64)
     m = 0
     for p in range(n):
+        x0, x1, x2, reach = x[p, 0], x[p, 1], x[p, 2], r[p] + skin
         for w in range(nw):
-            d = 0.0
-            for k in range(3):
-                d += (x[p, k] - wall_point[w, k]) * wall_normal[w, k]
-            if d < r[p] + skin:
-                wp[m] = p
-                ww[m] = w
+            d = ((x0 - wall_point[w, 0]) * wall_normal[w, 0]
+                 + (x1 - wall_point[w, 1]) * wall_normal[w, 1]
+                 + (x2 - wall_point[w, 2]) * wall_normal[w, 2])
+            if d < reach:
+                if m < capacity:
+                    wp[m] = p
+                    ww[m] = w
                 m += 1
+    if m > capacity:
+        return wp[:0], ww[:0], m
+    return wp[:m].copy(), ww[:m].copy(), 0
+
+
+def build_wall_list(x, r, wall_point, wall_normal, skin: float, expected_pairs: int | None = None):
+    """Particle-wall candidate pairs (particle, wall) sorted by (particle, wall)."""
+    n_walls = len(wall_point)
+    if n_walls == 0:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    expected = len(r) if expected_pairs is None else int(expected_pairs)
+    capacity = min(len(r) * n_walls, 2 * expected + 1024)
+    wp, ww, needed = _build_wall_pairs(x, r, wall_point, wall_normal, float(skin), capacity)
+    if needed:
+        wp, ww, needed = _build_wall_pairs(x, r, wall_point, wall_normal, float(skin), int(needed))
     return wp, ww
 
 
-def build_wall_list(x, r, wall_point, wall_normal, skin: float):
-    """Particle-wall candidate pairs (particle, wall) sorted by (particle, wall)."""
-    return _build_wall_pairs(x, r, wall_point, wall_normal, float(skin))
-
-
 @njit
-def _transfer(old_key, new_key):
-    """Position in the old list of each new key (-1 if absent); both lists sorted."""
-    pos = np.full(new_key.shape[0], -1, dtype=np.int64)
-    a = 0
-    for b in range(new_key.shape[0]):
-        while a < old_key.shape[0] and old_key[a] < new_key[b]:
-            a += 1
-        if a < old_key.shape[0] and old_key[a] == new_key[b]:
-            pos[b] = a
+def _positions_in_old(old_a, old_b, new_a, new_b):
+    """Index in the old list of each new pair (-1 if absent); both lists sorted by (a, b)."""
+    pos = np.full(new_a.shape[0], -1, dtype=np.int64)
+    n_old = old_a.shape[0]
+    k = 0
+    for m in range(new_a.shape[0]):
+        a, b = new_a[m], new_b[m]
+        while k < n_old and (old_a[k] < a or (old_a[k] == a and old_b[k] < b)):
+            k += 1
+        if k < n_old and old_a[k] == a and old_b[k] == b:
+            pos[m] = k
     return pos
 
 
-def transfer_history(old_a, old_b, new_a, new_b, n_b: int, *old_arrays):
-    """Carry per-pair arrays (e.g. tangential springs) from an old sorted pair list to a
-    new one; pairs that are new get zeros. Keys are a * n_b + b (both lists sorted)."""
-    pos = _transfer(old_a * n_b + old_b, new_a * n_b + new_b)
-    hit = pos >= 0
+@njit
+def _gather_rows(old, pos):
+    """Rows of ``old`` (n_old, w) at ``pos``; zero rows where pos < 0."""
+    out = np.zeros((pos.shape[0], old.shape[1]), dtype=old.dtype)
+    for m in range(pos.shape[0]):
+        k = pos[m]
+        if k >= 0:
+            for c in range(old.shape[1]):
+                out[m, c] = old[k, c]
+    return out
+
+
+def transfer_history(old_a, old_b, new_a, new_b, *old_arrays):
+    """Carry per-pair arrays (e.g. tangential springs) from an old pair list to a new
+    one, both sorted by (a, b); pairs that are new get zeros."""
+    pos = _positions_in_old(old_a, old_b, new_a, new_b)
     out = []
     for arr in old_arrays:
-        o = np.zeros((len(pos),) + arr.shape[1:], dtype=arr.dtype)
-        o[hit] = arr[pos[hit]]
-        out.append(o)
+        width = int(np.prod(arr.shape[1:]))
+        rows = _gather_rows(np.ascontiguousarray(arr).reshape(len(arr), width), pos)
+        out.append(rows.reshape((len(pos),) + arr.shape[1:]))
     return out
