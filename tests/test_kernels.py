@@ -38,22 +38,28 @@ def test_pair_list_equals_brute_force(dim, periodic):
 
 
 @pytest.mark.parametrize("n_threads", [1, 3])
-def test_pair_list_chunks_and_buffer_overflow(n_threads):
-    """Dense polydisperse cloud in a periodic box of exactly three cells along x: the
-    per-thread buffers overflow first (the build reports the size it needs), the
-    rebuilt list equals brute force whatever the number of chunks."""
+@pytest.mark.parametrize("axis", [0, 2])
+def test_pair_list_chunks_and_buffer_overflow(n_threads, axis):
+    """Dense polydisperse cloud in a box periodic along one axis with exactly three
+    cells (the stencil wraps at both ends): the per-thread buffers overflow first (the
+    build reports the size it needs); the rebuilt list equals brute force whatever the
+    number of chunks."""
     from demstep.kernels.neighbors import _build_pairs
 
-    rng = np.random.default_rng(11)
+    rng = np.random.default_rng(11 + axis)
     n = 300
     r = rng.uniform(0.2, 0.6, n)
     skin = 0.1
     reach = (2 * r.max() + skin) * (1 + 1e-9)
-    box = np.array([3 * reach + 1e-6, 0.0, 0.0])
-    x = np.column_stack([rng.uniform(0, box[0], n), rng.uniform(0, 5, n), rng.uniform(0, 5, n)])
-    lo = np.array([0.0, x[:, 1].min() - 1e-9, x[:, 2].min() - 1e-9])
-    ncell = np.array([3, max(1, int(5 // reach)), max(1, int(5 // reach))], dtype=np.int64)
-    inv_cell = np.array([3 / box[0], ncell[1] / 5.1, ncell[2] / 5.1])
+    box = np.zeros(3)
+    box[axis] = 3 * reach + 1e-6
+    x = rng.uniform(0, 5, (n, 3))
+    x[:, axis] = rng.uniform(0, box[axis], n)
+    lo = x.min(axis=0) - 1e-9
+    lo[axis] = 0.0
+    ncell = np.full(3, max(1, int(5 // reach)), dtype=np.int64)
+    inv_cell = ncell / 5.1
+    ncell[axis], inv_cell[axis] = 3, 3 / box[axis]
     args = (x, r, lo, inv_cell, ncell, box, skin, n_threads)
     pi, pj, needed = _build_pairs(*args, 5)
     assert needed > 5 and len(pi) == 0

@@ -48,7 +48,7 @@ def _bin(x, lo, inv_cell, ncell):
 @njit(parallel=True)
 def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capacity):
     """One sweep of a half stencil (each cell against itself and its 13 forward
-    neighbours), each of ``n_threads`` chunks over its own run of cells, pairs written
+    neighbours: z + 1 and the columns (x, y + 1), (x + 1, y - 1 .. y + 1)), each of ``n_threads`` chunks over its own run of cells, pairs written
     to per-chunk buffers of ``capacity``; then a counting sort into rows i < j, each row sorted.
     Returns (pi, pj, needed): ``needed`` > 0 (pi, pj empty) when a buffer overflowed."""
     n = x.shape[0]
@@ -78,61 +78,77 @@ def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capac
     found = np.zeros(n_threads, dtype=np.int64)
     for t in prange(n_threads):
         k = 0
+        # particle ranges to test against the particles of a cell: cells adjacent along
+        # z are adjacent in cell order, so each column of the stencil is one range of
+        # ``members`` (two where it wraps around a periodic z)
+        seg = np.empty((12, 2), dtype=np.int64)
         for c in range(bounds[t], bounds[t + 1]):
             if start[c] == start[c + 1]:
                 continue
             cz = c % n2
             cy = (c // n2) % n1
             cx = c // (n1 * n2)
-            for dx in range(0, 2):
+            n_seg = 0
+            # own column: the cell itself (from the particle after m, below) and z + 1
+            own_end = start[c + 2] if cz + 1 < n2 else start[c + 1]
+            if cz + 1 >= n2 and len2 > 0.0:
+                base = c - cz
+                seg[n_seg, 0], seg[n_seg, 1] = start[base], start[base + 1]
+                n_seg += 1
+            # the forward columns (0, +1) and (+1, -1..+1), each over z - 1 .. z + 1
+            for col in range(4):
+                dx = 0 if col == 0 else 1
+                dy = 1 if col == 0 else col - 2
                 ox = cx + dx
                 if ox >= n0:
                     if len0 > 0.0:
                         ox -= n0
                     else:
                         continue
-                for dy in range(-1, 2):
-                    if dx == 0 and dy < 0:
+                oy = cy + dy
+                if oy < 0 or oy >= n1:
+                    if len1 > 0.0:
+                        oy = (oy + n1) % n1
+                    else:
                         continue
-                    oy = cy + dy
-                    if oy < 0 or oy >= n1:
+                base = (ox * n1 + oy) * n2
+                if len2 > 0.0 and cz == 0:
+                    seg[n_seg, 0], seg[n_seg, 1] = start[base], start[base + 2]
+                    seg[n_seg + 1, 0], seg[n_seg + 1, 1] = start[base + n2 - 1], start[base + n2]
+                    n_seg += 2
+                elif len2 > 0.0 and cz == n2 - 1:
+                    seg[n_seg, 0], seg[n_seg, 1] = start[base + cz - 1], start[base + n2]
+                    seg[n_seg + 1, 0], seg[n_seg + 1, 1] = start[base], start[base + 1]
+                    n_seg += 2
+                else:
+                    z_lo = cz - 1 if cz > 0 else 0
+                    z_hi = cz + 2 if cz + 2 <= n2 else n2
+                    seg[n_seg, 0], seg[n_seg, 1] = start[base + z_lo], start[base + z_hi]
+                    n_seg += 1
+            for m in range(start[c], start[c + 1]):
+                x0, x1, x2, rm = xs[m, 0], xs[m, 1], xs[m, 2], rs[m]
+                for s_k in range(-1, n_seg):
+                    first = m + 1 if s_k < 0 else seg[s_k, 0]
+                    last = own_end if s_k < 0 else seg[s_k, 1]
+                    for m2 in range(first, last):
+                        d0 = xs[m2, 0] - x0
+                        d1 = xs[m2, 1] - x1
+                        d2 = xs[m2, 2] - x2
+                        if len0 > 0.0:
+                            d0 -= len0 * np.rint(d0 / len0)
                         if len1 > 0.0:
-                            oy = (oy + n1) % n1
-                        else:
-                            continue
-                    for dz in range(-1, 2):
-                        if dx == 0 and dy == 0 and dz < 0:
-                            continue
-                        oz = cz + dz
-                        if oz < 0 or oz >= n2:
-                            if len2 > 0.0:
-                                oz = (oz + n2) % n2
-                            else:
-                                continue
-                        c2 = (ox * n1 + oy) * n2 + oz
-                        own = dx == 0 and dy == 0 and dz == 0
-                        for m in range(start[c], start[c + 1]):
-                            x0, x1, x2, rm = xs[m, 0], xs[m, 1], xs[m, 2], rs[m]
-                            first = m + 1 if own else start[c2]
-                            for m2 in range(first, start[c2 + 1]):
-                                d0 = xs[m2, 0] - x0
-                                d1 = xs[m2, 1] - x1
-                                d2 = xs[m2, 2] - x2
-                                if len0 > 0.0:
-                                    d0 -= len0 * np.rint(d0 / len0)
-                                if len1 > 0.0:
-                                    d1 -= len1 * np.rint(d1 / len1)
-                                if len2 > 0.0:
-                                    d2 -= len2 * np.rint(d2 / len2)
-                                reach = rm + rs[m2] + skin
-                                if d0 * d0 + d1 * d1 + d2 * d2 < reach * reach:
-                                    if k < capacity:
-                                        p, q = members[m], members[m2]
-                                        if p < q:
-                                            buf_a[t, k], buf_b[t, k] = p, q
-                                        else:
-                                            buf_a[t, k], buf_b[t, k] = q, p
-                                    k += 1
+                            d1 -= len1 * np.rint(d1 / len1)
+                        if len2 > 0.0:
+                            d2 -= len2 * np.rint(d2 / len2)
+                        reach = rm + rs[m2] + skin
+                        if d0 * d0 + d1 * d1 + d2 * d2 < reach * reach:
+                            if k < capacity:
+                                p, q = members[m], members[m2]
+                                if p < q:
+                                    buf_a[t, k], buf_b[t, k] = p, q
+                                else:
+                                    buf_a[t, k], buf_b[t, k] = q, p
+                            k += 1
         found[t] = k
     needed = found.max()
     if needed > capacity:
