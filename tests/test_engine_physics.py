@@ -221,6 +221,30 @@ def test_damping_dissipates_and_balances(dim, damping, column):
     assert errors[0] / errors[1] > 3.0  # second order: 4
 
 
+def test_damping_switched_on_and_off_keeps_the_ledger():
+    """The damping forces of the last step are stored only while damping is on; a run
+    that switches damping on, off and on again must equal, bit for bit, one that stores
+    them at every step."""
+    def run(always_store):
+        g = np.array([0.0, 0.0, -9.81])
+        p = Particles(np.array([[0.0, 0.0, 0.99]]), np.ones(1), np.ones(1), 0.4 * np.ones(1))
+        floor = Wall(np.zeros(3), np.eye(3)[2], name="floor")
+        sim = Simulation(p, LinearSpring(k_n=1e4, mu=0.5), walls=[floor], gravity=g,
+                         velocities=np.array([[0.3, 0.0, 0.0]]),
+                         damping=Damping(local=0.3, viscous=2.0), timestep=TimeStep.from_alpha(0.05))
+        for local, viscous in ((0.3, 2.0), (0.0, 0.0), (0.0, 0.0), (0.2, 0.0), (0.0, 0.0)):
+            sim.damping = Damping(local=local, viscous=viscous)
+            if always_store:
+                sim._damping_history = True
+            sim.run(steps=150)
+        return sim
+
+    a, b = run(False), run(True)
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v)
+    assert np.array_equal(a.ledger.acc, b.ledger.acc)
+    assert a.ledger.acc[5] > 0 and a.ledger.acc[6] > 0  # both dampings did work
+
+
 def squeezed(dim, alpha, gap=0.99, **kw):
     """One particle pressed between two fixed walls at +/- gap (radius 1)."""
     x = np.zeros((1, dim))

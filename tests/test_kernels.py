@@ -128,8 +128,9 @@ def test_pair_forces_equal_numpy_reference(kernel):
     assert np.allclose(t, t_ref, rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.parametrize("store_damping", [True, False])
 @pytest.mark.parametrize("kernel", ["serial", "parallel"])
-def test_integrate_equals_numpy_leapfrog(kernel):
+def test_integrate_equals_numpy_leapfrog(kernel, store_damping):
     rng, x, r = random_cloud(9, n=50)
     v = rng.normal(0, 1, (50, 3))
     w = rng.normal(0, 1, (50, 3))
@@ -144,7 +145,7 @@ def test_integrate_equals_numpy_leapfrog(kernel):
     xx, vv, ww = x.copy(), v.copy(), w.copy()
     (dem.integrate_serial if kernel == "serial" else dem.integrate)(
         xx, vv, ww, m, inertia, 1 / m, 1 / inertia, r, force, torque, np.zeros((50, 3)), g, dt, dt,
-        0.0, 0.0, np.zeros((50, 6)), np.zeros((50, 6)), x.copy(), False, out)
+        0.0, 0.0, np.zeros((50, 6)), np.zeros((50, 6)), x.copy(), False, store_damping, out)
     assert np.allclose(xx, x_ref, rtol=1e-14, atol=1e-14)
     assert np.allclose(vv, v_ref, rtol=1e-14, atol=1e-14)
     assert np.allclose(ww, w_ref, rtol=1e-14, atol=1e-14)

@@ -231,6 +231,7 @@ class Simulation:
         self._triggers: list[_Trigger] = []
         self.fd_prev = np.zeros((n, 6))
         self.td_prev = np.zeros((n, 6))
+        self._damping_history = True  # fd_prev / td_prev may be non-zero (restarts)
         self.counters = np.zeros(3)
         self._pairs_built = False
         self._empty_history()
@@ -478,6 +479,7 @@ class Simulation:
         self.wall_mu[:] = [params[10] if w.friction is None else w.friction for w in self.walls]
         done = 0
         parallel = self._parallel()
+        damped = self.damping.local > 0.0 or self.damping.viscous > 0.0
         next_check = self.step + check_every
         while done < budget:
             chunk = budget - done
@@ -494,6 +496,7 @@ class Simulation:
                 self.x, self.v, self.w, self.r, self.m, self.inertia, self.inv_m, self.inv_I,
                 self.force, self.torque, self.applied_force, self.gravity,
                 self.damping.local, self.damping.viscous, self.fd_prev, self.td_prev, self.x_ref,
+                damped or self._damping_history,
                 self.pi, self.pj, *self._force_buffers(parallel), self.ft, self.fd, self.etan,
                 self.periodic_len, self.box_motion, self.box_servo, self.box_ref, self.box_state,
                 law_id, params,
@@ -504,6 +507,9 @@ class Simulation:
                 self.ledger.acc, self.ledger.energy, self.counters, self.jump_limit,
                 self.runaway_factor, self.energy_floor, parallel)
             self._first = False
+            # the damping forces of the last step are stored only while damping is on
+            # (and once more after it is switched off, to clear them)
+            self._damping_history = damped
             self.dt_prev = self.dt
             # time from the last change of dt, so that it does not depend on where runs
             # are split (a restart continues bit for bit)

@@ -68,6 +68,7 @@ def load_checkpoint(sim, path):
             raise InputError(f"{path}: the checkpoint's walls do not match the simulation")
         for name in _ARRAYS:
             setattr(sim, name, np.ascontiguousarray(data[name]))
+        sim._damping_history = True  # restored damping forces of the last step
         sim.ledger.acc[:] = data["acc"]
         sim.ledger.energy[:] = data["energy"]
         step, time, dt, dt_prev, first, max_err, next_dt, dt_est, t_step, t_time, t_dt = data["scalars"]

@@ -428,11 +428,14 @@ def servo_speed(stress, target, gain, factor, area, n_contacts, k_sum, dt, max_s
 
 def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
                     dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first,
-                    acc_out):
+                    store_damping, acc_out):
     """Central-difference update of all particles with damping and the particle terms
     of the ledger. ``acc_out`` (8,): work of gravity, of applied forces, local and
     global damping dissipation, kinetic energy (translation, rotation) at t, the
-    largest squared displacement since the list was built, the largest |v| dt / r."""
+    largest squared displacement since the list was built, the largest |v| dt / r.
+    ``fd_prev``/``td_prev`` (N, 6) hold the damping forces of the last step (local,
+    global) for the trapezoid; ``store_damping`` False (damping off and those arrays
+    all zero) skips reading and writing them."""
     w_body = 0.0
     w_app = 0.0
     d_local = 0.0
@@ -469,15 +472,18 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
             w_new = w_old + dt * (tl + tdk + gtk) * inv_I[p]
             if not first:
                 dx = dt_prev * v_old
-                dth = dt_prev * w_old
                 w_body += m[p] * g * dx
                 w_app += f_app[p, k] * dx
-                d_local -= 0.5 * ((fd_prev[p, k] + fdk) * dx + (td_prev[p, k] + tdk) * dth)
-                d_global -= 0.5 * ((fd_prev[p, 3 + k] + gdk) * dx + (td_prev[p, 3 + k] + gtk) * dth)
-            fd_prev[p, k] = fdk
-            td_prev[p, k] = tdk
-            fd_prev[p, 3 + k] = gdk
-            td_prev[p, 3 + k] = gtk
+                if store_damping:
+                    dth = dt_prev * w_old
+                    d_local -= 0.5 * ((fd_prev[p, k] + fdk) * dx + (td_prev[p, k] + tdk) * dth)
+                    d_global -= 0.5 * ((fd_prev[p, 3 + k] + gdk) * dx
+                                       + (td_prev[p, 3 + k] + gtk) * dth)
+            if store_damping:
+                fd_prev[p, k] = fdk
+                td_prev[p, k] = tdk
+                fd_prev[p, 3 + k] = gdk
+                td_prev[p, 3 + k] = gtk
             vm = 0.5 * (v_old + v_new)
             wm = 0.5 * (w_old + w_new)
             ke_t += 0.5 * m[p] * vm * vm
@@ -513,7 +519,7 @@ integrate, integrate_serial = compile_parallel_and_serial(_integrate_loop)
 @njit
 def advance(n_steps, dt, dt_prev, first, skin,
             x, v, w, r, m, inertia, inv_m, inv_I, force, torque, f_app, gravity,
-            local_damping, global_damping, fd_prev, td_prev, x_ref,
+            local_damping, global_damping, fd_prev, td_prev, x_ref, store_damping,
             pi, pj, chunks, force_buf, torque_buf, ft, fd, etan,
             periodic_len, box_motion, box_servo, box_ref, box_state,
             law, params,
@@ -604,11 +610,12 @@ def advance(n_steps, dt, dt_prev, first, skin,
         # 3-4. central-difference update with damping; particle ledger terms
         if parallel:
             integrate(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
-                      dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first, out)
+                      dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first,
+                      store_damping, out)
         else:
             integrate_serial(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity,
                              dt, dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref,
-                             first, out)
+                             first, store_damping, out)
         # walls and the periodic box move
         boundary_move = 0.0
         for wi in range(nw):
