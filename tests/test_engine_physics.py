@@ -245,6 +245,28 @@ def test_damping_switched_on_and_off_keeps_the_ledger():
     assert a.ledger.acc[5] > 0 and a.ledger.acc[6] > 0  # both dampings did work
 
 
+def test_dashpot_switched_on_and_off_keeps_the_ledger():
+    """Pair dashpot forces are carried only while the law has dashpots; switching the
+    law's dashpot off and on must equal, bit for bit, a run that carries them always."""
+    def run(always_store):
+        rng = np.random.default_rng(4)
+        x = np.stack(np.meshgrid(*[np.arange(3) * 1.95] * 3, indexing="ij"), -1).reshape(-1, 3)
+        p = Particles.from_density(x, np.ones(27), 1.0)
+        sim = Simulation(p, LinearSpring(k_n=1e3, mu=0.3, restitution=0.6),
+                         velocities=rng.normal(0, 0.5, (27, 3)), timestep=TimeStep.from_alpha(0.1))
+        for e in (0.6, None, None, 0.5, None):
+            sim.law = LinearSpring(k_n=1e3, mu=0.3, restitution=e)
+            if always_store:
+                sim._dashpot_history = True
+            sim.run(steps=200)
+        return sim
+
+    a, b = run(False), run(True)
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v)
+    assert np.array_equal(a.ledger.acc, b.ledger.acc)
+    assert a.ledger.acc[4] > 0  # the dashpots dissipated
+
+
 def squeezed(dim, alpha, gap=0.99, **kw):
     """One particle pressed between two fixed walls at +/- gap (radius 1)."""
     x = np.zeros((1, dim))

@@ -106,7 +106,7 @@ def test_pair_forces_equal_numpy_reference(kernel):
     fn = dem.pair_forces_serial if kernel == "serial" else dem.pair_forces
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
     e_n, e_t, fric, dash, nc = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
-                                  params, dt, ft2, fd2, et2, chunks, fbuf, tbuf, sums)
+                                  params, dt, ft2, fd2, et2, True, chunks, fbuf, tbuf, sums)
     force, new_t, new_fd, new_et, ref_en, ref_fric, ref_dash, arm_i, arm_j, n = ref
     tol = dict(rtol=1e-10, atol=1e-12)
     assert np.allclose(ft2, new_t, **tol)
@@ -126,6 +126,27 @@ def test_pair_forces_equal_numpy_reference(kernel):
     f_ref, t_ref = reference.gather(np.stack([pi, pj], 1), force, n, arm_i, arm_j, len(r))
     assert np.allclose(f, f_ref, rtol=1e-10, atol=1e-10)
     assert np.allclose(t, t_ref, rtol=1e-10, atol=1e-10)
+
+
+def test_pair_forces_without_dashpot_skip_its_history():
+    """A law without dashpots: skipping the (all-zero) dashpot history gives the same
+    forces, springs and energies as carrying it."""
+    x, v, w, r, m, pi, pj, ft, fd, etan = overlapping_pairs(6)
+    params = tuple(LinearSpring(k_n=1000.0, k_s=800.0, mu=0.4).params())
+    P = len(pi)
+    results = []
+    for store in (True, False):
+        ft2, fd2, et2 = ft.copy(), np.zeros((P, 3)), etan.copy()
+        fbuf, tbuf = np.zeros((1, len(r), 3)), np.zeros((1, len(r), 3))
+        out = dem.pair_forces_serial(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
+                                     params, 1e-3, ft2, fd2, et2, store, np.array([0, P]),
+                                     fbuf, tbuf, np.zeros((4, 3)))
+        assert not fd2.any()
+        results.append((out, ft2, et2, fbuf, tbuf))
+    (o1, *a1), (o2, *a2) = results
+    assert o1 == o2
+    assert all(np.array_equal(p, q) for p, q in zip(a1, a2))
+    assert o1[4] > 0 and np.abs(a1[2]).max() > 0  # contacts did push
 
 
 @pytest.mark.parametrize("store_damping", [True, False])

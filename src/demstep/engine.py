@@ -31,7 +31,7 @@ from typing import Callable
 import numpy as np
 
 from demstep.contact.geometry import contact_arms_array
-from demstep.contact.laws import ContactLaw, LinearSpring
+from demstep.contact.laws import P_BETA_N, P_BETA_T, P_CN, P_CT, ContactLaw, LinearSpring
 from demstep.contacts import ContactSet
 from demstep.energy import EnergyBalanceError, EnergyLedger, EnergyMonitor
 from demstep.errors import InputError, SimulationDiverged
@@ -232,6 +232,7 @@ class Simulation:
         self.fd_prev = np.zeros((n, 6))
         self.td_prev = np.zeros((n, 6))
         self._damping_history = True  # fd_prev / td_prev may be non-zero (restarts)
+        self._dashpot_history = True  # likewise the pair dashpot forces fd
         self.counters = np.zeros(3)
         self._pairs_built = False
         self._empty_history()
@@ -480,6 +481,7 @@ class Simulation:
         done = 0
         parallel = self._parallel()
         damped = self.damping.local > 0.0 or self.damping.viscous > 0.0
+        dashpot = bool(np.any(params[[P_CN, P_CT, P_BETA_N, P_BETA_T]] > 0.0))
         next_check = self.step + check_every
         while done < budget:
             chunk = budget - done
@@ -498,6 +500,7 @@ class Simulation:
                 self.damping.local, self.damping.viscous, self.fd_prev, self.td_prev, self.x_ref,
                 damped or self._damping_history,
                 self.pi, self.pj, *self._force_buffers(parallel), self.ft, self.fd, self.etan,
+                dashpot or self._dashpot_history,
                 self.periodic_len, self.box_motion, self.box_servo, self.box_ref, self.box_state,
                 law_id, params,
                 self.wp, self.ww, self.wft, self.wfd, self.wetan, self.wall_point, self.wall_normal,
@@ -510,6 +513,7 @@ class Simulation:
             # the damping forces of the last step are stored only while damping is on
             # (and once more after it is switched off, to clear them)
             self._damping_history = damped
+            self._dashpot_history = dashpot
             self.dt_prev = self.dt
             # time from the last change of dt, so that it does not depend on where runs
             # are split (a restart continues bit for bit)

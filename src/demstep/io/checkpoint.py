@@ -69,6 +69,7 @@ def load_checkpoint(sim, path):
         for name in _ARRAYS:
             setattr(sim, name, np.ascontiguousarray(data[name]))
         sim._damping_history = True  # restored damping forces of the last step
+        sim._dashpot_history = True  # and pair dashpot forces
         sim.ledger.acc[:] = data["acc"]
         sim.ledger.energy[:] = data["energy"]
         step, time, dt, dt_prev, first, max_err, next_dt, dt_est, t_step, t_time, t_dt = data["scalars"]

@@ -117,7 +117,7 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
 
 
 def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
-               ft, fd, etan, chunks, force_buf, torque_buf, box_sums):
+               ft, fd, etan, store_dashpot, chunks, force_buf, torque_buf, box_sums):
     """Forces of all Verlet pairs (compiled twice: parallel and serial), history ``ft``,
     ``fd``, ``etan`` (see :func:`contact_response`). The pairs are cut into chunks
     (``chunks``: pair-index boundaries, one chunk per thread); chunk c accumulates the
@@ -128,7 +128,9 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     crossing a periodic boundary (times a change of box length: the work done on the
     contacts), the number of crossing contacts and the sum of their k_n. ``box_rate``
     (3,): rate of change of the periodic lengths; the image of j across a boundary
-    moves with v_j - n_img dL/dt. The loop body calls scalar functions only."""
+    moves with v_j - n_img dL/dt. ``store_dashpot`` False (a law without dashpots, ``fd``
+    all zero) skips reading and writing ``fd``. The loop body calls scalar functions
+    only."""
     e_n = 0.0
     e_t = 0.0
     d_fric = 0.0
@@ -175,12 +177,15 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
             dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
             delta = r[i] + r[j] - dist
             ox, oy, oz = ft[k, 0], ft[k, 1], ft[k, 2]
-            fdx, fdy, fdz = fd[k, 0], fd[k, 1], fd[k, 2]
+            fdx, fdy, fdz = 0.0, 0.0, 0.0
+            if store_dashpot:
+                fdx, fdy, fdz = fd[k, 0], fd[k, 1], fd[k, 2]
             e_old = etan[k]
             if delta <= 0.0 and e_old == 0.0 and ox == 0.0 and oy == 0.0 and oz == 0.0 \
                     and fdx == 0.0 and fdy == 0.0 and fdz == 0.0:
                 continue  # apart and without history: no force
-            nx, ny, nz = d0 / dist, d1 / dist, d2 / dist
+            inv_dist = 1.0 / dist
+            nx, ny, nz = d0 * inv_dist, d1 * inv_dist, d2 * inv_dist
             a_i, a_j = contact_arms(r[i], r[j], dist)
             # contact-point velocities: v + omega x b, b_i = a_i n, b_j = -a_j n
             vix = v[i, 0] + a_i * (w[i, 1] * nz - w[i, 2] * ny)
@@ -199,9 +204,10 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
             ft[k, 0] = tx
             ft[k, 1] = ty
             ft[k, 2] = tz
-            fd[k, 0] = ndx
-            fd[k, 1] = ndy
-            fd[k, 2] = ndz
+            if store_dashpot:
+                fd[k, 0] = ndx
+                fd[k, 1] = ndy
+                fd[k, 2] = ndz
             etan[k] = e_new
             fb[j, 0] += fx
             fb[j, 1] += fy
@@ -520,7 +526,7 @@ integrate, integrate_serial = compile_parallel_and_serial(_integrate_loop)
 def advance(n_steps, dt, dt_prev, first, skin,
             x, v, w, r, m, inertia, inv_m, inv_I, force, torque, f_app, gravity,
             local_damping, global_damping, fd_prev, td_prev, x_ref, store_damping,
-            pi, pj, chunks, force_buf, torque_buf, ft, fd, etan,
+            pi, pj, chunks, force_buf, torque_buf, ft, fd, etan, store_dashpot,
             periodic_len, box_motion, box_servo, box_ref, box_state,
             law, params,
             wp, ww, wft, wfd, wetan, wall_point, wall_normal, wall_vel, wall_mu, wall_motion,
@@ -552,11 +558,11 @@ def advance(n_steps, dt, dt_prev, first, skin,
         if parallel:
             e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
                 x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, law_params, dt_slip,
-                ft, fd, etan, chunks, force_buf, torque_buf, box_sums)
+                ft, fd, etan, store_dashpot, chunks, force_buf, torque_buf, box_sums)
         else:
             e_n, e_t, d_fric, d_dash, n_pp = pair_forces_serial(
                 x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, law_params, dt_slip,
-                ft, fd, etan, chunks, force_buf, torque_buf, box_sums)
+                ft, fd, etan, store_dashpot, chunks, force_buf, torque_buf, box_sums)
         if force_buf.shape[0] == 1:
             force[:] = force_buf[0]
             torque[:] = torque_buf[0]
