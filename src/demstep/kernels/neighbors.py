@@ -15,15 +15,14 @@ from demstep._numba import njit, prange
 from demstep.errors import InputError
 
 
-@njit
+@njit(parallel=True)
 def _bin(x, lo, inv_cell, ncell):
-    """Counting sort of the particles by cell: (cell of each particle, start (ncells+1,),
-    members (N,) particle indices in cell order)."""
+    """Counting sort of the particles by cell: (start (ncells+1,), members (N,) particle
+    indices in cell order)."""
     n = x.shape[0]
     ncells = ncell[0] * ncell[1] * ncell[2]
     cell_of = np.empty(n, dtype=np.int64)
-    start = np.zeros(ncells + 1, dtype=np.int64)
-    for p in range(n):
+    for p in prange(n):
         c = 0
         for k in range(3):
             ck = int(np.floor((x[p, k] - lo[k]) * inv_cell[k]))
@@ -33,7 +32,9 @@ def _bin(x, lo, inv_cell, ncell):
                 ck = ncell[k] - 1
             c = c * ncell[k] + ck
         cell_of[p] = c
-        start[c + 1] += 1
+    start = np.zeros(ncells + 1, dtype=np.int64)
+    for p in range(n):
+        start[cell_of[p] + 1] += 1
     for c in range(ncells):
         start[c + 1] += start[c]
     fill = start[:-1].copy()
@@ -59,7 +60,7 @@ def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capac
     # positions and radii in cell order: the inner loop reads contiguous memory
     xs = np.empty((n, 3))
     rs = np.empty(n)
-    for m in range(n):
+    for m in prange(n):
         q = members[m]
         xs[m, 0], xs[m, 1], xs[m, 2] = x[q, 0], x[q, 1], x[q, 2]
         rs[m] = r[q]
