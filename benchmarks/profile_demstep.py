@@ -4,8 +4,9 @@
 
 Builds the problem of ``peers.py``, runs ``--warmup`` steps (compilation, a realistic
 contact state), then times, on copies of the simulation's arrays:
-``pair_forces``, ``gather_forces``, ``wall_forces``, ``integrate`` (each called
-``--reps`` times) and one neighbour-list rebuild (``Simulation._rebuild`` and its
+``pair_forces``, ``reduce_forces`` (more than one thread), ``wall_forces``,
+``integrate`` (each called ``--reps`` times, the threaded or the serial version as the
+engine chooses) and one neighbour-list rebuild (``Simulation._rebuild`` and its
 parts), and compares their sum with the time per step of ``sim.run``. Kernel arguments
 are matched by parameter name, so the script follows signature changes as long as
 the names stay those of the engine's attributes.
@@ -68,11 +69,16 @@ def main(argv=None):
     rebuilds_per_step = (sim.n_rebuilds - r0) / args.reps
 
     params = sim.law.params()
+    parallel = sim._parallel()
+    chunks, force_buf, torque_buf, geo = sim._force_buffers(parallel)
     names = {
-        "periodic_len": sim.periodic_len, "law": int(params[0]), "params": params,
+        "periodic_len": sim.periodic_len, "law": int(params[0]),
+        "params": tuple(float(p) for p in params), "box_rate": np.zeros(3),
         "dt": sim.dt, "dt_prev": sim.dt, "f_app": sim.applied_force,
         "local_damping": sim.damping.local, "global_damping": sim.damping.viscous,
-        "first": False, "acc_out": np.empty(8),
+        "first": False, "acc_out": np.empty(8), "box_sums": np.zeros((4, 3)),
+        "store_dashpot": bool(np.any(params[6:10] > 0)), "store_damping": False,
+        "chunks": chunks, "force_buf": force_buf, "torque_buf": torque_buf, "geo": geo,
     }
 
     def arg(name):
@@ -93,20 +99,23 @@ def main(argv=None):
     out = {"problem": args.problem, "n": len(x), "threads": numba.get_num_threads(),
            "pairs": int(len(sim.pi)), "contacts": sim.n_contacts, "wall_pairs": int(len(sim.wp)),
            "step_s": t_step, "rebuilds_per_step": rebuilds_per_step, "kernels_s": {}}
-    for name in ("pair_forces", "gather_forces", "wall_forces", "integrate"):
-        out["kernels_s"][name] = bench(getattr(dem, name))
+    suffix = "" if parallel else "_serial"
+    kernels = ["pair_forces", "wall_forces", "integrate"]
+    if len(chunks) > 2:
+        kernels.insert(1, "reduce_forces")
+    for name in kernels:
+        kernel = getattr(dem, name + suffix) if name != "wall_forces" else dem.wall_forces
+        out["kernels_s"][name] = bench(kernel)
 
     # one neighbour rebuild and its parts
     parts = {}
     t = time.perf_counter()
-    pi, pj = neighbors.build_pair_list(sim.x, sim.r, sim.skin, sim.periodic_len)
+    pi, pj = neighbors.build_pair_list(sim.x, sim.r, sim.skin, sim.periodic_len,
+                                       expected_pairs=len(sim.pi))
     parts["build_pair_list"] = time.perf_counter() - t
     t = time.perf_counter()
     neighbors.transfer_history(sim.pi, sim.pj, pi, pj, sim.ft, sim.fd, sim.etan)
     parts["transfer_history"] = time.perf_counter() - t
-    t = time.perf_counter()
-    neighbors.pair_adjacency(pi, pj, len(sim.r))
-    parts["pair_adjacency"] = time.perf_counter() - t
     t = time.perf_counter()
     neighbors.build_wall_list(sim.x, sim.r, sim.wall_point, sim.wall_normal, sim.skin)
     parts["build_wall_list"] = time.perf_counter() - t

@@ -106,7 +106,7 @@ def test_pair_forces_equal_numpy_reference(kernel):
     fn = dem.pair_forces_serial if kernel == "serial" else dem.pair_forces
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
     e_n, e_t, fric, dash, nc = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
-                                  params, dt, ft2, fd2, et2, True, chunks, fbuf, tbuf, sums)
+                                  params, dt, ft2, fd2, et2, True, chunks, fbuf, tbuf, sums, np.empty((P, 4)))
     force, new_t, new_fd, new_et, ref_en, ref_fric, ref_dash, arm_i, arm_j, n = ref
     tol = dict(rtol=1e-10, atol=1e-12)
     assert np.allclose(ft2, new_t, **tol)
@@ -140,7 +140,7 @@ def test_pair_forces_without_dashpot_skip_its_history():
         fbuf, tbuf = np.zeros((1, len(r), 3)), np.zeros((1, len(r), 3))
         out = dem.pair_forces_serial(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
                                      params, 1e-3, ft2, fd2, et2, store, np.array([0, P]),
-                                     fbuf, tbuf, np.zeros((4, 3)))
+                                     fbuf, tbuf, np.zeros((4, 3)), np.empty((P, 4)))
         assert not fd2.any()
         results.append((out, ft2, et2, fbuf, tbuf))
     (o1, *a1), (o2, *a2) = results

@@ -117,7 +117,7 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
 
 
 def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
-               ft, fd, etan, store_dashpot, chunks, force_buf, torque_buf, box_sums):
+               ft, fd, etan, store_dashpot, chunks, force_buf, torque_buf, box_sums, geo):
     """Forces of all Verlet pairs (compiled twice: parallel and serial), history ``ft``,
     ``fd``, ``etan`` (see :func:`contact_response`). The pairs are cut into chunks
     (``chunks``: pair-index boundaries, one chunk per thread); chunk c accumulates the
@@ -128,7 +128,10 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     crossing a periodic boundary (times a change of box length: the work done on the
     contacts), the number of crossing contacts and the sum of their k_n. ``box_rate``
     (3,): rate of change of the periodic lengths; the image of j across a boundary
-    moves with v_j - n_img dL/dt. ``store_dashpot`` False (a law without dashpots, ``fd``
+    moves with v_j - n_img dL/dt. ``geo`` (P, 4) is work space: a first, short loop
+    writes the unit normal and the centre distance of every pair (it vectorises: the
+    square roots and divisions of many pairs at once), the second applies the law.
+    ``store_dashpot`` False (a law without dashpots, ``fd``
     all zero) skips reading and writing ``fd``. The loop body calls scalar functions
     only."""
     e_n = 0.0
@@ -151,6 +154,24 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     mu = params[P_MU]
     len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
     rate0, rate1, rate2 = box_rate[0], box_rate[1], box_rate[2]
+    for k in prange(pi.shape[0]):
+        i = pi[k]
+        j = pj[k]
+        d0 = x[j, 0] - x[i, 0]
+        d1 = x[j, 1] - x[i, 1]
+        d2 = x[j, 2] - x[i, 2]
+        if len0 > 0.0:
+            d0 -= len0 * np.rint(d0 / len0)
+        if len1 > 0.0:
+            d1 -= len1 * np.rint(d1 / len1)
+        if len2 > 0.0:
+            d2 -= len2 * np.rint(d2 / len2)
+        dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        inv_dist = 1.0 / dist
+        geo[k, 0] = d0 * inv_dist
+        geo[k, 1] = d1 * inv_dist
+        geo[k, 2] = d2 * inv_dist
+        geo[k, 3] = dist
     for c in prange(chunks.shape[0] - 1):
         fb = force_buf[c]
         tb = torque_buf[c]
@@ -159,22 +180,7 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
         for k in range(chunks[c], chunks[c + 1]):
             i = pi[k]
             j = pj[k]
-            d0 = x[j, 0] - x[i, 0]
-            d1 = x[j, 1] - x[i, 1]
-            d2 = x[j, 2] - x[i, 2]
-            n0 = 0.0
-            n1 = 0.0
-            n2 = 0.0
-            if len0 > 0.0:
-                n0 = np.rint(d0 / len0)
-                d0 -= len0 * n0
-            if len1 > 0.0:
-                n1 = np.rint(d1 / len1)
-                d1 -= len1 * n1
-            if len2 > 0.0:
-                n2 = np.rint(d2 / len2)
-                d2 -= len2 * n2
-            dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            dist = geo[k, 3]
             delta = r[i] + r[j] - dist
             ox, oy, oz = ft[k, 0], ft[k, 1], ft[k, 2]
             fdx, fdy, fdz = 0.0, 0.0, 0.0
@@ -184,8 +190,17 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
             if delta <= 0.0 and e_old == 0.0 and ox == 0.0 and oy == 0.0 and oz == 0.0 \
                     and fdx == 0.0 and fdy == 0.0 and fdz == 0.0:
                 continue  # apart and without history: no force
-            inv_dist = 1.0 / dist
-            nx, ny, nz = d0 * inv_dist, d1 * inv_dist, d2 * inv_dist
+            nx, ny, nz = geo[k, 0], geo[k, 1], geo[k, 2]
+            # periodic image of j (its number of box lengths along each axis)
+            n0 = 0.0
+            n1 = 0.0
+            n2 = 0.0
+            if len0 > 0.0:
+                n0 = np.rint((x[j, 0] - x[i, 0]) / len0)
+            if len1 > 0.0:
+                n1 = np.rint((x[j, 1] - x[i, 1]) / len1)
+            if len2 > 0.0:
+                n2 = np.rint((x[j, 2] - x[i, 2]) / len2)
             a_i, a_j = contact_arms(r[i], r[j], dist)
             # contact-point velocities: v + omega x b, b_i = a_i n, b_j = -a_j n
             vix = v[i, 0] + a_i * (w[i, 1] * nz - w[i, 2] * ny)
@@ -226,9 +241,9 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
             e_t += c_et
             d_fric += c_fric
             d_dash += c_dash
-            vir0 += fx * d0
-            vir1 += fy * d1
-            vir2 += fz * d2
+            vir0 += fx * nx * dist
+            vir1 += fy * ny * dist
+            vir2 += fz * nz * dist
             cr0 += fx * n0
             cr1 += fy * n1
             cr2 += fz * n2
@@ -526,7 +541,7 @@ integrate, integrate_serial = compile_parallel_and_serial(_integrate_loop)
 def advance(n_steps, dt, dt_prev, first, skin,
             x, v, w, r, m, inertia, inv_m, inv_I, force, torque, f_app, gravity,
             local_damping, global_damping, fd_prev, td_prev, x_ref, store_damping,
-            pi, pj, chunks, force_buf, torque_buf, ft, fd, etan, store_dashpot,
+            pi, pj, chunks, force_buf, torque_buf, geo, ft, fd, etan, store_dashpot,
             periodic_len, box_motion, box_servo, box_ref, box_state,
             law, params,
             wp, ww, wft, wfd, wetan, wall_point, wall_normal, wall_vel, wall_mu, wall_motion,
@@ -558,11 +573,11 @@ def advance(n_steps, dt, dt_prev, first, skin,
         if parallel:
             e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
                 x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, law_params, dt_slip,
-                ft, fd, etan, store_dashpot, chunks, force_buf, torque_buf, box_sums)
+                ft, fd, etan, store_dashpot, chunks, force_buf, torque_buf, box_sums, geo)
         else:
             e_n, e_t, d_fric, d_dash, n_pp = pair_forces_serial(
                 x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, law_params, dt_slip,
-                ft, fd, etan, store_dashpot, chunks, force_buf, torque_buf, box_sums)
+                ft, fd, etan, store_dashpot, chunks, force_buf, torque_buf, box_sums, geo)
         if force_buf.shape[0] == 1:
             force[:] = force_buf[0]
             torque[:] = torque_buf[0]
