@@ -184,6 +184,18 @@ def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capac
     return pi, pj, 0
 
 
+@njit
+def _bounds(x):
+    """Smallest and largest coordinate along each axis of the points ``x`` (N, 3)."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for p in range(x.shape[0]):
+        for k in range(3):
+            lo[k] = min(lo[k], x[p, k])
+            hi[k] = max(hi[k], x[p, k])
+    return lo, hi
+
+
 def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None = None):
     """Verlet pairs (pi, pj), i < j, sorted by (i, j). ``x`` (N, 3); ``periodic_len``
     (3,) box lengths, 0 for non-periodic axes (periodic boxes start at 0);
@@ -192,8 +204,9 @@ def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None 
     # over two cells that are not neighbours
     reach = (2.0 * float(r.max()) + skin) * (1.0 + 1e-9)
     periodic_len = np.asarray(periodic_len, dtype=np.float64)
-    lo = x.min(axis=0) - 1e-9
-    hi = x.max(axis=0) + 1e-9
+    lo, hi = _bounds(x)  # numpy's min(axis=0) of an (N, 3) array: 40x slower
+    lo -= 1e-9
+    hi += 1e-9
     ncell = np.ones(3, dtype=np.int64)
     cell = np.ones(3)
     for k in range(3):
