@@ -70,7 +70,7 @@ def main(argv=None):
 
     params = sim.law.params()
     parallel = sim._parallel()
-    chunks, force_buf, torque_buf, geo = sim._force_buffers(parallel)
+    chunks, spans, force_buf, torque_buf, geo = sim._force_buffers(parallel)
     names = {
         "periodic_len": sim.periodic_len, "law": int(params[0]),
         "params": tuple(float(p) for p in params), "box_rate": np.zeros(3),
@@ -78,7 +78,8 @@ def main(argv=None):
         "local_damping": sim.damping.local, "global_damping": sim.damping.viscous,
         "first": False, "acc_out": np.empty(8), "box_sums": np.zeros((4, 3)),
         "store_dashpot": bool(np.any(params[6:10] > 0)), "store_damping": False,
-        "chunks": chunks, "force_buf": force_buf, "torque_buf": torque_buf, "geo": geo,
+        "chunks": chunks, "spans": spans, "force_buf": force_buf, "torque_buf": torque_buf,
+        "geo": geo,
     }
 
     def arg(name):

@@ -100,13 +100,15 @@ def test_pair_forces_equal_numpy_reference(kernel):
     ref = reference.linear_pair_forces(x, v, w, r, m, np.stack([pi, pj], 1), 1000.0, 800.0,
                                        0.4, 3.0, 2.0, dt, ft.copy(), fd.copy(), etan.copy())
     n_chunks = 1 if kernel == "serial" else 3
-    chunks = np.linspace(0, P, n_chunks + 1).astype(np.int64)
-    fbuf, tbuf = np.zeros((n_chunks, len(r), 3)), np.zeros((n_chunks, len(r), 3))
+    chunks, spans = dem.pair_chunks(pi, pj, len(r), n_chunks)
+    # rows outside a chunk's span are neither zeroed nor read: NaN must not leak out
+    fbuf, tbuf = np.full((n_chunks, len(r), 3), np.nan), np.full((n_chunks, len(r), 3), np.nan)
     sums = np.zeros((4, 3))
     fn = dem.pair_forces_serial if kernel == "serial" else dem.pair_forces
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
     e_n, e_t, fric, dash, nc = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
-                                  params, dt, ft2, fd2, et2, True, chunks, fbuf, tbuf, sums, np.empty((P, 4)))
+                                  params, dt, ft2, fd2, et2, True, chunks, spans, fbuf, tbuf, sums,
+                                  np.empty((P, 4)))
     force, new_t, new_fd, new_et, ref_en, ref_fric, ref_dash, arm_i, arm_j, n = ref
     tol = dict(rtol=1e-10, atol=1e-12)
     assert np.allclose(ft2, new_t, **tol)
@@ -122,7 +124,7 @@ def test_pair_forces_equal_numpy_reference(kernel):
     assert np.allclose(sums[0], np.sum(force * (x[pj] - x[pi]), axis=0), rtol=1e-10)
     # per-particle sums against np.add.at, after reducing the chunk buffers
     f, t = np.zeros((len(r), 3)), np.zeros((len(r), 3))
-    (dem.reduce_forces_serial if kernel == "serial" else dem.reduce_forces)(fbuf, tbuf, f, t)
+    (dem.reduce_forces_serial if kernel == "serial" else dem.reduce_forces)(fbuf, tbuf, spans, f, t)
     f_ref, t_ref = reference.gather(np.stack([pi, pj], 1), force, n, arm_i, arm_j, len(r))
     assert np.allclose(f, f_ref, rtol=1e-10, atol=1e-10)
     assert np.allclose(t, t_ref, rtol=1e-10, atol=1e-10)
@@ -140,7 +142,8 @@ def test_pair_forces_without_dashpot_skip_its_history():
         fbuf, tbuf = np.zeros((1, len(r), 3)), np.zeros((1, len(r), 3))
         out = dem.pair_forces_serial(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
                                      params, 1e-3, ft2, fd2, et2, store, np.array([0, P]),
-                                     fbuf, tbuf, np.zeros((4, 3)), np.empty((P, 4)))
+                                     np.array([[0, len(r)]]), fbuf, tbuf, np.zeros((4, 3)),
+                                     np.empty((P, 4)))
         assert not fd2.any()
         results.append((out, ft2, et2, fbuf, tbuf))
     (o1, *a1), (o2, *a2) = results

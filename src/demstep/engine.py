@@ -550,8 +550,9 @@ class Simulation:
     PARALLEL_MIN_PARTICLES = 5000
 
     def _force_buffers(self, parallel: bool):
-        """Pair chunks (one per thread, equal numbers of pairs), their force/torque
-        buffers (chunks, N, 3) and the pair geometry work space (P, 4); rebuilt when the
+        """Pair chunks (one per thread, equal numbers of pairs), the particle range each
+        touches, their force/torque buffers (chunks, N, 3) and the pair geometry work
+        space (P, 4); rebuilt when the
         pair list or the thread count changes. The work space keeps its memory across
         rebuilds (fresh pages cost a fault each)."""
         import numba
@@ -559,7 +560,7 @@ class Simulation:
         n_chunks = numba.get_num_threads() if parallel else 1
         if self._chunks is None or len(self._chunks) != n_chunks + 1:
             n_pairs = len(self.pi)
-            self._chunks = np.linspace(0, n_pairs, n_chunks + 1).astype(np.int64)
+            self._chunks, self._spans = dem.pair_chunks(self.pi, self.pj, len(self.r), n_chunks)
             shape = (n_chunks, len(self.r), 3)
             if getattr(self, "_force_buf", None) is None or self._force_buf.shape != shape:
                 self._force_buf = np.zeros(shape)
@@ -568,7 +569,7 @@ class Simulation:
             if geo is None or len(geo) < n_pairs:
                 self._geo_store = geo = np.empty((int(1.25 * n_pairs) + 64, 4))
             self._geo = geo[:n_pairs]
-        return self._chunks, self._force_buf, self._torque_buf, self._geo
+        return self._chunks, self._spans, self._force_buf, self._torque_buf, self._geo
 
     def contact_forces(self):
         """Pairs in contact now: (i, j) (C, 2), the force on j (C, 3) [M L/T^2] (elastic at

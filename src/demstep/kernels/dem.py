@@ -116,14 +116,30 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
             e_n, e_t, d_fric, d_dash, k_n, k_t, tx, ty, tz, ndx, ndy, ndz, e_t)
 
 
+def pair_chunks(pi, pj, n_particles: int, n_chunks: int):
+    """Cut a pair list sorted by i into ``n_chunks`` runs of equal numbers of pairs
+    (boundaries (n_chunks + 1,)) and give the particle range [lo, hi) each touches
+    (spans (n_chunks, 2)): from the first pair's i to the largest j. A single chunk
+    spans every particle."""
+    chunks = np.linspace(0, len(pi), n_chunks + 1).astype(np.int64)
+    spans = np.zeros((n_chunks, 2), dtype=np.int64)
+    spans[:, 1] = n_particles
+    if n_chunks > 1:
+        for c in range(n_chunks):
+            a, b = chunks[c], chunks[c + 1]
+            spans[c] = (pi[a], pj[a:b].max() + 1) if a < b else (0, 0)
+    return chunks, spans
+
+
 def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
-               ft, fd, etan, store_dashpot, chunks, force_buf, torque_buf, box_sums, geo):
+               ft, fd, etan, store_dashpot, chunks, spans, force_buf, torque_buf, box_sums, geo):
     """Forces of all Verlet pairs (compiled twice: parallel and serial), history ``ft``,
     ``fd``, ``etan`` (see :func:`contact_response`). The pairs are cut into chunks
     (``chunks``: pair-index boundaries, one chunk per thread); chunk c accumulates the
     force (on j +F, on i -F) and torque (-a n x F on each) of its pairs into
-    ``force_buf[c]``/``torque_buf[c]`` (N, 3), which it zeroes first: no two threads
-    write the same memory. Returns (strain_n, strain_t, friction, dashpot, contacts). ``box_sums`` (4, 3) receives per axis the virial sum
+    ``force_buf[c]``/``torque_buf[c]`` (N, 3): no two threads write the same memory.
+    Chunk c touches particles ``spans[c, 0]`` to ``spans[c, 1] - 1`` only; it zeroes
+    that range of its buffers first. Returns (strain_n, strain_t, friction, dashpot, contacts). ``box_sums`` (4, 3) receives per axis the virial sum
     F_on_j,k d_k (Love stress times volume), the boundary sum F_on_j,k n_img,k over pairs
     crossing a periodic boundary (times a change of box length: the work done on the
     contacts), the number of crossing contacts and the sum of their k_n. ``box_rate``
@@ -175,8 +191,10 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     for c in prange(chunks.shape[0] - 1):
         fb = force_buf[c]
         tb = torque_buf[c]
-        fb[:] = 0.0
-        tb[:] = 0.0
+        for p in range(spans[c, 0], spans[c, 1]):
+            for a in range(3):
+                fb[p, a] = 0.0
+                tb[p, a] = 0.0
         for k in range(chunks[c], chunks[c + 1]):
             i = pi[k]
             j = pj[k]
@@ -273,15 +291,17 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     return e_n, e_t, d_fric, d_dash, n_contacts
 
 
-def _reduce_loop(force_buf, torque_buf, force, torque):
-    """Sum the per-chunk buffers into the particle forces and torques."""
+def _reduce_loop(force_buf, torque_buf, spans, force, torque):
+    """Sum the per-chunk buffers into the particle forces and torques (chunk c holds
+    particles ``spans[c, 0]`` to ``spans[c, 1] - 1``)."""
     for p in prange(force.shape[0]):
         for k in range(3):
             f = 0.0
             t = 0.0
             for c in range(force_buf.shape[0]):
-                f += force_buf[c, p, k]
-                t += torque_buf[c, p, k]
+                if spans[c, 0] <= p < spans[c, 1]:
+                    f += force_buf[c, p, k]
+                    t += torque_buf[c, p, k]
             force[p, k] = f
             torque[p, k] = t
 
@@ -541,7 +561,7 @@ integrate, integrate_serial = compile_parallel_and_serial(_integrate_loop)
 def advance(n_steps, dt, dt_prev, first, skin,
             x, v, w, r, m, inertia, inv_m, inv_I, force, torque, f_app, gravity,
             local_damping, global_damping, fd_prev, td_prev, x_ref, store_damping,
-            pi, pj, chunks, force_buf, torque_buf, geo, ft, fd, etan, store_dashpot,
+            pi, pj, chunks, spans, force_buf, torque_buf, geo, ft, fd, etan, store_dashpot,
             periodic_len, box_motion, box_servo, box_ref, box_state,
             law, params,
             wp, ww, wft, wfd, wetan, wall_point, wall_normal, wall_vel, wall_mu, wall_motion,
@@ -573,18 +593,18 @@ def advance(n_steps, dt, dt_prev, first, skin,
         if parallel:
             e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
                 x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, law_params, dt_slip,
-                ft, fd, etan, store_dashpot, chunks, force_buf, torque_buf, box_sums, geo)
+                ft, fd, etan, store_dashpot, chunks, spans, force_buf, torque_buf, box_sums, geo)
         else:
             e_n, e_t, d_fric, d_dash, n_pp = pair_forces_serial(
                 x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, law_params, dt_slip,
-                ft, fd, etan, store_dashpot, chunks, force_buf, torque_buf, box_sums, geo)
+                ft, fd, etan, store_dashpot, chunks, spans, force_buf, torque_buf, box_sums, geo)
         if force_buf.shape[0] == 1:
             force[:] = force_buf[0]
             torque[:] = torque_buf[0]
         elif parallel:
-            reduce_forces(force_buf, torque_buf, force, torque)
+            reduce_forces(force_buf, torque_buf, spans, force, torque)
         else:
-            reduce_forces_serial(force_buf, torque_buf, force, torque)
+            reduce_forces_serial(force_buf, torque_buf, spans, force, torque)
         we_n, we_t, wd_fric, wd_dash = wall_forces(
             x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
             law, law_params, dt_slip, wft, wfd, wetan, force, torque, wall_force, wall_contacts,
