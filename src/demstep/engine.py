@@ -231,8 +231,10 @@ class Simulation:
         self._triggers: list[_Trigger] = []
         self.fd_prev = np.zeros((n, 6))
         self.td_prev = np.zeros((n, 6))
-        self._damping_history = True  # fd_prev / td_prev may be non-zero (restarts)
-        self._dashpot_history = True  # likewise the pair dashpot forces fd
+        # whether fd_prev / td_prev (damping) and fd (pair dashpots) may hold non-zero
+        # forces of the last step: not at the start; checkpoint restarts set them
+        self._damping_history = False
+        self._dashpot_history = False
         self.counters = np.zeros(3)
         self._pairs_built = False
         self._empty_history()
@@ -315,8 +317,12 @@ class Simulation:
         built = self._pairs_built
         pi, pj = build_pair_list(self.x, self.r, self.skin, self.periodic_len,
                                  expected_pairs=len(self.pi) if built else None)
-        self.ft, self.fd, self.etan = transfer_history(
-            self.pi, self.pj, pi, pj, self.ft, self.fd, self.etan)
+        if self._dashpot_history:
+            self.ft, self.fd, self.etan = transfer_history(
+                self.pi, self.pj, pi, pj, self.ft, self.fd, self.etan)
+        else:  # no dashpot forces to carry: zeros the kernels never touch
+            self.ft, self.etan = transfer_history(self.pi, self.pj, pi, pj, self.ft, self.etan)
+            self.fd = np.zeros((len(pi), 3))
         self.pi, self.pj = pi, pj
         self._chunks = None
         wp, ww = build_wall_list(self.x, self.r, self.wall_point, self.wall_normal, self.skin,

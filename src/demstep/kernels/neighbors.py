@@ -277,37 +277,56 @@ def build_wall_list(x, r, wall_point, wall_normal, skin: float, expected_pairs: 
     return wp, ww
 
 
-@njit
-def _positions_in_old(old_a, old_b, new_a, new_b):
-    """Index in the old list of each new pair (-1 if absent); both lists sorted by (a, b)."""
-    pos = np.full(new_a.shape[0], -1, dtype=np.int64)
+@njit(inline="always")
+def _before(a0, b0, a1, b1):
+    """(a0, b0) < (a1, b1) in lexicographic order."""
+    return a0 < a1 or (a0 == a1 and b0 < b1)
+
+
+@njit(parallel=True)
+def _positions_in_old(old_a, old_b, new_a, new_b, n_chunks):
+    """Index in the old list of each new pair (-1 if absent); both lists sorted by (a, b).
+    A merge in ``n_chunks`` independent runs of the new list, each starting where a
+    binary search puts its first pair in the old list."""
+    n_new = new_a.shape[0]
     n_old = old_a.shape[0]
-    k = 0
-    for m in range(new_a.shape[0]):
-        a, b = new_a[m], new_b[m]
-        while k < n_old and (old_a[k] < a or (old_a[k] == a and old_b[k] < b)):
-            k += 1
-        if k < n_old and old_a[k] == a and old_b[k] == b:
-            pos[m] = k
+    pos = np.empty(n_new, dtype=np.int64)
+    for t in prange(n_chunks):
+        m0 = (n_new * t) // n_chunks
+        m1 = (n_new * (t + 1)) // n_chunks
+        if m0 >= m1:
+            continue
+        lo, hi = 0, n_old  # first old pair not before new pair m0
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if _before(old_a[mid], old_b[mid], new_a[m0], new_b[m0]):
+                lo = mid + 1
+            else:
+                hi = mid
+        k = lo
+        for m in range(m0, m1):
+            a, b = new_a[m], new_b[m]
+            while k < n_old and _before(old_a[k], old_b[k], a, b):
+                k += 1
+            pos[m] = k if (k < n_old and old_a[k] == a and old_b[k] == b) else -1
     return pos
 
 
-@njit
+@njit(parallel=True)
 def _gather_rows(old, pos):
     """Rows of ``old`` (n_old, w) at ``pos``; zero rows where pos < 0."""
-    out = np.zeros((pos.shape[0], old.shape[1]), dtype=old.dtype)
-    for m in range(pos.shape[0]):
+    out = np.empty((pos.shape[0], old.shape[1]), dtype=old.dtype)
+    for m in prange(pos.shape[0]):
         k = pos[m]
-        if k >= 0:
-            for c in range(old.shape[1]):
-                out[m, c] = old[k, c]
+        for c in range(old.shape[1]):
+            out[m, c] = old[k, c] if k >= 0 else 0
     return out
 
 
 def transfer_history(old_a, old_b, new_a, new_b, *old_arrays):
     """Carry per-pair arrays (e.g. tangential springs) from an old pair list to a new
     one, both sorted by (a, b); pairs that are new get zeros."""
-    pos = _positions_in_old(old_a, old_b, new_a, new_b)
+    pos = _positions_in_old(old_a, old_b, new_a, new_b, numba.get_num_threads())
     out = []
     for arr in old_arrays:
         width = int(np.prod(arr.shape[1:]))
