@@ -221,6 +221,12 @@ def test_damping_dissipates_and_balances(dim, damping, column):
     assert errors[0] / errors[1] > 3.0  # second order: 4
 
 
+def assert_same_state(a, b):
+    """Two simulations at bit-identical positions, velocities and ledgers."""
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v)
+    assert np.array_equal(a.ledger.acc, b.ledger.acc)
+
+
 def test_damping_switched_on_and_off_keeps_the_ledger():
     """The damping forces of the last step are stored only while damping is on; a run
     that switches damping on, off and on again must equal, bit for bit, one that stores
@@ -240,8 +246,7 @@ def test_damping_switched_on_and_off_keeps_the_ledger():
         return sim
 
     a, b = run(False), run(True)
-    assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v)
-    assert np.array_equal(a.ledger.acc, b.ledger.acc)
+    assert_same_state(a, b)
     assert a.ledger.acc[5] > 0 and a.ledger.acc[6] > 0  # both dampings did work
 
 
@@ -262,8 +267,7 @@ def test_dashpot_switched_on_and_off_keeps_the_ledger():
         return sim
 
     a, b = run(False), run(True)
-    assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v)
-    assert np.array_equal(a.ledger.acc, b.ledger.acc)
+    assert_same_state(a, b)
     assert a.ledger.acc[4] > 0  # the dashpots dissipated
 
 

@@ -230,6 +230,9 @@ class Simulation:
         self._first = True
         self._triggers: list[_Trigger] = []
         self.fd_prev = np.zeros((n, 6))
+        # work space of the pair loop (see _force_buffers)
+        self._force_buf = self._torque_buf = np.zeros((0, n, 3))
+        self._geo_store = np.empty((0, 4))
         self.td_prev = np.zeros((n, 6))
         # whether fd_prev / td_prev (damping) and fd (pair dashpots) may hold non-zero
         # forces of the last step: not at the start; checkpoint restarts set them
@@ -568,13 +571,12 @@ class Simulation:
             n_pairs = len(self.pi)
             self._chunks, self._spans = dem.pair_chunks(self.pi, self.pj, len(self.r), n_chunks)
             shape = (n_chunks, len(self.r), 3)
-            if getattr(self, "_force_buf", None) is None or self._force_buf.shape != shape:
+            if self._force_buf.shape != shape:
                 self._force_buf = np.zeros(shape)
                 self._torque_buf = np.zeros(shape)
-            geo = getattr(self, "_geo_store", None)
-            if geo is None or len(geo) < n_pairs:
-                self._geo_store = geo = np.empty((int(1.25 * n_pairs) + 64, 4))
-            self._geo = geo[:n_pairs]
+            if len(self._geo_store) < n_pairs:
+                self._geo_store = np.empty((int(1.25 * n_pairs) + 64, 4))
+            self._geo = self._geo_store[:n_pairs]
         return self._chunks, self._spans, self._force_buf, self._torque_buf, self._geo
 
     def contact_forces(self):

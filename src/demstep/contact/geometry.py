@@ -6,6 +6,16 @@ from demstep._numba import njit
 
 
 @njit(inline="always")
+def image_count(d, length):
+    """Number of box lengths to subtract from a separation component ``d`` [L] for the
+    minimum image along a periodic axis of ``length`` [L] (0 when ``length`` is 0: the
+    axis is not periodic)."""
+    if length > 0.0:
+        return np.rint(d / length)
+    return 0.0
+
+
+@njit(inline="always")
 def contact_arms(r_i, r_j, distance):
     """Distances [L] from each centre to the contact point of two overlapping particles.
 

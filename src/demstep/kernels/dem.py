@@ -28,7 +28,7 @@ import math
 import numpy as np
 
 from demstep._numba import compile_parallel_and_serial, njit, prange
-from demstep.contact.geometry import contact_arms, wall_contact_arm
+from demstep.contact.geometry import contact_arms, image_count, wall_contact_arm
 from demstep.contact.laws import P_MU, dashpot_coefficients, normal_force, tangential_stiffness
 
 # ledger accumulators (float array ``acc``)
@@ -176,12 +176,9 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
         d0 = x[j, 0] - x[i, 0]
         d1 = x[j, 1] - x[i, 1]
         d2 = x[j, 2] - x[i, 2]
-        if len0 > 0.0:
-            d0 -= len0 * np.rint(d0 / len0)
-        if len1 > 0.0:
-            d1 -= len1 * np.rint(d1 / len1)
-        if len2 > 0.0:
-            d2 -= len2 * np.rint(d2 / len2)
+        d0 -= len0 * image_count(d0, len0)
+        d1 -= len1 * image_count(d1, len1)
+        d2 -= len2 * image_count(d2, len2)
         dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         inv_dist = 1.0 / dist
         geo[k, 0] = d0 * inv_dist
@@ -210,15 +207,9 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
                 continue  # apart and without history: no force
             nx, ny, nz = geo[k, 0], geo[k, 1], geo[k, 2]
             # periodic image of j (its number of box lengths along each axis)
-            n0 = 0.0
-            n1 = 0.0
-            n2 = 0.0
-            if len0 > 0.0:
-                n0 = np.rint((x[j, 0] - x[i, 0]) / len0)
-            if len1 > 0.0:
-                n1 = np.rint((x[j, 1] - x[i, 1]) / len1)
-            if len2 > 0.0:
-                n2 = np.rint((x[j, 2] - x[i, 2]) / len2)
+            n0 = image_count(x[j, 0] - x[i, 0], len0)
+            n1 = image_count(x[j, 1] - x[i, 1], len1)
+            n2 = image_count(x[j, 2] - x[i, 2], len2)
             a_i, a_j = contact_arms(r[i], r[j], dist)
             # contact-point velocities: v + omega x b, b_i = a_i n, b_j = -a_j n
             vix = v[i, 0] + a_i * (w[i, 1] * nz - w[i, 2] * ny)
@@ -330,8 +321,7 @@ def pair_contact_forces(x, r, pi, pj, periodic_len, law, params, ft, fd, force, 
         d = np.empty(3)
         for a in range(3):
             d[a] = x[j, a] - x[i, a]
-            if periodic_len[a] > 0.0:
-                d[a] -= periodic_len[a] * np.rint(d[a] / periodic_len[a])
+            d[a] -= periodic_len[a] * image_count(d[a], periodic_len[a])
         dist = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         delta = r[i] + r[j] - dist
         if delta <= 0.0:

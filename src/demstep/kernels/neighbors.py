@@ -12,6 +12,7 @@ import numba
 import numpy as np
 
 from demstep._numba import njit, prange
+from demstep.contact.geometry import image_count
 from demstep.errors import InputError
 
 
@@ -135,12 +136,9 @@ def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capac
                         d0 = xs[m2, 0] - x0
                         d1 = xs[m2, 1] - x1
                         d2 = xs[m2, 2] - x2
-                        if len0 > 0.0:
-                            d0 -= len0 * np.rint(d0 / len0)
-                        if len1 > 0.0:
-                            d1 -= len1 * np.rint(d1 / len1)
-                        if len2 > 0.0:
-                            d2 -= len2 * np.rint(d2 / len2)
+                        d0 -= len0 * image_count(d0, len0)
+                        d1 -= len1 * image_count(d1, len1)
+                        d2 -= len2 * image_count(d2, len2)
                         reach = rm + rs[m2] + skin
                         if d0 * d0 + d1 * d1 + d2 * d2 < reach * reach:
                             if k < capacity:
