@@ -203,3 +203,34 @@ def test_pure_python_kernels_match_compiled():
         outs[jit] = np.load(path)
         os.unlink(path)
     assert np.allclose(outs["0"], outs["1"], rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("n_chunks", [1, 2, 3, 5])
+def test_pair_chunk_spans_cover_every_particle(n_chunks):
+    """Each chunk's pairs lie in its span, the spans cover all particles and start in
+    order (the reduction copies each chunk's own range and adds the earlier chunks'
+    reach); the reduction equals a plain sum over the spans."""
+    rng, x, r = random_cloud(11, n=200, box=5.0)
+    pi, pj = build_pair_list(x, r, 0.2, np.zeros(3))
+    n = len(r) + 7  # particles past the last pair's j
+    chunks, spans = dem.pair_chunks(pi, pj, n, n_chunks)
+    covered = np.zeros(n, dtype=bool)
+    assert spans[0, 0] == 0 and np.all(np.diff(spans[:, 0]) >= 0)
+    fbuf = np.full((n_chunks, n, 3), np.nan)
+    tbuf = np.full((n_chunks, n, 3), np.nan)
+    expected_f, expected_t = np.zeros((n, 3)), np.zeros((n, 3))
+    for c in range(n_chunks):
+        lo, hi = spans[c]
+        a, b = chunks[c], chunks[c + 1]
+        assert np.all((pi[a:b] >= lo) & (pj[a:b] < hi))
+        covered[lo:hi] = True
+        fbuf[c, lo:hi] = rng.normal(0, 1, (hi - lo, 3))
+        tbuf[c, lo:hi] = rng.normal(0, 1, (hi - lo, 3))
+        expected_f[lo:hi] += fbuf[c, lo:hi]
+        expected_t[lo:hi] += tbuf[c, lo:hi]
+    assert covered.all()
+    for reduce in (dem.reduce_forces_serial, dem.reduce_forces):
+        f, t = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+        reduce(fbuf, tbuf, spans, f, t)
+        assert np.allclose(f, expected_f, rtol=1e-14, atol=1e-14)
+        assert np.allclose(t, expected_t, rtol=1e-14, atol=1e-14)

@@ -118,16 +118,20 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
 
 def pair_chunks(pi, pj, n_particles: int, n_chunks: int):
     """Cut a pair list sorted by i into ``n_chunks`` runs of equal numbers of pairs
-    (boundaries (n_chunks + 1,)) and give the particle range [lo, hi) each touches
-    (spans (n_chunks, 2)): from the first pair's i to the largest j. A single chunk
-    spans every particle."""
-    chunks = np.linspace(0, len(pi), n_chunks + 1).astype(np.int64)
-    spans = np.zeros((n_chunks, 2), dtype=np.int64)
-    spans[:, 1] = n_particles
-    if n_chunks > 1:
-        for c in range(n_chunks):
-            a, b = chunks[c], chunks[c + 1]
-            spans[c] = (pi[a], pj[a:b].max() + 1) if a < b else (0, 0)
+    (boundaries (n_chunks + 1,)) and give the particle range [lo, hi) of each chunk's
+    force buffer (spans (n_chunks, 2)). Chunk c owns the particles from its first
+    pair's i (0 for the first chunk) up to the next chunk's first i (N for the last);
+    its span is that range, stretched to the largest j of its pairs. The spans cover
+    every particle; a chunk's span reaches only into later chunks' ranges."""
+    n_pairs = len(pi)
+    chunks = np.linspace(0, n_pairs, n_chunks + 1).astype(np.int64)
+    owned = np.array([0] + [pi[a] if a < n_pairs else n_particles for a in chunks[1:-1]]
+                     + [n_particles], dtype=np.int64)
+    spans = np.empty((n_chunks, 2), dtype=np.int64)
+    for c in range(n_chunks):
+        a, b = chunks[c], chunks[c + 1]
+        reach = pj[a:b].max() + 1 if a < b else 0
+        spans[c] = owned[c], max(owned[c + 1], reach)
     return chunks, spans
 
 
@@ -284,17 +288,22 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
 
 def _reduce_loop(force_buf, torque_buf, spans, force, torque):
     """Sum the per-chunk buffers into the particle forces and torques (chunk c holds
-    particles ``spans[c, 0]`` to ``spans[c, 1] - 1``)."""
-    for p in prange(force.shape[0]):
-        for k in range(3):
-            f = 0.0
-            t = 0.0
-            for c in range(force_buf.shape[0]):
-                if spans[c, 0] <= p < spans[c, 1]:
-                    f += force_buf[c, p, k]
-                    t += torque_buf[c, p, k]
-            force[p, k] = f
-            torque[p, k] = t
+    particles ``spans[c, 0]`` to ``spans[c, 1] - 1``; see :func:`pair_chunks`). Each
+    chunk's own range is copied from its buffer, then the short bands where earlier
+    chunks reach in are added: every buffer row is read once."""
+    n_chunks = spans.shape[0]
+    for c in prange(n_chunks):
+        lo = spans[c, 0]
+        hi = spans[c + 1, 0] if c + 1 < n_chunks else force.shape[0]
+        for p in range(lo, hi):
+            for k in range(3):
+                force[p, k] = force_buf[c, p, k]
+                torque[p, k] = torque_buf[c, p, k]
+        for c2 in range(c):
+            for p in range(lo, min(hi, spans[c2, 1])):
+                for k in range(3):
+                    force[p, k] += force_buf[c2, p, k]
+                    torque[p, k] += torque_buf[c2, p, k]
 
 
 @njit
