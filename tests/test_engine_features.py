@@ -127,3 +127,32 @@ def test_hertz_energy_balance_second_order():
         errs.append(sim.monitor.max_error)
     assert errs[0] < 1e-2
     assert errs[0] / errs[1] > 2.5  # second order (4) with some noise from collisions
+
+
+def test_threaded_kernels_follow_the_serial_ones():
+    """The threaded step (pair chunks with their reduction, the wall list) and
+    the serial one give the same trajectory, wall forces and ledger up to rounding."""
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    try:
+        runs = []
+        for parallel in (False, True):
+            sim = dense_box(k=1e5, radii=(0.93, 0.97), law=LinearSpring(k_n=1e5, mu=0.3, restitution=0.6),
+                            timestep=TimeStep.from_alpha(0.1), gravity=[0.0, 0.0, -50.0],
+                            parallel=parallel)
+            top = next(i for i, w in enumerate(sim.walls) if w.name == "z+")
+            sim.set_wall_motion(top, "velocity", velocity=[0, 0, -0.2])
+            sim.run(steps=1500)
+            runs.append(sim)
+    finally:
+        numba.set_num_threads(threads)
+    serial, threaded = runs
+    assert serial.n_contacts > 50 and serial.wall_contacts.sum() > 10
+    scale = np.abs(serial.x).max()
+    assert np.allclose(threaded.x, serial.x, rtol=0, atol=1e-9 * scale)
+    assert np.allclose(threaded.force, serial.force, rtol=1e-7, atol=1e-9 * np.abs(serial.force).max())
+    assert np.allclose(threaded.wall_force, serial.wall_force, rtol=1e-7)
+    assert np.array_equal(threaded.wall_contacts, serial.wall_contacts)
+    assert np.allclose(threaded.ledger.acc, serial.ledger.acc, rtol=1e-7, atol=1e-12)

@@ -234,3 +234,25 @@ def test_pair_chunk_spans_cover_every_particle(n_chunks):
         reduce(fbuf, tbuf, spans, f, t)
         assert np.allclose(f, expected_f, rtol=1e-14, atol=1e-14)
         assert np.allclose(t, expected_t, rtol=1e-14, atol=1e-14)
+
+
+@pytest.mark.parametrize("n_chunks", [1, 3])
+def test_wall_list_equals_brute_force_and_retries(n_chunks):
+    """(particle, wall) pairs within r + skin of each wall plane, sorted, from several
+    particle runs; a capacity too small for them is detected and retried."""
+    from demstep.kernels.neighbors import _build_wall_pairs, build_wall_list
+
+    _, x, r = random_cloud(12, n=400, box=6.0)
+    point = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 6.0], [3.0, 0.0, 0.0]])
+    normal = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.6, 0.8, 0.0]])
+    skin = 0.25
+    dist = np.einsum("pwk,wk->pw", x[:, None, :] - point[None], normal)
+    p_ref, w_ref = np.nonzero(dist < (r + skin)[:, None])  # row-major: sorted by (p, w)
+    args = (x, r, point, normal, skin, n_chunks)
+    wp, ww, needed = _build_wall_pairs(*args, 5)
+    assert len(wp) == 0 and needed > 5
+    wp, ww, needed = _build_wall_pairs(*args, int(needed))
+    assert needed == 0
+    assert np.array_equal(wp, p_ref) and np.array_equal(ww, w_ref)
+    wp, ww = build_wall_list(x, r, point, normal, skin, expected_pairs=1)
+    assert np.array_equal(wp, p_ref) and np.array_equal(ww, w_ref)

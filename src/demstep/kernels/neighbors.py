@@ -237,29 +237,43 @@ def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None 
     return pi, pj
 
 
-@njit
-def _build_wall_pairs(x, r, wall_point, wall_normal, skin, capacity):
-    """(particle, wall) pairs within reach in one pass; (empty, empty, needed) when more
-    than ``capacity`` were found."""
+@njit(parallel=True)
+def _build_wall_pairs(x, r, wall_point, wall_normal, skin, n_chunks, capacity):
+    """(particle, wall) pairs within reach, sorted by (particle, wall): ``n_chunks``
+    runs of particles searched in parallel into buffers of ``capacity`` pairs each,
+    then joined; (empty, empty, needed) when a buffer was too small."""
     n = x.shape[0]
     nw = wall_point.shape[0]
-    wp = np.empty(capacity, dtype=np.int64)
-    ww = np.empty(capacity, dtype=np.int64)
-    m = 0
-    for p in range(n):
-        x0, x1, x2, reach = x[p, 0], x[p, 1], x[p, 2], r[p] + skin
-        for w in range(nw):
-            d = ((x0 - wall_point[w, 0]) * wall_normal[w, 0]
-                 + (x1 - wall_point[w, 1]) * wall_normal[w, 1]
-                 + (x2 - wall_point[w, 2]) * wall_normal[w, 2])
-            if d < reach:
-                if m < capacity:
-                    wp[m] = p
-                    ww[m] = w
-                m += 1
-    if m > capacity:
-        return wp[:0], ww[:0], m
-    return wp[:m].copy(), ww[:m].copy(), 0
+    buf_p = np.empty((n_chunks, capacity), dtype=np.int64)
+    buf_w = np.empty((n_chunks, capacity), dtype=np.int64)
+    found = np.zeros(n_chunks, dtype=np.int64)
+    for t in prange(n_chunks):
+        m = 0
+        for p in range((n * t) // n_chunks, (n * (t + 1)) // n_chunks):
+            x0, x1, x2, reach = x[p, 0], x[p, 1], x[p, 2], r[p] + skin
+            for w in range(nw):
+                d = ((x0 - wall_point[w, 0]) * wall_normal[w, 0]
+                     + (x1 - wall_point[w, 1]) * wall_normal[w, 1]
+                     + (x2 - wall_point[w, 2]) * wall_normal[w, 2])
+                if d < reach:
+                    if m < capacity:
+                        buf_p[t, m] = p
+                        buf_w[t, m] = w
+                    m += 1
+        found[t] = m
+    needed = found.max()
+    if needed > capacity:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64), needed
+    offset = np.zeros(n_chunks + 1, dtype=np.int64)
+    for t in range(n_chunks):
+        offset[t + 1] = offset[t] + found[t]
+    wp = np.empty(offset[n_chunks], dtype=np.int64)
+    ww = np.empty(offset[n_chunks], dtype=np.int64)
+    for t in prange(n_chunks):
+        for m in range(found[t]):
+            wp[offset[t] + m] = buf_p[t, m]
+            ww[offset[t] + m] = buf_w[t, m]
+    return wp, ww, 0
 
 
 def build_wall_list(x, r, wall_point, wall_normal, skin: float, expected_pairs: int | None = None):
@@ -267,11 +281,13 @@ def build_wall_list(x, r, wall_point, wall_normal, skin: float, expected_pairs: 
     n_walls = len(wall_point)
     if n_walls == 0:
         return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    n_chunks = numba.get_num_threads()
     expected = len(r) if expected_pairs is None else int(expected_pairs)
-    capacity = min(len(r) * n_walls, 2 * expected + 1024)
-    wp, ww, needed = _build_wall_pairs(x, r, wall_point, wall_normal, float(skin), capacity)
+    capacity = min((len(r) // n_chunks + 1) * n_walls, int(2 * expected / n_chunks) + 1024)
+    args = (x, r, wall_point, wall_normal, float(skin), n_chunks)
+    wp, ww, needed = _build_wall_pairs(*args, capacity)
     if needed:
-        wp, ww, needed = _build_wall_pairs(x, r, wall_point, wall_normal, float(skin), int(needed))
+        wp, ww, needed = _build_wall_pairs(*args, int(needed))
     return wp, ww
 
 
