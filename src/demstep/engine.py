@@ -559,10 +559,10 @@ class Simulation:
     PARALLEL_MIN_PARTICLES = 5000
 
     def _force_buffers(self, parallel: bool):
-        """Pair chunks (one per thread, equal numbers of pairs), the particle range each
-        touches, their force/torque buffers (chunks, N, 3) and the pair geometry work
-        space (P, 4); rebuilt when the
-        pair list or the thread count changes. The work space keeps its memory across
+        """Pair chunks (one per thread, equal numbers of pairs), the particle range of
+        each chunk's buffer (:func:`dem.pair_chunks`), their force/torque buffers
+        (chunks, N, 3) and the pair geometry work space (P, 4); rebuilt when the pair
+        list or the thread count changes. The work space keeps its memory across
         rebuilds (fresh pages cost a fault each)."""
         import numba
 
