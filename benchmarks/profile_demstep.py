@@ -79,7 +79,7 @@ def main(argv=None):
         "first": False, "acc_out": np.empty(8), "box_sums": np.zeros((4, 3)),
         "store_dashpot": bool(np.any(params[6:10] > 0)), "store_damping": False,
         "chunks": chunks, "spans": spans, "force_buf": force_buf, "torque_buf": torque_buf,
-        "geo": geo,
+        "geo": geo, "n_chunks": len(chunks) - 1,
     }
 
     def arg(name):
@@ -105,7 +105,7 @@ def main(argv=None):
     if len(chunks) > 2:
         kernels.insert(1, "reduce_forces")
     for name in kernels:
-        kernel = getattr(dem, name + suffix) if name != "wall_forces" else dem.wall_forces
+        kernel = getattr(dem, name + suffix)
         out["kernels_s"][name] = bench(kernel)
 
     # one neighbour rebuild and its parts

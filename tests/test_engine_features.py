@@ -130,7 +130,7 @@ def test_hertz_energy_balance_second_order():
 
 
 def test_threaded_kernels_follow_the_serial_ones():
-    """The threaded step (pair chunks with their reduction, the wall list) and
+    """The threaded step (pair chunks with their reduction, wall list, wall contacts) and
     the serial one give the same trajectory, wall forces and ledger up to rounding."""
     import numba
 

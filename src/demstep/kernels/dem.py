@@ -343,65 +343,88 @@ def pair_contact_forces(x, r, pi, pj, periodic_len, law, params, ft, fd, force, 
     return on
 
 
-@njit
-def wall_forces(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu, law,
-                params, dt, wft, wfd, wetan, force, torque, wall_force, wall_contacts, wall_k):
-    """Particle-wall contacts (serial: walls touch the surface layer only).
+@njit(inline="always")
+def _particle_boundary(wp, q):
+    """The first wall pair at or after ``q`` that starts a new particle (pairs sorted by
+    particle): chunks cut there never share a particle."""
+    while 0 < q < wp.shape[0] and wp[q] == wp[q - 1]:
+        q += 1
+    return q
 
-    Adds to ``force``/``torque``; ``wall_force`` (W, 3) receives the force the
-    particles exert on each wall. Returns (strain_n, strain_t, friction, dashpot)."""
+
+def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu, law,
+               params, dt, wft, wfd, wetan, force, torque, wall_force, wall_contacts, wall_k,
+               n_chunks):
+    """Particle-wall contacts (compiled twice: parallel and serial), in ``n_chunks`` runs
+    of wall pairs cut between particles, so that each run adds to the ``force``/
+    ``torque`` rows of its own particles only. ``wall_force`` (W, 3) receives the force
+    the particles exert on each wall, ``wall_contacts`` and ``wall_k`` the number of
+    touching particles and the sum of their k_n (per run first, then summed). Returns
+    (strain_n, strain_t, friction, dashpot)."""
     e_n = 0.0
     e_t = 0.0
     d_fric = 0.0
     d_dash = 0.0
-    for wi in range(wall_force.shape[0]):
-        wall_force[wi, 0] = 0.0
-        wall_force[wi, 1] = 0.0
-        wall_force[wi, 2] = 0.0
+    n_walls = wall_force.shape[0]
+    n_pairs = wp.shape[0]
+    # per run and wall: force on the wall (3), touching particles, their k_n
+    per_run = np.zeros((n_chunks, n_walls, 5))
+    for c in prange(n_chunks):
+        run = per_run[c]
+        for q in range(_particle_boundary(wp, (n_pairs * c) // n_chunks),
+                       _particle_boundary(wp, (n_pairs * (c + 1)) // n_chunks)):
+            p = wp[q]
+            wi = ww[q]
+            nx, ny, nz = -wall_normal[wi, 0], -wall_normal[wi, 1], -wall_normal[wi, 2]
+            dist = -((x[p, 0] - wall_point[wi, 0]) * nx + (x[p, 1] - wall_point[wi, 1]) * ny
+                     + (x[p, 2] - wall_point[wi, 2]) * nz)
+            delta = r[p] - dist
+            if delta <= 0.0 and wetan[q] == 0.0 and wft[q, 0] == 0.0 and wft[q, 1] == 0.0 \
+                    and wft[q, 2] == 0.0 and wfd[q, 0] == 0.0 and wfd[q, 1] == 0.0 \
+                    and wfd[q, 2] == 0.0:
+                continue
+            a = wall_contact_arm(dist)
+            vix = v[p, 0] + a * (w[p, 1] * nz - w[p, 2] * ny)
+            viy = v[p, 1] + a * (w[p, 2] * nx - w[p, 0] * nz)
+            viz = v[p, 2] + a * (w[p, 0] * ny - w[p, 1] * nx)
+            (fx, fy, fz, c_en, c_et, c_fric, c_dash, c_kn, _, tx, ty, tz, ndx, ndy, ndz,
+             e_new) = contact_response(
+                law, params, wall_mu[wi], nx, ny, nz, delta, r[p], m[p],
+                wall_vel[wi, 0] - vix, wall_vel[wi, 1] - viy, wall_vel[wi, 2] - viz, dt,
+                wft[q, 0], wft[q, 1], wft[q, 2], wfd[q, 0], wfd[q, 1], wfd[q, 2], wetan[q])
+            wft[q, 0] = tx
+            wft[q, 1] = ty
+            wft[q, 2] = tz
+            wfd[q, 0] = ndx
+            wfd[q, 1] = ndy
+            wfd[q, 2] = ndz
+            wetan[q] = e_new
+            force[p, 0] -= fx
+            force[p, 1] -= fy
+            force[p, 2] -= fz
+            torque[p, 0] -= a * (ny * fz - nz * fy)
+            torque[p, 1] -= a * (nz * fx - nx * fz)
+            torque[p, 2] -= a * (nx * fy - ny * fx)
+            run[wi, 0] += fx
+            run[wi, 1] += fy
+            run[wi, 2] += fz
+            e_n += c_en
+            e_t += c_et
+            d_fric += c_fric
+            d_dash += c_dash
+            if delta > 0.0:
+                run[wi, 3] += 1.0
+                run[wi, 4] += c_kn
+    for wi in range(n_walls):
+        for k in range(3):
+            wall_force[wi, k] = 0.0
         wall_contacts[wi] = 0
         wall_k[wi] = 0.0
-    for q in range(wp.shape[0]):
-        p = wp[q]
-        wi = ww[q]
-        nx, ny, nz = -wall_normal[wi, 0], -wall_normal[wi, 1], -wall_normal[wi, 2]
-        dist = -((x[p, 0] - wall_point[wi, 0]) * nx + (x[p, 1] - wall_point[wi, 1]) * ny
-                 + (x[p, 2] - wall_point[wi, 2]) * nz)
-        delta = r[p] - dist
-        if delta <= 0.0 and wetan[q] == 0.0 and wft[q, 0] == 0.0 and wft[q, 1] == 0.0 \
-                and wft[q, 2] == 0.0 and wfd[q, 0] == 0.0 and wfd[q, 1] == 0.0 and wfd[q, 2] == 0.0:
-            continue
-        a = wall_contact_arm(dist)
-        vix = v[p, 0] + a * (w[p, 1] * nz - w[p, 2] * ny)
-        viy = v[p, 1] + a * (w[p, 2] * nx - w[p, 0] * nz)
-        viz = v[p, 2] + a * (w[p, 0] * ny - w[p, 1] * nx)
-        (fx, fy, fz, c_en, c_et, c_fric, c_dash, c_kn, _, tx, ty, tz, ndx, ndy, ndz,
-         e_new) = contact_response(
-            law, params, wall_mu[wi], nx, ny, nz, delta, r[p], m[p],
-            wall_vel[wi, 0] - vix, wall_vel[wi, 1] - viy, wall_vel[wi, 2] - viz, dt,
-            wft[q, 0], wft[q, 1], wft[q, 2], wfd[q, 0], wfd[q, 1], wfd[q, 2], wetan[q])
-        wft[q, 0] = tx
-        wft[q, 1] = ty
-        wft[q, 2] = tz
-        wfd[q, 0] = ndx
-        wfd[q, 1] = ndy
-        wfd[q, 2] = ndz
-        wetan[q] = e_new
-        force[p, 0] -= fx
-        force[p, 1] -= fy
-        force[p, 2] -= fz
-        torque[p, 0] -= a * (ny * fz - nz * fy)
-        torque[p, 1] -= a * (nz * fx - nx * fz)
-        torque[p, 2] -= a * (nx * fy - ny * fx)
-        wall_force[wi, 0] += fx
-        wall_force[wi, 1] += fy
-        wall_force[wi, 2] += fz
-        e_n += c_en
-        e_t += c_et
-        d_fric += c_fric
-        d_dash += c_dash
-        if delta > 0.0:
-            wall_contacts[wi] += 1
-            wall_k[wi] += c_kn
+        for c in range(n_chunks):
+            for k in range(3):
+                wall_force[wi, k] += per_run[c, wi, k]
+            wall_contacts[wi] += int(per_run[c, wi, 3])
+            wall_k[wi] += per_run[c, wi, 4]
     return e_n, e_t, d_fric, d_dash
 
 
@@ -554,6 +577,7 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
 pair_forces, pair_forces_serial = compile_parallel_and_serial(_pair_loop)
 reduce_forces, reduce_forces_serial = compile_parallel_and_serial(_reduce_loop)
 integrate, integrate_serial = compile_parallel_and_serial(_integrate_loop)
+wall_forces, wall_forces_serial = compile_parallel_and_serial(_wall_loop)
 
 
 @njit
@@ -604,10 +628,16 @@ def advance(n_steps, dt, dt_prev, first, skin,
             reduce_forces(force_buf, torque_buf, spans, force, torque)
         else:
             reduce_forces_serial(force_buf, torque_buf, spans, force, torque)
-        we_n, we_t, wd_fric, wd_dash = wall_forces(
-            x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
-            law, law_params, dt_slip, wft, wfd, wetan, force, torque, wall_force, wall_contacts,
-            wall_k)
+        if parallel:
+            we_n, we_t, wd_fric, wd_dash = wall_forces(
+                x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
+                law, law_params, dt_slip, wft, wfd, wetan, force, torque, wall_force,
+                wall_contacts, wall_k, force_buf.shape[0])
+        else:
+            we_n, we_t, wd_fric, wd_dash = wall_forces_serial(
+                x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
+                law, law_params, dt_slip, wft, wfd, wetan, force, torque, wall_force,
+                wall_contacts, wall_k, 1)
         for row in range(4):
             for k in range(3):
                 box_state[row, k] = box_sums[row, k]
