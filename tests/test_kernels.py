@@ -256,3 +256,12 @@ def test_wall_list_equals_brute_force_and_retries(n_chunks):
     assert np.array_equal(wp, p_ref) and np.array_equal(ww, w_ref)
     wp, ww = build_wall_list(x, r, point, normal, skin, expected_pairs=1)
     assert np.array_equal(wp, p_ref) and np.array_equal(ww, w_ref)
+
+
+@pytest.mark.parametrize("n", [1, 4095, 70001])
+def test_bounds_equal_numpy_extremes(n):
+    from demstep.kernels.neighbors import _bounds
+
+    x = np.random.default_rng(n).normal(0, 10, (n, 3))
+    lo, hi = _bounds(x)
+    assert np.array_equal(lo, x.min(axis=0)) and np.array_equal(hi, x.max(axis=0))

@@ -182,15 +182,25 @@ def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capac
     return pi, pj, 0
 
 
-@njit
+@njit(parallel=True)
 def _bounds(x):
-    """Smallest and largest coordinate along each axis of the points ``x`` (N, 3)."""
+    """Smallest and largest coordinate along each axis of the points ``x`` (N, 3):
+    per-run extremes (runs in parallel), then the extremes of those."""
+    n = x.shape[0]
+    n_runs = max(1, min(64, n // 4096))
+    lo_run = np.full((n_runs, 3), np.inf)
+    hi_run = np.full((n_runs, 3), -np.inf)
+    for t in prange(n_runs):
+        for p in range((n * t) // n_runs, (n * (t + 1)) // n_runs):
+            for k in range(3):
+                lo_run[t, k] = min(lo_run[t, k], x[p, k])
+                hi_run[t, k] = max(hi_run[t, k], x[p, k])
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
-    for p in range(x.shape[0]):
+    for t in range(n_runs):
         for k in range(3):
-            lo[k] = min(lo[k], x[p, k])
-            hi[k] = max(hi[k], x[p, k])
+            lo[k] = min(lo[k], lo_run[t, k])
+            hi[k] = max(hi[k], hi_run[t, k])
     return lo, hi
 
 
