@@ -122,9 +122,15 @@ def test_report_rayleigh_applies_to_every_method():
     c = find_contacts(p, 1.0)
     plain = estimate_time_steps(p, c)
     damped = estimate_time_steps(p, c, rayleigh=(0.1, 0.01))
-    for a, b in zip(plain.estimates, damped.estimates):
-        assert b.dt == pytest.approx(float(rayleigh_damped_dt(a.dt, 0.1, 0.01)))
+    assert [e.method for e in damped.estimates if e.method != "exact-undamped"] == \
+        [e.method for e in plain.estimates]
+    # Rayleigh damping is proportional: every method's damped step is eq. 28 at its
+    # own highest frequency
+    for a in plain.estimates:
+        b = damped.get(a.method)
+        assert b.dt == pytest.approx(float(rayleigh_damped_dt(a.dt, 0.1, 0.01)), rel=1e-8)
         assert b.dt < a.dt
+    assert damped.get("exact-undamped").dt == pytest.approx(plain.get("exact").dt, rel=1e-12)
 
 
 def test_no_contacts_is_an_input_error():

@@ -36,6 +36,8 @@ class ContactSet:
     k_n: np.ndarray
     k_s: np.ndarray
     wall: np.ndarray | None = None
+    c_n: np.ndarray | None = None
+    c_t: np.ndarray | None = None
 
     def __post_init__(self):
         c = len(self.i)
@@ -51,6 +53,13 @@ class ContactSet:
         if self.wall is None:
             self.wall = np.full(c, -1, dtype=np.int64)
         self.wall = np.asarray(self.wall, dtype=np.int64)
+        self.c_n = np.broadcast_to(np.asarray(0.0 if self.c_n is None else self.c_n,
+                                              dtype=np.float64), (c,)).copy()
+        self.c_t = np.broadcast_to(np.asarray(0.0 if self.c_t is None else self.c_t,
+                                              dtype=np.float64), (c,)).copy()
+
+    #: the per-contact arrays, in constructor order
+    FIELDS = ("i", "j", "normal", "arm_i", "arm_j", "k_n", "k_s", "wall", "c_n", "c_t")
 
     @property
     def n(self) -> int:
@@ -59,6 +68,15 @@ class ContactSet:
     @property
     def dim(self) -> int:
         return self.normal.shape[1]
+
+    @property
+    def damped(self) -> bool:
+        """Whether any contact has a dashpot."""
+        return bool(self.n and (self.c_n.any() or self.c_t.any()))
+
+    def subset(self, keep) -> "ContactSet":
+        """The contacts selected by ``keep`` (a boolean mask or an index array)."""
+        return ContactSet(*(getattr(self, f)[keep] for f in self.FIELDS))
 
     @property
     def is_wall(self) -> np.ndarray:
@@ -80,8 +98,7 @@ class ContactSet:
     @classmethod
     def concatenate(cls, parts: list["ContactSet"]) -> "ContactSet":
         parts = [p for p in parts if p.n > 0] or parts[:1]
-        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                     ("i", "j", "normal", "arm_i", "arm_j", "k_n", "k_s", "wall")))
+        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in cls.FIELDS))
 
 
 def find_contacts(particles: Particles, k_n: float, k_s: float | None = None,

@@ -69,6 +69,27 @@ def dashpot_coefficients(law, params, m_star, k_n, k_t):
     return c_n, c_t
 
 
+@njit
+def contact_coefficients(law, params, delta, r_star, m_star):
+    """Linearised coefficients of contacts at overlaps ``delta`` (C,) [L]: tangent
+    stiffnesses k_n, k_t [M/T^2] and dashpot coefficients c_n, c_t [M/T], from the same
+    scalar formulas as the engine's force (the time-step analysis of a state). Contacts
+    with delta <= 0 get the coefficients at contact (zero stiffness for Hertz)."""
+    c = delta.shape[0]
+    k_n = np.empty(c)
+    k_t = np.empty(c)
+    c_n = np.empty(c)
+    c_t = np.empty(c)
+    for q in range(c):
+        d = max(delta[q], 0.0)
+        kn = normal_force(law, params, d, r_star[q])[1]
+        kt = tangential_stiffness(law, params, d, r_star[q])
+        k_n[q] = kn
+        k_t[q] = kt
+        c_n[q], c_t[q] = dashpot_coefficients(law, params, m_star[q], kn, kt)
+    return k_n, k_t, c_n, c_t
+
+
 def damping_ratio_from_restitution(e: float) -> float:
     """beta = -ln e / sqrt(pi^2 + ln^2 e): the damping ratio of a linear spring-dashpot
     whose collision has coefficient of restitution e (0 < e <= 1)."""

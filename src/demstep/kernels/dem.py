@@ -307,18 +307,6 @@ def _reduce_loop(force_buf, torque_buf, spans, force, torque):
 
 
 @njit
-def tangent_stiffnesses(law, params, delta, r_star):
-    """k_n and k_t (C,) [M/T^2] of contacts at overlaps ``delta`` (the time-step analysis
-    of the current state; Hertz stiffnesses depend on the overlap)."""
-    k_n = np.empty(delta.shape[0])
-    k_t = np.empty(delta.shape[0])
-    for c in range(delta.shape[0]):
-        k_n[c] = normal_force(law, params, delta[c], r_star[c])[1]
-        k_t[c] = tangential_stiffness(law, params, delta[c], r_star[c])
-    return k_n, k_t
-
-
-@njit
 def pair_contact_forces(x, r, pi, pj, periodic_len, law, params, ft, fd, force, normal):
     """For output: force on j of every touching pair (elastic at the current positions
     plus the stored tangential and dashpot forces) and the unit normal; returns the

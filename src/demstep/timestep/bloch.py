@@ -14,7 +14,7 @@ the zone centre and boundary points, refined by Nelder-Mead from its best points
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import minimize
@@ -22,6 +22,7 @@ from scipy.optimize import minimize
 from demstep.contacts import DEFAULT_CONTACT_TOL, ContactSet
 from demstep.packings import Lattice
 from demstep.particles import particle_inertia, particle_mass
+from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.elements import coupled_element_blocks, dofs_per_particle, n_rotations
 
 
@@ -55,36 +56,63 @@ def periodic_contacts(lat: Lattice, k_n: float, k_s: float,
 
 
 class DynamicalMatrix:
-    """M^-1/2 D(k) M^-1/2 for a lattice of equal particles of ``density``."""
+    """M^-1/2 D(k) M^-1/2 for a lattice of equal particles of ``density``; with
+    dashpots ``c_n``, ``c_t`` [M/T] on every contact and global damping, also the
+    damping matrix C^(k) = a1 I + a2 A(k) + M^-1/2 C_d(k) M^-1/2."""
 
-    def __init__(self, lat: Lattice, k_n: float, k_s: float, density: float, rotation: bool):
+    def __init__(self, lat: Lattice, k_n: float, k_s: float, density: float, rotation: bool,
+                 c_n: float = 0.0, c_t: float = 0.0, damping: GlobalDamping | None = None):
         self.lattice = lat
         self.rotation = rotation
         self.pc = periodic_contacts(lat, k_n, k_s)
         self.nb = len(lat.basis)
         self.nd = dofs_per_particle(lat.dim, rotation)
-        Kii, Kij, _ = coupled_element_blocks(self.pc.contacts, rotation)
         m = float(particle_mass(lat.radius, density, lat.dim))
         inertia = float(particle_inertia(m, lat.radius, lat.dim))
         s = 1.0 / np.sqrt(np.array([m] * lat.dim + [inertia] * n_rotations(lat.dim, rotation)))
-        self.Kii = Kii * s[None, :, None] * s[None, None, :]
-        self.Kij = Kij * s[None, :, None] * s[None, None, :]
+        self.blocks = self._scaled_blocks(self.pc.contacts, s)
+        self.damping = damping or GlobalDamping()
+        self.damped = c_n > 0 or c_t > 0 or self.damping.active
+        if self.damped:
+            dashpots = replace(self.pc.contacts, k_n=c_n, k_s=c_t)
+            self.dashpot_blocks = self._scaled_blocks(dashpots, s)
         self.mass = m
 
-    def __call__(self, k_frac: np.ndarray) -> np.ndarray:
+    def _scaled_blocks(self, contacts, s):
+        Kii, Kij, _ = coupled_element_blocks(contacts, self.rotation)
+        return (Kii * s[None, :, None] * s[None, None, :],
+                Kij * s[None, :, None] * s[None, None, :])
+
+    def __call__(self, k_frac: np.ndarray, blocks=None) -> np.ndarray:
         """A(k) for fractional wave vectors (nk, dim): k = 2 pi f / cell. (nk, n, n)."""
+        Kii, Kij = self.blocks if blocks is None else blocks
         k_frac = np.atleast_2d(k_frac)
         phase = np.exp(2j * np.pi * (k_frac @ self.pc.shift.T))  # (nk, C)
         nb, nd = self.nb, self.nd
         A = np.zeros((k_frac.shape[0], nb, nd, nb, nd), dtype=complex)
         a, b = self.pc.contacts.i, self.pc.contacts.j
         for c in range(len(a)):
-            A[:, a[c], :, a[c], :] += self.Kii[c]
-            A[:, a[c], :, b[c], :] += phase[:, c, None, None] * self.Kij[c]
+            A[:, a[c], :, a[c], :] += Kii[c]
+            A[:, a[c], :, b[c], :] += phase[:, c, None, None] * Kij[c]
         return A.reshape(k_frac.shape[0], nb * nd, nb * nd)
 
     def lambda_max_at(self, k_frac) -> np.ndarray:
-        return np.linalg.eigvalsh(self(k_frac))[:, -1]
+        """omega_max^2 at each wave vector; damped, sigma_max^2 (dt = 2 / sigma_max), the
+        largest real root of det(sigma^2 I - sigma C^(k) - A(k)) from the companion
+        linearisation [[0, I], [A, C^]] (:mod:`demstep.timestep.damping`)."""
+        A = self(k_frac)
+        if not self.damped:
+            return np.linalg.eigvalsh(A)[:, -1]
+        n = A.shape[1]
+        C = self(k_frac, self.dashpot_blocks) + self.damping.stiffness * A
+        C += self.damping.mass * np.eye(n)
+        out = np.empty(A.shape[0])
+        for q in range(A.shape[0]):
+            L = np.block([[np.zeros((n, n)), np.eye(n)], [A[q], C[q]]])
+            ev = np.linalg.eigvals(L)
+            real = ev[np.abs(ev.imag) <= 1e-9 * max(1.0, np.abs(ev).max())].real
+            out[q] = real.max() ** 2
+        return out
 
     def lambda_max(self, grid: int | None = None, refine: int = 4):
         """max over the Brillouin zone of lambda_max(A(k)); returns (lambda, k_frac)."""
@@ -104,7 +132,9 @@ class DynamicalMatrix:
         return best_lam, np.mod(best_f + 0.5, 1.0) - 0.5
 
 
-def bloch_lambda_max(lat: Lattice, k_n: float, k_s: float, density: float, rotation: bool):
-    """omega_max^2 [1/T^2] of the infinite lattice and the wave vector (fractional) of
-    the fastest mode."""
-    return DynamicalMatrix(lat, k_n, k_s, density, rotation).lambda_max()
+def bloch_lambda_max(lat: Lattice, k_n: float, k_s: float, density: float, rotation: bool,
+                     c_n: float = 0.0, c_t: float = 0.0, damping: GlobalDamping | None = None):
+    """omega_max^2 [1/T^2] of the infinite lattice (damped: sigma_max^2, so that
+    dt = 2 / sqrt(value) either way) and the wave vector (fractional) of the fastest
+    mode."""
+    return DynamicalMatrix(lat, k_n, k_s, density, rotation, c_n, c_t, damping).lambda_max()

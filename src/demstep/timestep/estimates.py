@@ -1,4 +1,16 @@
-"""All critical-step estimates of one assembly, side by side (the `demstep dt` table)."""
+"""All critical-step estimates of one assembly, side by side (the `demstep dt` table).
+
+With damping (contact dashpots in the :class:`ContactSet`, or :class:`GlobalDamping`),
+every estimate is the damped one: ``exact`` is the exact damped step
+(:mod:`demstep.timestep.exact`) and ``exact-undamped`` is listed beside it;
+``element-coupled`` is the rigorous damped element bound; the rules of thumb
+(``element-paper``, ``nodal``, ``itasca``, ``guidance``) are damped the same way: each
+implies a frequency omega^2 = k per unit mass from its springs, and its dashpots (the
+same contacts' c_n, c_t in place of k_n, k_s) a damping c per unit mass, and the step is
+eq. 28's :func:`~demstep.timestep.stability.damped_dt` (k, c). The material time scales
+of :mod:`demstep.timestep.rules` (``rayleigh-*``, ``hertz-time``) are never damped:
+they are what the codes that use them check.
+"""
 
 from __future__ import annotations
 
@@ -9,14 +21,18 @@ import numpy as np
 from demstep.contacts import ContactSet
 from demstep.errors import InputError
 from demstep.particles import Particles
-from demstep.timestep.assembly import inverse_sqrt_mass, lumped_mass, scaled_stiffness, stiffness_diagonal
-from demstep.timestep.eigen import lambda_max
-from demstep.timestep.elements import coupled_element_lambda, paper_element_lambda
+from demstep.timestep.assembly import inverse_sqrt_mass, lumped_mass, stiffness_diagonal
+from demstep.timestep.damping import GlobalDamping
+from demstep.timestep.elements import coupled_element_damped_dt, dofs_per_particle
 from demstep.timestep.mass_split import element_mass
-from demstep.timestep.stability import GUIDANCE_ALPHA, alpha_of, dt_from_lambda, rayleigh_damped_dt
+from demstep.timestep.rules import RAYLEIGH_FRACTIONS, hertz_time, rayleigh_time
+from demstep.timestep.stability import GUIDANCE_ALPHA, alpha_of, damped_dt, dt_from_lambda
 
-METHODS = ("exact", "exact-periodic", "element-coupled", "element-paper", "nodal",
-           "itasca", "guidance")
+METHODS = ("exact", "exact-undamped", "exact-periodic", "element-coupled", "element-paper",
+           "nodal", "itasca", "guidance")
+#: material rules (Hertz contacts, given E and nu)
+RULES = ("rayleigh-time",) + tuple(f"rayleigh-{round(100 * f)}%" for f in RAYLEIGH_FRACTIONS) \
+    + ("hertz-time",)
 
 #: relative slack when calling an estimate conservative (dt_method <= dt_exact)
 CONSERVATIVE_RTOL = 1e-9
@@ -25,12 +41,30 @@ CONSERVATIVE_RTOL = 1e-9
 @dataclass
 class Estimate:
     """One method's critical step ``dt`` [T] and ``alpha`` = dt / sqrt(m_min/K_max);
-    ``conservative`` says whether dt <= the exact step (None when there is none)."""
+    ``conservative`` says whether dt <= the exact (damped) step (None when there is
+    none); ``kind`` is 'estimate' or 'rule' (a material time scale); ``note`` says how
+    it was computed where that is not obvious."""
 
     method: str
     dt: float
     alpha: float
     conservative: bool | None = None
+    kind: str = "estimate"
+    note: str = ""
+
+
+@dataclass
+class Materials:
+    """Per-particle material data for the rules of :mod:`demstep.timestep.rules`: Young's
+    modulus [M/(L T^2)], Poisson's ratio, density [M/L^3], the effective modulus E* of a
+    contact of the particle with its own material, and the impact velocity [L/T] of the
+    Hertz time (None: not reported)."""
+
+    youngs: np.ndarray
+    poisson: np.ndarray
+    density: np.ndarray
+    e_star: np.ndarray
+    impact_velocity: float | None = None
 
 
 @dataclass
@@ -42,8 +76,20 @@ class TimeStepReport:
     k_max: float
     rotation: bool
     mass_split: str
-    rayleigh: tuple[float, float] | None
+    damping: GlobalDamping
+    dashpots: bool
     estimates: list[Estimate] = field(default_factory=list)
+    exact: object = None  # the ExactStep when 'exact' was computed
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def damped(self) -> bool:
+        return self.dashpots or self.damping.active
+
+    @property
+    def rayleigh(self):
+        """(a1, a2) of global Rayleigh damping, or None."""
+        return (self.damping.mass, self.damping.stiffness) if self.damping.active else None
 
     def get(self, method: str) -> Estimate:
         for e in self.estimates:
@@ -54,47 +100,100 @@ class TimeStepReport:
     def to_json(self) -> dict:
         """The documented JSON shape of ``demstep dt --json``."""
         return {"dim": self.dim, "n_particles": self.n_particles, "n_contacts": self.n_contacts,
-                "m_min": self.m_min, "k_max": self.k_max,
-                "estimates": [{"method": e.method, "dt": e.dt, "alpha": e.alpha}
-                              for e in self.estimates]}
+                "m_min": self.m_min, "k_max": self.k_max, "rotation": self.rotation,
+                "damped": self.damped,
+                "damping": {"dashpots": self.dashpots, "mass": self.damping.mass,
+                            "stiffness": self.damping.stiffness},
+                "estimates": [{"method": e.method, "dt": e.dt, "alpha": e.alpha,
+                               "conservative": e.conservative, "kind": e.kind}
+                              for e in self.estimates],
+                "notes": self.notes}
 
 
-def element_paper_dt(particles, contacts, rotation, mass_split="uniform") -> float:
-    """min over contacts of 2/sqrt(lambda_e) for the paper's elements [T]."""
-    lam = paper_element_lambda(contacts, element_mass(particles, contacts, mass_split), rotation)
-    return float(dt_from_lambda(lam.max()))
+def _damping(damping) -> GlobalDamping:
+    if damping is None:
+        return GlobalDamping()
+    if isinstance(damping, GlobalDamping):
+        return damping
+    a1, a2 = damping
+    return GlobalDamping.rayleigh(a1, a2)
 
 
-def element_coupled_dt(particles, contacts, rotation, mass_split="uniform") -> float:
-    """min over contacts of 2/sqrt(lambda_e) for the coupled elements [T] (a rigorous
-    lower bound on the exact step for any partition of the masses)."""
-    lam = coupled_element_lambda(contacts, element_mass(particles, contacts, mass_split), rotation)
-    return float(dt_from_lambda(lam.max()))
+def element_paper_dt(particles, contacts, rotation, mass_split="uniform", damping=None) -> float:
+    """min over contacts of the paper's element steps [T] (eqs. 6-21); damped per axis
+    as described in the module docstring."""
+    from demstep.timestep.elements import paper_element_lambda
+
+    d = _damping(damping)
+    mass = element_mass(particles, contacts, mass_split)
+    if not (contacts.damped or d.active):
+        return float(dt_from_lambda(paper_element_lambda(contacts, mass, rotation).max()))
+    c_m = mass.inv_m_i + mass.inv_m_j
+    dts = [damped_dt(contacts.k_n * c_m, d.mass + (d.stiffness * contacts.k_n + contacts.c_n) * c_m),
+           damped_dt(contacts.k_s * c_m, d.mass + (d.stiffness * contacts.k_s + contacts.c_t) * c_m)]
+    if rotation:
+        factor = 1.0 if contacts.dim == 2 else 1.0 - (contacts.normal**2).min(axis=1)
+        w = factor * (contacts.arm_i**2 * mass.inv_I_i + contacts.arm_j**2 * mass.inv_I_j)
+        dts.append(damped_dt(contacts.k_s * w, d.mass + (d.stiffness * contacts.k_s + contacts.c_t) * w))
+    return float(np.min([x.min() for x in dts]))
 
 
-def exact_dt(particles, contacts, rotation) -> float:
-    """2/sqrt(lambda_max(M^-1/2 K M^-1/2)) for the assembly's sparse K [T]."""
-    return float(dt_from_lambda(lambda_max(scaled_stiffness(particles, contacts, rotation))))
+def element_coupled_dt(particles, contacts, rotation, mass_split="uniform", damping=None) -> float:
+    """min over contacts of the coupled elements' steps [T]: a rigorous lower bound on the
+    exact (damped) step for any partition of the masses
+    (:func:`~demstep.timestep.elements.coupled_element_damped_dt`)."""
+    d = _damping(damping)
+    dt = coupled_element_damped_dt(contacts, element_mass(particles, contacts, mass_split),
+                                   rotation, d.mass, d.stiffness).min()
+    if d.mass > 0:
+        dt = min(dt, 2.0 / d.mass)  # DOFs outside every element's coupling
+    return float(dt)
 
 
-def nodal_dt(particles, contacts, rotation) -> float:
+def exact_dt(particles, contacts, rotation, damping=None) -> float:
+    """The certified exact critical step [T] (damped when the contacts have dashpots or
+    ``damping`` is given; :func:`demstep.timestep.exact.exact_critical_step`)."""
+    from demstep.timestep.exact import exact_critical_step
+
+    return exact_critical_step(particles, contacts, rotation, _damping(damping)).dt
+
+
+def nodal_dt(particles, contacts, rotation, damping=None) -> float:
     """YADE GlobalStiffnessTimeStepper's rule without safety factor [T]:
     sqrt(2) * sqrt(min over free DOFs of M_dd / K_dd), K_dd the summed contact
-    stiffness of the DOF (translation and, with rotation, rotation)."""
+    stiffness of the DOF (translation and, with rotation, rotation). Damped:
+    :func:`damped_dt` (2 K_dd/M_dd, a1 + 2 (a2 K_dd + C_dd)/M_dd) per DOF."""
+    from demstep.kernels.timestep_kernels import damping_diagonal_kernel
+
+    d = _damping(damping)
     diag = stiffness_diagonal(particles, contacts, rotation)
     free = (inverse_sqrt_mass(particles, rotation) > 0) & (diag > 0)
-    ratio = lumped_mass(particles, rotation)[free] / diag[free]
-    return float(np.sqrt(2.0) * np.sqrt(ratio.min()))
+    mass = lumped_mass(particles, rotation)[free]
+    k = 2.0 * diag[free] / mass
+    c = np.full_like(k, d.mass) + 2.0 * d.stiffness * diag[free] / mass
+    if contacts.damped:
+        nd = dofs_per_particle(particles.dim, rotation)
+        cdiag = damping_diagonal_kernel(contacts, particles.n, nd, rotation).reshape(-1)
+        c += 2.0 * cdiag[free] / mass
+    return float(damped_dt(k, c).min())
 
 
-def itasca_dt(m_min: float, k_max: float) -> float:
-    """sqrt(m_min / K_max) (Itasca 1998, quoted in the paper) [T]."""
-    return float(np.sqrt(m_min / k_max))
+def _rule_dt(alpha: float, m_min: float, k_max: float, c_max: float, d: GlobalDamping) -> float:
+    """alpha sqrt(m_min/K_max) with the damping of the same springs: k = 4 K/(alpha^2 m),
+    c = a1 + (a2 K + C_max) 4/(alpha^2 m)."""
+    scale = 4.0 / (alpha * alpha * m_min)
+    return float(damped_dt(k_max * scale, d.mass + (d.stiffness * k_max + c_max) * scale))
 
 
-def guidance_dt(m_min: float, k_max: float, dim: int) -> float:
+def itasca_dt(m_min: float, k_max: float, c_max: float = 0.0, damping=None) -> float:
+    """sqrt(m_min / K_max) (Itasca 1998, quoted in the paper) [T]; damped as the module
+    docstring says (C_max: the largest dashpot coefficient [M/T])."""
+    return _rule_dt(1.0, m_min, k_max, c_max, _damping(damping))
+
+
+def guidance_dt(m_min: float, k_max: float, dim: int, c_max: float = 0.0, damping=None) -> float:
     """The paper's recommendation 0.3 (2D) / 0.17 (3D) sqrt(m_min/K_max) [T]."""
-    return GUIDANCE_ALPHA[dim] * itasca_dt(m_min, k_max)
+    return _rule_dt(GUIDANCE_ALPHA[dim], m_min, k_max, c_max, _damping(damping))
 
 
 _DENSEST = {2: "hex", 3: "fcc"}
@@ -115,58 +214,97 @@ def densest_packing_alpha(dim: int, rotation: bool = True) -> float:
 
 
 def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bool = True,
-                        mass_split: str = "uniform", rayleigh=None, methods=None,
-                        lattice=None, density: float | None = None) -> TimeStepReport:
-    """Every estimate for ``particles`` with ``contacts``.
+                        mass_split: str = "uniform", damping=None, methods=None,
+                        lattice=None, density: float | None = None,
+                        materials: Materials | None = None, rayleigh=None,
+                        v0: np.ndarray | None = None) -> TimeStepReport:
+    """Every estimate for ``particles`` with ``contacts`` (their stiffnesses and dashpots).
 
+    ``damping``: :class:`GlobalDamping` (or ``rayleigh`` = (a1, a2), the same thing).
     ``lattice`` (a :class:`demstep.packings.Lattice`) with ``density`` adds
-    ``exact-periodic`` (uniform k_n, k_s taken from the contacts). ``rayleigh`` =
-    (a1, a2) applies the damping reduction of eq. 28 to every estimate.
-    ``element-coupled`` always uses the uniform split, whose partition makes it a
-    rigorous bound; ``element-paper`` uses ``mass_split``.
+    ``exact-periodic`` (uniform coefficients taken from the contacts). ``materials``
+    adds the material rules. ``element-coupled`` always uses the uniform split, whose
+    partition makes it a rigorous bound; ``element-paper`` uses ``mass_split``.
+    ``v0`` warm-starts the exact eigensolver.
     """
     if contacts.n == 0:
         raise InputError("contacts: the assembly has no contacts (check radii, positions "
                          "and --contact-tol)")
     if particles.fixed.all():
         raise InputError("particles: every particle is fixed")
+    if damping is not None and rayleigh is not None:
+        raise InputError("damping: give either damping or rayleigh, not both")
+    d = _damping(damping if damping is not None else rayleigh)
+    damped = contacts.damped or d.active
     methods = list(METHODS if methods is None else methods)
     for m in methods:
-        if m not in METHODS:
-            raise InputError(f"method: unknown method {m!r}; choose from {', '.join(METHODS)}")
+        if m not in METHODS + RULES:
+            raise InputError(f"method: unknown method {m!r}; choose from "
+                             f"{', '.join(METHODS + RULES)}")
+    report = TimeStepReport(particles.dim, particles.n, contacts.n, 0.0, 0.0, rotation,
+                            mass_split, d, contacts.damped)
     if "exact-periodic" in methods and lattice is None:
         methods.remove("exact-periodic")
+    if "exact-undamped" in methods and not damped:
+        methods.remove("exact-undamped")
     m_min = float(particles.m[~particles.fixed].min())
     k_max = contacts.k_max()
+    c_max = float(max(contacts.c_n.max(), contacts.c_t.max()))
+    report.m_min, report.k_max = m_min, k_max
     dim = particles.dim
+    exact = None
+    if "exact" in methods or "exact-undamped" in methods:
+        from demstep.timestep.exact import exact_critical_step
+
+        exact = exact_critical_step(particles, contacts, rotation, d, v0=v0)
+        report.exact = exact
     compute = {
-        "exact": lambda: exact_dt(particles, contacts, rotation),
-        "exact-periodic": lambda: _periodic_dt(lattice, contacts, density, rotation),
-        "element-coupled": lambda: element_coupled_dt(particles, contacts, rotation),
-        "element-paper": lambda: element_paper_dt(particles, contacts, rotation, mass_split),
-        "nodal": lambda: nodal_dt(particles, contacts, rotation),
-        "itasca": lambda: itasca_dt(m_min, k_max),
-        "guidance": lambda: guidance_dt(m_min, k_max, dim),
+        "exact": lambda: exact.dt,
+        "exact-undamped": lambda: exact.dt_undamped,
+        "exact-periodic": lambda: _periodic_dt(lattice, contacts, density, rotation, d),
+        "element-coupled": lambda: element_coupled_dt(particles, contacts, rotation, damping=d),
+        "element-paper": lambda: element_paper_dt(particles, contacts, rotation, mass_split, d),
+        "nodal": lambda: nodal_dt(particles, contacts, rotation, d),
+        "itasca": lambda: itasca_dt(m_min, k_max, c_max, d),
+        "guidance": lambda: guidance_dt(m_min, k_max, dim, c_max, d),
     }
-    report = TimeStepReport(dim, particles.n, contacts.n, m_min, k_max, rotation, mass_split,
-                            None if rayleigh is None else tuple(map(float, rayleigh)))
     for m in methods:
-        dt = compute[m]()
-        if rayleigh is not None:
-            dt = float(rayleigh_damped_dt(dt, *rayleigh))
-        report.estimates.append(Estimate(m, dt, float(alpha_of(dt, m_min, k_max))))
-    if "exact" in methods:
-        ref = report.get("exact").dt
+        if m in compute:
+            dt = float(compute[m]())
+            report.estimates.append(Estimate(m, dt, float(alpha_of(dt, m_min, k_max))))
+    if materials is not None:
+        for name, dt in material_rules(particles, materials).items():
+            if name in methods or set(methods) & set(RULES) == set():
+                report.estimates.append(Estimate(name, dt, float(alpha_of(dt, m_min, k_max)),
+                                                 kind="rule"))
+    if exact is not None:
+        ref = exact.dt
         for e in report.estimates:
             e.conservative = bool(e.dt <= ref * (1.0 + CONSERVATIVE_RTOL))
     return report
 
 
-def _periodic_dt(lattice, contacts, density, rotation):
+def material_rules(particles: Particles, materials: Materials) -> dict:
+    """The Rayleigh time, its usual fractions and the Hertz time [T] (when the impact
+    velocity is known) of :mod:`demstep.timestep.rules`."""
+    free = ~particles.fixed
+    t_r = rayleigh_time(particles.r[free], materials.density[free], materials.youngs[free],
+                        materials.poisson[free])
+    out = {"rayleigh-time": t_r}
+    for f in RAYLEIGH_FRACTIONS:
+        out[f"rayleigh-{round(100 * f)}%"] = f * t_r
+    if materials.impact_velocity is not None and materials.impact_velocity > 0:
+        out["hertz-time"] = hertz_time(particles.m[free], particles.r[free],
+                                       materials.e_star[free], materials.impact_velocity)
+    return out
+
+
+def _periodic_dt(lattice, contacts, density, rotation, damping: GlobalDamping):
     from demstep.timestep.bloch import bloch_lambda_max
 
     if density is None:
         raise InputError("density: needed for the exact-periodic estimate")
     lam, _ = bloch_lambda_max(lattice, float(contacts.k_n.max()), float(contacts.k_s.max()),
-                              density, rotation)
+                              density, rotation, c_n=float(contacts.c_n.max()),
+                              c_t=float(contacts.c_t.max()), damping=damping)
     return float(dt_from_lambda(lam))
