@@ -113,6 +113,11 @@ class TimeStep:
                 raise InputError(f"timestep growth: must be >= 0, got {self.growth!r}")
 
 
+def _sorted_keys(keys, values):
+    order = np.argsort(keys, kind="stable")
+    return keys[order], values[order]
+
+
 @dataclass
 class _Trigger:
     every: int
@@ -349,12 +354,26 @@ class Simulation:
         """K_max for alpha: the law's largest stiffness (Hertz: at the TimeStep overlap)."""
         return float(self.law.stiffness_bound(float(self.r.max()), self.timestep.overlap))
 
-    def contact_set(self) -> ContactSet:
-        """The current contacts (overlap > 0) with their tangent stiffnesses, walls included,
-        in the form the time-step analysis takes (positions projected to ``dim``)."""
+    def contact_set(self, horizon: float | None = None, cover: dict | None = None) -> ContactSet:
+        """The contacts in the form the time-step analysis takes, walls included, with
+        their linearised coefficients: tangent stiffnesses and dashpot coefficients from
+        the law (:func:`demstep.contact.laws.contact_coefficients`); positions projected
+        to ``dim``.
+
+        ``horizon`` None: the contacts closed now (overlap > 0). ``horizon`` [T]: also
+        every pair of the neighbour lists that can close within that time: a pair whose
+        gap is less than its reach 2 h (s_i + s_j), s = |v| + h |a| the distance a
+        particle covers at its current velocity and acceleration (twice: a margin for
+        speeding up); non-linear laws take the stiffness at the overlap the pair can
+        reach, delta + reach. Normals and arms are those of the current geometry
+        (arms at zero overlap for open pairs). ``cover`` (a dict) receives, for 'pairs'
+        and 'walls', the sorted keys of the contacts included and the overlaps their
+        coefficients assumed (see :meth:`_contacts_covered`)."""
         dim = self.dim
         params = self.law.params()
         law_id = int(params[0])
+        if horizon is not None:
+            speed = self._reach_speed(horizon)
         parts = []
         if len(self.pi):
             d = self.x[self.pj] - self.x[self.pi]
@@ -363,58 +382,115 @@ class Simulation:
                     d[:, k] -= self.periodic_len[k] * np.rint(d[:, k] / self.periodic_len[k])
             dist = np.linalg.norm(d, axis=1)
             delta = self.r[self.pi] + self.r[self.pj] - dist
-            on = delta > 0
-            i, j, d, dist, delta = self.pi[on], self.pj[on], d[on], dist[on], delta[on]
+            reach = 0.0 if horizon is None else 2.0 * horizon * (speed[self.pi] + speed[self.pj])
+            on = delta + reach > 0
+            i, j, d, dist = self.pi[on], self.pj[on], d[on], dist[on]
+            delta_eval = (delta + reach)[on] if horizon is not None else delta[on]
             r_star = self.r[i] * self.r[j] / (self.r[i] + self.r[j])
-            kn, kt = self._tangent_stiffness(law_id, params, delta, r_star)
-            ai, aj = contact_arms_array(self.r[i], self.r[j], dist)
-            parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt))
+            inv = self.inv_m[i] + self.inv_m[j]
+            m_star = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), self.m[i])
+            kn, kt, cn, ct = self._coefficients(law_id, params, delta_eval, r_star, m_star)
+            ai, aj = contact_arms_array(self.r[i], self.r[j], np.minimum(dist, self.r[i] + self.r[j]))
+            parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
+                                    c_n=cn, c_t=ct))
+            if cover is not None:
+                cover["pairs"] = _sorted_keys(i * len(self.r) + j, delta_eval)
         if len(self.wp):
             dist = np.einsum("qk,qk->q", self.x[self.wp] - self.wall_point[self.ww], self.wall_normal[self.ww])
             delta = self.r[self.wp] - dist
-            on = delta > 0
-            p, wi, dist, delta = self.wp[on], self.ww[on], dist[on], delta[on]
-            kn, kt = self._tangent_stiffness(law_id, params, delta, self.r[p])
-            parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim], dist,
-                                    np.zeros(len(p)), kn, kt, wi))
+            reach = 0.0
+            if horizon is not None:
+                wall_speed = np.linalg.norm(self.wall_vel[self.ww], axis=1)
+                reach = 2.0 * horizon * (speed[self.wp] + wall_speed)
+            on = delta + reach > 0
+            p, wi, dist = self.wp[on], self.ww[on], dist[on]
+            delta_eval = (delta + reach)[on] if horizon is not None else delta[on]
+            kn, kt, cn, ct = self._coefficients(law_id, params, delta_eval, self.r[p], self.m[p])
+            parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim],
+                                    np.minimum(dist, self.r[p]), np.zeros(len(p)), kn, kt, wi,
+                                    c_n=cn, c_t=ct))
+            if cover is not None:
+                cover["walls"] = _sorted_keys(p * max(1, len(self.walls)) + wi, delta_eval)
         if not parts:
             return ContactSet(np.zeros(0), np.zeros(0), np.zeros((0, dim)), np.zeros(0),
                               np.zeros(0), 0.0, 0.0)
         return ContactSet.concatenate(parts)
 
-    @staticmethod
-    def _tangent_stiffness(law_id, params, delta, r_star):
-        """Tangent stiffnesses k_n, k_t [M/T^2] of contacts at overlaps ``delta``."""
-        from demstep.kernels.dem import tangent_stiffnesses
+    def _reach_speed(self, horizon: float) -> np.ndarray:
+        """Per particle, |v| + h |a| [L/T] (a from the last contact and applied forces and
+        gravity; zero for fixed particles)."""
+        acc = np.linalg.norm((self.force + self.applied_force) * self.inv_m[:, None]
+                             + self.gravity * (self.inv_m[:, None] > 0), axis=1)
+        return np.linalg.norm(self.v, axis=1) + horizon * acc
 
-        return tangent_stiffnesses(law_id, tuple(params), np.ascontiguousarray(delta, float),
-                                   np.ascontiguousarray(r_star, float))
+    @staticmethod
+    def _coefficients(law_id, params, delta, r_star, m_star):
+        """k_n, k_t [M/T^2], c_n, c_t [M/T] of contacts at overlaps ``delta``."""
+        from demstep.contact.laws import contact_coefficients
+
+        return contact_coefficients(law_id, tuple(params), np.ascontiguousarray(delta, float),
+                                    np.ascontiguousarray(r_star, float),
+                                    np.ascontiguousarray(m_star, float))
 
     def particles_now(self) -> Particles:
         """Current particles (positions, current masses after any scaling)."""
         return Particles(self.x[:, :self.dim].copy(), self.r, self.m, self.inertia, self.fixed)
 
-    def critical_dt(self, method: str = "exact", rotation: bool = True) -> float | None:
-        """Critical step of the current contact state by ``method`` [T] (None: no contacts)."""
-        from demstep.timestep.estimates import element_coupled_dt, exact_dt
+    def critical_dt(self, method: str = "exact", rotation: bool = True,
+                    horizon: float | None = None) -> float | None:
+        """Critical step [T] by ``method`` ('exact' or 'element-coupled') of the contacts
+        closed now, or with ``horizon`` [T] of every contact that can close within it
+        (:meth:`contact_set`), with the law's dashpots and the global viscous damping
+        (the damped step of :mod:`demstep.timestep.damping`); None without contacts.
+        The exact solver is warm-started from the last critical mode."""
+        from demstep.timestep.estimates import element_coupled_dt
+        from demstep.timestep.exact import exact_critical_step
 
-        contacts = self.contact_set()
+        if method not in ("exact", "element-coupled"):
+            raise InputError(f"method: must be exact or element-coupled, got {method!r}")
+        cover = {}
+        contacts = self.contact_set(horizon, cover)
+        self._dt_cover = cover
         if contacts.n == 0:
             return None
         p = self.particles_now()
         rotation = rotation and self.rotation
-        if method == "exact":
-            return exact_dt(p, contacts, rotation)
+        damping = self._global_damping()
         if method == "element-coupled":
-            return element_coupled_dt(p, contacts, rotation)
-        raise InputError(f"method: must be exact or element-coupled, got {method!r}")
+            return element_coupled_dt(p, contacts, rotation, damping=damping)
+        mode = getattr(self, "_dt_mode", None)
+        result = exact_critical_step(p, contacts, rotation, damping, v0=mode)
+        self._dt_mode = result.mode
+        self.dt_exact_undamped = result.dt_undamped
+        return result.dt
+
+    def _global_damping(self):
+        from demstep.timestep.damping import GlobalDamping
+
+        return GlobalDamping(mass=float(self.damping.viscous))
 
     def _densest_packing_dt(self) -> float:
-        from demstep.timestep.estimates import densest_packing_alpha
+        """The damped coupled element bound of the densest packing of the lightest
+        particles with the law's largest stiffness (Hertz: at the TimeStep overlap) and
+        its dashpots: the step before any contact can form."""
+        from demstep.timestep.estimates import densest_packing_dt
 
-        return densest_packing_alpha(self.dim) * math.sqrt(self.m_min / self.stiffness_max())
+        params = self.law.params()
+        r = float(self.r.max())
+        m = self.m_min
+        # a wall contact (R* = r_max) at the TimeStep overlap: the law's stiffness_max()
+        kn, kt, cn, ct = self._coefficients(int(params[0]), params,
+                                            np.array([self.timestep.overlap * r]),
+                                            np.array([r]), np.array([0.5 * m]))
+        return densest_packing_dt(self.dim, m, kn[0], kt[0], cn[0], ct[0],
+                                  self.damping.viscous, self.rotation)
 
     def _choose_dt(self, force: bool = False):
+        """dt for the next steps. 'auto': ``safety`` x the critical step of every contact
+        that can close before the next estimate (:meth:`critical_dt` with the horizon of
+        ``every`` steps), dashpots and global damping included; growth capped, decreases
+        immediate. :meth:`_contacts_covered` forces a new estimate as soon as a contact
+        closes that the last one did not include."""
         ts = self.timestep
         if ts.mode == "fixed":
             self.dt = float(ts.dt)
@@ -423,19 +499,78 @@ class Simulation:
         else:
             if not force and self.dt is not None and self.step < self._next_dt_update:
                 return
-            if self._pairs_built:
-                estimate = self.critical_dt(ts.method)
-            else:
-                estimate = None
+            fallback = self._densest_packing_dt()
+            horizon = int(ts.every) * (self.dt if self.dt is not None else ts.safety * fallback)
+            self.dt_horizon = horizon
+            estimate = self.critical_dt(ts.method, horizon=horizon) if self._pairs_built else None
             if estimate is None:
-                estimate = self._densest_packing_dt()
+                estimate = fallback
             self.dt_estimate = estimate
+            self.n_dt_estimates = getattr(self, "n_dt_estimates", 0) + 1
             target = ts.safety * estimate
             if self.dt is None or target < self.dt:
                 self.dt = target
             else:
                 self.dt = min(target, self.dt * (1.0 + ts.growth))
             self._next_dt_update = self.step + int(ts.every)
+
+    def timestep_state(self) -> dict:
+        """Arrays of the 'auto' time-step control that a restart needs to continue bit for
+        bit (the last critical mode, which warm-starts the solver, and the contacts the
+        last estimate covered), keyed ``ts_*``."""
+        out = {}
+        mode = getattr(self, "_dt_mode", None)
+        if mode is not None:
+            out["ts_mode"] = mode
+        for name, (keys, assumed) in (getattr(self, "_dt_cover", None) or {}).items():
+            out[f"ts_cover_{name}_keys"] = keys
+            out[f"ts_cover_{name}_overlap"] = assumed
+        return out
+
+    def restore_timestep_state(self, data: dict):
+        """Inverse of :meth:`timestep_state`."""
+        self._dt_mode = np.array(data["ts_mode"]) if "ts_mode" in data else None
+        cover = {}
+        for name in ("pairs", "walls"):
+            if f"ts_cover_{name}_keys" in data:
+                cover[name] = (np.array(data[f"ts_cover_{name}_keys"]),
+                               np.array(data[f"ts_cover_{name}_overlap"]))
+        self._dt_cover = cover if cover or "ts_mode" in data else None
+
+    def _contacts_covered(self) -> bool:
+        """Whether every contact closed now was part of the last 'auto' estimate, at no
+        larger overlap than it assumed (False also when there was no estimate)."""
+        cover = getattr(self, "_dt_cover", None)
+        if cover is None:
+            return False
+        checks = []
+        if len(self.pi):
+            d = self.x[self.pj] - self.x[self.pi]
+            for k in range(3):
+                if self.periodic_len[k] > 0:
+                    d[:, k] -= self.periodic_len[k] * np.rint(d[:, k] / self.periodic_len[k])
+            delta = self.r[self.pi] + self.r[self.pj] - np.linalg.norm(d, axis=1)
+            on = delta > 0
+            checks.append(("pairs", self.pi[on] * len(self.r) + self.pj[on], delta[on]))
+        if len(self.wp):
+            dist = np.einsum("qk,qk->q", self.x[self.wp] - self.wall_point[self.ww],
+                             self.wall_normal[self.ww])
+            delta = self.r[self.wp] - dist
+            on = delta > 0
+            checks.append(("walls", self.wp[on] * max(1, len(self.walls)) + self.ww[on], delta[on]))
+        for name, keys, delta in checks:
+            if len(keys) == 0:
+                continue
+            if name not in cover:
+                return False
+            known, assumed = cover[name]
+            pos = np.searchsorted(known, keys)
+            pos = np.minimum(pos, len(known) - 1)
+            if not np.array_equal(known[pos], keys):
+                return False
+            if self.law.law_id != 0 and np.any(delta > assumed[pos]):
+                return False  # a non-linear law stiffer than assumed
+        return True
 
     # --------------------------------------------------------------- running
     def every(self, n: int, callback: Callable[["Simulation"], None]):
@@ -450,6 +585,11 @@ class Simulation:
         # strain energy of every particle at an overlap of 1e-4 radius, springs at K_max
         scale = len(self.r) * self.stiffness_max() * float(np.mean(self.r)) ** 2
         return 1e-8 * 0.5 * scale
+
+    def prepare_lists(self):
+        """Build the neighbour lists (contact history starts empty) if not built yet."""
+        if not self._pairs_built:
+            self._rebuild()
 
     def prepare(self):
         """Build neighbour lists and choose dt (done by run(); call to read sim.dt first)."""
@@ -547,8 +687,9 @@ class Simulation:
                 if self.step >= t.next_step:
                     t.callback(self)
                     t.next_step = self.step + t.every
-            if self.timestep.mode == "auto" and self.step >= self._next_dt_update:
-                self._choose_dt()
+            if self.timestep.mode == "auto" and (self.step >= self._next_dt_update
+                                                 or not self._contacts_covered()):
+                self._choose_dt(force=True)
             if until is not None and self.step >= next_check:
                 next_check = self.step + check_every
                 if until(self):

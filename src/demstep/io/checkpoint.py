@@ -43,6 +43,7 @@ def save_checkpoint(sim, path) -> Path:
                                   float(sim._time_ref[0]), sim._time_ref[1],
                                   np.nan if sim._time_ref[2] is None else sim._time_ref[2]]),
                 law=sim.law.params(), format=np.array([FORMAT_VERSION]),
+                **sim.timestep_state(),
                 version=np.array([__version__]))
     with atomic_path(path, suffix=".npz.tmp") as tmp:
         with open(tmp, "wb") as fh:
@@ -73,6 +74,7 @@ def load_checkpoint(sim, path):
         sim.ledger.acc[:] = data["acc"]
         sim.ledger.energy[:] = data["energy"]
         step, time, dt, dt_prev, first, max_err, next_dt, dt_est, t_step, t_time, t_dt = data["scalars"]
+        sim.restore_timestep_state({k: data[k] for k in data.files if k.startswith("ts_")})
     sim.step = int(step)
     sim.time = float(time)
     sim.dt = None if np.isnan(dt) else float(dt)

@@ -56,7 +56,8 @@ class ParticleData:
     """Particles read from a file: centres ``x`` (N, dim) [L], radii ``r`` (N,) [L],
     masses ``m`` (N,) [M] or None, velocities ``v`` (N, dim) [L/T] or None, angular
     velocities ``w`` (N, 3) [1/T] or None; LIGGGHTS ids/types, the dump's time step
-    number and box bounds (dim, 2) [L] when the file has them."""
+    number and box bounds (dim, 2) [L] when the file has them, and which box axes are
+    periodic (``periodic`` (dim,) bool: the dump's ``pp`` boundary flags)."""
 
     x: np.ndarray
     r: np.ndarray
@@ -67,6 +68,7 @@ class ParticleData:
     types: np.ndarray | None = None
     timestep: int | None = None
     box: np.ndarray | None = None
+    periodic: np.ndarray | None = None
     source: str = ""
     extra: dict = field(default_factory=dict)
 
@@ -195,6 +197,7 @@ def write_csv(path, x, r, m=None) -> Path:
 class _Snapshot:
     timestep: int
     box: np.ndarray
+    periodic: np.ndarray  # (3,) bool: 'pp' flags
     columns: list[str]
     rows: list[str]
     first_line: int  # line number of the first atom row
@@ -228,7 +231,16 @@ def _liggghts_snapshots(path) -> list[_Snapshot]:
         n_atoms = _integer(lines[k + 3].strip(), path, k + 4, "NUMBER OF ATOMS")
         if n_atoms < 0:
             raise InputError(f"{path}:{k + 4}: NUMBER OF ATOMS: must be >= 0, got {n_atoms}")
-        expect(k + 4, "BOX BOUNDS")
+        bounds = expect(k + 4, "BOX BOUNDS").split()[3:]
+        if bounds[:3] == ["xy", "xz", "yz"]:
+            raise InputError(f"{path}:{k + 5}: BOX BOUNDS: a triclinic box ({' '.join(bounds)}) "
+                             f"is not supported; write the dump from an orthogonal box")
+        flags = bounds[:3] if len(bounds) >= 3 else ["ff", "ff", "ff"]
+        for a, flag in enumerate(flags):
+            if len(flag) != 2 or any(f not in "pfsm" for f in flag) or (("p" in flag) and flag != "pp"):
+                raise InputError(f"{path}:{k + 5}: BOX BOUNDS: boundary flag of {'xyz'[a]} must "
+                                 f"be pp, or two of f, s, m, got {flag!r}")
+        periodic = np.array([flag == "pp" for flag in flags])
         box = np.zeros((3, 2))
         for a in range(3):
             i = k + 5 + a
@@ -247,7 +259,7 @@ def _liggghts_snapshots(path) -> list[_Snapshot]:
         if first + n_atoms > n_lines:
             raise InputError(f"{path}:{n_lines}: expected {n_atoms} atom rows after line "
                              f"{first}, the file ends after {n_lines - first}")
-        snaps.append(_Snapshot(timestep, box, [c.lower() for c in columns],
+        snaps.append(_Snapshot(timestep, box, periodic, [c.lower() for c in columns],
                                lines[first:first + n_atoms], first + 1))
         k = first + n_atoms
     if not snaps:
@@ -341,7 +353,8 @@ def read_liggghts_dump(path, snapshot: int = -1, timestep: int | None = None) ->
         np.ascontiguousarray(x[order]), r[order].copy(), m, v, w,
         ids=data["id"][order].astype(np.int64) if "id" in data else None,
         types=data["type"][order].astype(np.int64) if "type" in data else None,
-        timestep=snap.timestep, box=snap.box[:dim].copy(), source=str(path))
+        timestep=snap.timestep, box=snap.box[:dim].copy(), periodic=snap.periodic[:dim].copy(),
+        source=str(path))
 
 
 def format_liggghts_snapshot(x, r, m=None, v=None, timestep: int = 0, box=None, ids=None,

@@ -23,8 +23,9 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-#: systems up to this many DOFs are solved densely (exact to rounding)
-DENSE_LIMIT = 1500
+#: systems up to this many DOFs are solved densely (exact to rounding); above, Lanczos
+#: on the matrix-free operator is faster (a dense eigh is O(n^3))
+DENSE_LIMIT = 300
 #: relative accuracy requested from ARPACK for the largest eigenvalue
 EIGSH_TOL = 1e-10
 #: weight of the fixed random vector mixed into a warm start (keeps every direction)

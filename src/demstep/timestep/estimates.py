@@ -199,18 +199,31 @@ def guidance_dt(m_min: float, k_max: float, dim: int, c_max: float = 0.0, dampin
 _DENSEST = {2: "hex", 3: "fcc"}
 
 
-def densest_packing_alpha(dim: int, rotation: bool = True) -> float:
-    """alpha of the coupled element bound for the densest packing of equal particles
-    (hexagonal disks, FCC spheres; uniform split): the step to use before any contact
-    has formed (1/3 in 2D and about 0.218 in 3D with rotation)."""
+def densest_packing_dt(dim: int, mass: float, k_n: float, k_t: float, c_n: float = 0.0,
+                       c_t: float = 0.0, mass_damping: float = 0.0,
+                       rotation: bool = True) -> float:
+    """The coupled element bound [T] of the densest packing of equal particles of
+    ``mass`` (hexagonal disks, FCC spheres; uniform split) whose contacts have springs
+    k_n, k_t [M/T^2], dashpots c_n, c_t [M/T] and global damping a1 = ``mass_damping``:
+    the step to use before any contact has formed."""
     from demstep.contacts import find_contacts
     from demstep.packings import lattice
+    from demstep.particles import INERTIA_FACTOR
 
     lat = lattice(_DENSEST[dim], 1.0)
     x, box = lat.supercell(3)
-    p = Particles.from_density(x, np.ones(len(x)), 1.0)
-    c = find_contacts(p, 1.0, periodic=box)
-    return element_coupled_dt(p, c, rotation) / np.sqrt(p.m[0])
+    n = len(x)
+    p = Particles(x, np.ones(n), np.full(n, mass), np.full(n, INERTIA_FACTOR[dim] * mass))
+    c = find_contacts(p, k_n, k_t, periodic=box)
+    c.c_n[:] = c_n
+    c.c_t[:] = c_t
+    return element_coupled_dt(p, c, rotation, damping=GlobalDamping(mass_damping))
+
+
+def densest_packing_alpha(dim: int, rotation: bool = True) -> float:
+    """alpha of :func:`densest_packing_dt` without damping (1/3 in 2D and 2/sqrt(84),
+    about 0.218, in 3D with rotation)."""
+    return densest_packing_dt(dim, 1.0, 1.0, 1.0, rotation=rotation)
 
 
 def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bool = True,

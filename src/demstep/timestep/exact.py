@@ -111,6 +111,24 @@ class ScaledContactOperator:
         cq = float(q @ self.dashpots(q)) if self.contacts.damped else 0.0
         return kq, cq + self.damping.mass + self.damping.stiffness * kq
 
+    def damping_bound(self) -> float:
+        """An upper bound on lambda_max(C^) [1/T] (C^ with a1, a2 and the dashpots) from
+        Rayleigh's theorem on the coupled elements (uniform mass split)."""
+        from demstep.timestep.elements import coupled_element_lambda
+        from demstep.timestep.mass_split import element_mass
+
+        d = self.damping
+        bound = d.mass
+        if self.contacts.n:
+            mass = element_mass(self.particles, self.contacts)
+            if d.stiffness:
+                bound += d.stiffness * float(coupled_element_lambda(self.contacts, mass,
+                                                                    self.rotation).max())
+            if self.contacts.damped:
+                dashpots = replace(self.contacts, k_n=self.contacts.c_n, k_s=self.contacts.c_t)
+                bound += float(coupled_element_lambda(dashpots, mass, self.rotation).max())
+        return bound
+
     def mode_shares(self, q: np.ndarray):
         """Where the mode q (unit, mass-scaled) lives: per particle the translational and
         rotational shares of its kinetic energy (N,), (N,) (all shares sum to 1), and per
@@ -183,14 +201,22 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
         sigma = max(sigma, new)
         if converged:
             break
-    # certify: sigma_up^2 >= upper bound of lambda_max(A(sigma_up)) = a1 sigma_up + ...
-    margin = CERTIFY_MARGIN
-    for _ in range(60):
-        up = sigma * (1.0 + margin)
-        check = op.top(up, v0=q, dense_limit=dense_limit)
-        if up * up >= check.upper + a1 * up:
-            break
-        margin *= 4.0
-    else:  # pragma: no cover - the iteration always converges for PSD K, C
-        raise RuntimeError("exact damped step: could not certify sigma_max")
+    # certify from above. First in closed form: for s >= sigma, lambda_max(A(s)) <=
+    # U + (s - sigma) Lambda_C with U the residual bound at sigma and Lambda_C >=
+    # lambda_max(C^) from the (rigorous) element bounds of K and C_d; sigma_up is the
+    # root of s^2 = U + (s - sigma) Lambda_C. When that bound is loose, check candidates
+    # with the solver: sigma_up^2 >= upper bound of lambda_max(A(sigma_up)).
+    upper = top.upper + a1 * sigma
+    lam_c = op.damping_bound()
+    up = float(damped_sigma(max(upper - sigma * lam_c, 0.0), lam_c))
+    if not up <= sigma * (1.0 + 1e-6):
+        margin = CERTIFY_MARGIN
+        for _ in range(60):
+            up = sigma * (1.0 + margin)
+            check = op.top(up, v0=q, dense_limit=dense_limit)
+            if up * up >= check.upper + a1 * up:
+                break
+            margin *= 4.0
+        else:  # pragma: no cover - the iteration always converges for PSD K, C
+            raise RuntimeError("exact damped step: could not certify sigma_max")
     return ExactStep(float(2.0 / up), float(dt_undamped), sigma, lam, q, iterations, True, op)

@@ -1,0 +1,586 @@
+"""What a time-step analysis reads: particles, their contacts with linearised
+coefficients, and the damping, from particle files of other codes, lattices, demstep
+case files and checkpoints (``demstep dt``).
+
+The contact model turns each contact's geometry into the coefficients of
+:class:`~demstep.contacts.ContactSet`:
+
+* ``linear``: k_n, k_t [M/T^2] given;
+* ``hertz``: tangent stiffnesses k_n = 2 E* sqrt(R* delta), k_t = 8 G* sqrt(R* delta)
+  at each contact's overlap delta (or at least ``overlap`` x R*), with E*, G* from
+  Young's moduli and Poisson's ratios per material, as LIGGGHTS' hertz model builds them
+  (1/E* = (1 - nu_i^2)/E_i + (1 - nu_j^2)/E_j, 1/G* = 2 (2 - nu_i)(1 + nu_i)/E_i +
+  2 (2 - nu_j)(1 + nu_j)/E_j; a wall has the particle's material, R* = r);
+
+and its dashpots, by absolute coefficients gamma_n, gamma_t [M/T] (LIGGGHTS'
+``absolute_damping``) or by a restitution coefficient e, through
+beta = -ln e / sqrt(ln^2 e + pi^2), in one of two conventions:
+
+* ``demstep`` (the engine's law): c_n = f beta sqrt(m* k_n), c_t = f beta_t sqrt(m* k_t)
+  with beta_t from a tangential restitution (none by default); f = 2 (linear),
+  2 sqrt(5/6) (Hertz, Tsuji et al. 1992);
+* ``liggghts`` (LIGGGHTS 3.8): Hertz as above with beta_t = beta (``tangential_damping``
+  on, its default); linear (``hooke``) c_n = 2 beta sqrt(m* k_n) and c_t = c_n.
+
+Every coefficient formula is the engine's (:func:`demstep.contact.laws.contact_coefficients`);
+only the LIGGGHTS choices of beta_t and of the linear c_t are made here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from demstep.contacts import DEFAULT_CONTACT_TOL, ContactSet, find_contacts
+from demstep.errors import InputError
+from demstep.particles import INERTIA_FACTOR, Particles, particle_inertia
+from demstep.timestep.damping import GlobalDamping
+from demstep.timestep.estimates import Materials
+
+MODELS = ("linear", "hertz")
+CONVENTIONS = ("demstep", "liggghts")
+
+
+@dataclass
+class Material:
+    """Young's modulus [M/(L T^2)], Poisson's ratio, density [M/L^3] (None: from the
+    particles' masses) of one particle type."""
+
+    youngs: float
+    poisson: float
+    density: float | None = None
+
+    def validate(self, where: str):
+        if not (math.isfinite(self.youngs) and self.youngs > 0):
+            raise InputError(f"{where} youngs: must be finite and > 0, got {self.youngs!r}")
+        if not (math.isfinite(self.poisson) and -1.0 < self.poisson < 0.5):
+            raise InputError(f"{where} poisson: must lie in (-1, 0.5), got {self.poisson!r}")
+        if self.density is not None and not (math.isfinite(self.density) and self.density > 0):
+            raise InputError(f"{where} density: must be finite and > 0, got {self.density!r}")
+
+
+@dataclass
+class ContactModel:
+    """How contacts become coefficients (module docstring). ``materials`` maps a particle
+    type to its :class:`Material` (type 1 for files without a type column)."""
+
+    model: str = "linear"
+    k_n: float | None = None
+    k_t: float | None = None
+    materials: dict = field(default_factory=dict)
+    restitution: float | None = None
+    restitution_tangential: float | None = None
+    gamma_n: float = 0.0
+    gamma_t: float = 0.0
+    tangential_damping: bool = True
+    convention: str = "demstep"
+    overlap: float = 0.0
+
+    def validate(self):
+        if self.model not in MODELS:
+            raise InputError(f"model: must be one of {', '.join(MODELS)}, got {self.model!r}")
+        if self.convention not in CONVENTIONS:
+            raise InputError(f"convention: must be one of {', '.join(CONVENTIONS)}, got "
+                             f"{self.convention!r}")
+        if self.model == "linear":
+            if self.k_n is None:
+                raise InputError("kn: the linear model needs --kn")
+            _positive("kn", self.k_n)
+            if self.k_t is not None:
+                _non_negative("ks", self.k_t)
+            if self.materials and any(m.youngs for m in self.materials.values()) and False:
+                pass
+        else:
+            if self.k_n is not None or self.k_t is not None:
+                raise InputError("kn: --kn/--ks belong to the linear model; the hertz model "
+                                 "takes --youngs and --poisson")
+            if not self.materials:
+                raise InputError("youngs: the hertz model needs --youngs and --poisson "
+                                 "(or --materials)")
+            for t, m in self.materials.items():
+                m.validate(f"material {t}:")
+        for name, v in (("restitution", self.restitution),
+                        ("restitution-t", self.restitution_tangential)):
+            if v is not None and not (math.isfinite(v) and 0.0 < v <= 1.0):
+                raise InputError(f"{name}: must lie in (0, 1], got {v!r}")
+        _non_negative("gamma-n", self.gamma_n)
+        _non_negative("gamma-t", self.gamma_t)
+        if self.restitution is not None and (self.gamma_n or self.gamma_t):
+            raise InputError("restitution: give either --restitution or --gamma-n/--gamma-t, "
+                             "not both")
+        if self.restitution_tangential is not None and self.convention == "liggghts":
+            raise InputError("restitution-t: the liggghts convention damps the tangential "
+                             "direction with the normal restitution (use "
+                             "--no-tangential-damping to switch it off)")
+        if not (math.isfinite(self.overlap) and self.overlap >= 0):
+            raise InputError(f"overlap: must be finite and >= 0, got {self.overlap!r}")
+
+    @property
+    def damped(self) -> bool:
+        return bool(self.gamma_n or self.gamma_t or (self.restitution is not None
+                                                     and self.restitution < 1.0))
+
+    def describe(self) -> str:
+        if self.model == "linear":
+            text = f"linear k_n = {self.k_n:g}, k_t = {self.k_t if self.k_t is not None else self.k_n:g}"
+        else:
+            mats = "; ".join(f"type {t}: E = {m.youngs:g}, nu = {m.poisson:g}"
+                             for t, m in sorted(self.materials.items()))
+            text = f"Hertz-Mindlin tangent stiffnesses at each overlap ({mats})"
+        if self.gamma_n or self.gamma_t:
+            text += f"; dashpots gamma_n = {self.gamma_n:g}, gamma_t = {self.gamma_t:g} (absolute)"
+        elif self.restitution is not None:
+            if self.convention == "liggghts":
+                tang = ("tangential dashpot " + ("on" if self.tangential_damping else "off"))
+                form = ("c_t = c_n" if self.model == "linear" else "c_t from k_t")
+                text += (f"; dashpots from restitution {self.restitution:g}, LIGGGHTS "
+                         f"convention ({tang}; {form})")
+            else:
+                et = self.restitution_tangential
+                text += (f"; dashpots from restitution {self.restitution:g}"
+                         + (f" (tangential {et:g})" if et is not None else " (normal only)")
+                         + ", demstep convention")
+        return text
+
+    # -------------------------------------------------------------- coefficients
+    def law_params(self, e_star: float = 0.0, g_star: float = 0.0) -> np.ndarray:
+        """The engine's law parameter vector for one material pair."""
+        from demstep.contact import laws
+
+        p = np.zeros(laws.N_PARAMS)
+        if self.model == "linear":
+            p[laws.P_LAW] = laws.LAW_LINEAR
+            p[laws.P_KN] = self.k_n
+            p[laws.P_KS] = self.k_n if self.k_t is None else self.k_t
+        else:
+            p[laws.P_LAW] = laws.LAW_HERTZ
+            p[laws.P_ESTAR] = e_star
+            p[laws.P_GSTAR] = g_star
+        p[laws.P_CN] = self.gamma_n
+        p[laws.P_CT] = self.gamma_t
+        if self.restitution is not None:
+            beta = laws.damping_ratio_from_restitution(self.restitution)
+            p[laws.P_BETA_N] = beta
+            if self.convention == "liggghts":
+                # Hertz: the same beta on k_t; linear: c_t = c_n (set after)
+                if self.tangential_damping and self.model == "hertz":
+                    p[laws.P_BETA_T] = beta
+            elif self.restitution_tangential is not None:
+                p[laws.P_BETA_T] = laws.damping_ratio_from_restitution(self.restitution_tangential)
+        if not self.tangential_damping:
+            p[laws.P_CT] = 0.0
+            p[laws.P_BETA_T] = 0.0
+        return p
+
+    def apply(self, contacts: ContactSet, particles: Particles, types: np.ndarray) -> ContactSet:
+        """Fill the contacts' k_n, k_s, c_n, c_t from the model and the geometry."""
+        from demstep.contact.laws import contact_coefficients
+
+        i, j = contacts.i, contacts.j
+        wall = j < 0
+        jj = np.where(wall, i, j)
+        r_i, r_j = particles.r[i], particles.r[jj]
+        r_star = np.where(wall, r_i, r_i * r_j / (r_i + r_j))
+        dist = np.where(wall, contacts.arm_i, contacts.arm_i + contacts.arm_j)
+        delta = np.where(wall, r_i - dist, r_i + r_j - dist)
+        delta = np.maximum(delta, self.overlap * r_star)
+        inv = np.where(particles.fixed, 0.0, 1.0 / particles.m)
+        inv_sum = inv[i] + np.where(wall, 0.0, inv[jj])
+        m_star = np.where(inv_sum > 0, 1.0 / np.where(inv_sum > 0, inv_sum, 1.0), particles.m[i])
+        out = [np.zeros(contacts.n) for _ in range(4)]
+        if self.model == "linear":
+            groups = [(np.ones(contacts.n, dtype=bool), self.law_params())]
+        else:
+            ti, tj = types[i], types[jj]
+            groups = []
+            for a in np.unique(ti):
+                for b in np.unique(tj[ti == a]):
+                    sel = (ti == a) & (tj == b)
+                    e_star, g_star = effective_moduli(self.materials[int(a)], self.materials[int(b)])
+                    groups.append((sel, self.law_params(e_star, g_star)))
+        for sel, params in groups:
+            coeffs = contact_coefficients(int(params[0]), tuple(params), delta[sel], r_star[sel],
+                                          m_star[sel])
+            for k in range(4):
+                out[k][sel] = coeffs[k]
+        k_n, k_t, c_n, c_t = out
+        if (self.convention == "liggghts" and self.model == "linear"
+                and self.restitution is not None):
+            c_t = c_n.copy() if self.tangential_damping else np.zeros_like(c_n)
+        return ContactSet(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
+                          contacts.arm_j, k_n, k_t, contacts.wall, c_n, c_t)
+
+
+def effective_moduli(a: Material, b: Material) -> tuple[float, float]:
+    """E*, G* [M/(L T^2)] of a contact between materials a and b (module docstring)."""
+    e_star = 1.0 / ((1 - a.poisson**2) / a.youngs + (1 - b.poisson**2) / b.youngs)
+    g_star = 1.0 / (2 * (2 - a.poisson) * (1 + a.poisson) / a.youngs
+                    + 2 * (2 - b.poisson) * (1 + b.poisson) / b.youngs)
+    return e_star, g_star
+
+
+def _positive(name, v):
+    if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+        raise InputError(f"{name}: must be a finite number > 0, got {v!r}")
+
+
+def _non_negative(name, v):
+    if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+        raise InputError(f"{name}: must be a finite number >= 0, got {v!r}")
+
+
+def read_materials(path) -> dict:
+    """Materials per particle type from a TOML file::
+
+        [[material]]
+        type = 1
+        youngs = 7.0e10      # [M/(L T^2)]
+        poisson = 0.25
+        density = 2500.0     # [M/L^3], optional
+    """
+    import tomllib
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"materials: no such file, got {str(path)!r}")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"materials: {path}: not valid TOML ({exc})") from None
+    rows = data.get("material")
+    if not isinstance(rows, list) or not rows:
+        raise InputError(f"materials: {path}: expected [[material]] tables with type, youngs, "
+                         f"poisson")
+    out = {}
+    for k, row in enumerate(rows):
+        where = f"materials: {path}: material {k + 1}"
+        if not isinstance(row, dict):
+            raise InputError(f"{where}: expected a table")
+        unknown = set(row) - {"type", "youngs", "poisson", "density"}
+        if unknown:
+            raise InputError(f"{where}: unknown key {sorted(unknown)[0]!r}")
+        for key in ("type", "youngs", "poisson"):
+            if key not in row:
+                raise InputError(f"{where}: missing key {key!r}")
+        t = row["type"]
+        if not isinstance(t, int) or isinstance(t, bool) or t < 1:
+            raise InputError(f"{where}: type must be an integer >= 1, got {t!r}")
+        if t in out:
+            raise InputError(f"{where}: type {t} appears twice")
+        try:
+            mat = Material(float(row["youngs"]), float(row["poisson"]),
+                           None if row.get("density") is None else float(row["density"]))
+        except (TypeError, ValueError):
+            raise InputError(f"{where}: youngs, poisson and density must be numbers") from None
+        mat.validate(f"{where}:")
+        out[t] = mat
+    return out
+
+
+# ------------------------------------------------------------------------ inputs
+@dataclass
+class AnalysisInput:
+    """Everything ``estimate_time_steps`` needs, and what was read (``notes``)."""
+
+    particles: Particles
+    contacts: ContactSet
+    damping: GlobalDamping
+    types: np.ndarray
+    materials: Materials | None = None
+    lattice: object = None
+    density: float | None = None
+    velocities: np.ndarray | None = None
+    notes: list[str] = field(default_factory=list)
+    rotation: bool = True  # False: the state's own rotation lock
+    simulation: object = None
+
+
+def periodic_lengths(box: np.ndarray, periodic: np.ndarray, x: np.ndarray, r: np.ndarray,
+                     source: str) -> tuple[list, np.ndarray]:
+    """Periodic lengths per axis (None: not periodic) of ``box`` (dim, 2) and the
+    positions shifted into [0, L) on periodic axes. A particle outside the box by more
+    than its radius, or a box shorter than two diameters, is an input error (particles
+    of an MD-style dump may lie outside by less: they are wrapped)."""
+    x = x.copy()
+    lengths = []
+    for a in range(x.shape[1]):
+        if not periodic[a]:
+            lengths.append(None)
+            continue
+        lo, hi = box[a]
+        length = hi - lo
+        if not (length > 4.0 * r.max()):
+            raise InputError(f"{source}: box: the periodic length along {'xyz'[a]} ({length:g}) "
+                             f"must exceed two particle diameters ({4 * r.max():g})")
+        out = (x[:, a] < lo - r) | (x[:, a] > hi + r)
+        if out.any():
+            p = int(np.flatnonzero(out)[0])
+            raise InputError(f"{source}: particle {p} at {'xyz'[a]} = {x[p, a]:g} lies outside "
+                             f"the periodic box [{lo:g}, {hi:g}) by more than its radius")
+        x[:, a] = np.mod(x[:, a] - lo, length)
+        lengths.append(float(length))
+    return lengths, x
+
+
+def make_materials(model: ContactModel, particles: Particles, types: np.ndarray,
+                   impact_velocity: float | None) -> Materials | None:
+    """Per-particle material data for the rules (Hertz model only)."""
+    if model.model != "hertz":
+        return None
+    mats = [model.materials[int(t)] for t in types]
+    volume = (4.0 / 3.0 * np.pi * particles.r**3 if particles.dim == 3 else np.pi * particles.r**2)
+    density = np.array([m.density if m.density is not None else np.nan for m in mats])
+    density = np.where(np.isnan(density), particles.m / volume, density)
+    e_star = np.array([effective_moduli(m, m)[0] for m in mats])
+    return Materials(np.array([m.youngs for m in mats]), np.array([m.poisson for m in mats]),
+                     density, e_star, impact_velocity)
+
+
+def check_types(model: ContactModel, types: np.ndarray, source: str):
+    if model.model != "hertz":
+        return
+    missing = sorted(set(int(t) for t in np.unique(types)) - set(model.materials))
+    if missing:
+        raise InputError(f"{source}: column 'type': type {missing[0]} has no material "
+                         f"(give it in --materials)")
+
+
+def from_particles(particles: Particles, model: ContactModel, types=None, periodic=None,
+                   walls=(), contact_tol: float = DEFAULT_CONTACT_TOL,
+                   damping: GlobalDamping | None = None, velocities=None,
+                   impact_velocity: float | None = None, source: str = "particles",
+                   notes=None) -> AnalysisInput:
+    """Contacts from geometry (touching within ``contact_tol``) with the model's
+    coefficients."""
+    model.validate()
+    types = np.ones(particles.n, dtype=np.int64) if types is None else np.asarray(types, np.int64)
+    check_types(model, types, source)
+    geometry = find_contacts(particles, 1.0, 1.0, contact_tol, walls=walls, periodic=periodic)
+    contacts = model.apply(geometry, particles, types)
+    if impact_velocity is None and velocities is not None and model.model == "hertz":
+        speed = np.linalg.norm(velocities, axis=1).max()
+        impact_velocity = 2.0 * float(speed) if speed > 0 else None
+    out = AnalysisInput(particles, contacts, damping or GlobalDamping(), types,
+                        make_materials(model, particles, types, impact_velocity),
+                        velocities=velocities, notes=list(notes or []))
+    out.notes.append("contacts: " + model.describe())
+    return out
+
+
+def from_file(path, model: ContactModel, fmt: str = "auto", density: float | None = None,
+              box=None, periodic_axes=None, walls=(), contact_tol=DEFAULT_CONTACT_TOL,
+              damping=None, impact_velocity=None, snapshot: int = -1) -> AnalysisInput:
+    """A particle file (CSV, LIGGGHTS/LAMMPS dump, YADE text). ``box`` (dim, 2) and
+    ``periodic_axes`` (a string of axis letters) override the file's box and flags."""
+    from demstep.io.formats import read_particle_file
+
+    path = Path(path)
+    data = read_particle_file(path, format=fmt, snapshot=snapshot)
+    dim = data.dim
+    notes = [f"read {path} ({data.x.shape[0]} particles, {dim}D)"]
+    if data.m is None:
+        if density is None and model.model == "hertz" and model.materials:
+            dens = [m.density for m in model.materials.values()]
+            if all(d is not None for d in dens):
+                density = None  # per type below
+        if density is None and not (model.model == "hertz" and _all_densities(model)):
+            raise InputError(f"{path}: no mass column: give --density")
+    types = data.types if data.types is not None else np.ones(len(data.r), dtype=np.int64)
+    check_types(model, types, str(path))
+    if data.m is not None:
+        m = data.m
+        notes.append("masses from the file's mass column")
+    elif density is not None:
+        from demstep.particles import particle_mass
+
+        m = particle_mass(data.r, density, dim)
+    else:
+        from demstep.particles import particle_mass
+
+        m = np.array([particle_mass(r, model.materials[int(t)].density, dim)
+                      for r, t in zip(data.r, types)])
+    box_arr = data.box
+    flags = data.periodic if data.periodic is not None else np.zeros(dim, dtype=bool)
+    if box is not None:
+        box_arr = np.asarray(box, dtype=np.float64).reshape(-1, 2)
+        if box_arr.shape != (dim, 2):
+            raise InputError(f"box: expected {2 * dim} numbers (lo hi per axis) for {dim}D, "
+                             f"got {box_arr.size}")
+        if np.any(box_arr[:, 1] <= box_arr[:, 0]):
+            raise InputError(f"box: every hi must exceed its lo, got {box_arr.tolist()}")
+    if periodic_axes is not None:
+        flags = np.array(["xyz"[a] in periodic_axes for a in range(dim)])
+        bad = set(periodic_axes) - set("xyz"[:dim])
+        if bad:
+            raise InputError(f"periodic: axes must be among {', '.join('xyz'[:dim])}, got "
+                             f"{','.join(sorted(bad))}")
+    periodic = None
+    x = data.x
+    if flags.any():
+        if box_arr is None:
+            raise InputError(f"periodic: {path} has no box: give --box")
+        periodic, x = periodic_lengths(box_arr, flags, x, data.r, str(path))
+        notes.append("periodic along " + ", ".join(f"{'xyz'[a]} (L = {periodic[a]:g})"
+                                                     for a in range(dim) if periodic[a]))
+    inertia = particle_inertia(m, data.r, dim)
+    particles = Particles(x, data.r, m, inertia)
+    return from_particles(particles, model, types, periodic, _walls(walls, box_arr, dim),
+                          contact_tol, damping, data.v, impact_velocity, str(path), notes)
+
+
+def _all_densities(model: ContactModel) -> bool:
+    return bool(model.materials) and all(m.density is not None for m in model.materials.values())
+
+
+WALL_NAMES = ("x-", "x+", "y-", "y+", "z-", "z+")
+
+
+def _walls(specs, box, dim: int) -> list:
+    """Walls from specs: a box side ('x-', 'z+', ...: the plane of the box's bound, facing
+    in) or 'px,py[,pz]:nx,ny[,nz]' (a point and the normal pointing into the packing)."""
+    from demstep.walls import Wall
+
+    walls = []
+    for spec in specs:
+        if isinstance(spec, Wall):
+            walls.append(spec)
+            continue
+        text = str(spec).strip()
+        if text in WALL_NAMES[:2 * dim]:
+            if box is None:
+                raise InputError(f"wall: {text!r} needs a box (--box, or a dump's BOX BOUNDS)")
+            a = "xyz".index(text[0])
+            point = np.zeros(dim)
+            normal = np.zeros(dim)
+            point[a] = box[a, 0] if text[1] == "-" else box[a, 1]
+            normal[a] = 1.0 if text[1] == "-" else -1.0
+            walls.append(Wall(point, normal, name=text))
+            continue
+        try:
+            p_text, n_text = text.split(":")
+            point = np.array([float(v) for v in p_text.split(",")])
+            normal = np.array([float(v) for v in n_text.split(",")])
+        except ValueError:
+            raise InputError(f"wall: expected a box side ({', '.join(WALL_NAMES[:2 * dim])}) or "
+                             f"'px,py{',pz' if dim == 3 else ''}:nx,ny{',nz' if dim == 3 else ''}',"
+                             f" got {text!r}") from None
+        if point.shape != (dim,) or normal.shape != (dim,) or not np.isfinite(point).all() \
+                or not np.isfinite(normal).all() or np.linalg.norm(normal) == 0:
+            raise InputError(f"wall: {text!r}: need {dim} finite coordinates and a non-zero "
+                             f"normal")
+        walls.append(Wall(point, normal / np.linalg.norm(normal), name=text))
+    return walls
+
+
+def from_lattice(name: str, size: int, radius: float, density: float, model: ContactModel,
+                 periodic: bool = False, contact_tol=DEFAULT_CONTACT_TOL, damping=None,
+                 impact_velocity=None) -> AnalysisInput:
+    from demstep.packings import lattice
+
+    lat = lattice(name, radius)
+    if periodic:
+        x, box = lat.supercell(size)
+        lengths = list(box)
+    else:
+        x = lat.block(size)
+        lengths = None
+    particles = Particles.from_density(x, np.full(len(x), radius), density)
+    out = from_particles(particles, model, None, lengths, (), contact_tol, damping, None,
+                         impact_velocity, f"lattice {name}",
+                         [f"{name} lattice, {len(x)} particles"
+                          + (" (periodic supercell)" if periodic else "")])
+    out.lattice = lat
+    out.density = density
+    return out
+
+
+def from_simulation(sim, source: str, notes=None) -> AnalysisInput:
+    """The contacts of a Simulation's current state (overlap > 0, walls included) with
+    its law's coefficients and its global viscous damping (demstep convention)."""
+    contacts = sim.contact_set()
+    particles = sim.particles_now()
+    if not sim.rotation:
+        notes = list(notes or []) + ["rotation locked in the simulation"]
+    return AnalysisInput(particles, contacts, GlobalDamping(mass=float(sim.damping.viscous)),
+                         np.ones(particles.n, dtype=np.int64), None,
+                         notes=list(notes or []) + [f"contacts of {source}: the engine's law "
+                                                    f"({type(sim.law).__name__}, demstep "
+                                                    f"convention)"])
+
+
+def model_from_law(law, overlap: float = 0.0) -> ContactModel:
+    """The :class:`ContactModel` (demstep convention) of an engine law."""
+    from demstep.contact.laws import HertzMindlin
+
+    common = dict(restitution=law.restitution, restitution_tangential=law.restitution_tangential,
+                  gamma_n=float(law.damping_normal), gamma_t=float(law.damping_tangential),
+                  convention="demstep", overlap=overlap)
+    if isinstance(law, HertzMindlin):
+        return ContactModel("hertz", materials={1: Material(law.youngs_modulus, law.poisson_ratio)},
+                            **common)
+    return ContactModel("linear", k_n=law.k_n, k_t=law.k_s, **common)
+
+
+def from_case(path, stage: int = 1, contact_tol: float = DEFAULT_CONTACT_TOL,
+              impact_velocity=None) -> AnalysisInput:
+    """A demstep case file at its initial state, with the settings of stage ``stage``
+    (1-based) applied: contacts touching within ``contact_tol``, the case's law, walls,
+    periodic box and global damping. Touching contacts of a Hertz law are evaluated at
+    the case's ``timestep.overlap`` (zero overlap has zero stiffness)."""
+    from demstep.case import apply_stage, build_simulation, load_case
+
+    case = load_case(path)
+    if not 1 <= stage <= max(1, len(case.stages)):
+        raise InputError(f"stage: must lie in [1, {max(1, len(case.stages))}], got {stage}")
+    sim = build_simulation(case)
+    if case.stages:
+        apply_stage(sim, case, stage - 1)
+    model = model_from_law(sim.law, overlap=float(case.timestep.overlap))
+    periodic = [float(v) if v > 0 else None for v in sim.periodic_len[:sim.dim]]
+    notes = [f"case {case.name} ({path}): initial state with stage {stage}'s settings, "
+             f"{len(sim.r)} particles, {len(sim.walls)} walls"]
+    if not sim.rotation:
+        notes.append("rotation locked in the case")
+    out = from_particles(sim.particles_now(), model, None,
+                         periodic if any(v is not None for v in periodic) else None,
+                         sim.walls, contact_tol, GlobalDamping(mass=float(sim.damping.viscous)),
+                         sim.v[:, :sim.dim], impact_velocity, str(path), notes)
+    out.rotation = sim.rotation
+    return out
+
+
+def from_checkpoint(path, case_path=None) -> AnalysisInput:
+    """A checkpoint of a demstep run: its actual contacts and overlaps, with the law and
+    damping of the stage it was written in. The case is the run folder's resolved
+    ``case.toml`` (the checkpoint's folder's parent) unless ``case_path`` is given."""
+    sim = load_run(path, case_path)
+    out = from_simulation(sim, f"checkpoint {path} (step {sim.step})",
+                          [f"run state at step {sim.step}, t = {sim.time:g}, dt = {sim.dt:g}"])
+    out.rotation = sim.rotation
+    out.simulation = sim
+    return out
+
+
+def load_run(checkpoint, case_path=None):
+    """A Simulation restored from a checkpoint of a demstep run (with the stages that
+    had started applied, as a restart does)."""
+    from demstep.case import apply_stage, build_simulation, load_case
+    from demstep.io.checkpoint import load_checkpoint
+    from demstep.runner import find_checkpoint, read_state
+
+    checkpoint = find_checkpoint(checkpoint)
+    if case_path is None:
+        case_path = checkpoint.resolve().parent.parent / "case.toml"
+        if not case_path.is_file():
+            raise InputError(f"case: no case.toml in the run folder of {checkpoint}: give --case")
+    case = load_case(case_path)
+    pos, _ = read_state(checkpoint)
+    sim = build_simulation(case)
+    started = pos.stage + 1 if pos.stage_step > 0 else pos.stage
+    for k in range(min(started, len(case.stages))):
+        apply_stage(sim, case, k, fresh=False)
+    load_checkpoint(sim, checkpoint)
+    return sim
