@@ -24,11 +24,13 @@ def test_json_shape_lattice(capsys):
     code, out, err = run(["dt", "--lattice", "fcc", "--size", "2", "--json"], capsys)
     assert code == 0, err
     data = json.loads(out)
-    assert set(data) == {"dim", "n_particles", "n_contacts", "m_min", "k_max", "estimates"}
-    assert data["dim"] == 3 and data["n_particles"] == 16
-    assert [e["method"] for e in data["estimates"]] == list(METHODS)
+    assert set(data) == {"dim", "n_particles", "n_contacts", "m_min", "k_max", "rotation",
+                         "damped", "damping", "estimates", "notes", "critical_mode"}
+    assert data["dim"] == 3 and data["n_particles"] == 16 and data["damped"] is False
+    # undamped: every method but exact-undamped (a lattice also gives exact-periodic)
+    assert [e["method"] for e in data["estimates"]] == [m for m in METHODS if m != "exact-undamped"]
     for e in data["estimates"]:
-        assert set(e) == {"method", "dt", "alpha"}
+        assert set(e) == {"method", "dt", "alpha", "conservative", "kind"}
         assert e["dt"] > 0 and e["alpha"] == pytest.approx(e["dt"] / np.sqrt(data["m_min"] / data["k_max"]))
 
 

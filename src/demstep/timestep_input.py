@@ -65,7 +65,8 @@ class Material:
 @dataclass
 class ContactModel:
     """How contacts become coefficients (module docstring). ``materials`` maps a particle
-    type to its :class:`Material` (type 1 for files without a type column)."""
+    type to its :class:`Material` (type 1 for files without a type column; the key None
+    gives the material of every type)."""
 
     model: str = "linear"
     k_n: float | None = None
@@ -118,6 +119,10 @@ class ContactModel:
         if not (math.isfinite(self.overlap) and self.overlap >= 0):
             raise InputError(f"overlap: must be finite and >= 0, got {self.overlap!r}")
 
+    def material(self, t) -> Material:
+        """The material of particle type ``t``."""
+        return self.materials.get(int(t), self.materials.get(None))
+
     @property
     def damped(self) -> bool:
         return bool(self.gamma_n or self.gamma_t or (self.restitution is not None
@@ -127,8 +132,9 @@ class ContactModel:
         if self.model == "linear":
             text = f"linear k_n = {self.k_n:g}, k_t = {self.k_t if self.k_t is not None else self.k_n:g}"
         else:
-            mats = "; ".join(f"type {t}: E = {m.youngs:g}, nu = {m.poisson:g}"
-                             for t, m in sorted(self.materials.items()))
+            mats = "; ".join(("every type" if t is None else f"type {t}")
+                             + f": E = {m.youngs:g}, nu = {m.poisson:g}"
+                             for t, m in sorted(self.materials.items(), key=lambda kv: kv[0] or 0))
             text = f"Hertz-Mindlin tangent stiffnesses at each overlap ({mats})"
         if self.gamma_n or self.gamma_t:
             text += f"; dashpots gamma_n = {self.gamma_n:g}, gamma_t = {self.gamma_t:g} (absolute)"
@@ -199,7 +205,7 @@ class ContactModel:
             for a in np.unique(ti):
                 for b in np.unique(tj[ti == a]):
                     sel = (ti == a) & (tj == b)
-                    e_star, g_star = effective_moduli(self.materials[int(a)], self.materials[int(b)])
+                    e_star, g_star = effective_moduli(self.material(a), self.material(b))
                     groups.append((sel, self.law_params(e_star, g_star)))
         for sel, params in groups:
             coeffs = contact_coefficients(int(params[0]), tuple(params), delta[sel], r_star[sel],
@@ -330,7 +336,7 @@ def make_materials(model: ContactModel, particles: Particles, types: np.ndarray,
     """Per-particle material data for the rules (Hertz model only)."""
     if model.model != "hertz":
         return None
-    mats = [model.materials[int(t)] for t in types]
+    mats = [model.material(t) for t in types]
     volume = (4.0 / 3.0 * np.pi * particles.r**3 if particles.dim == 3 else np.pi * particles.r**2)
     density = np.array([m.density if m.density is not None else np.nan for m in mats])
     density = np.where(np.isnan(density), particles.m / volume, density)
@@ -343,7 +349,7 @@ def check_types(model: ContactModel, types: np.ndarray, source: str):
     if model.model != "hertz":
         return
     missing = sorted(set(int(t) for t in np.unique(types)) - set(model.materials))
-    if missing:
+    if missing and None not in model.materials:
         raise InputError(f"{source}: column 'type': type {missing[0]} has no material "
                          f"(give it in --materials)")
 
@@ -400,7 +406,7 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
     else:
         from demstep.particles import particle_mass
 
-        m = np.array([particle_mass(r, model.materials[int(t)].density, dim)
+        m = np.array([particle_mass(r, model.material(t).density, dim)
                       for r, t in zip(data.r, types)])
     box_arr = data.box
     flags = data.periodic if data.periodic is not None else np.zeros(dim, dtype=bool)
@@ -519,7 +525,7 @@ def model_from_law(law, overlap: float = 0.0) -> ContactModel:
                   gamma_n=float(law.damping_normal), gamma_t=float(law.damping_tangential),
                   convention="demstep", overlap=overlap)
     if isinstance(law, HertzMindlin):
-        return ContactModel("hertz", materials={1: Material(law.youngs_modulus, law.poisson_ratio)},
+        return ContactModel("hertz", materials={None: Material(law.youngs_modulus, law.poisson_ratio)},
                             **common)
     return ContactModel("linear", k_n=law.k_n, k_t=law.k_s, **common)
 

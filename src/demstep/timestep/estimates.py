@@ -5,9 +5,12 @@ every estimate is the damped one: ``exact`` is the exact damped step
 (:mod:`demstep.timestep.exact`) and ``exact-undamped`` is listed beside it;
 ``element-coupled`` is the rigorous damped element bound; the rules of thumb
 (``element-paper``, ``nodal``, ``itasca``, ``guidance``) are damped the same way: each
-implies a frequency omega^2 = k per unit mass from its springs, and its dashpots (the
-same contacts' c_n, c_t in place of k_n, k_s) a damping c per unit mass, and the step is
-eq. 28's :func:`~demstep.timestep.stability.damped_dt` (k, c). The material time scales
+implies a frequency omega^2 = k per unit mass from its springs, and its dashpots a
+damping c per unit mass (``element-paper``: the element's c_n, c_t in place of k_n, k_s;
+``nodal``: the summed dashpots of the DOF; ``itasca`` and ``guidance``: stiffness-
+proportional damping beta omega^2 with beta the largest dashpot-to-spring ratio c/k of
+the contacts), and the step is eq. 28's :func:`~demstep.timestep.stability.damped_dt`
+(k, c); ``guidance`` keeps the paper's safety factor 0.75 outside. The material time scales
 of :mod:`demstep.timestep.rules` (``rayleigh-*``, ``hertz-time``) are never damped:
 they are what the codes that use them check.
 """
@@ -178,22 +181,41 @@ def nodal_dt(particles, contacts, rotation, damping=None) -> float:
     return float(damped_dt(k, c).min())
 
 
-def _rule_dt(alpha: float, m_min: float, k_max: float, c_max: float, d: GlobalDamping) -> float:
-    """alpha sqrt(m_min/K_max) with the damping of the same springs: k = 4 K/(alpha^2 m),
-    c = a1 + (a2 K + C_max) 4/(alpha^2 m)."""
-    scale = 4.0 / (alpha * alpha * m_min)
-    return float(damped_dt(k_max * scale, d.mass + (d.stiffness * k_max + c_max) * scale))
+def dashpot_ratio(contacts: ContactSet) -> float:
+    """beta = max over contacts of c/k [T] (normal and tangential): the stiffness-
+    proportional damping that bounds the dashpots (C <= beta K when c/k <= beta)."""
+    ratios = [0.0]
+    for c, k in ((contacts.c_n, contacts.k_n), (contacts.c_t, contacts.k_s)):
+        on = k > 0
+        if on.any():
+            ratios.append(float((c[on] / k[on]).max()))
+    return max(ratios)
 
 
-def itasca_dt(m_min: float, k_max: float, c_max: float = 0.0, damping=None) -> float:
+def _rule_dt(alpha: float, m_min: float, k_max: float, beta: float, d: GlobalDamping,
+             safety: float = 1.0) -> float:
+    """``safety`` x the damped step of a rule alpha sqrt(m_min/K_max): eq. 28 at the rule's
+    frequency omega = 2 / (alpha sqrt(m_min/K_max)) with the damping a1 + (a2 + beta)
+    omega^2 of stiffness-proportional dashpots (:func:`dashpot_ratio`)."""
+    omega2 = 4.0 * k_max / (alpha * alpha * m_min)
+    return safety * float(damped_dt(omega2, d.mass + (d.stiffness + beta) * omega2))
+
+
+def itasca_dt(m_min: float, k_max: float, beta: float = 0.0, damping=None) -> float:
     """sqrt(m_min / K_max) (Itasca 1998, quoted in the paper) [T]; damped as the module
-    docstring says (C_max: the largest dashpot coefficient [M/T])."""
-    return _rule_dt(1.0, m_min, k_max, c_max, _damping(damping))
+    docstring says (``beta``: :func:`dashpot_ratio`)."""
+    return _rule_dt(1.0, m_min, k_max, beta, _damping(damping))
 
 
-def guidance_dt(m_min: float, k_max: float, dim: int, c_max: float = 0.0, damping=None) -> float:
-    """The paper's recommendation 0.3 (2D) / 0.17 (3D) sqrt(m_min/K_max) [T]."""
-    return _rule_dt(GUIDANCE_ALPHA[dim], m_min, k_max, c_max, _damping(damping))
+#: the paper's safety factor in its guidance (0.17 = 0.75 x 0.221 in 3D)
+GUIDANCE_SAFETY = 0.75
+
+
+def guidance_dt(m_min: float, k_max: float, dim: int, beta: float = 0.0, damping=None) -> float:
+    """The paper's recommendation 0.3 (2D) / 0.17 (3D) sqrt(m_min/K_max) [T]; damped:
+    0.75 x the damped step of the critical estimate it derives from (0.4 / 0.227)."""
+    return _rule_dt(GUIDANCE_ALPHA[dim] / GUIDANCE_SAFETY, m_min, k_max, beta,
+                    _damping(damping), GUIDANCE_SAFETY)
 
 
 _DENSEST = {2: "hex", 3: "fcc"}
@@ -262,7 +284,7 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
         methods.remove("exact-undamped")
     m_min = float(particles.m[~particles.fixed].min())
     k_max = contacts.k_max()
-    c_max = float(max(contacts.c_n.max(), contacts.c_t.max()))
+    beta = dashpot_ratio(contacts)
     report.m_min, report.k_max = m_min, k_max
     dim = particles.dim
     exact = None
@@ -278,8 +300,8 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
         "element-coupled": lambda: element_coupled_dt(particles, contacts, rotation, damping=d),
         "element-paper": lambda: element_paper_dt(particles, contacts, rotation, mass_split, d),
         "nodal": lambda: nodal_dt(particles, contacts, rotation, d),
-        "itasca": lambda: itasca_dt(m_min, k_max, c_max, d),
-        "guidance": lambda: guidance_dt(m_min, k_max, dim, c_max, d),
+        "itasca": lambda: itasca_dt(m_min, k_max, beta, d),
+        "guidance": lambda: guidance_dt(m_min, k_max, dim, beta, d),
     }
     for m in methods:
         if m in compute:

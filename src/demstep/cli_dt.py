@@ -1,0 +1,476 @@
+"""``demstep dt``: the critical time step of a state, every method side by side.
+
+Inputs: a particle file (CSV, LIGGGHTS/LAMMPS dump, YADE text), a demstep case file
+(its initial state) or checkpoint (the run's contacts and overlaps), or a regular
+lattice. Contact models: linear (k_n, k_t) or Hertz-Mindlin (E, nu per material), with
+dashpots by restitution or absolute coefficients, and global damping. Output: the
+table (or JSON), where the danger is (the particles and contacts carrying the critical
+mode, optionally as VTK) and an optional bar chart.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from demstep.errors import InputError
+
+#: documented defaults (the paper's Table I)
+DEFAULT_KN = 1.0e11
+DEFAULT_DENSITY = 2000.0
+DEFAULT_RADIUS = 20.0
+#: bytes of memory per particle of the analysis, measured (benchmarks/timestep_scaling.py:
+#: 3D with rotation, about 6 contacts per particle, Lanczos with 32 vectors), with margin
+BYTES_PER_PARTICLE = 4000
+#: formats of the positional input
+INPUT_FORMATS = ("auto", "csv", "liggghts", "yade", "case", "checkpoint")
+#: image formats of --plot (matplotlib)
+PLOT_FORMATS = (".png", ".pdf", ".svg")
+
+
+def _number(name, minimum=None, strict=False):
+    def parse(text):
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name}: not a number: {text!r}") from None
+        if not math.isfinite(v) or (minimum is not None and (v < minimum or (strict and v == minimum))):
+            rel = ">" if strict else ">="
+            raise argparse.ArgumentTypeError(f"{name}: must be a finite number {rel} {minimum:g}, "
+                                             f"got {text!r}")
+        return v
+    return parse
+
+
+def _positive_int(name):
+    def parse(text):
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name}: not an integer: {text!r}") from None
+        if v < 1:
+            raise argparse.ArgumentTypeError(f"{name}: must be >= 1, got {text!r}")
+        return v
+    return parse
+
+
+def add_dt_parser(sub):
+    p = sub.add_parser(
+        "dt", help="critical time step of a state, every method side by side",
+        description="Critical time step of central-difference DEM for a state (a particle "
+        "file, a LIGGGHTS/LAMMPS dump, a YADE text export, a demstep case file or checkpoint) "
+        "or a regular lattice: the exact step (damped when there is damping), rigorous "
+        "bounds and the rules users know, side by side.",
+        epilog="Files: CSV with header x,y[,z],r and optional m (mass) and type columns; "
+        "LIGGGHTS/LAMMPS 'dump custom' (x y z radius, optional mass type vx vy vz; the BOX "
+        "BOUNDS flags pp make an axis periodic); YADE text (x y z r); a demstep case (.toml) "
+        "at its initial state; a demstep checkpoint (.npz) with its run folder's case.toml.")
+    src = p.add_argument_group("input")
+    src.add_argument("state", nargs="?", metavar="FILE",
+                     help="CSV, LIGGGHTS/LAMMPS dump, YADE text, case (.toml) or checkpoint (.npz)")
+    src.add_argument("--format", choices=INPUT_FORMATS, default="auto",
+                     help="format of FILE (default: by extension, then content)")
+    src.add_argument("--snapshot", type=int, default=-1,
+                     help="which snapshot of a dump (0 first, -1 last; default -1)")
+    src.add_argument("--case", help="case file of a checkpoint (default: the run folder's case.toml)")
+    src.add_argument("--stage", type=_positive_int("stage"), default=1,
+                     help="case files: the stage whose settings apply (default 1)")
+    src.add_argument("--lattice", help="regular lattice: square, hex, sc, bcc, fcc, rhombic")
+    src.add_argument("--size", type=_positive_int("size"), default=4,
+                     help="lattice block of SIZE^dim conventional cells (default 4)")
+    src.add_argument("--periodic", nargs="?", const="lattice", default=None, metavar="AXES",
+                     help="lattice: a periodic supercell; files: the periodic axes, e.g. x,y,z "
+                     "(dumps: default from their BOX BOUNDS flags)")
+    src.add_argument("--box", nargs="+", type=_number("box"), metavar="LO_HI",
+                     help="box bounds xlo xhi ylo yhi [zlo zhi] (files without one, or to override)")
+    src.add_argument("--wall", action="append", default=[], metavar="SPEC",
+                     help="a wall: a box side (x-, x+, y-, y+, z-, z+) or 'px,py,pz:nx,ny,nz' "
+                     "(normal into the packing); repeat for several")
+    src.add_argument("--radius", type=_number("radius", 0, strict=True), default=DEFAULT_RADIUS,
+                     help=f"lattice particle radius (default {DEFAULT_RADIUS:g})")
+    src.add_argument("--density", type=_number("density", 0, strict=True), default=None,
+                     help=f"particle density without a mass column (default {DEFAULT_DENSITY:g})")
+    src.add_argument("--contact-tol", type=_number("contact-tol", 0), default=1e-6,
+                     help="relative gap still counted as contact (default 1e-6)")
+    mod = p.add_argument_group("contact model and damping")
+    mod.add_argument("--model", choices=("linear", "hertz"), default=None,
+                     help="linear (--kn, --ks) or hertz (--youngs, --poisson); default: hertz "
+                     "when --youngs or --materials is given, else linear")
+    mod.add_argument("--kn", type=_number("kn", 0, strict=True), default=None,
+                     help=f"linear normal stiffness (default {DEFAULT_KN:g}, the paper's Table I)")
+    mod.add_argument("--ks", type=_number("ks", 0), default=None,
+                     help="linear tangential stiffness (default: equal to --kn)")
+    mod.add_argument("--youngs", type=_number("youngs", 0, strict=True), default=None,
+                     help="Hertz: Young's modulus of every particle")
+    mod.add_argument("--poisson", type=_number("poisson"), default=None,
+                     help="Hertz: Poisson's ratio of every particle")
+    mod.add_argument("--materials", metavar="FILE.toml",
+                     help="Hertz: materials per particle type ([[material]] type, youngs, "
+                     "poisson, density)")
+    mod.add_argument("--overlap", type=_number("overlap", 0), default=None,
+                     help="Hertz: evaluate stiffnesses at least at this overlap / R* "
+                     "(default 0: the actual overlaps; case files: their timestep.overlap)")
+    mod.add_argument("--restitution", type=_number("restitution"), default=None,
+                     help="dashpots from a coefficient of restitution in (0, 1]")
+    mod.add_argument("--restitution-t", type=_number("restitution-t"), default=None,
+                     help="demstep convention: tangential dashpot from this restitution")
+    mod.add_argument("--gamma-n", type=_number("gamma-n", 0), default=0.0,
+                     help="absolute normal dashpot coefficient [M/T] (force -gamma v_n)")
+    mod.add_argument("--gamma-t", type=_number("gamma-t", 0), default=0.0,
+                     help="absolute tangential dashpot coefficient [M/T]")
+    mod.add_argument("--tangential-damping", action=argparse.BooleanOptionalAction,
+                     default=True, help="LIGGGHTS' tangential_damping (default on)")
+    mod.add_argument("--convention", choices=("demstep", "liggghts"), default=None,
+                     help="restitution to dashpots: demstep's engine or LIGGGHTS 3.8 "
+                     "(default: liggghts for dumps, demstep otherwise)")
+    mod.add_argument("--viscous", type=_number("viscous", 0), default=0.0,
+                     help="global mass-proportional damping a1 [1/T] (force -a1 m v)")
+    mod.add_argument("--rayleigh", nargs=2, type=_number("rayleigh", 0), metavar=("A1", "A2"),
+                     help="Rayleigh damping C = A1 M + A2 K (paper eq. 26)")
+    ana = p.add_argument_group("analysis and output")
+    ana.add_argument("--rotation", action=argparse.BooleanOptionalAction, default=None,
+                     help="rotational degrees of freedom (default: yes; case files and "
+                     "checkpoints: as in the run)")
+    ana.add_argument("--mass-split", choices=("uniform", "zoned"), default="uniform",
+                     help="element mass split for element-paper (default uniform)")
+    ana.add_argument("--methods", help="comma-separated subset of methods to compute")
+    ana.add_argument("--impact-velocity", type=_number("impact-velocity", 0, strict=True),
+                     default=None, help="Hertz time: the impact velocity [L/T] (default: twice "
+                     "the largest particle speed in the file, as LIGGGHTS)")
+    ana.add_argument("--top", type=int, default=10,
+                     help="how many particles and contacts of the critical mode to list (default 10)")
+    ana.add_argument("--mode-vtk", metavar="FILE.vtu",
+                     help="write the critical mode per particle as VTK (ParaView)")
+    ana.add_argument("--max-memory", type=_number("max-memory", 0, strict=True), default=None,
+                     metavar="GB", help="refuse analyses estimated to need more (default: the "
+                     "memory available)")
+    ana.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    ana.add_argument("--plot", metavar="FILE.png", help="bar chart of the methods (.png, .pdf, .svg)")
+    ana.add_argument("--paper-table", action="store_true",
+                     help="reproduce the paper's Figures 8 and 9 (element estimates beside exact values)")
+    p.set_defaults(func=cmd_dt)
+
+
+# ----------------------------------------------------------------------- checks
+def _check_output_path(option: str, path, suffixes) -> Path:
+    """An output path whose folder exists and is writable, with a known suffix."""
+    import os
+
+    path = Path(path)
+    if path.suffix.lower() not in suffixes:
+        raise InputError(f"{option}: the file name must end in {', '.join(suffixes)}, "
+                         f"got {str(path)!r}")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError(f"{option}: no such folder {str(parent)!r} for {str(path)!r}")
+    if path.is_dir():
+        raise InputError(f"{option}: {str(path)!r} is a folder")
+    if not os.access(parent, os.W_OK):
+        raise InputError(f"{option}: cannot write in {str(parent)!r}")
+    return path
+
+
+def available_memory_gb() -> float:
+    import psutil
+
+    return psutil.virtual_memory().available / 1e9
+
+
+def check_memory(n_particles: int, limit_gb: float | None, what: str):
+    """Refuse, before allocating, an analysis estimated above ``limit_gb`` (default: the
+    memory available now)."""
+    need = n_particles * BYTES_PER_PARTICLE / 1e9
+    limit = available_memory_gb() if limit_gb is None else limit_gb
+    if need > limit:
+        raise InputError(f"memory: {what} ({n_particles:,} particles) needs about {need:.3g} GB, "
+                         f"more than {'the' if limit_gb is None else 'the --max-memory'} "
+                         f"{limit:.3g} GB {'available' if limit_gb is None else 'allowed'}")
+
+
+def _model(args, default_convention: str):
+    from demstep.timestep_input import ContactModel, Material, read_materials
+
+    hertz_given = args.youngs is not None or args.poisson is not None or args.materials
+    model = args.model or ("hertz" if hertz_given else "linear")
+    if model == "linear":
+        if hertz_given:
+            raise InputError("model: --youngs/--poisson/--materials belong to the hertz model, "
+                             "not linear")
+        kn = DEFAULT_KN if args.kn is None else args.kn
+        materials = {}
+    else:
+        if args.kn is not None or args.ks is not None:
+            raise InputError("model: --kn/--ks belong to the linear model; hertz takes --youngs "
+                             "and --poisson")
+        if args.materials:
+            if args.youngs is not None or args.poisson is not None:
+                raise InputError("materials: give either --materials or --youngs/--poisson")
+            materials = read_materials(args.materials)
+        else:
+            if args.youngs is None or args.poisson is None:
+                raise InputError("youngs: the hertz model needs both --youngs and --poisson")
+            materials = {None: Material(args.youngs, args.poisson, args.density)}
+        kn = None
+    convention = args.convention or default_convention
+    overlap = args.overlap if args.overlap is not None else 0.0
+    cm = ContactModel(model, kn, args.ks, materials, args.restitution, args.restitution_t,
+                      args.gamma_n, args.gamma_t, args.tangential_damping, convention, overlap)
+    cm.validate()
+    return cm
+
+
+def _damping(args):
+    from demstep.timestep.damping import GlobalDamping
+
+    if args.rayleigh is not None:
+        if args.viscous:
+            raise InputError("viscous: give either --viscous or --rayleigh (its A1), not both")
+        return GlobalDamping(*map(float, args.rayleigh))
+    return GlobalDamping(float(args.viscous))
+
+
+def _file_format(args) -> str:
+    if args.format != "auto":
+        return args.format
+    suffix = Path(args.state).suffix.lower()
+    if suffix == ".toml":
+        return "case"
+    if suffix == ".npz":
+        return "checkpoint"
+    from demstep.io.formats import detect_format
+
+    return detect_format(args.state)
+
+
+def _box(args, dim=None):
+    if args.box is None:
+        return None
+    if len(args.box) not in (4, 6):
+        raise InputError(f"box: expected 4 (2D) or 6 (3D) numbers lo hi per axis, got {len(args.box)}")
+    return np.array(args.box).reshape(-1, 2)
+
+
+def _periodic_axes(text):
+    if text is None:
+        return None
+    axes = [a.strip() for a in text.split(",") if a.strip()]
+    bad = [a for a in axes if a not in ("x", "y", "z")]
+    if bad or not axes:
+        raise InputError(f"periodic: expected axes among x, y, z separated by commas, got {text!r}")
+    return "".join(axes)
+
+
+def load_input(args):
+    """The AnalysisInput for the command line (every check before any work)."""
+    from demstep import timestep_input as ti
+
+    if args.mode_vtk:
+        _check_output_path("mode-vtk", args.mode_vtk, (".vtu",))
+    if args.plot:
+        _check_output_path("plot", args.plot, PLOT_FORMATS)
+    if (args.state is None) == (args.lattice is None):
+        raise InputError("give either a FILE or --lattice NAME (exactly one)")
+    damping = _damping(args)
+    if args.lattice is not None:
+        from demstep.packings import LATTICE_NAMES, lattice
+
+        if args.lattice not in LATTICE_NAMES:
+            raise InputError(f"lattice: unknown lattice {args.lattice!r}; choose one of "
+                             f"{', '.join(LATTICE_NAMES)}")
+        if args.periodic not in (None, "lattice"):
+            raise InputError("periodic: with --lattice, give --periodic without axes")
+        if args.wall or args.box:
+            raise InputError("wall: --wall and --box apply to files, not to --lattice")
+        lat = lattice(args.lattice, args.radius)
+        check_memory(len(lat.basis) * args.size ** lat.dim, args.max_memory,
+                     f"the {args.lattice} lattice of size {args.size}")
+        model = _model(args, "demstep")
+        density = DEFAULT_DENSITY if args.density is None else args.density
+        return ti.from_lattice(args.lattice, args.size, args.radius, density, model,
+                               periodic=args.periodic is not None, contact_tol=args.contact_tol,
+                               damping=damping, impact_velocity=args.impact_velocity)
+    path = Path(args.state)
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, expected a file")
+    fmt = _file_format(args)
+    if fmt in ("case", "checkpoint"):
+        given = [o for o, v in (("--kn", args.kn), ("--ks", args.ks), ("--youngs", args.youngs),
+                                ("--poisson", args.poisson), ("--materials", args.materials),
+                                ("--restitution", args.restitution),
+                                ("--model", args.model), ("--box", args.box),
+                                ("--periodic", args.periodic), ("--density", args.density))
+                 if v is not None] + (["--wall"] if args.wall else []) \
+            + (["--gamma-n/--gamma-t"] if args.gamma_n or args.gamma_t else []) \
+            + (["--viscous/--rayleigh"] if args.viscous or args.rayleigh else [])
+        if given:
+            raise InputError(f"{given[0]}: a {fmt} file brings its own contact law, walls, box "
+                             f"and damping; this option does not apply")
+        if fmt == "case":
+            return ti.from_case(path, args.stage, args.contact_tol, args.impact_velocity)
+        return ti.from_checkpoint(path, args.case)
+    check_memory(_estimate_rows(path), args.max_memory, f"{path}")
+    model = _model(args, "liggghts" if fmt == "liggghts" else "demstep")
+    density = args.density
+    if density is None and not (model.model == "hertz" and model.materials
+                                and all(m.density is not None for m in model.materials.values())):
+        density = DEFAULT_DENSITY
+    return ti.from_file(path, model, fmt, density, _box(args), _periodic_axes(args.periodic),
+                        args.wall, args.contact_tol, damping, args.impact_velocity,
+                        args.snapshot)
+
+
+def _estimate_rows(path: Path) -> int:
+    """The number of lines of a text file (an upper bound on its particles), counted
+    without reading it into memory."""
+    lines = 0
+    with open(path, "rb") as fh:
+        while chunk := fh.read(1 << 24):
+            lines += chunk.count(b"\n")
+    return max(1, lines)
+
+
+# ----------------------------------------------------------------------- command
+def cmd_dt(args) -> int:
+    if args.paper_table:
+        from demstep.timestep.paper_table import format_table, paper_table, table_json
+
+        rows = paper_table()
+        _print(json.dumps(table_json(rows), indent=2) if args.json else format_table(rows))
+        return 0
+    from demstep.timestep import estimate_time_steps
+
+    if args.top < 0:
+        raise InputError(f"top: must be >= 0, got {args.top}")
+    methods = None if args.methods is None else [m.strip() for m in args.methods.split(",")]
+    data = load_input(args)
+    rotation = data.rotation if args.rotation is None else (args.rotation and data.rotation)
+    if args.rotation and not data.rotation:
+        raise InputError("rotation: the run locks rotation; --rotation does not apply")
+    report = estimate_time_steps(data.particles, data.contacts, rotation=rotation,
+                                 mass_split=args.mass_split, damping=data.damping,
+                                 methods=methods, lattice=data.lattice, density=data.density,
+                                 materials=data.materials)
+    report.notes[:0] = data.notes
+    danger = critical_mode_report(report, data, args.top)
+    if args.json:
+        out = report.to_json()
+        out["critical_mode"] = danger
+        _print(json.dumps(out))
+    else:
+        _print(format_report(report, danger))
+    if args.mode_vtk and report.exact is not None:
+        write_mode_vtk(args.mode_vtk, data, report)
+    if args.plot:
+        from demstep.plotting import plot_estimates
+
+        plot_estimates(report, args.plot)
+    return 0
+
+
+def _print(text: str):
+    print(text)
+    sys.stdout.flush()
+
+
+def critical_mode_report(report, data, top: int) -> dict | None:
+    """Where the danger is: the particles carrying most of the critical mode (share of
+    its kinetic energy, translation and rotation) and the contacts carrying most of its
+    strain energy."""
+    if report.exact is None:
+        return None
+    op = report.exact.operator
+    trans, rot, contact_share = op.mode_shares(report.exact.mode)
+    share = trans + rot
+    p = data.particles
+    order = np.argsort(-share, kind="stable")[:top]
+    particles = [{"index": int(k), "radius": float(p.r[k]), "mass": float(p.m[k]),
+                  "share": float(share[k]), "translation": float(trans[k]),
+                  "rotation": float(rot[k]), "contacts": int(data.contacts.count_per_particle(p.n)[k])}
+                 for k in order]
+    c = data.contacts
+    corder = np.argsort(-contact_share, kind="stable")[:top]
+    contacts = [{"i": int(c.i[k]), "j": int(c.j[k]) if c.j[k] >= 0 else None,
+                 "wall": int(c.wall[k]) if c.j[k] < 0 else None, "k_n": float(c.k_n[k]),
+                 "k_t": float(c.k_s[k]), "c_n": float(c.c_n[k]), "c_t": float(c.c_t[k]),
+                 "share": float(contact_share[k])} for k in corder]
+    return {"sigma": report.exact.sigma, "lambda_undamped": report.exact.lambda_undamped,
+            "particles": particles, "contacts": contacts}
+
+
+def format_report(report, danger=None) -> str:
+    rot = "with rotation" if report.rotation else "translation only"
+    n_wall = "" 
+    lines = [f"{report.dim}D assembly: {report.n_particles} particles, {report.n_contacts} "
+             f"contacts{n_wall}, {rot}; m_min = {report.m_min:.6g}, K_max = {report.k_max:.6g}"]
+    lines += [f"  {n}" for n in report.notes]
+    if report.damped:
+        parts = []
+        if report.dashpots:
+            parts.append("contact dashpots")
+        if report.damping.mass:
+            parts.append(f"global viscous a1 = {report.damping.mass:g}")
+        if report.damping.stiffness:
+            parts.append(f"stiffness-proportional a2 = {report.damping.stiffness:g}")
+        lines.append("damping: " + ", ".join(parts) + " -- every estimate is the damped one "
+                     "(the engine's scheme, damping on the half-step velocity)")
+    lines.append(f"{'method':<17}{'dt':>14}{'alpha':>10}  conservative vs exact")
+    for e in report.estimates:
+        cons = "-" if e.conservative is None else ("yes" if e.conservative else "NO")
+        tag = "  (material rule)" if e.kind == "rule" else ""
+        lines.append(f"{e.method:<17}{e.dt:>14.6g}{e.alpha:>10.4f}  {cons}{tag}")
+    lines.append("alpha = dt / sqrt(m_min / K_max); exact: the certified critical step of this "
+                 "state" + (" with its damping" if report.damped else ""))
+    if danger and danger["particles"]:
+        lines.append("")
+        lines.append("Where the danger is -- the particles carrying most of the critical mode:")
+        lines.append(f"  {'particle':>9}{'radius':>12}{'mass':>12}{'contacts':>9}{'share':>8}"
+                     f"{'transl.':>9}{'rotat.':>8}")
+        for q in danger["particles"]:
+            lines.append(f"  {q['index']:>9}{q['radius']:>12.4g}{q['mass']:>12.4g}"
+                         f"{q['contacts']:>9}{q['share']:>8.3f}{q['translation']:>9.3f}"
+                         f"{q['rotation']:>8.3f}")
+        lines.append("  and the contacts carrying most of its strain energy:")
+        lines.append(f"  {'i':>9}{'j / wall':>10}{'k_n':>12}{'k_t':>12}{'c_n':>11}{'c_t':>11}{'share':>8}")
+        for q in danger["contacts"]:
+            other = str(q["j"]) if q["j"] is not None else f"wall {q['wall']}"
+            lines.append(f"  {q['i']:>9}{other:>10}{q['k_n']:>12.4g}{q['k_t']:>12.4g}"
+                         f"{q['c_n']:>11.4g}{q['c_t']:>11.4g}{q['share']:>8.3f}")
+    return "\n".join(lines)
+
+
+def write_mode_vtk(path, data, report) -> Path:
+    """The critical mode per particle as VTK point data: ``translation`` (vector [L],
+    the mode shape, normalised to a largest displacement of one), ``rotation`` (vector,
+    rad, same scale), ``share`` (of the mode's kinetic energy), ``radius``, ``mass``."""
+    import meshio
+
+    from demstep.io.vtk import write_mesh
+
+    op = report.exact.operator
+    u = op.displacement(report.exact.mode)
+    dim = data.particles.dim
+    trans3 = np.zeros((data.particles.n, 3))
+    trans3[:, :dim] = u[:, :dim]
+    rot3 = np.zeros((data.particles.n, 3))
+    if u.shape[1] > dim:
+        if dim == 2:
+            rot3[:, 2] = u[:, 2]
+        else:
+            rot3[:] = u[:, 3:6]
+    scale = np.abs(trans3).max() or 1.0
+    t_share, r_share, _ = op.mode_shares(report.exact.mode)
+    x3 = np.zeros((data.particles.n, 3))
+    x3[:, :dim] = data.particles.x
+    mesh = meshio.Mesh(x3, [("vertex", np.arange(data.particles.n).reshape(-1, 1))],
+                       point_data={"radius": data.particles.r, "mass": data.particles.m,
+                                   "translation": trans3 / scale, "rotation": rot3 / scale,
+                                   "share": t_share + r_share,
+                                   "id": np.arange(data.particles.n, dtype=np.int64)})
+    return write_mesh(path, mesh)
