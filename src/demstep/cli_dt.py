@@ -158,20 +158,23 @@ def add_dt_parser(sub):
 
 # ----------------------------------------------------------------------- checks
 def _check_output_path(option: str, path, suffixes) -> Path:
-    """An output path whose folder exists and is writable, with a known suffix."""
+    """An output path with a known suffix whose folder exists or can be made (its
+    nearest existing ancestor is a writable folder)."""
     import os
 
     path = Path(path)
     if path.suffix.lower() not in suffixes:
         raise InputError(f"{option}: the file name must end in {', '.join(suffixes)}, "
                          f"got {str(path)!r}")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise InputError(f"{option}: no such folder {str(parent)!r} for {str(path)!r}")
     if path.is_dir():
         raise InputError(f"{option}: {str(path)!r} is a folder")
-    if not os.access(parent, os.W_OK):
-        raise InputError(f"{option}: cannot write in {str(parent)!r}")
+    ancestor = path.absolute().parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise InputError(f"{option}: {str(ancestor)!r} is not a folder, cannot write {str(path)!r}")
+    if not os.access(ancestor, os.W_OK):
+        raise InputError(f"{option}: cannot write in {str(ancestor)!r}")
     return path
 
 
@@ -466,6 +469,7 @@ def write_mode_vtk(path, data, report) -> Path:
             rot3[:] = u[:, 3:6]
     scale = np.abs(trans3).max() or 1.0
     t_share, r_share, _ = op.mode_shares(report.exact.mode)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     x3 = np.zeros((data.particles.n, 3))
     x3[:, :dim] = data.particles.x
     mesh = meshio.Mesh(x3, [("vertex", np.arange(data.particles.n).reshape(-1, 1))],

@@ -437,12 +437,13 @@ class Simulation:
         return Particles(self.x[:, :self.dim].copy(), self.r, self.m, self.inertia, self.fixed)
 
     def critical_dt(self, method: str = "exact", rotation: bool = True,
-                    horizon: float | None = None) -> float | None:
+                    horizon: float | None = None, _record: bool = False) -> float | None:
         """Critical step [T] by ``method`` ('exact' or 'element-coupled') of the contacts
         closed now, or with ``horizon`` [T] of every contact that can close within it
         (:meth:`contact_set`), with the law's dashpots and the global viscous damping
         (the damped step of :mod:`demstep.timestep.damping`); None without contacts.
-        The exact solver is warm-started from the last critical mode."""
+        The exact solver is warm-started from the last critical mode. (``_record``: the
+        'auto' control keeps the contacts covered and the mode.)"""
         from demstep.timestep.estimates import element_coupled_dt
         from demstep.timestep.exact import exact_critical_step
 
@@ -450,7 +451,8 @@ class Simulation:
             raise InputError(f"method: must be exact or element-coupled, got {method!r}")
         cover = {}
         contacts = self.contact_set(horizon, cover)
-        self._dt_cover = cover
+        if _record:
+            self._dt_cover = cover
         if contacts.n == 0:
             return None
         p = self.particles_now()
@@ -460,8 +462,9 @@ class Simulation:
             return element_coupled_dt(p, contacts, rotation, damping=damping)
         mode = getattr(self, "_dt_mode", None)
         result = exact_critical_step(p, contacts, rotation, damping, v0=mode)
-        self._dt_mode = result.mode
-        self.dt_exact_undamped = result.dt_undamped
+        if _record:
+            self._dt_mode = result.mode
+            self.dt_exact_undamped = result.dt_undamped
         return result.dt
 
     def _global_damping(self):
@@ -502,7 +505,8 @@ class Simulation:
             fallback = self._densest_packing_dt()
             horizon = int(ts.every) * (self.dt if self.dt is not None else ts.safety * fallback)
             self.dt_horizon = horizon
-            estimate = self.critical_dt(ts.method, horizon=horizon) if self._pairs_built else None
+            estimate = (self.critical_dt(ts.method, horizon=horizon, _record=True)
+                        if self._pairs_built else None)
             if estimate is None:
                 estimate = fallback
             self.dt_estimate = estimate

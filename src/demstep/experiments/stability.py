@@ -57,8 +57,11 @@ class StabilityResult:
 
 
 def build_specimen(name: str, alpha: float, k: float = 1.0e6, density: float = 1.0,
-                   precompression: float = 1.0e-3, rotation: bool = True, seed: int = 1):
-    """A pre-compressed periodic specimen with a small random perturbation."""
+                   precompression: float = 1.0e-3, rotation: bool = True, seed: int = 1,
+                   dashpots: dict | None = None):
+    """A pre-compressed periodic specimen with a small random perturbation; ``dashpots``
+    are keyword arguments of :class:`LinearSpring` (``restitution``,
+    ``restitution_tangential``, ``damping_normal``, ``damping_tangential``)."""
     if name == SPECIMEN:
         from demstep.experiments.fcc_plane_strain import FCCConfig, fcc_specimen
 
@@ -81,7 +84,7 @@ def build_specimen(name: str, alpha: float, k: float = 1.0e6, density: float = 1
     amplitude = 1e-4 * precompression * radius * omega  # displacement ~1e-4 of the overlap
     v = rng.normal(0.0, amplitude, (len(x), dim))
     w = rng.normal(0.0, amplitude / radius, len(x) if dim == 2 else (len(x), 3))
-    law = LinearSpring(k_n=k, k_s=k, mu=0.5)
+    law = LinearSpring(k_n=k, k_s=k, mu=0.5, **(dashpots or {}))
     sim = Simulation(p, law, periodic=box, velocities=v, angular_velocities=w if rotation else None,
                      timestep=TimeStep.from_alpha(alpha), rotation=rotation, runaway_factor=0,
                      jump_limit=np.inf, energy=EnergyMonitor(every=10**9))
@@ -89,9 +92,9 @@ def build_specimen(name: str, alpha: float, k: float = 1.0e6, density: float = 1
 
 
 def is_unstable(name: str, alpha: float, steps: int = 3000, growth: float = 1.0e3,
-                rotation: bool = True) -> bool:
+                rotation: bool = True, dashpots: dict | None = None) -> bool:
     """The energy criterion of the module docstring."""
-    sim = build_specimen(name, alpha, rotation=rotation)
+    sim = build_specimen(name, alpha, rotation=rotation, dashpots=dashpots)
     sim.run(steps=1)
     ke0 = sim.ledger.kinetic
     flag = {"unstable": False}
@@ -108,9 +111,10 @@ def is_unstable(name: str, alpha: float, steps: int = 3000, growth: float = 1.0e
     return flag["unstable"]
 
 
-def specimen_estimates(name: str, rotation: bool = True) -> dict:
-    """alpha of every compared method on the specimen (its current contacts)."""
-    sim = build_specimen(name, 0.1, rotation=rotation)
+def specimen_estimates(name: str, rotation: bool = True, dashpots: dict | None = None) -> dict:
+    """alpha of every compared method on the specimen (its current contacts and their
+    dashpots: the damped estimates)."""
+    sim = build_specimen(name, 0.1, rotation=rotation, dashpots=dashpots)
     sim.prepare()
     contacts = sim.contact_set()
     report = estimate_time_steps(sim.particles_now(), contacts, rotation=rotation,
@@ -119,16 +123,18 @@ def specimen_estimates(name: str, rotation: bool = True) -> dict:
 
 
 def stability_threshold(name: str, rtol: float = 2e-3, lo: float = 0.05, hi: float = 2.0,
-                        steps: int = 3000, rotation: bool = True) -> StabilityResult:
+                        steps: int = 3000, rotation: bool = True,
+                        dashpots: dict | None = None) -> StabilityResult:
     """Bisection for the smallest unstable alpha, to relative tolerance ``rtol``."""
-    estimates = specimen_estimates(name, rotation)
-    if is_unstable(name, lo, steps, rotation=rotation) or not is_unstable(name, hi, steps, rotation=rotation):
+    estimates = specimen_estimates(name, rotation, dashpots)
+    kw = dict(rotation=rotation, dashpots=dashpots)
+    if is_unstable(name, lo, steps, **kw) or not is_unstable(name, hi, steps, **kw):
         raise RuntimeError(f"{name}: the bracket [{lo}, {hi}] does not contain the threshold")
     trials = 2
     while hi / lo - 1.0 > rtol:
         mid = 0.5 * (lo + hi)
         trials += 1
-        if is_unstable(name, mid, steps, rotation=rotation):
+        if is_unstable(name, mid, steps, **kw):
             hi = mid
         else:
             lo = mid

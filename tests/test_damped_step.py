@@ -1,0 +1,218 @@
+"""The damped critical step: exact (safeguarded iteration, matrix-free), closed forms,
+element bounds, Bloch analysis, and the engine's measured threshold.
+
+References are independent of the code under test: the spectral radius of the dense
+one-step amplification matrix of the engine's scheme (damping on the half-step
+velocity), dense companion-matrix eigenvalues of element pencils, and bisection of the
+engine's own runs."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import scipy.linalg
+from hypothesis import given, settings, strategies as st
+
+from demstep.contacts import find_contacts
+from demstep.packings import lattice
+from demstep.particles import Particles
+from demstep.timestep import estimate_time_steps, rayleigh_damped_dt
+from demstep.timestep.assembly import assemble_stiffness, lumped_mass
+from demstep.timestep.damping import GlobalDamping
+from demstep.timestep.elements import coupled_element_damped_dt, coupled_element_matrices
+from demstep.timestep.estimates import element_coupled_dt
+from demstep.timestep.exact import exact_critical_step
+from demstep.timestep.mass_split import element_mass
+from demstep.walls import Wall
+
+
+def amplification_threshold(p, c, rotation, damping):
+    """Largest dt with spectral radius <= 1 of the engine's one-step map
+    v' = v + dt M^-1 (-K x - C v), x' = x + dt v' (dense, bisection; the spectral radius
+    grows continuously past 1 at the threshold, for a bracket that starts stable)."""
+    K = assemble_stiffness(p, c, rotation).toarray()
+    Cd = assemble_stiffness(p, replace(c, k_n=c.c_n, k_s=c.c_t), rotation).toarray()
+    m = lumped_mass(p, rotation)
+    nd = len(m) // p.n
+    free = ~np.repeat(p.fixed, nd)
+    K, Cd, m = K[np.ix_(free, free)], Cd[np.ix_(free, free)], m[free]
+    C = damping.mass * np.diag(m) + damping.stiffness * K + Cd
+    n = len(m)
+    I = np.eye(n)
+    MK, MC = K / m[:, None], C / m[:, None]
+
+    def rho(dt):
+        """Spectral radius without the rigid-body eigenvalues at +1 (a Jordan block,
+        which rounding splits by ~1e-8; no instability starts at +1)."""
+        G = np.block([[I - dt * dt * MK, dt * (I - dt * MC)], [-dt * MK, I - dt * MC]])
+        mu = np.linalg.eigvals(G)
+        return np.abs(mu[np.abs(mu - 1.0) > 1e-5]).max()
+
+    lo, hi = 0.0, 1.0
+    while rho(hi) <= 1 + 1e-9:
+        hi *= 2
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if rho(mid) > 1 + 1e-9:
+            hi = mid
+        else:
+            lo = mid
+    return lo
+
+
+def random_assembly(name, seed, walls=False, fixed=False):
+    """A jittered, slightly polydisperse block (at most 10 particles: the reference is a
+    dense non-symmetric eigenproblem) with random stiffnesses."""
+    rng = np.random.default_rng(seed)
+    lat = lattice(name, 1.0)
+    x = lat.block(2)[:10]
+    x = x + rng.normal(0, 0.01, x.shape)
+    r = 1.0 + 0.05 * rng.random(len(x))
+    p = Particles.from_density(x, r, 1.0 + rng.random(), fixed=None)
+    wall_list = []
+    if walls:
+        lo = (x - r[:, None]).min(axis=0)
+        wall_list = [Wall(lo + 0.02 * np.eye(lat.dim)[k] * 0, np.eye(lat.dim)[k], name=f"w{k}")
+                     for k in range(lat.dim)]
+    if fixed:
+        p = Particles(p.x, p.r, p.m, p.inertia, fixed=np.arange(p.n) == 0)
+    c = find_contacts(p, 1.0, contact_tol=0.08, walls=wall_list)
+    c.k_n[:] = rng.random(c.n) + 1
+    c.k_s[:] = rng.random(c.n)
+    return p, c, rng
+
+
+CASES = [("hex", 0, False, False), ("square", 1, True, False), ("fcc", 2, False, True),
+         ("sc", 3, True, True), ("bcc", 4, False, False)]
+
+
+@pytest.mark.parametrize("name,seed,walls,fixed", CASES)
+@pytest.mark.parametrize("rotation", [True, False])
+@pytest.mark.parametrize("which", ["normal", "tangential", "both+global"])
+def test_exact_damped_step_is_the_amplification_threshold(name, seed, walls, fixed, rotation, which):
+    p, c, rng = random_assembly(name, seed, walls, fixed)
+    assert c.n > 0 and (not walls or (c.j < 0).any())
+    c_n = rng.random(c.n) * 0.6 if which != "tangential" else 0.0
+    c_t = rng.random(c.n) * 0.6 if which != "normal" else 0.0
+    damping = GlobalDamping(0.3, 0.02) if which == "both+global" else GlobalDamping()
+    cc = replace(c, c_n=c_n, c_t=c_t)
+    result = exact_critical_step(p, cc, rotation, damping)
+    reference = amplification_threshold(p, cc, rotation, damping)
+    assert result.damped
+    assert result.dt == pytest.approx(reference, rel=1e-6)
+    assert result.dt <= reference * (1 + 1e-9)  # certified: never above
+    assert result.dt < result.dt_undamped
+
+
+@pytest.mark.parametrize("name,seed,walls,fixed", CASES[:3])
+def test_sparse_matrix_free_path_matches_dense(name, seed, walls, fixed):
+    p, c, rng = random_assembly(name, seed, walls, fixed)
+    cc = replace(c, c_n=rng.random(c.n), c_t=rng.random(c.n))
+    dense = exact_critical_step(p, cc, True, GlobalDamping(0.1), dense_limit=10**6)
+    sparse = exact_critical_step(p, cc, True, GlobalDamping(0.1), dense_limit=0)
+    assert sparse.dt == pytest.approx(dense.dt, rel=1e-8)
+    assert sparse.dt_undamped == pytest.approx(dense.dt_undamped, rel=1e-8)
+
+
+@pytest.mark.parametrize("beta", [0.01, 0.1, 0.5])
+@pytest.mark.parametrize("a1", [0.0, 0.2])
+def test_proportional_damping_is_eq28_at_the_fastest_mode(beta, a1):
+    """C = a1 M + beta K (every dashpot c = beta k, n and t): the modes decouple and the
+    critical step is eq. 28 at omega_max with zeta = a1/(2 omega) + beta omega / 2."""
+    p, c, _ = random_assembly("fcc", 7)
+    cc = replace(c, c_n=beta * c.k_n, c_t=beta * c.k_s)
+    undamped = exact_critical_step(p, c, True).dt
+    damped = exact_critical_step(p, cc, True, GlobalDamping(a1)).dt
+    assert damped == pytest.approx(float(rayleigh_damped_dt(undamped, a1, beta)), rel=1e-8)
+
+
+def element_pencil_dt(K, M_diag, C):
+    """2 / (largest real root of det(s^2 M - s C - K)) of one element, from the dense
+    companion matrix (rigid sides with infinite mass dropped)."""
+    keep = np.isfinite(M_diag)
+    K, C, m = K[np.ix_(keep, keep)], C[np.ix_(keep, keep)], M_diag[keep]
+    n = len(m)
+    L = np.block([[np.zeros((n, n)), np.eye(n)], [K / m[:, None], C / m[:, None]]])
+    ev = scipy.linalg.eigvals(L)
+    real = ev[np.abs(ev.imag) < 1e-9 * np.abs(ev).max()].real
+    return 2.0 / real.max()
+
+
+@pytest.mark.parametrize("name,rotation", [("hex", True), ("fcc", True), ("sc", False)])
+def test_damped_element_closed_form_matches_its_pencil(name, rotation):
+    p, c, rng = random_assembly(name, 5, walls=True)
+    cc = replace(c, c_n=rng.random(c.n), c_t=rng.random(c.n))
+    a1, a2 = 0.2, 0.03
+    mass = element_mass(p, cc)
+    closed = coupled_element_damped_dt(cc, mass, rotation, a1, a2)
+    K, M = coupled_element_matrices(cc, mass, rotation)
+    Cd, _ = coupled_element_matrices(replace(cc, k_n=cc.c_n, k_s=cc.c_t), mass, rotation)
+    for e in range(cc.n):
+        m = M[e]
+        C = a1 * np.diag(np.where(np.isfinite(m), m, 0.0)) + a2 * K[e] + Cd[e]
+        assert closed[e] == pytest.approx(min(element_pencil_dt(K[e], m, C), 2.0 / a1), rel=1e-9)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10**6), name=st.sampled_from(["hex", "square", "fcc", "sc"]),
+       rotation=st.booleans(), a1=st.sampled_from([0.0, 0.05, 1.0]))
+def test_damped_element_bound_is_below_the_exact_step(seed, name, rotation, a1):
+    p, c, rng = random_assembly(name, seed, walls=bool(seed % 2))
+    scale = 10 ** rng.uniform(-3, 1)
+    cc = replace(c, c_n=scale * rng.random(c.n), c_t=scale * rng.random(c.n) * (seed % 3 > 0))
+    d = GlobalDamping(a1)
+    assert element_coupled_dt(p, cc, rotation, damping=d) <= \
+        exact_critical_step(p, cc, rotation, d).dt * (1 + 1e-9)
+
+
+def test_normal_dashpots_leave_a_rotational_top_mode_alone():
+    """FCC with rotation: the fastest mode is rotational, normal dashpots do not touch it
+    (LIGGGHTS' measured threshold does not change either); locked rotation, it drops."""
+    lat = lattice("fcc", 1.0)
+    x, box = lat.supercell(3)
+    p = Particles.from_density(x, np.ones(len(x)), 1.0)
+    c = find_contacts(p, 1.0, periodic=list(box))
+    cc = replace(c, c_n=0.3)
+    free = exact_critical_step(p, cc, True)
+    locked = exact_critical_step(p, cc, False)
+    assert free.dt == pytest.approx(free.dt_undamped, rel=1e-8)
+    assert locked.dt < 0.95 * locked.dt_undamped
+
+
+@pytest.mark.parametrize("name", ["hex", "fcc"])
+@pytest.mark.parametrize("c_n,c_t", [(0.3, 0.0), (0.3, 0.3)])
+def test_bloch_damped_step_bounds_the_supercell(name, c_n, c_t):
+    """The infinite lattice has every wave vector of a supercell: its damped critical
+    step is at most the supercell's, and equal when the supercell holds the fastest
+    wave (FCC, rotation: the zone-centre rotational mode)."""
+    lat = lattice(name, 1.0)
+    x, box = lat.supercell(4)
+    p = Particles.from_density(x, np.ones(len(x)), 1.0)
+    c = replace(find_contacts(p, 1.0, periodic=list(box)), c_n=c_n, c_t=c_t)
+    report = estimate_time_steps(p, c, True, lattice=lat, density=1.0,
+                                 methods=["exact", "exact-periodic"])
+    periodic, exact = report.get("exact-periodic").dt, report.get("exact").dt
+    assert periodic <= exact * (1 + 1e-7)
+    assert periodic == pytest.approx(exact, rel=2e-3)
+
+
+@pytest.mark.parametrize("name,dashpots,rotation", [
+    ("hex", dict(restitution=0.5, restitution_tangential=0.5), True),
+    ("hex", dict(restitution=0.5), False),
+    ("fcc", dict(restitution=0.5, restitution_tangential=0.5), True),
+    ("fcc", dict(restitution=0.2, restitution_tangential=0.9), False),
+])
+def test_engine_threshold_matches_damped_exact_step(name, dashpots, rotation):
+    """The engine's own stability threshold (bisection, demstep stability) on a damped
+    pre-compressed periodic packing: within 0.5 % above the damped exact step (the
+    bisection tolerance is 0.2 %), and far below the undamped one with tangential
+    dashpots."""
+    from demstep.experiments.stability import specimen_estimates, stability_threshold
+
+    result = stability_threshold(name, rtol=2e-3, lo=0.05, hi=1.0, rotation=rotation,
+                                 dashpots=dashpots)
+    exact = result.estimates["exact"]
+    assert exact <= result.bracket[1]
+    assert result.alpha_empirical == pytest.approx(exact, rel=5e-3)
+    undamped = specimen_estimates(name, rotation)["exact"]
+    assert exact < undamped * (0.8 if "restitution_tangential" in dashpots or not rotation else 1)
