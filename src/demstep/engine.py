@@ -360,13 +360,16 @@ class Simulation:
         the law (:func:`demstep.contact.laws.contact_coefficients`); positions projected
         to ``dim``.
 
-        ``horizon`` None: the contacts closed now (overlap > 0). ``horizon`` [T]: also
-        every pair of the neighbour lists that can close within that time: a pair whose
-        gap is less than its reach 2 h (s_i + s_j), s = |v| + h |a| the distance a
-        particle covers at its current velocity and acceleration (twice: a margin for
-        speeding up); non-linear laws take the stiffness at the overlap the pair can
-        reach, delta + reach. Normals and arms are those of the current geometry
-        (arms at zero overlap for open pairs). ``cover`` (a dict) receives, for 'pairs'
+        ``horizon`` None: the contacts closed now (overlap > 0). ``horizon`` [T]: every
+        pair that can close before the lists are rebuilt, that is every pair of the
+        neighbour lists (gap below the skin when they were built; a pair that comes
+        closer triggers a rebuild first), with a non-linear law's stiffness at the
+        overlap it can reach within the horizon: delta + 2 h (s_i + s_j), s = |v| + h |a|
+        the distance a particle covers at its current velocity and acceleration (twice:
+        a margin for speeding up; servo walls at their speed limit; at most the skin),
+        and at least the TimeStep's relative ``overlap`` x R*.
+        Normals are those of the current geometry, arms the radii (the longest a contact
+        can have: they shorten as it closes). ``cover`` (a dict) receives, for 'pairs'
         and 'walls', the sorted keys of the contacts included and the overlaps their
         coefficients assumed (see :meth:`_contacts_covered`)."""
         dim = self.dim
@@ -382,15 +385,24 @@ class Simulation:
                     d[:, k] -= self.periodic_len[k] * np.rint(d[:, k] / self.periodic_len[k])
             dist = np.linalg.norm(d, axis=1)
             delta = self.r[self.pi] + self.r[self.pj] - dist
-            reach = 0.0 if horizon is None else 2.0 * horizon * (speed[self.pi] + speed[self.pj])
-            on = delta + reach > 0
+            if horizon is None:
+                on = delta > 0
+                delta_eval = delta[on]
+            else:
+                on = np.ones(len(delta), dtype=bool)
+                delta_eval = np.maximum(delta, 0.0) + np.minimum(
+                    2.0 * horizon * (speed[self.pi] + speed[self.pj]), self.skin)
             i, j, d, dist = self.pi[on], self.pj[on], d[on], dist[on]
-            delta_eval = (delta + reach)[on] if horizon is not None else delta[on]
             r_star = self.r[i] * self.r[j] / (self.r[i] + self.r[j])
+            if horizon is not None and self.law.law_id != 0:
+                delta_eval = np.maximum(delta_eval, self.timestep.overlap * r_star)
             inv = self.inv_m[i] + self.inv_m[j]
             m_star = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), self.m[i])
             kn, kt, cn, ct = self._coefficients(law_id, params, delta_eval, r_star, m_star)
-            ai, aj = contact_arms_array(self.r[i], self.r[j], np.minimum(dist, self.r[i] + self.r[j]))
+            if horizon is None:
+                ai, aj = contact_arms_array(self.r[i], self.r[j], dist)
+            else:  # the longest arms a contact can have (they shorten as it closes)
+                ai, aj = self.r[i].copy(), self.r[j].copy()
             parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
                                     c_n=cn, c_t=ct))
             if cover is not None:
@@ -398,17 +410,24 @@ class Simulation:
         if len(self.wp):
             dist = np.einsum("qk,qk->q", self.x[self.wp] - self.wall_point[self.ww], self.wall_normal[self.ww])
             delta = self.r[self.wp] - dist
-            reach = 0.0
-            if horizon is not None:
+            if horizon is None:
+                on = delta > 0
+                delta_eval = delta[on]
+            else:
+                on = np.ones(len(delta), dtype=bool)
                 wall_speed = np.linalg.norm(self.wall_vel[self.ww], axis=1)
-                reach = 2.0 * horizon * (speed[self.wp] + wall_speed)
-            on = delta + reach > 0
+                wall_speed = np.maximum(wall_speed, np.where(
+                    self.wall_motion[self.ww] == dem.WALL_SERVO,
+                    np.minimum(self.servo[self.ww, dem.S_MAXSPEED], 1e300), 0.0))
+                delta_eval = np.maximum(delta, 0.0) + np.minimum(
+                    2.0 * horizon * (speed[self.wp] + wall_speed), self.skin)
+                if self.law.law_id != 0:
+                    delta_eval = np.maximum(delta_eval, self.timestep.overlap * self.r[self.wp])
             p, wi, dist = self.wp[on], self.ww[on], dist[on]
-            delta_eval = (delta + reach)[on] if horizon is not None else delta[on]
             kn, kt, cn, ct = self._coefficients(law_id, params, delta_eval, self.r[p], self.m[p])
+            arm = dist if horizon is None else self.r[p].copy()
             parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim],
-                                    np.minimum(dist, self.r[p]), np.zeros(len(p)), kn, kt, wi,
-                                    c_n=cn, c_t=ct))
+                                    arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct))
             if cover is not None:
                 cover["walls"] = _sorted_keys(p * max(1, len(self.walls)) + wi, delta_eval)
         if not parts:
