@@ -113,16 +113,18 @@ def test_first_step_covers_contacts_that_close_soon():
 
 
 def test_a_contact_outside_the_cover_forces_a_new_estimate():
-    """Two spheres approaching fast: when they touch although the last estimate did not
-    count them (a horizon of one step), 'auto' re-estimates at once."""
-    x = np.array([[0.0, 0, 0], [2.05, 0, 0]])
-    p = Particles.from_density(x, np.ones(2), 1.0)
-    sim = Simulation(p, LinearSpring(k_n=1e4), velocities=[[1.0, 0, 0], [-1.0, 0, 0]],
+    """A sphere falls onto a fixed one and comes to rest on it. If the last estimate did
+    not count that contact (its record emptied here), 'auto' re-estimates at the next
+    check (every AUTO_CHECK_EVERY steps at most), long before the next scheduled one."""
+    x = np.array([[0.0, 0, 0], [0.0, 0, 2.05]])
+    p = Particles.from_density(x, np.ones(2), 1.0, fixed=[True, False])
+    sim = Simulation(p, LinearSpring(k_n=1e4, restitution=0.2), gravity=[0, 0, -9.81],
                      timestep=TimeStep.auto(safety=0.9, method="exact", every=10**6))
     sim.prepare()
-    sim._dt_cover = {}  # as if the last estimate had seen no contact
-    assert not sim._contacts_covered() or sim.n_contacts == 0
-    estimates = sim.n_dt_estimates
-    sim.run(steps=400)
-    assert sim.n_dt_estimates > estimates
-    assert sim.dt <= 0.9 * 2.0 / np.sqrt(2 * 1e4 / p.m[0]) * (1 + 1e-9)
+    assert sim.n_contacts == 0 and sim.n_dt_estimates == 1
+    sim._dt_cover = {}  # as if the last estimate had seen no pair
+    sim.run(steps=2000)
+    assert sim.n_contacts == 1
+    assert sim.n_dt_estimates == 2  # the one forced by the uncovered contact
+    assert sim._contacts_covered()
+    assert sim.dt <= 0.9 * sim.critical_dt("exact") * (1 + 1e-9)

@@ -663,7 +663,8 @@ class Simulation:
             if until is not None:
                 chunk = min(chunk, next_check - self.step)
             if self.timestep.mode == "auto":
-                chunk = min(chunk, max(1, self._next_dt_update - self.step))
+                chunk = min(chunk, max(1, self._next_dt_update - self.step),
+                            self.AUTO_CHECK_EVERY)
             chunk = max(1, chunk)
             n_done, reason = dem.advance(
                 chunk, self.dt, self.dt_prev, self._first, self.skin,
@@ -718,6 +719,9 @@ class Simulation:
                 if until(self):
                     break
         return done
+
+    #: 'auto': steps between checks that every closed contact was in the last estimate
+    AUTO_CHECK_EVERY = 50
 
     #: below this many particles the serial kernels are faster than threaded ones
     PARALLEL_MIN_PARTICLES = 5000
