@@ -507,12 +507,13 @@ class Simulation:
         return densest_packing_dt(self.dim, m, kn[0], kt[0], cn[0], ct[0],
                                   self.damping.viscous, self.rotation)
 
-    def _choose_dt(self, force: bool = False):
+    def _choose_dt(self, force: bool = False, scheduled: bool = True):
         """dt for the next steps. 'auto': ``safety`` x the critical step of every contact
         that can close before the next estimate (:meth:`critical_dt` with the horizon of
         ``every`` steps), dashpots and global damping included; growth capped, decreases
         immediate. :meth:`_contacts_covered` forces a new estimate as soon as a contact
-        closes that the last one did not include."""
+        closes that the last one did not include (``scheduled`` False: it may only lower
+        dt and leaves the schedule of the regular estimates alone)."""
         ts = self.timestep
         if ts.mode == "fixed":
             self.dt = float(ts.dt)
@@ -533,9 +534,10 @@ class Simulation:
             target = ts.safety * estimate
             if self.dt is None or target < self.dt:
                 self.dt = target
-            else:
+            elif scheduled:
                 self.dt = min(target, self.dt * (1.0 + ts.growth))
-            self._next_dt_update = self.step + int(ts.every)
+            if scheduled:
+                self._next_dt_update = self.step + int(ts.every)
 
     def timestep_state(self) -> dict:
         """Arrays of the 'auto' time-step control that a restart needs to continue bit for
@@ -711,9 +713,11 @@ class Simulation:
                 if self.step >= t.next_step:
                     t.callback(self)
                     t.next_step = self.step + t.every
-            if self.timestep.mode == "auto" and (self.step >= self._next_dt_update
-                                                 or not self._contacts_covered()):
-                self._choose_dt(force=True)
+            if self.timestep.mode == "auto":
+                if self.step >= self._next_dt_update:
+                    self._choose_dt(force=True)
+                elif not self._contacts_covered():
+                    self._choose_dt(force=True, scheduled=False)
             if until is not None and self.step >= next_check:
                 next_check = self.step + check_every
                 if until(self):
