@@ -192,8 +192,19 @@ def test_paper_quick_end_to_end(tmp_path, capsys):
     assert summary["version"] and summary["settings"]["quick"] is True
     for r in summary["stability"]:
         assert r["alpha_empirical"] == pytest.approx(r["estimates"]["exact"], rel=0.02)
+    # damping and the critical step: measured thresholds on the damped exact step (the
+    # quick bisection tolerance is 1 %), restitution 0.5 near 0.43 of the undamped step
+    damping = {r["restitution"]: r for r in summary["damping"]}
+    assert set(damping) == {1.0, 0.9, 0.5, 0.2} and (out / "damping.png").exists()
+    for r in damping.values():
+        assert r["alpha_empirical"] == pytest.approx(r["estimates"]["exact"], rel=0.02)
+        assert r["estimates"]["element-coupled"] <= r["alpha_empirical"]
+    half = damping[0.5]["estimates"]
+    assert half["exact"] / half["exact-undamped"] == pytest.approx(0.43, abs=0.01)
+    assert damping[0.2]["rayleigh_20"] > damping[0.2]["alpha_empirical"]  # the rule fails
     report = (out / "report.md").read_text()
     assert "Thornton" in report and "Resolved parameters" in report
+    assert "Damping and the critical step" in report
 
 
 def test_engine_api_example_runs():

@@ -6,7 +6,10 @@
    and two supplementary runs with rotation blocked.
 3. The measured stability threshold of every regular lattice and of the FCC specimen
    against every estimate.
-4. report.md and report.html with PNG figures, CSV data beside them, the resolved
+4. Damping and the critical step: the FCC specimen with contact dashpots of
+   restitution 0.9, 0.5 and 0.2 (normal and tangential), its damped and undamped exact
+   steps, the measured thresholds, and where the 20 % Rayleigh-time rule falls.
+5. report.md and report.html with PNG figures, CSV data beside them, the resolved
    parameters and the package version.
 
 Runs are independent tasks mapped on Dask (:func:`demstep.sweep.dask_map`), so both
@@ -42,6 +45,7 @@ class PaperSettings:
     stability_rtol: float = 2e-3
     stability_steps: int = 3000
     stability_names: tuple = ("square", "hex", "sc", "bcc", "fcc", "rhombic", "fcc-specimen")
+    damping_restitutions: tuple = (1.0, 0.9, 0.5, 0.2)
     workers: int = 2
     scheduler: str | None = None
     fcc: dict = field(default_factory=dict)
@@ -92,6 +96,18 @@ def stability_task(item):
     out = result.to_json()
     out["bracket"] = list(result.bracket)
     out["trials"] = result.trials
+    out["wall_time"] = time.perf_counter() - start
+    return out
+
+
+def damping_task(item):
+    """The damping study at one restitution. item = (restitution, rtol, steps)."""
+    from demstep.experiments.stability import damping_study
+
+    restitution, rtol, steps = item
+    _quiet_logs()
+    start = time.perf_counter()
+    out = damping_study(restitution, rtol=rtol, steps=steps)
     out["wall_time"] = time.perf_counter() - start
     return out
 
@@ -154,7 +170,8 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
     out.mkdir(parents=True, exist_ok=True)
     (out / "data").mkdir(exist_ok=True)
     started = time.perf_counter()
-    n_tasks = 4 + len(settings.alphas) + len(settings.alphas_no_rotation) + len(settings.stability_names)
+    n_tasks = (4 + len(settings.alphas) + len(settings.alphas_no_rotation)
+               + len(settings.stability_names) + len(settings.damping_restitutions))
     progress, finish = _progress(show_progress, n_tasks)
 
     # 1. Figures 8 and 9
@@ -204,6 +221,14 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
         else:
             stability.append(res)
     _write_json(out / "data" / "stability.json", stability)
+    # 4. damping and the critical step
+    dp_items = [(e, settings.stability_rtol, settings.stability_steps)
+                for e in settings.damping_restitutions]
+    dp_results = _map(damping_task, dp_items, settings, progress, "damping study")
+    damping = [{"restitution": e, "status": "failed", "message": str(res)}
+               if isinstance(res, Exception) else res
+               for (e, _, _), res in zip(dp_items, dp_results)]
+    _write_json(out / "data" / "damping.json", damping)
 
     # 4. figures and report
     from demstep import plotting
@@ -215,6 +240,7 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
         "energy_error": plotting.plot_fcc_energy(fcc_summary, base.energy_eps,
                                                  out / "fcc_energy_error.png"),
         "stability": plotting.plot_stability(stability, out / "stability.png"),
+        "damping": plotting.plot_damping(damping, out / "damping.png"),
     }
     progress("figures")
     summary = {
@@ -223,6 +249,7 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
         "settings": asdict(settings),
         "fcc": [{k: v for k, v in r.items() if k != "curves"} for r in fcc_summary],
         "stability": stability,
+        "damping": damping,
         "critical_step_minima": table["minima"],
     }
     summary["wall_time_s"] = time.perf_counter() - started

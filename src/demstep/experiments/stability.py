@@ -139,3 +139,47 @@ def stability_threshold(name: str, rtol: float = 2e-3, lo: float = 0.05, hi: flo
         else:
             lo = mid
     return StabilityResult(name, hi, estimates, (lo, hi), trials)
+
+
+# ------------------------------------------------------------- damping study
+#: restitution coefficients of the damping study (normal and tangential dashpots)
+DAMPING_RESTITUTIONS = (1.0, 0.9, 0.5, 0.2)
+#: Poisson's ratio of the material equivalent to the specimen's linear springs
+EQUIVALENT_POISSON = 0.25
+
+
+def equivalent_rayleigh_alpha(precompression: float = 1.0e-3,
+                              poisson: float = EQUIVALENT_POISSON) -> float:
+    """alpha = T_R / sqrt(m/K) of the Rayleigh time of the material whose Hertz tangent
+    stiffness at the specimen's overlap equals its linear K (the rule of thumb a
+    Hertz-model user would apply): K = 2 E* sqrt(R* delta) with delta = 2 p r and
+    R* = r (1 + p) / 2 for a relative pre-compression p, E = 2 (1 - nu^2) E*.
+    Dimensionless: independent of K, r and the density."""
+    from demstep.timestep.rules import rayleigh_time
+
+    r, k, rho = 1.0, 1.0, 1.0
+    rad = r * (1.0 + precompression)
+    e_star = k / (2.0 * math.sqrt(0.5 * rad * 2.0 * precompression * r))
+    youngs = 2.0 * (1.0 - poisson**2) * e_star
+    mass = rho * 4.0 / 3.0 * math.pi * rad**3
+    return rayleigh_time([rad], [rho], [youngs], [poisson]) / math.sqrt(mass / k)
+
+
+def damping_study(restitution: float, rtol: float = 2e-3, steps: int = 3000,
+                  name: str = SPECIMEN) -> dict:
+    """The measured threshold and the (damped) estimates of the specimen with normal and
+    tangential dashpots of restitution ``restitution`` (1: none), demstep convention."""
+    dashpots = None if restitution >= 1.0 else dict(restitution=restitution,
+                                                    restitution_tangential=restitution)
+    result = stability_threshold(name, rtol=rtol, lo=0.02, hi=1.0, steps=steps,
+                                 dashpots=dashpots)
+    sim = build_specimen(name, 0.1, dashpots=dashpots)
+    sim.prepare()
+    report = estimate_time_steps(sim.particles_now(), sim.contact_set(), rotation=True,
+                                 methods=("exact", "exact-undamped", "element-coupled",
+                                          "nodal", "itasca", "guidance"))
+    alphas = {e.method: e.alpha for e in report.estimates}
+    alphas.setdefault("exact-undamped", alphas["exact"])
+    return {"restitution": restitution, "alpha_empirical": result.alpha_empirical,
+            "bracket": list(result.bracket), "estimates": alphas,
+            "rayleigh_20": 0.2 * equivalent_rayleigh_alpha()}
