@@ -312,16 +312,45 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run_parser(parser: argparse.ArgumentParser, argv=None) -> int:
-    """Parse ``argv`` and run the chosen subcommand: InputError -> one line, exit 2."""
+    """Parse ``argv`` and run the chosen subcommand: InputError -> one line, exit 2;
+    an operating-system error (disk full, no permission) -> one line, exit 1;
+    Ctrl-C -> exit 130; a closed standard output (``| head``) -> quiet exit 141 as for
+    the Unix tools killed by SIGPIPE."""
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe fails here, not at exit
+        return status
+    except BrokenPipeError:
+        return _stdout_closed()
     except InputError as exc:
         print(f"demstep: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("demstep: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:
+        where = f": {exc.filename}" if getattr(exc, "filename", None) else ""
+        print(f"demstep: error: {exc.strerror or type(exc).__name__}{where}", file=sys.stderr)
+        return 1
+
+
+#: exit status after the reader of standard output went away (128 + SIGPIPE)
+EXIT_BROKEN_PIPE = 141
+
+
+def _stdout_closed() -> int:
+    """Standard output is a pipe whose reader has gone: stop quietly. Point the file
+    descriptor at /dev/null so that the interpreter's final flush does not fail again
+    (https://docs.python.org/3/library/signal.html#note-on-sigpipe)."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+    return EXIT_BROKEN_PIPE
 
 
 def main(argv=None) -> int:

@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
-from demstep.errors import InputError
+from demstep.errors import InputError, missing_file
 
 #: environment of local-cluster worker processes: one thread each for numba, OpenMP
 #: and BLAS (the worker processes themselves use the cores)
@@ -387,7 +387,8 @@ def read_runs_file(path) -> list[dict]:
     is a dict key path -> value."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"runs: no such file, got {str(path)!r}")
+        what = "a folder, not a file" if path.is_dir() else "no such file"
+        raise InputError(f"runs: {what}, got {str(path)!r}")
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
@@ -510,7 +511,7 @@ def plan_sweep(case_path, params: Sequence[str] = (), runs_file=None) -> SweepPl
 
     case_path = Path(case_path)
     if not case_path.is_file():
-        raise InputError(f"{case_path}: no such case file")
+        raise missing_file(case_path, "case file")
     try:
         case_text = case_path.read_text(encoding="utf-8")
         base = tomllib.loads(case_text)
