@@ -194,6 +194,8 @@ class StopRequest:
         self.signal_name: str | None = None
         self.abort_signal: str | None = None
         self.started = False
+        #: the run has ended and is being recorded: later signals change nothing
+        self.finished = False
         self.exit_now = exit_now
         self.on_abort = on_abort
         self._previous = {}
@@ -203,6 +205,9 @@ class StopRequest:
 
     def _handle(self, signum, frame):
         name = signal.Signals(signum).name
+        if self.finished:
+            log.warning("%s received: the run has ended, recording it", name)
+            return
         if self.signal_name is None and (self.started or not self.exit_now):
             self.signal_name = name
             log.warning("%s received: saving a checkpoint and stopping after this chunk "
@@ -763,8 +768,10 @@ def _run_locked(case, sim, out_dir, pos, restart_info, checkpoint, level, quiet,
                                "nothing to run: the checkpoint is at the end of the last stage")
         else:
             result = runner.run()
+        stop.finished = True
         log.info("%s", result.message)
     except BaseException as exc:
+        stop.finished = True
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
         text = " ".join(str(exc).split()) or type(exc).__name__
         message = f"{type(exc).__name__}: {text}" if status == "failed" else "interrupted"
