@@ -20,23 +20,55 @@ def pair(dim, gap=0.05, m=(1.0, 1.0)):
     return p
 
 
+def contact_steps(sim, approach_steps, expected_steps, margin=20):
+    """Steps the pair touches (``counters[0] > 0`` after a step), with a few dozen
+    returns to Python instead of one per step: one run to ``margin`` steps before the
+    contact can start (the pair approaches at constant velocity; ``approach_steps``
+    close the gap), single steps to its first step, one run to ``margin`` steps before
+    its expected end (still touching there: two bodies cannot part and meet again),
+    single steps to its end."""
+    sim.run(steps=max(0, approach_steps - margin))
+    assert sim.counters[0] == 0  # not yet touching
+    start = end = None
+    for _ in range(4 * margin):
+        sim.run(steps=1)
+        if sim.counters[0] > 0:
+            start = sim.step
+            break
+    assert start is not None, "the contact did not start"
+    sim.run(steps=max(0, expected_steps - margin - 1))
+    assert sim.counters[0] > 0, "the contact ended early"
+    for _ in range(4 * margin):
+        sim.run(steps=1)
+        if sim.counters[0] == 0:
+            end = sim.step
+            break
+    assert end is not None, "the contact lasted too long"
+    return end - start
+
+
 def collide(dim, law, alpha=0.005, speed=1.0, m=(1.0, 1.0)):
+    """Two particles meeting head on; returns the simulation after they parted and the
+    number of steps they touched."""
     p = pair(dim, m=m)
     v = np.zeros((2, dim))
     v[0, 0], v[1, 0] = speed, -speed
     sim = Simulation(p, law, velocities=v, timestep=TimeStep.from_alpha(alpha))
-    in_contact = []
-    sim.every(1, lambda s: in_contact.append(s.counters[0] > 0))
-    sim.run(steps=int(8 / (alpha * math.sqrt(1 / law.k_n))) + 1000)
-    return sim, np.array(in_contact)
+    sim.prepare()
+    m_eff = m[0] * m[1] / (m[0] + m[1])
+    # overlap (v/omega_d) exp(-beta omega t) sin(omega_d t): it lasts pi / omega_d
+    beta = 0.0 if law.restitution is None else damping_ratio_from_restitution(law.restitution)
+    duration = math.pi * math.sqrt(m_eff / law.k_n) / math.sqrt(1 - beta**2)
+    steps = contact_steps(sim, int(0.05 / (2 * speed * sim.dt)), int(duration / sim.dt))
+    return sim, steps
 
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_two_body_contact_duration(dim):
     k, m = 1.0e4, (1.0, 3.0)
-    sim, contact = collide(dim, LinearSpring(k_n=k), m=m)
+    sim, steps = collide(dim, LinearSpring(k_n=k), m=m)
     m_eff = m[0] * m[1] / (m[0] + m[1])
-    duration = contact.sum() * sim.dt
+    duration = steps * sim.dt
     assert duration == pytest.approx(math.pi * math.sqrt(m_eff / k), abs=2 * sim.dt)
     # elastic: the relative velocity reverses exactly, momentum is conserved
     v_rel = sim.v[1, 0] - sim.v[0, 0]
@@ -71,12 +103,11 @@ def test_hertz_contact_duration(dim):
     v = np.zeros((2, dim))
     v[0, 0], v[1, 0] = 0.5, -0.5
     sim = Simulation(p, law, velocities=v, timestep=TimeStep.fixed(2e-5))
-    contact = []
-    sim.every(1, lambda s: contact.append(s.counters[0] > 0))
-    sim.run(steps=20000)
+    sim.prepare()
     m_star, r_star, v_imp = 0.5, 0.5, 1.0
     expected = 2.868 * (m_star**2 / (r_star * law.e_star**2 * v_imp)) ** 0.2
-    assert np.sum(contact) * sim.dt == pytest.approx(expected, rel=2e-3)
+    steps = contact_steps(sim, int(0.05 / (v_imp * sim.dt)), int(expected / sim.dt))
+    assert steps * sim.dt == pytest.approx(expected, rel=2e-3)
     assert sim.v[1, 0] - sim.v[0, 0] == pytest.approx(1.0, rel=1e-3)
 
 
