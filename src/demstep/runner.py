@@ -206,8 +206,7 @@ class StopRequest:
     def _handle(self, signum, frame):
         name = signal.Signals(signum).name
         if self.finished:
-            log.warning("%s received: the run has ended, recording it", name)
-            return
+            return  # the run has ended and is being recorded (or the process exits)
         if self.signal_name is None and (self.started or not self.exit_now):
             self.signal_name = name
             log.warning("%s received: saving a checkpoint and stopping after this chunk "
