@@ -221,7 +221,7 @@ def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None 
     for k in range(3):
         if periodic_len[k] > 0:
             lo[k] = 0.0
-            nc = int(periodic_len[k] // reach)
+            nc = int(min(periodic_len[k] // reach, max_cells))
             if nc < 3:
                 raise InputError(f"periodic: box length {periodic_len[k]:g} along axis {'xyz'[k]} "
                                  f"must be at least 3 x (2 r_max + skin) = {3 * reach:g}")
