@@ -135,6 +135,22 @@ def test_folder_lock_excludes_a_second_holder(tmp_path):
     assert (tmp_path / LOCK_NAME).is_file()
 
 
+def test_folder_lock_on_a_file_system_without_locks(tmp_path, monkeypatch, caplog):
+    """Some network mounts refuse flock (ENOLCK): the run goes on, with a warning,
+    rather than being refused as if another process held the folder."""
+    import errno
+
+    from demstep.io import lock as lock_module
+
+    def no_locks(fd, operation):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(lock_module.fcntl, "flock", no_locks)
+    with FolderLock(tmp_path) as held:
+        assert held.held
+    assert "cannot lock" in caplog.text and "No locks available" in caplog.text
+
+
 def test_run_refused_while_another_process_writes_the_folder(tmp_path, capsys):
     """The second of two runs into one --out exits 2 and leaves the first's outputs
     alone (before: both ran and interleaved their files)."""

@@ -10,6 +10,7 @@ without ``fcntl`` (Windows) folders are not locked.
 
 from __future__ import annotations
 
+import logging
 import os
 import platform
 from pathlib import Path
@@ -23,6 +24,8 @@ except ImportError:  # pragma: no cover - Windows
 
 #: the lock file in every folder demstep writes a run or a sweep into
 LOCK_NAME = ".demstep.lock"
+
+log = logging.getLogger("demstep")
 
 
 class FolderLock:
@@ -52,12 +55,15 @@ class FolderLock:
         if fcntl is not None:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
+            except BlockingIOError:
                 holder = _read_holder(fd)
                 os.close(fd)
                 raise InputError(f"{self.key}: {self.folder} is in use by another demstep "
                                  f"process{holder}; wait for it to end or choose another "
                                  f"folder") from None
+            except OSError as exc:  # a file system without locks (some network mounts)
+                log.warning("%s: cannot lock %s (%s); continuing without a lock", self.key,
+                            self.folder, exc.strerror or exc)
         try:
             os.ftruncate(fd, 0)
             os.pwrite(fd, f"{os.getpid()} {platform.node()}\n".encode(), 0)
@@ -73,6 +79,8 @@ class FolderLock:
         try:
             if fcntl is not None:
                 fcntl.flock(fd, fcntl.LOCK_UN)
+        except OSError:
+            pass  # closing the file releases the lock anyway
         finally:
             os.close(fd)
 
