@@ -36,6 +36,25 @@ def random_polydisperse(seed: int, dim: int, n: int = 30, walls: bool = False, f
     return p, c
 
 
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels():
+    """Compile the engine's kernels (or load them from numba's cache) once, before the
+    first test. On a cold cache this takes one to two minutes, which would otherwise
+    be charged to whichever test happens to run first (``--durations`` then blames
+    it); here it shows as the setup of the first test."""
+    from demstep.engine import Simulation
+    from demstep.walls import Wall
+
+    x = np.array([[1.0, 1.0, 1.0], [2.9, 1.0, 1.0]])
+    p = Particles.from_density(x, np.ones(2), 1.0)
+    for parallel in (False, True):
+        sim = Simulation(p, walls=[Wall([0, 0, 0], [0, 0, 1], name="floor")],
+                         periodic=[None, 12.0, None], parallel=parallel)
+        sim.run(steps=2)
+        sim.critical_dt("exact")
+        sim.contact_forces()
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(20260122)

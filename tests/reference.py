@@ -21,6 +21,46 @@ def linear_pair_forces(x, v, w, r, m, pairs, k_n, k_s, mu, c_n, c_t, dt, ft, fd,
 
     Returns force on j (P, 3), new tangential force, new dashpot force, new tangential
     energy, and the per-pair strain (normal, tangential), friction and dashpot terms."""
+    overlap = _overlap(x, r, pairs)
+    return _spring_slider(x, v, w, r, pairs, k_n * overlap, 0.5 * k_n * overlap**2,
+                          np.full(len(pairs), float(k_s)), mu, c_n, c_t, dt, ft, fd, etan)
+
+
+def hertz_pair_forces(x, v, w, r, m, pairs, youngs_modulus, poisson_ratio, mu, beta_n,
+                      beta_t, dt, ft, fd, etan):
+    """Hertz-Mindlin (no-slip) with Coulomb friction and restitution dashpots (damping
+    ratios ``beta_n``, ``beta_t``), numpy only, from the textbook formulas for one
+    material: E* = E / (2 (1 - nu^2)), G* = G / (2 (2 - nu)) with G = E / (2 (1 + nu)),
+    R* = r_i r_j / (r_i + r_j), m* = m_i m_j / (m_i + m_j);
+    F_n = 4/3 E* sqrt(R*) delta^(3/2), stored energy 8/15 E* sqrt(R*) delta^(5/2),
+    tangent stiffnesses k_n = 2 E* sqrt(R* delta), k_t = 8 G* sqrt(R* delta), dashpots
+    c = 2 sqrt(5/6) beta sqrt(m* k) (Tsuji et al. 1992). Returns as
+    :func:`linear_pair_forces`."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    overlap = _overlap(x, r, pairs)
+    delta = np.clip(overlap, 0.0, None)
+    e_star = youngs_modulus / (2.0 * (1.0 - poisson_ratio**2))
+    g_star = youngs_modulus / (2.0 * (1.0 + poisson_ratio)) / (2.0 * (2.0 - poisson_ratio))
+    r_star = r[i] * r[j] / (r[i] + r[j])
+    m_star = m[i] * m[j] / (m[i] + m[j])
+    f_el = 4.0 / 3.0 * e_star * np.sqrt(r_star) * delta**1.5
+    e_n = 8.0 / 15.0 * e_star * np.sqrt(r_star) * delta**2.5
+    k_n = 2.0 * e_star * np.sqrt(r_star * delta)
+    k_t = 8.0 * g_star * np.sqrt(r_star * delta)
+    c_n = 2.0 * np.sqrt(5.0 / 6.0) * beta_n * np.sqrt(m_star * k_n)
+    c_t = 2.0 * np.sqrt(5.0 / 6.0) * beta_t * np.sqrt(m_star * k_t)
+    return _spring_slider(x, v, w, r, pairs, f_el, e_n, k_t, mu, c_n, c_t, dt, ft, fd, etan)
+
+
+def _overlap(x, r, pairs):
+    i, j = pairs[:, 0], pairs[:, 1]
+    return r[i] + r[j] - np.linalg.norm(x[j] - x[i], axis=1)
+
+
+def _spring_slider(x, v, w, r, pairs, f_el, e_el, k_t, mu, c_n, c_t, dt, ft, fd, etan):
+    """The part common to the laws: elastic normal force ``f_el`` and energy ``e_el``
+    per pair, an incremental tangential spring of stiffness ``k_t`` (per pair) rotated
+    with the contact plane, a Coulomb slider and dashpots ``c_n``, ``c_t``."""
     i, j = pairs[:, 0], pairs[:, 1]
     d = x[j] - x[i]
     dist = np.linalg.norm(d, axis=1)
@@ -41,17 +81,16 @@ def linear_pair_forces(x, v, w, r, m, pairs, k_n, k_s, mu, c_n, c_t, dt, ft, fd,
     scale = np.divide(norm_ft, norm_old, out=np.ones_like(norm_ft), where=norm_old > 0)
     old = old * scale[:, None]
     touching = overlap > 0
-    f_el = k_n * overlap
     v_n = np.sum(vrel * n, axis=1)
     f_nd = -c_n * v_n
-    trial = old - k_s * du_t
+    trial = old - k_t[:, None] * du_t
     limit = mu * f_el
     mag = np.linalg.norm(trial, axis=1)
     sliding = mag > limit
     new_t = np.where(sliding[:, None], trial * (limit / np.where(mag > 0, mag, 1))[:, None], trial)
     v_t = vrel - v_n[:, None] * n
-    damp_t = np.where(sliding[:, None], 0.0, -c_t * v_t)
-    e_t = np.sum(new_t**2, axis=1) / (2 * k_s)
+    damp_t = np.where(sliding[:, None], 0.0, -np.broadcast_to(c_t, v_n.shape)[:, None] * v_t)
+    e_t = np.sum(new_t**2, axis=1) / (2 * np.where(k_t > 0, k_t, np.inf))
     new_fd = f_nd[:, None] * n + damp_t
     force = (f_el + f_nd)[:, None] * n + new_t + damp_t
     w_in = -0.5 * np.sum((old + new_t) * du_t, axis=1)
@@ -65,7 +104,7 @@ def linear_pair_forces(x, v, w, r, m, pairs, k_n, k_s, mu, c_n, c_t, dt, ft, fd,
     new_t[apart] = 0.0
     new_fd[apart] = 0.0
     e_t[apart] = 0.0
-    e_n = np.where(touching, 0.5 * k_n * overlap**2, 0.0)
+    e_n = np.where(touching, e_el, 0.0)
     return force, new_t, new_fd, e_t, e_n, friction, dashpot, arm_i, arm_j, n
 
 

@@ -37,7 +37,7 @@ name = "floor"
 point = [0.0, 0.0, -1.0]
 normal = [0.0, 0.0, 1.0]
 [periodic]
-x = 6.0
+x = 8.0
 [timestep]
 mode = "auto"
 every = 50
@@ -47,6 +47,7 @@ gravity = [0.0, 0.0, -9.81]
 [stages.walls.floor]
 motion = "servo"
 target_stress = 10.0
+area = 48.0
 [output]
 vtk_every = 5
 """
@@ -162,8 +163,24 @@ def test_mutated_cases_load_or_raise_input_error(case_dir, data):
     assert all(math.isfinite(v) for v in sim.x.ravel())
 
 
+#: what each base case must build: particles, dimension, walls, fixed particles, stages
+BASE_EXPECTED = {"fcc_plane_strain": (150, 3, 2, 0, 2), "hex_biaxial_2d": (120, 2, 4, 0, 2),
+                 "polydisperse_settling_3d": (200, 3, 6, 0, 2), "from-file": (9, 3, 1, 2, 1)}
+
+
 def test_every_base_case_is_valid(case_dir):
+    """Each base case builds the simulation it describes, and every stage runs."""
+    assert sorted(b["name"] for b in BASES) == sorted(BASE_EXPECTED)
     for base in BASES:
         path = case_dir / "case.toml"
         path.write_text(tomli_w.dumps(base))
-        build_simulation(load_case(path))
+        case = load_case(path)
+        sim = build_simulation(case)
+        n, dim, walls, fixed, stages = BASE_EXPECTED[base["name"]]
+        assert (sim.particles.n, sim.dim, len(sim.walls)) == (n, dim, walls), base["name"]
+        assert int(sim.fixed.sum()) == fixed and len(case.stages) == stages
+        for k in range(len(case.stages)):
+            apply_stage(sim, case, k)
+            sim.run(steps=20)
+        assert sim.step == 20 * stages and sim.dt > 0
+        assert np.isfinite(sim.x).all() and np.isfinite(sim.ledger.energy).all()

@@ -56,8 +56,15 @@ def test_auto_timestep_before_contacts_uses_densest_packing():
     sim = Simulation(p, LinearSpring(k_n=100.0), timestep=TimeStep.auto(safety=1.0))
     sim.prepare()
     assert sim.dt == pytest.approx(densest_packing_alpha(3) * math.sqrt(sim.m_min / 100.0))
-    assert densest_packing_alpha(3) == pytest.approx(0.2182, abs=1e-4)
-    assert densest_packing_alpha(2) == pytest.approx(1 / 3, rel=1e-9)
+    # the bound by hand: with the uniform split each element end carries m/z and I/z
+    # (z contacts per particle); its normal mode has lambda = k (z/m + z/m), its
+    # tangential modes (k_s = k, the slip at the contact point, arms a = r) lambda =
+    # k z (1/m + 1/m + r^2/I + r^2/I); alpha = 2 / sqrt(lambda_max / (k/m)).
+    for dim, z, inertia in ((3, 12, 2 / 5), (2, 6, 1 / 2)):  # FCC spheres, hex disks
+        normal = 2 * z
+        tangential = z * (2 + 2 / inertia)  # 84 (FCC), 36 (hex)
+        assert tangential > normal
+        assert densest_packing_alpha(dim) == pytest.approx(2 / math.sqrt(tangential), rel=1e-9)
 
 
 def test_fixed_particle_stays_and_supports():

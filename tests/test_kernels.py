@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from demstep.contact.laws import LinearSpring
+from demstep.contact.laws import LAW_HERTZ, HertzMindlin, LinearSpring, damping_ratio_from_restitution
 from demstep.kernels import dem
 from demstep.kernels.neighbors import build_pair_list, transfer_history
 
@@ -123,6 +123,52 @@ def test_pair_forces_equal_numpy_reference(kernel):
     # the virial: sum of F_on_j d over pairs
     assert np.allclose(sums[0], np.sum(force * (x[pj] - x[pi]), axis=0), rtol=1e-10)
     # per-particle sums against np.add.at, after reducing the chunk buffers
+    f, t = np.zeros((len(r), 3)), np.zeros((len(r), 3))
+    (dem.reduce_forces_serial if kernel == "serial" else dem.reduce_forces)(fbuf, tbuf, spans, f, t)
+    f_ref, t_ref = reference.gather(np.stack([pi, pj], 1), force, n, arm_i, arm_j, len(r))
+    assert np.allclose(f, f_ref, rtol=1e-10, atol=1e-10)
+    assert np.allclose(t, t_ref, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("kernel", ["serial", "parallel"])
+def test_hertz_pair_forces_equal_numpy_reference(kernel):
+    """Hertz-Mindlin with restitution dashpots and friction against the textbook
+    formulas in numpy (tests/reference.py), forces, springs, energies and per-particle
+    sums."""
+    x, v, w, r, m, pi, pj, ft, fd, etan = overlapping_pairs(6)
+    law = HertzMindlin(youngs_modulus=2000.0, poisson_ratio=0.3, mu=0.4, restitution=0.6,
+                       restitution_tangential=0.8)
+    params = tuple(law.params())
+    dt = 1e-3
+    P = len(pi)
+    beta_n = damping_ratio_from_restitution(0.6)
+    beta_t = damping_ratio_from_restitution(0.8)
+    ref = reference.hertz_pair_forces(x, v, w, r, m, np.stack([pi, pj], 1), 2000.0, 0.3, 0.4,
+                                      beta_n, beta_t, dt, ft.copy(), fd.copy(), etan.copy())
+    force, new_t, new_fd, new_et, ref_en, ref_fric, ref_dash, arm_i, arm_j, n = ref
+    touching = (r[pi] + r[pj] - np.linalg.norm(x[pj] - x[pi], axis=1)) > 0
+    sliding = touching & (np.linalg.norm(new_t, axis=1) > 0) & np.isclose(
+        np.linalg.norm(new_t, axis=1), 0.4 * np.linalg.norm(force - new_t - new_fd, axis=1))
+    assert 0 < sliding.sum() < touching.sum()  # both sticking and sliding contacts
+    n_chunks = 1 if kernel == "serial" else 3
+    chunks, spans = dem.pair_chunks(pi, pj, len(r), n_chunks)
+    fbuf, tbuf = np.full((n_chunks, len(r), 3), np.nan), np.full((n_chunks, len(r), 3), np.nan)
+    sums = np.zeros((4, 3))
+    fn = dem.pair_forces_serial if kernel == "serial" else dem.pair_forces
+    ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
+    e_n, e_t, fric, dash, nc = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
+                                  LAW_HERTZ, params, dt, ft2, fd2, et2, True, chunks, spans,
+                                  fbuf, tbuf, sums, np.empty((P, 4)))
+    tol = dict(rtol=1e-10, atol=1e-12)
+    assert np.allclose(ft2, new_t, **tol)
+    assert np.allclose(fd2, new_fd, **tol)
+    assert np.allclose(et2, new_et, **tol)
+    assert e_n == pytest.approx(ref_en.sum(), rel=1e-10)
+    assert e_t == pytest.approx(new_et.sum(), rel=1e-10)
+    assert fric == pytest.approx(ref_fric.sum(), rel=1e-9)
+    assert dash == pytest.approx(ref_dash.sum(), rel=1e-9)
+    assert nc == touching.sum()
+    assert np.allclose(sums[0], np.sum(force * (x[pj] - x[pi]), axis=0), rtol=1e-10)
     f, t = np.zeros((len(r), 3)), np.zeros((len(r), 3))
     (dem.reduce_forces_serial if kernel == "serial" else dem.reduce_forces)(fbuf, tbuf, spans, f, t)
     f_ref, t_ref = reference.gather(np.stack([pi, pj], 1), force, n, arm_i, arm_j, len(r))

@@ -146,13 +146,59 @@ def test_coupled_2d_local_matrix_by_hand():
     assert np.allclose(T.T @ K_local @ T, Kg[0], atol=1e-13)
 
 
-def test_rotation_sign_does_not_change_eigenvalues(rng):
-    """The paper's -K_s r^2 coupling and the physical +K_s r^2 share eigenvalues."""
-    cs, mass = random_contacts(rng, 2, walls=False)
-    K, M = paper_element_matrices(cs, mass, True)
-    flip = np.diag([1, 1, 1, 1, 1, -1.0])
-    K2 = flip @ K @ flip
-    assert np.allclose(element_lambda_numeric(K, M), element_lambda_numeric(K2, M))
+def _eigenvalues(K, M_diag):
+    """Sorted eigenvalues of M^-1 K for one element."""
+    return np.sort(np.linalg.eigvals(K / M_diag[:, None]).real)
+
+
+def _random_rotation(rng, dim):
+    q, r = np.linalg.qr(rng.standard_normal((dim, dim)))
+    return q * np.sign(np.diag(r))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_eqs_20_21_rotation_and_rotation_sign_keep_eigenvalues(rng, dim):
+    """Eqs. 20-21 with transformations that are not sign flips. The local element (the
+    physical +K_s r_i r_j coupling of the rotations, built here by hand), the
+    published one in global axes (T^T K T, -K_s r_i r_j) and that element turned by a
+    further random rotation of the axes all have the eigenvalues of M^-1 K, with
+    different masses at the two ends: M is isotropic per particle, so it commutes with
+    rotations acting on each particle's translations. With a mass that is not
+    isotropic the rotation changes the eigenvalues: the comparison can fail."""
+    cs, mass = random_contacts(rng, dim, walls=False)
+    assert not np.allclose(mass.inv_m_i, mass.inv_m_j)  # unequal ends
+    K_global, M = paper_element_matrices(cs, mass, True)
+    ri, rj = paper_effective_radii(cs.normal, cs.arm_i), paper_effective_radii(cs.normal, cs.arm_j)
+    n_rot = ri.shape[1]
+    nd = dim + n_rot
+    checked = 0
+    for c in range(cs.n):
+        # the local element by hand: springs along (n, t[, t2]), rotational springs
+        # K_s r^2 with the physical + coupling
+        K_local = np.zeros((2 * nd, 2 * nd))
+        for a in range(dim):
+            k = cs.k_n[c] if a == 0 else cs.k_s[c]
+            K_local[np.ix_([a, nd + a], [a, nd + a])] += k * np.array([[1, -1], [-1, 1]])
+        for q in range(n_rot):
+            a, b = dim + q, nd + dim + q
+            ra, rb = ri[c, q], rj[c, q]
+            K_local[np.ix_([a, b], [a, b])] += cs.k_s[c] * np.array([[ra * ra, ra * rb],
+                                                                     [ra * rb, rb * rb]])
+        Q = np.eye(2 * nd)
+        R = _random_rotation(rng, dim)
+        Q[:dim, :dim] = Q[nd:nd + dim, nd:nd + dim] = R
+        K_turned = Q.T @ K_global[c] @ Q
+        assert not np.allclose(K_turned, K_global[c])  # a transformation that does something
+        expected = _eigenvalues(K_local, M[c])
+        scale = abs(expected).max()
+        for K in (K_global[c], K_turned):
+            assert np.allclose(_eigenvalues(K, M[c]), expected, atol=1e-9 * scale)
+        anisotropic = M[c].copy()
+        anisotropic[0] *= 3.0  # m_x != m_y of particle i
+        if not np.allclose(_eigenvalues(K_turned, anisotropic),
+                           _eigenvalues(K_local, anisotropic), atol=1e-6 * scale):
+            checked += 1
+    assert checked > cs.n // 2
 
 
 def test_paper_effective_radius_rhombic_upper_row():

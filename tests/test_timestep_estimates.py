@@ -11,6 +11,7 @@ from demstep.packings import lattice
 from demstep.particles import Particles
 from demstep.timestep import estimate_time_steps, rayleigh_damped_dt
 from demstep.timestep.assembly import scaled_stiffness
+from demstep.timestep.eigen import DENSE_LIMIT, lambda_max
 from demstep.timestep.estimates import element_coupled_dt, exact_dt
 from demstep.timestep.mass_split import cap_fraction, element_mass
 from demstep.timestep.paper_table import PAPER_FCC_TRANSLATION_ZONED, PAPER_MINIMA, minima, paper_table
@@ -29,10 +30,13 @@ def test_coupled_element_bound_is_conservative_and_exact_matches_dense(seed, dim
     p, c = random_polydisperse(seed, dim, n=27 if dim == 3 else 25, walls=walls, fixed=fixed)
     if c.n == 0:
         return
+    A = scaled_stiffness(p, c, rotation)
+    assert A.shape[0] <= DENSE_LIMIT  # exact_dt takes the dense path on these sizes...
     exact = exact_dt(p, c, rotation)
-    dense = dt_from_lambda(scipy.linalg.eigh(scaled_stiffness(p, c, rotation).toarray(),
-                                             eigvals_only=True)[-1])
+    dense = dt_from_lambda(scipy.linalg.eigh(A.toarray(), eigvals_only=True)[-1])
+    sparse = dt_from_lambda(lambda_max(A, dense_limit=0))  # ...so force ARPACK on them too
     assert exact == pytest.approx(dense, rel=1e-10)
+    assert sparse == pytest.approx(dense, rel=1e-10)
     # Rayleigh's bound holds for any partition of the masses, uniform or zoned
     assert element_coupled_dt(p, c, rotation, split) <= exact * (1 + 1e-12)
 

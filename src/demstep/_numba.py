@@ -7,6 +7,7 @@ as plain Python (the tests use this against slow numpy references).
 """
 
 import types
+import warnings
 
 import numba
 
@@ -17,12 +18,53 @@ numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 JIT_OPTIONS = dict(cache=True, fastmath=False, error_model="numpy", nogil=True)
 
 
+#: whether compiled kernels can be cached on disk; set False (with one warning) the
+#: first time numba finds no writable cache location
+CACHE_AVAILABLE = True
+
+
+def _cache_writable(dispatcher) -> bool:
+    """Whether the cache location numba chose for ``dispatcher`` can be written (numba
+    checks it for most locators when it chooses, not for modules in a zip archive)."""
+    try:
+        locator = dispatcher._cache._impl._locator
+    except AttributeError:  # another numba version: trust its own checks
+        return True
+    try:
+        locator.ensure_cache_path()
+    except OSError:
+        return False
+    return True
+
+
+def _compile(func, options: dict):
+    """numba.njit(**options)(func); without the on-disk cache when numba has no
+    writable place for it (a read-only installation without a writable home, a zip
+    archive): numba then raises "cannot cache function ...: no locator available" at
+    import, or fails to open its index file at the first call."""
+    global CACHE_AVAILABLE
+    if options.get("cache") and not CACHE_AVAILABLE:
+        options = {**options, "cache": False}
+    try:
+        dispatcher = numba.njit(**options)(func)
+        if not options.get("cache") or _cache_writable(dispatcher):
+            return dispatcher
+    except RuntimeError as exc:
+        if not options.get("cache") or "cannot cache" not in str(exc):
+            raise
+    CACHE_AVAILABLE = False
+    warnings.warn("demstep: numba finds no writable cache location (set NUMBA_CACHE_DIR to "
+                  "a writable folder); kernels are compiled at every start",
+                  RuntimeWarning, stacklevel=3)
+    return numba.njit(**{**options, "cache": False})(func)
+
+
 def njit(*args, **kwargs):
     """``numba.njit`` with the package's options (``parallel`` opt-in per kernel)."""
     options = {**JIT_OPTIONS, **kwargs}
     if args and callable(args[0]):
-        return numba.njit(**options)(args[0])
-    return numba.njit(**options)
+        return _compile(args[0], options)
+    return lambda func: _compile(func, options)
 
 
 prange = numba.prange

@@ -69,7 +69,9 @@ not checked; default: automatic).
 ``[numerics]``: ``skin`` [L] (Verlet skin; default 0.15 x mean radius), ``jump_limit``
 (divergence when a particle moves this fraction of its radius in one step),
 ``runaway_factor`` (divergence when kinetic energy exceeds this multiple of the energy
-supplied; 0 disables).
+supplied; 0 disables), ``max_initial_overlap`` (the largest overlap of two particles at
+the start, as a fraction of the smaller radius; default 0.05; pairs of fixed particles
+are exempt; coincident centres are always an error).
 
 ``[[stages]]`` (at least one), run in order: ``name``, and exactly one of ``steps``,
 ``duration`` [T] or ``until_kinetic_below`` [M L^2/T^2] (checked every
@@ -87,6 +89,13 @@ stress, ``servo_gain`` [L T/M] or ``servo_factor``, ``max_speed`` [L/T]),
 [steps] (0: only on interruption and at the end), ``checkpoint_keep`` (periodic
 checkpoints kept; 0 keeps all).
 
+Every number must be 0 or lie between 1e-100 and 1e100 in magnitude
+(:data:`MIN_MAGNITUDE`, :data:`MAX_MAGNITUDE`): no consistent set of units needs more,
+and products of such numbers overflow float64. The particles' initial state is checked
+when the simulation is built (:func:`check_initial_state`): coordinates float64 can
+resolve at the scale of the radii, no heavy overlaps, periodic lengths that hold the
+particles, and finite masses, stiffnesses, time step and energies.
+
 Errors (unknown keys, wrong types, non-physical values) raise
 :class:`~demstep.errors.InputError` with one line naming the key path (e.g.
 ``contact.mu``) and the value.
@@ -101,21 +110,41 @@ from pathlib import Path
 from typing import Annotated, Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, ValidationError
 
-from demstep.errors import InputError
+from demstep.errors import InputError, missing_file
 
 #: the largest assembly a case file may generate (a guard against typos in ``size``)
 MAX_PARTICLES = 2_000_000
 
 AXES = "xyz"
 
+#: numbers beyond these magnitudes (other than 0) are refused: no consistent set of units
+#: needs them, and products of two of them overflow (or underflow) float64
+MAX_MAGNITUDE = 1.0e100
+MIN_MAGNITUDE = 1.0e-100
+#: default of numerics.max_initial_overlap: the largest initial overlap of two
+#: particles, as a fraction of the smaller radius
+MAX_INITIAL_OVERLAP = 0.05
+#: coordinates must lie within this many smallest radii of the origin: float64 then
+#: resolves positions to 2e-7 of a radius (at 1e300 the whole contact vanishes in rounding)
+MAX_COORDINATE_RADII = 1.0e9
+
+
+def _magnitude(value: float) -> float:
+    if value != 0 and not (MIN_MAGNITUDE <= abs(value) <= MAX_MAGNITUDE):
+        raise ValueError(f"must be 0 or between {MIN_MAGNITUDE:g} and {MAX_MAGNITUDE:g} in "
+                         f"magnitude (a non-physical magnitude in any consistent units)")
+    return value
+
+
 # ------------------------------------------------------------------ field types
-Positive = Annotated[float, Field(gt=0)]
-NonNegative = Annotated[float, Field(ge=0)]
+Real = Annotated[float, AfterValidator(_magnitude)]
+Positive = Annotated[float, Field(gt=0), AfterValidator(_magnitude)]
+NonNegative = Annotated[float, Field(ge=0), AfterValidator(_magnitude)]
 PositiveInt = Annotated[int, Field(ge=1)]
 NonNegativeInt = Annotated[int, Field(ge=0)]
-Vector = Annotated[list[float], Field(min_length=2, max_length=3)]
+Vector = Annotated[list[Real], Field(min_length=2, max_length=3)]
 Name = Annotated[str, Field(min_length=1, max_length=64)]
 
 
@@ -281,6 +310,7 @@ class NumericsSection(_Section):
     skin: Positive | None = None
     jump_limit: Positive = 0.25
     runaway_factor: NonNegative = 10.0
+    max_initial_overlap: NonNegative = MAX_INITIAL_OVERLAP
 
 
 class BoxAxisMotion(_Section):
@@ -290,7 +320,7 @@ class BoxAxisMotion(_Section):
     ``servo_factor`` of the error per step; at most ``max_speed`` [L/T])."""
 
     motion: Literal["fixed", "rate", "servo"]
-    rate: float | None = None
+    rate: Real | None = None
     target_stress: NonNegative | None = None
     servo_gain: NonNegative = 0.0
     servo_factor: Positive = 0.1
@@ -459,7 +489,7 @@ def load_case(path) -> Case:
     """Read and validate a TOML case file (schema, physics and dimensions)."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: no such case file")
+        raise missing_file(path, "case file")
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
@@ -518,7 +548,8 @@ def _particle_dim(case: Case) -> int:
 
     path = case.particle_file()
     if not path.is_file():
-        raise InputError(f"particles.path: no such file, got {p.path!r}")
+        what = "a folder, not a file" if path.is_dir() else "no such file"
+        raise InputError(f"particles.path: {what}, got {p.path!r}")
     return read_particle_file(path, p.format, p.snapshot).dim
 
 
@@ -813,7 +844,12 @@ def _build_simulation(case: Case, checkpoint_dir):
     fixed = _fixed_flags(case, x)
     p = case.particles
     if m is None or (p.generator == "file" and p.density is not None):
-        particles = Particles.from_density(x, r, p.density, fixed=fixed)
+        try:
+            particles = Particles.from_density(x, r, p.density, fixed=fixed)
+        except InputError as exc:
+            if str(exc).startswith("density:"):
+                raise InputError(f"particles.{exc}") from None
+            raise
     else:
         particles = Particles(x, r, m, particle_inertia(m, r, x.shape[1]), fixed)
     periodic = None
@@ -832,7 +868,86 @@ def _build_simulation(case: Case, checkpoint_dir):
         checkpoint_dir=checkpoint_dir, rotation=case.rotation)
     if case.mass_scaling != 1.0:
         sim.scale_mass(case.mass_scaling)
+    check_initial_state(sim, case.numerics.max_initial_overlap)
     return sim
+
+
+def check_initial_state(sim, max_overlap: float = MAX_INITIAL_OVERLAP) -> None:
+    """Refuse an initial state the engine cannot integrate meaningfully (InputError):
+
+    * coordinates beyond :data:`MAX_COORDINATE_RADII` smallest radii from the origin
+      (float64 no longer resolves the contacts);
+    * a periodic length shorter than the neighbour search needs (three cells of
+      2 r_max + skin);
+    * coincident centres, or two particles overlapping by more than ``max_overlap``
+      of the smaller radius (pairs of fixed particles are exempt);
+    * masses, moments of inertia, stiffness, the time step or the energy scale that
+      are not finite and positive (e.g. a density whose masses overflow).
+    """
+    from demstep.kernels.neighbors import build_pair_list
+
+    r_min = float(sim.r.min())
+    far = np.abs(sim.x).max(axis=1)
+    k = int(np.argmax(far))
+    if far[k] > MAX_COORDINATE_RADII * r_min:
+        raise InputError(f"particles: particle {k} lies at {far[k]:.3g} from the origin, more "
+                         f"than {MAX_COORDINATE_RADII:g} x the smallest radius "
+                         f"({r_min:.3g}): float64 cannot resolve its contacts")
+    x = sim.x.copy()
+    for axis in range(3):
+        if sim.periodic_len[axis] > 0:
+            np.mod(x[:, axis], sim.periodic_len[axis], out=x[:, axis])
+    pi, pj = build_pair_list(x, sim.r, sim.skin, sim.periodic_len)
+    if len(pi):
+        d = x[pj] - x[pi]
+        for axis in range(3):
+            length = sim.periodic_len[axis]
+            if length > 0:
+                d[:, axis] -= length * np.rint(d[:, axis] / length)
+        dist = np.linalg.norm(d, axis=1)
+        r_i, r_j = sim.r[pi], sim.r[pj]
+        relative = (r_i + r_j - dist) / np.minimum(r_i, r_j)
+        free = ~(sim.fixed[pi] & sim.fixed[pj])
+        same = free & (dist <= 1e-12 * (r_i + r_j))
+        if same.any():
+            q = int(np.flatnonzero(same)[0])
+            raise InputError(f"particles: particles {pi[q]} and {pj[q]} have coincident "
+                             f"centres at {x[pi[q], :sim.dim].tolist()}")
+        heavy = free & (relative > max_overlap)
+        if heavy.any():
+            q = int(np.flatnonzero(heavy)[0])
+            raise InputError(f"particles: particles {pi[q]} and {pj[q]} overlap by "
+                             f"{relative[q]:.3g} of the smaller radius at the start (centres "
+                             f"{dist[q]:.4g} apart, radii {r_i[q]:.4g} and {r_j[q]:.4g}), "
+                             f"more than numerics.max_initial_overlap = {max_overlap:g} "
+                             f"(raise it to accept such an overlap)")
+    _check_scales(sim)
+
+
+def _check_scales(sim) -> None:
+    """Masses, inertia, stiffness, time step and energies finite and > 0."""
+    with np.errstate(all="ignore"):
+        for name, values in (("mass", sim.m), ("moment of inertia", sim.inertia)):
+            bad = ~(np.isfinite(values) & (values > 0))
+            if bad.any():
+                k = int(np.flatnonzero(bad)[0])
+                raise InputError(f"particles.density: the {name} of particle {k} is "
+                                 f"{values[k]:.3g} (radius {sim.r[k]:.3g}): not a finite "
+                                 f"positive number")
+        k_max = sim.stiffness_max()
+        m_min = sim.m_min
+        dt_scale = math.sqrt(m_min / k_max) if k_max > 0 else math.inf
+        energy = float(k_max * np.float64(sim.r.max()) ** 2 * len(sim.r))
+    if not (math.isfinite(k_max) and k_max > 0):
+        raise InputError(f"contact: the largest contact stiffness is {k_max:.3g}: not a finite "
+                         f"positive number")
+    low, high = MIN_MAGNITUDE ** 2, MAX_MAGNITUDE ** 2
+    if not (low <= dt_scale <= high and low <= energy <= high):
+        raise InputError(f"contact: stiffness {k_max:.3g} with the smallest mass "
+                         f"{m_min:.3g} and the largest radius {float(sim.r.max()):.3g} "
+                         f"gives a time scale sqrt(m/K) = {dt_scale:.3g} and energies of "
+                         f"{energy:.3g}, outside [{low:g}, {high:g}]: "
+                         f"choose consistent units")
 
 
 def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
@@ -872,5 +987,37 @@ def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
         sim.timestep = build_timestep(stage.timestep)
         sim.timestep.validate()
         sim.dt = None  # chosen anew by the next run (a restart restores it)
+    _check_servo_areas(sim, case, k)
     if fresh and stage.reset_ledger:
         sim.ledger.reset()
+
+
+def _check_servo_areas(sim, case: Case, k: int) -> None:
+    """A servo wall needs its loaded area: given, or from the opposite box walls or
+    periodic lengths along the other axes (else its speed is NaN at the first step)."""
+    from demstep.kernels import dem
+
+    servo = np.flatnonzero(sim.wall_motion == dem.WALL_SERVO)
+    if not len(servo):
+        return
+    areas = np.empty(len(sim.walls))
+    dem.wall_areas(sim.wall_point, sim.wall_normal, sim.servo, sim.box_lo, sim.box_hi,
+                   sim.periodic_len, sim.dim, areas)
+    for w in servo:
+        if not (math.isfinite(areas[w]) and areas[w] > 0):
+            raise InputError(f"stages[{k}]: wall \"{sim.walls[w].name}\" is servo-controlled "
+                             f"but its loaded area is unknown (no opposite box walls or "
+                             f"periodic lengths along the other axes): give its area")
+
+
+def check_stages(case: Case) -> None:
+    """Build the case's simulation and apply every stage's changes in turn, so that
+    what only shows when a stage starts (a servo wall without a loaded area, a box
+    motion on an axis that is not periodic) is an InputError before a run writes."""
+    sim = build_simulation(case)
+    try:
+        for k in range(len(case.stages)):
+            apply_stage(sim, case, k)
+    except InputError as exc:
+        prefix = f"{case.source}: " if case.source else ""
+        raise InputError(f"{prefix}{exc}") from None

@@ -75,7 +75,9 @@ def _add_fcc(sub):
                    help="free particle rotation (default) or blocked")
     p.add_argument("--boundary", choices=("periodic", "platens"), default="periodic",
                    help="periodic cell (default) or rigid frictionless platens in z")
-    p.add_argument("--out", help="folder for the curves (CSV) and a PNG")
+    p.add_argument("--out", help="folder for the curves (CSV), PNGs and, if the run "
+                   "diverges, its saved state (without --out that goes to the system's "
+                   "temporary folder; its path is printed)")
     p.add_argument("--json", action="store_true", help="print the documented JSON summary")
     p.set_defaults(func=cmd_fcc)
 
@@ -86,16 +88,25 @@ def cmd_fcc(args) -> int:
     cfg = FCCConfig(mu=args.mu, alpha=args.alpha, strain=args.strain, rotation=args.rotation,
                     boundary=args.boundary)
     cfg.validate()
-    result = run_fcc(cfg)
-    summary = _finite_or_none(result.summary())
+    out = None
     if args.out:
         from pathlib import Path
 
-        from demstep import plotting
-        from demstep.experiments.paper import _write_curves, _write_json
+        from demstep.io.lock import check_folder_creatable
 
         out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
+        check_folder_creatable(out, "out")
+    result = run_fcc(cfg, checkpoint_dir=out)
+    if result.diverged_state:
+        print(f"demstep fcc: the run diverged; its state is saved in {result.diverged_state}",
+              file=sys.stderr)
+    summary = _finite_or_none(result.summary())
+    if out is not None:
+        from demstep import plotting
+        from demstep.experiments.paper import _write_curves, _write_json
+        from demstep.io.lock import make_folder
+
+        make_folder(out, "out")
         _write_curves(out / "fcc_curves.csv", result.curves)
         record = {**summary, "alpha": cfg.alpha, "rotation": cfg.rotation, "curves": result.curves}
         plotting.plot_fcc_ratio([record], result.theory, out / "fcc_stress_ratio.png")
@@ -166,8 +177,12 @@ def _add_paper(sub):
 
 
 def cmd_paper(args) -> int:
-    from demstep.experiments.paper import run_paper
+    from pathlib import Path
 
+    from demstep.experiments.paper import run_paper
+    from demstep.io.lock import check_folder_creatable
+
+    check_folder_creatable(Path(args.out), "out")
     summary = run_paper(args.out, quick=args.quick, workers=args.workers,
                         scheduler=args.scheduler, show_progress=not args.quiet)
     print(f"report: {args.out}/report.html ({summary['wall_time_s']:.0f} s)")
@@ -206,16 +221,45 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run_parser(parser: argparse.ArgumentParser, argv=None) -> int:
-    """Parse ``argv`` and run the chosen subcommand: InputError -> one line, exit 2."""
+    """Parse ``argv`` and run the chosen subcommand: InputError -> one line, exit 2;
+    an operating-system error (disk full, no permission) -> one line, exit 1;
+    Ctrl-C -> exit 130; a closed standard output (``| head``) -> quiet exit 141 as for
+    the Unix tools killed by SIGPIPE."""
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe fails here, not at exit
+        return status
+    except BrokenPipeError:
+        return _stdout_closed()
     except InputError as exc:
         print(f"demstep: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("demstep: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:
+        where = f": {exc.filename}" if getattr(exc, "filename", None) else ""
+        print(f"demstep: error: {exc.strerror or type(exc).__name__}{where}", file=sys.stderr)
+        return 1
+
+
+#: exit status after the reader of standard output went away (128 + SIGPIPE)
+EXIT_BROKEN_PIPE = 141
+
+
+def _stdout_closed() -> int:
+    """Standard output is a pipe whose reader has gone: stop quietly. Point the file
+    descriptor at /dev/null so that the interpreter's final flush does not fail again
+    (https://docs.python.org/3/library/signal.html#note-on-sigpipe)."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+    return EXIT_BROKEN_PIPE
 
 
 def main(argv=None) -> int:

@@ -8,8 +8,12 @@ Register them in ``demstep.cli.build_parser``::
 
 Heavy modules are imported only when a subcommand runs. Bad input raises InputError
 (the main CLI prints ``demstep: error: ...`` and exits 2) before anything is written.
-Exit status of ``run``: 0 completed, 1 diverged or stopped by the energy monitor, 130
-interrupted (SIGINT/SIGTERM; a checkpoint was saved).
+Exit status of ``run``: 0 completed, 1 diverged, stopped by the energy monitor or
+failed, 2 bad input (including an output folder in use by another run), 130 after
+SIGINT and 143 after SIGTERM (128 + the signal number, as the shell reports a process
+killed by it): the first signal saves a checkpoint and stops (status 'interrupted'),
+a second one stops at once without a checkpoint (status 'aborted'); both are recorded
+in run.json.
 
 Until the registration is in place, ``python -m demstep.cli_run run CASE --out DIR``
 runs them alone.
@@ -20,9 +24,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-
-EXIT_STATUS = {"completed": 0, "diverged": 1, "energy_stop": 1, "interrupted": 130}
-
+from demstep.errors import InputError
 
 def _non_negative_int(text):
     try:
@@ -53,6 +55,9 @@ def add_run_parser(subparsers):
                    help="run at most N steps per stage (previews, smoke tests)")
     p.add_argument("--overwrite", action="store_true",
                    help="allow a non-empty --out folder without --restart")
+    p.add_argument("--allow-changed-case", action="store_true",
+                   help="with --restart: continue although the case differs from the one "
+                   "that wrote the checkpoint")
     p.set_defaults(func=cmd_run)
     return p
 
@@ -71,12 +76,22 @@ def cmd_run(args) -> int:
     from demstep.case import load_case
     from demstep.runner import run_case
 
+    if args.allow_changed_case and args.restart is None:
+        raise InputError("allow-changed-case: only used with --restart")
     case = load_case(args.case)
     result = run_case(case, args.out, quiet=args.quiet, log_level=args.log_level,
-                      restart=args.restart, max_steps=args.max_steps, overwrite=args.overwrite)
+                      restart=args.restart, max_steps=args.max_steps, overwrite=args.overwrite,
+                      allow_changed_case=args.allow_changed_case, exit_on_abort=True)
+    if result.signal is not None:
+        # the process ends because of a signal: another one (Ctrl-C pressed twice) must
+        # not turn the clean exit into a KeyboardInterrupt traceback
+        import signal
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
     stream = sys.stdout if result.ok else sys.stderr
     print(f"demstep run: {result.status}: {result.message}", file=stream)
-    return EXIT_STATUS.get(result.status, 1)
+    return result.exit_status
 
 
 def cmd_plot(args) -> int:

@@ -7,9 +7,11 @@ Register it in ``demstep.cli.build_parser``::
 
 Bad input (a key that is not in the schema, a value the schema refuses, a bad runs
 file, an unreachable scheduler) raises InputError before anything is written (the main
-CLI prints ``demstep: error: ...`` and exits 2). Exit status: 0 when every run finished
-(completed, diverged or energy_stop: results of the sweep), 1 when any run failed with
-an error (its message is in summary.csv; running the sweep again re-runs it).
+CLI prints ``demstep: error: ...`` and exits 2; so does an output folder another sweep
+is writing into). Exit status: 0 when every run finished (completed, diverged or
+energy_stop: results of the sweep), 1 when any run failed with an error or was left
+unfinished because no worker was connected for ``--worker-timeout`` seconds (its
+message is in summary.csv; running the sweep again re-runs it).
 
 Until the registration is in place, ``python -m demstep.cli_sweep sweep CASE ...`` runs
 it alone.
@@ -74,9 +76,31 @@ def add_sweep_parser(subparsers):
                    "the top wall's stress, else the first wall's)")
     p.add_argument("--log-level", default="INFO", metavar="LEVEL",
                    help="level of each run's run.log: DEBUG, INFO (default), WARNING, ERROR")
+    p.add_argument("--worker-timeout", type=_positive_seconds, default=None, metavar="S",
+                   help="give up the runs not done after S seconds without any worker "
+                   "connected, marking them unfinished (default "
+                   f"{_default_worker_timeout():g}); while waiting, a line reports how many "
+                   "runs are pending")
     p.add_argument("--quiet", action="store_true", help="no line per finished run")
     p.set_defaults(func=cmd_sweep)
     return p
+
+
+def _positive_seconds(text):
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"worker-timeout: not a number: {text!r}") from None
+    if not (0 < value < float("inf")):
+        raise argparse.ArgumentTypeError(f"worker-timeout: must be a finite number of "
+                                         f"seconds > 0, got {text!r}")
+    return value
+
+
+def _default_worker_timeout() -> float:
+    from demstep.sweep import WORKER_TIMEOUT
+
+    return WORKER_TIMEOUT
 
 
 def _fmt(value, spec=".3g") -> str:
@@ -106,17 +130,26 @@ def cmd_sweep(args) -> int:
                 text += f": {error[:157] + '...' if len(error) > 160 else error}"
         print(f"[{done}/{total}] {run_id}: {text}", file=sys.stderr, flush=True)
 
+    timeout = args.worker_timeout if args.worker_timeout is not None \
+        else _default_worker_timeout()
+
+    def waiting(pending, seconds):  # always shown: a silent wait looks like a hang
+        print(f"demstep sweep: waiting for workers: {pending} run(s) pending, no worker "
+              f"connected for {seconds:.0f} s (giving up after {timeout:g} s)",
+              file=sys.stderr, flush=True)
+
     result = run_sweep(args.case, args.out, params=args.param, runs_file=args.runs,
                        scheduler=args.scheduler,
                        workers=args.workers if args.workers is not None else DEFAULT_WORKERS,
                        max_steps=args.max_steps, peak=args.peak, log_level=args.log_level,
-                       progress=progress)
+                       progress=progress, worker_timeout=timeout, on_wait=waiting)
     counts = ", ".join(f"{result.count(s)} {s}" for s in
-                       ("completed", "diverged", "energy_stop", "failed") if result.count(s))
+                       ("completed", "diverged", "energy_stop", "failed", "unfinished")
+                       if result.count(s))
     skipped = f"; {len(result.skipped)} finished earlier" if result.skipped else ""
     files = ", ".join(str(p) for p in (result.summary_csv, result.summary_png) if p)
     print(f"demstep sweep: {len(result.rows)} runs ({counts}{skipped}): {files}")
-    return 1 if result.count("failed") else 0
+    return 1 if result.count("failed") or result.count("unfinished") else 0
 
 
 def build_parser() -> argparse.ArgumentParser:

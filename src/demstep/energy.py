@@ -141,6 +141,27 @@ class EnergyMonitor:
     alarms: list = field(default_factory=list)
     max_error: float = 0.0
     _alarmed: bool = False
+    #: (step, time [T], error) of the first alarm of the run, kept across restarts
+    first_alarm: tuple | None = None
+
+    @property
+    def alarm(self) -> bool:
+        """Whether the last evaluated error exceeded ``eps`` (the history's
+        ``energy_alarm`` column)."""
+        return self._alarmed
+
+    def state(self) -> np.ndarray:
+        """What a checkpoint keeps: [alarm, first alarm step, time, error] (step -1:
+        no alarm yet)."""
+        first = self.first_alarm if self.first_alarm is not None else (-1, 0.0, 0.0)
+        return np.array([float(self._alarmed), *map(float, first)])
+
+    def restore_state(self, values) -> None:
+        """Restore :meth:`state` (a restart)."""
+        values = np.asarray(values, dtype=np.float64).reshape(-1)
+        self._alarmed = bool(values[0])
+        if len(values) >= 4 and values[1] >= 0:
+            self.first_alarm = (int(values[1]), float(values[2]), float(values[3]))
 
     def __post_init__(self):
         if self.action not in ("warn", "stop"):
@@ -159,6 +180,8 @@ class EnergyMonitor:
         if err > self.eps:
             if not self._alarmed:
                 self.alarms.append((step, time, err))
+                if self.first_alarm is None:
+                    self.first_alarm = (step, time, err)
                 log.warning("energy balance error %.3g exceeds %.3g at step %d (t = %.6g)",
                             err, self.eps, step, time)
                 self._alarmed = True

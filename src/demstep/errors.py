@@ -16,3 +16,13 @@ class SimulationDiverged(RuntimeError):
         super().__init__(message)
         self.step = step
         self.checkpoint = checkpoint
+
+
+def missing_file(path, what: str = "file") -> InputError:
+    """The InputError for ``path`` that is not an existing regular file, naming why:
+    ``"<path>: a folder, not a <what>"`` or ``"<path>: no such <what>"``."""
+    import os
+
+    if os.path.isdir(path):
+        return InputError(f"{path}: a folder, not a {what}")
+    return InputError(f"{path}: no such {what}")

@@ -65,8 +65,16 @@ class Particles:
         check_positive("density", density)
         validate_particles(x, r, None, None)
         dim = x.shape[1]
-        m = particle_mass(r, density, dim)
-        return cls(x=x, r=r, m=m, inertia=particle_inertia(m, r, dim), fixed=fixed)
+        with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+            m = particle_mass(r, density, dim)
+            inertia = particle_inertia(m, r, dim)
+        bad = ~(np.isfinite(m) & (m > 0) & np.isfinite(inertia) & (inertia > 0))
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise InputError(f"density: {density!r} with radius {r[k]:.3g} (particle {k}) "
+                             f"gives a mass of {m[k]:.3g} and a moment of inertia of "
+                             f"{inertia[k]:.3g}: not finite and positive")
+        return cls(x=x, r=r, m=m, inertia=inertia, fixed=fixed)
 
     @property
     def dim(self) -> int:

@@ -28,6 +28,7 @@ import hashlib
 import json
 import logging
 import math
+import os
 import platform
 import signal
 import sys
@@ -37,8 +38,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
-from demstep.case import Case, apply_stage, build_simulation, dump_case
-from demstep.io.atomic import write_text_atomic
+from demstep.case import Case, apply_stage, build_simulation, check_stages, dump_case
+from demstep.io.atomic import remove_orphans, write_text_atomic
+from demstep.io.lock import FolderLock, check_folder_creatable, folder_is_empty, make_folder
 from demstep.errors import InputError, SimulationDiverged
 
 log = logging.getLogger("demstep")
@@ -60,8 +62,10 @@ def default_chunk_steps(n_particles: int) -> int:
 
 @dataclass
 class RunResult:
-    """How a run ended: ``status`` is completed, interrupted, diverged or energy_stop;
-    ``checkpoint`` is the last checkpoint written (restart from it)."""
+    """How a run ended: ``status`` is completed, interrupted (a signal; checkpoint
+    saved), aborted (a second signal; no checkpoint), diverged or energy_stop;
+    ``checkpoint`` is the last checkpoint written (restart from it); ``signal`` the
+    name of the signal that stopped the run (SIGINT, SIGTERM) or None."""
 
     status: str
     out_dir: Path
@@ -69,10 +73,19 @@ class RunResult:
     time: float
     checkpoint: Path | None = None
     message: str = ""
+    signal: str | None = None
 
     @property
     def ok(self) -> bool:
         return self.status == "completed"
+
+    @property
+    def exit_status(self) -> int:
+        """The command line's exit status: 0 completed, 128 + the signal number when a
+        signal stopped the run (130 SIGINT, 143 SIGTERM), 1 otherwise."""
+        if self.signal is not None:
+            return 128 + int(signal.Signals[self.signal])
+        return 0 if self.ok else 1
 
 
 @dataclass
@@ -141,6 +154,9 @@ def find_checkpoint(path) -> Path:
         if not found:
             raise InputError(f"restart: no checkpoint with a run state in {folder}")
         return max(found)[2]
+    if path.suffix.lower() == ".json" and path.is_file():
+        raise InputError(f"restart: {path} is the run state beside a checkpoint; give the "
+                         f"checkpoint {path.with_suffix('.npz')} or the run folder")
     if not path.is_file():
         raise InputError(f"restart: no such checkpoint, got {str(path)!r}")
     return path
@@ -158,22 +174,56 @@ def _write_text(path, text: str) -> Path:
 
 # ---------------------------------------------------------------- stop signals
 class StopRequest:
-    """Set by SIGINT/SIGTERM: the run saves a checkpoint and stops between chunks. A
-    second signal aborts at once (KeyboardInterrupt)."""
+    """SIGINT/SIGTERM during a run.
 
-    def __init__(self):
+    The first signal asks the run to stop at the end of the current chunk of steps
+    (a fraction of a second) with a checkpoint: status 'interrupted'. A second signal
+    aborts without a checkpoint: status 'aborted'. With ``exit_now`` (the command
+    line), the abort is at once: ``on_abort(signal_name, started)`` records it (run.json,
+    log) and the process exits with 128 + the signal number (130 SIGINT, 143 SIGTERM);
+    the first signal also acts at once while no chunk of steps has finished in this
+    process (``started`` False: during the first compilation of the kernels, which can
+    take a minute), when nothing would be saved anyway. Without ``exit_now`` (the
+    Python API) an abort takes effect at the end of the chunk.
+
+    The handler never raises: an exception raised from a signal handler while numba's
+    dispatcher runs C code surfaces as "SystemError: ... returned a result with an
+    exception set" instead of the KeyboardInterrupt."""
+
+    def __init__(self, exit_now: bool = False, on_abort: Callable | None = None):
         self.signal_name: str | None = None
+        self.abort_signal: str | None = None
+        self.started = False
+        #: the run has ended and is being recorded: later signals change nothing
+        self.finished = False
+        self.exit_now = exit_now
+        self.on_abort = on_abort
         self._previous = {}
 
     def __bool__(self):
         return self.signal_name is not None
 
     def _handle(self, signum, frame):
-        if self.signal_name is not None:
-            raise KeyboardInterrupt
-        self.signal_name = signal.Signals(signum).name
-        log.warning("%s received: saving a checkpoint and stopping after this chunk "
-                    "(again to abort at once)", self.signal_name)
+        name = signal.Signals(signum).name
+        if self.finished:
+            return  # the run has ended and is being recorded (or the process exits)
+        if self.signal_name is None and (self.started or not self.exit_now):
+            self.signal_name = name
+            log.warning("%s received: saving a checkpoint and stopping after this chunk "
+                        "(again to abort at once)", name)
+            return
+        if self.signal_name is None:
+            self.signal_name = name
+        self.abort_signal = name
+        if not self.exit_now:
+            log.warning("%s received again: stopping after this chunk without a checkpoint",
+                        name)
+            return
+        try:
+            if self.on_abort is not None:
+                self.on_abort(name, self.started)
+        finally:
+            os._exit(128 + signum)
 
     def install(self):
         if threading.current_thread() is not threading.main_thread():
@@ -251,7 +301,8 @@ def _setup_logging(out_dir: Path, level: str, console) -> list[logging.Handler]:
 
 # ------------------------------------------------------------------- the runner
 class _Runner:
-    def __init__(self, case, sim, out_dir, pos, max_steps, quiet, on_chunk, chunk_steps):
+    def __init__(self, case, sim, out_dir, pos, max_steps, quiet, on_chunk, chunk_steps,
+                 stop: StopRequest, progress):
         from demstep.io.history import HistoryWriter
         from demstep.io.vtk import VtkWriter
 
@@ -259,8 +310,8 @@ class _Runner:
         self.max_steps = max_steps
         self.on_chunk = on_chunk
         self.chunk_steps = chunk_steps or default_chunk_steps(len(sim.r))
-        self.stop = StopRequest()
-        self.progress = _NoProgress() if quiet else _RichProgress()
+        self.stop = stop
+        self.progress = progress
         self.ckpt_dir = out_dir / "checkpoints"
         self.periodic_ckpts: list[Path] = []
         out = case.output
@@ -386,7 +437,6 @@ class _Runner:
         from demstep.energy import EnergyBalanceError
 
         sim, case = self.sim, self.case
-        self.stop.install()
         try:
             fresh_run = self.pos is None
             start = 0 if fresh_run else self.pos.stage
@@ -412,15 +462,21 @@ class _Runner:
                         path = Path(exc.checkpoint) if exc.checkpoint else None
                         return self._emergency("energy_stop", path, str(exc))
                     self.pos.stage_step += sim.step - before
+                    self.stop.started = True
+                    if self.stop.abort_signal is not None:
+                        return self._aborted()
                     self._outputs()
                     self.progress.update(sim, self.pos, self._stage_total_display())
                     if self.on_chunk is not None:
                         self.on_chunk(sim)
+                    if self.stop.abort_signal is not None:
+                        return self._aborted()
                     if self.stop:
                         path = self.checkpoint(f"signal {self.stop.signal_name}")
                         return RunResult("interrupted", self.out_dir, sim.step, sim.time, path,
                                          f"stopped by {self.stop.signal_name} at step "
-                                         f"{sim.step}; restart with --restart {path}")
+                                         f"{sim.step}; restart with --restart {path}",
+                                         signal=self.stop.signal_name)
                 self.progress.update(sim, self.pos, self._stage_total_display())
             # completed: final outputs and a checkpoint to extend the run from
             if self.history is not None:
@@ -434,10 +490,17 @@ class _Runner:
                              f"t = {sim.time:.6g}, max energy error "
                              f"{sim.monitor.max_error:.3g}")
         finally:
-            self.stop.restore()
-            self.progress.stop()
             if self.history is not None:
                 self.history.close()
+
+    def _aborted(self) -> RunResult:
+        """A second signal: stop without a checkpoint (the last one stays valid)."""
+        sim = self.sim
+        last = self.last_checkpoint
+        restart = f"; restart from {last}" if last is not None else ""
+        return RunResult("aborted", self.out_dir, sim.step, sim.time, last,
+                         f"aborted by a second {self.stop.abort_signal} at step {sim.step} "
+                         f"without a checkpoint{restart}", signal=self.stop.abort_signal)
 
     def _stage_total_display(self):
         budget = self._stage_budget()
@@ -477,25 +540,92 @@ def _version_info() -> dict:
             "platform": platform.platform()}
 
 
+def _replaceable(out_dir: Path) -> bool:
+    """Whether a fresh run may write into ``out_dir`` without ``overwrite``: it does
+    not exist, holds nothing but its lock file, or holds only a run that stopped before
+    its first step (run.json: ``"results": false``; e.g. interrupted while compiling)."""
+    if not out_dir.is_dir() or folder_is_empty(out_dir):
+        return True
+    try:
+        info = json.loads((out_dir / "run.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    if not isinstance(info, dict) or info.get("results") is not False:
+        return False
+    return all(p.name in OUTPUTS or p.name.startswith(".") for p in out_dir.iterdir())
+
+
+def _not_empty(out_dir: Path) -> InputError:
+    return InputError(f"out: {out_dir} exists and is not empty (give --restart to continue "
+                      f"a run or --overwrite to replace it)")
+
+
+def _check_restart_case(state: dict, case: Case, checkpoint, allow_changed_case: bool) -> bool:
+    """Whether the case differs from the one that wrote ``checkpoint``; an InputError
+    unless ``allow_changed_case``."""
+    changed = state.get("case_sha256") != case_hash(case)
+    if changed and not allow_changed_case:
+        raise InputError(f"restart: the case differs from the one that wrote {checkpoint} "
+                         f"(give --allow-changed-case to continue with the changed case)")
+    return changed
+
+
+class _RunRecord:
+    """run.json of a run: written at the start (status 'running') and at the end."""
+
+    def __init__(self, path: Path, info: dict):
+        self.path = path
+        self.info = info
+        self.written = False
+
+    def write(self, **fields):
+        self.info.update(fields)
+        _write_text(self.path, json.dumps(self.info, indent=2, default=str) + "\n")
+        self.written = True
+
+    def finish(self, status: str, sim, message: str, checkpoint=None, **fields):
+        monitor = sim.monitor
+        alarm = None
+        if monitor.first_alarm is not None:
+            a_step, a_time, a_err = monitor.first_alarm
+            alarm = {"step": int(a_step), "time": float(a_time), "energy_error": float(a_err)}
+        if self.info.get("first_energy_alarm") is None:  # a restart keeps the earlier one
+            self.info["first_energy_alarm"] = alarm
+        self.info["energy_alarms"] = int(self.info.get("energy_alarms") or 0) + len(monitor.alarms)
+        self.write(status=status, finished=wallclock.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                   step=sim.step, time=sim.time, message=message,
+                   checkpoint=None if checkpoint is None else str(checkpoint),
+                   max_energy_error=sim.monitor.max_error, **fields)
+
+
 def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
              restart=None, max_steps: int | None = None, overwrite: bool = False,
              chunk_steps: int | None = None,
-             on_chunk: Callable | None = None) -> RunResult:
+             on_chunk: Callable | None = None, allow_changed_case: bool = False,
+             exit_on_abort: bool = False) -> RunResult:
     """Run every stage of ``case`` writing into ``out_dir``.
 
-    ``restart``: a checkpoint (or a folder: its newest checkpoint) to continue from.
+    ``restart``: a checkpoint (or a folder: its newest checkpoint) to continue from;
+    the case must be the one that wrote it unless ``allow_changed_case``.
     ``max_steps``: at most this many steps per stage (previews, smoke tests).
     ``overwrite``: allow a non-empty ``out_dir`` without ``restart`` (the outputs of
-    an earlier run there, :data:`OUTPUTS`, are removed first).
+    an earlier run there, :data:`OUTPUTS`, are removed first). A folder whose run
+    stopped before its first step needs no ``overwrite``.
     ``chunk_steps``: steps between returns to Python, where outputs, progress and
     signals are handled (default :func:`default_chunk_steps`); chunks end at multiples
     of it. A restart reproduces the uninterrupted run bit for bit when both use the
     same value (the default does).
     ``on_chunk(sim)``: called after every chunk.
+    ``exit_on_abort``: a second SIGINT/SIGTERM (or the first before any chunk is done)
+    ends the process at once after recording run.json (the command line; see
+    :class:`StopRequest`).
 
-    Raises InputError (before creating anything) for bad input. Returns a RunResult:
-    interruptions (SIGINT/SIGTERM), divergence and an energy monitor set to 'stop'
-    end the run with a checkpoint and a status, not an exception."""
+    The folder is locked (:class:`demstep.io.lock.FolderLock`) while the run writes:
+    a second run into it fails with an InputError. Raises InputError (before creating
+    anything) for bad input. Returns a RunResult: interruptions (SIGINT/SIGTERM),
+    divergence and an energy monitor set to 'stop' end the run with a checkpoint and
+    a status, not an exception. An unexpected exception is recorded in run.json
+    (status 'failed') and raised."""
     from demstep.io.checkpoint import load_checkpoint
 
     level = str(log_level).upper()
@@ -506,84 +636,163 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
     if chunk_steps is not None and (not isinstance(chunk_steps, int) or chunk_steps < 1):
         raise InputError(f"chunk_steps: must be an integer >= 1, got {chunk_steps!r}")
     out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"out: not a folder, got {str(out_dir)!r}")
-    if restart is None and not overwrite and out_dir.is_dir() and any(out_dir.iterdir()):
-        raise InputError(f"out: {out_dir} exists and is not empty (give --restart to continue "
-                         f"a run or --overwrite to replace it)")
-    # everything that can fail on input happens before the folder is created
+    check_folder_creatable(out_dir, "out")
+    if restart is None and not overwrite and not _replaceable(out_dir):
+        raise _not_empty(out_dir)
+    # everything that can fail on input happens before the folder is created: the
+    # case's particles, walls, parameters and initial state (demstep.case), the restart
+    check_stages(case)
     sim = build_simulation(case, checkpoint_dir=out_dir / "checkpoints")
     pos = None
     restart_info = None
-    case_changed = False
+    checkpoint = None
     if restart is not None:
         checkpoint = find_checkpoint(restart)
         pos, state = read_state(checkpoint)
         if pos.stage > len(case.stages):
             raise InputError(f"restart: the checkpoint is at stage {pos.stage + 1}, the case "
                              f"has {len(case.stages)}")
+        case_changed = _check_restart_case(state, case, checkpoint, allow_changed_case)
         # replay the changes of every stage already started, then restore the state
         started = pos.stage + 1 if pos.stage_step > 0 else pos.stage
         for k in range(min(started, len(case.stages))):
             apply_stage(sim, case, k, fresh=False)
         try:
             load_checkpoint(sim, checkpoint)
-        except (KeyError, ValueError) as exc:
-            if isinstance(exc, InputError):
-                raise
+        except InputError as exc:
+            raise InputError(f"restart: {exc}") from None
+        except (KeyError, ValueError, IndexError) as exc:
             raise InputError(f"restart: {checkpoint}: not a checkpoint of this demstep "
                              f"({type(exc).__name__}: {exc})") from None
-        case_changed = state.get("case_sha256") != case_hash(case)
-        restart_info = {"checkpoint": str(checkpoint), "step": sim.step, "time": sim.time}
-    if restart is None and overwrite:
-        _remove_outputs(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+        restart_info = {"checkpoint": str(checkpoint), "step": sim.step, "time": sim.time,
+                        "case_changed": case_changed}
     from demstep import __version__
 
-    case_text = f"# resolved case written by demstep {__version__}\n" + dump_case(case)
-    _write_text(out_dir / "case.toml", case_text)
+    stop = StopRequest(exit_now=exit_on_abort)
+    stop.install()
+    lock = None
+    try:
+        make_folder(out_dir, "out")
+        lock = FolderLock(out_dir, "out").acquire()
+        # under the lock: another process may have written here since the check above
+        if restart is None and not overwrite and not _replaceable(out_dir):
+            raise _not_empty(out_dir)
+        remove_orphans(out_dir, *(out_dir / name for name in ("checkpoints", "vtk", "plots")))
+        if restart is None:
+            _remove_outputs(out_dir)
+        return _run_locked(case, sim, out_dir, pos, restart_info, checkpoint, level, quiet,
+                           max_steps, chunk_steps, on_chunk, stop, __version__)
+    finally:
+        stop.restore()
+        if lock is not None:
+            lock.release()
+
+
+def _run_locked(case, sim, out_dir, pos, restart_info, checkpoint, level, quiet, max_steps,
+                chunk_steps, on_chunk, stop, version) -> RunResult:
+    """The part of :func:`run_case` that writes (the folder is locked)."""
     run_json = out_dir / "run.json"
     info = {}
-    if restart is not None and run_json.is_file():
+    if restart_info is not None and run_json.is_file():
         try:
             info = json.loads(run_json.read_text(encoding="utf-8"))
         except ValueError:
             info = {}
+        if not isinstance(info, dict):
+            info = {}
+        if info.get("status") == "running":  # we hold the lock: that process is gone
+            restart_info["previous_status"] = "running (the process was killed)"
     info.update(_version_info())
     info.update({"case": case.source, "case_sha256": case_hash(case), "status": "running",
-                 "started": wallclock.strftime("%Y-%m-%dT%H:%M:%S%z"), "max_steps": max_steps})
+                 "started": wallclock.strftime("%Y-%m-%dT%H:%M:%S%z"), "max_steps": max_steps,
+                 "pid": os.getpid(), "host": platform.node(),
+                 "results": restart_info is not None})
     if restart_info:
         info.setdefault("restarts", []).append(restart_info)
-    _write_text(run_json, json.dumps(info, indent=2) + "\n")
-
+    record = _RunRecord(run_json, info)
     previous_level = log.level
-    log.setLevel(level)
-    runner = None
     handlers = []
+    progress = _NoProgress()
+    runner = None
+
+    def on_abort(name: str, started: bool):
+        """Record an abort from the signal handler (the process exits after it)."""
+        if started:
+            status = "aborted"
+            message = (f"aborted by a second {name} at step {sim.step} without a checkpoint"
+                       + (f"; restart from {runner.last_checkpoint}"
+                          if runner is not None and runner.last_checkpoint else ""))
+        else:
+            status = "interrupted"
+            message = (f"stopped by {name} before the first step was done (while "
+                       f"compiling or starting)"
+                       + (f"; restart again from {checkpoint}" if checkpoint is not None
+                          else "; nothing to keep: run the same command again (no "
+                               "--overwrite needed)"))
+        try:
+            record.finish(status, sim, message,
+                          runner.last_checkpoint if runner is not None else checkpoint,
+                          signal=name)
+            log.error("%s", message)
+            for h in handlers:
+                h.flush()
+            console = getattr(progress, "console", None)
+            if console is not None and console.is_terminal:
+                sys.stderr.write("\x1b[?25h\n")  # rich hid the cursor
+            print(f"demstep run: {status}: {message}", file=sys.stderr, flush=True)
+        except Exception:  # the process exits in any case
+            pass
+
+    stop.on_abort = on_abort
+    record.write()  # first, so that an abort from now on is recorded
+    case_text = f"# resolved case written by demstep {version}\n" + dump_case(case)
+    _write_text(out_dir / "case.toml", case_text)
+    log.setLevel(level)
     try:
-        runner = _Runner(case, sim, out_dir, pos, max_steps, quiet, on_chunk, chunk_steps)
-        handlers = _setup_logging(out_dir, level, getattr(runner.progress, "console", None))
+        progress = _NoProgress() if quiet else _RichProgress()
+        handlers = _setup_logging(out_dir, level, getattr(progress, "console", None))
+        runner = _Runner(case, sim, out_dir, pos, max_steps, quiet, on_chunk, chunk_steps,
+                         stop, progress)
+        if checkpoint is not None:
+            runner.last_checkpoint = Path(checkpoint)
         log.info("demstep %s: case '%s', %d %dD particles, %d walls, %d stage(s)%s",
-                 __version__, case.name, len(sim.r), sim.dim, len(sim.walls), len(case.stages),
+                 version, case.name, len(sim.r), sim.dim, len(sim.walls), len(case.stages),
                  f", restarted at step {sim.step}" if restart_info else "")
-        if restart_info and case_changed:
-            log.warning("restart: the case differs from the one that wrote %s",
-                        restart_info["checkpoint"])
+        if restart_info and restart_info["case_changed"]:
+            log.warning("restart: the case differs from the one that wrote %s "
+                        "(--allow-changed-case)", restart_info["checkpoint"])
         if pos is not None and pos.stage == len(case.stages):
             result = RunResult("completed", out_dir, sim.step, sim.time,
                                Path(restart_info["checkpoint"]),
                                "nothing to run: the checkpoint is at the end of the last stage")
         else:
             result = runner.run()
+        stop.finished = True
         log.info("%s", result.message)
+    except BaseException as exc:
+        stop.finished = True
+        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        message = f"{type(exc).__name__}: {text}" if status == "failed" else "interrupted"
+        log.error("run %s: %s", status, message)
+        record.finish(status, sim, message,
+                      runner.last_checkpoint if runner is not None else checkpoint,
+                      results=_has_results(record, stop, status))
+        raise
     finally:
+        stop.on_abort = None
+        progress.stop()
         for h in handlers:
             log.removeHandler(h)
             h.close()
         log.setLevel(previous_level)
-    info.update({"status": result.status, "finished": wallclock.strftime("%Y-%m-%dT%H:%M:%S%z"),
-                 "step": result.step, "time": result.time, "message": result.message,
-                 "checkpoint": None if result.checkpoint is None else str(result.checkpoint),
-                 "max_energy_error": sim.monitor.max_error})
-    _write_text(run_json, json.dumps(info, indent=2) + "\n")
+    record.finish(result.status, sim, result.message, result.checkpoint,
+                  signal=result.signal, results=_has_results(record, stop, result.status))
     return result
+
+
+def _has_results(record: _RunRecord, stop: StopRequest, status: str) -> bool:
+    """Whether the folder holds results worth keeping: an earlier run's (a restart), a
+    chunk of steps done, or a finished run (even of zero steps)."""
+    return bool(record.info.get("results")) or stop.started or status in (
+        "completed", "diverged", "energy_stop")

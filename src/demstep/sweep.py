@@ -28,6 +28,12 @@ Running the same sweep into the same folder again skips every run whose ``run.js
 says completed, diverged or energy_stop for the same resolved case and
 ``--max-steps`` (resume), and runs the others (failed, unfinished, changed) afresh.
 
+The output folder is locked while a sweep writes into it (a second sweep into the
+same folder is refused), and each run's folder while its run writes. While the
+cluster has no worker the sweep says so (with the number of runs pending); after
+``worker_timeout`` seconds without one it gives up the runs not done, marked
+'unfinished' in summary.csv (run the sweep again to resume them).
+
 Execution (:func:`dask_client`): a ``distributed.LocalCluster`` of ``workers`` worker
 processes of one thread each, or an existing cluster given by its scheduler address.
 Each task runs numba with one thread (:data:`WORKER_ENV` on a local cluster and
@@ -55,11 +61,12 @@ import threading
 import time as wallclock
 import tomllib
 import traceback
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
-from demstep.errors import InputError
+from demstep.errors import InputError, missing_file
 
 #: environment of local-cluster worker processes: one thread each for numba, OpenMP
 #: and BLAS (the worker processes themselves use the cores)
@@ -90,6 +97,8 @@ class TaskResult:
     value: Any = None
     error: str = ""
     traceback: str = ""
+    #: the item was never finished: no worker served it within the time limit
+    unfinished: bool = False
 
     @property
     def failed(self) -> bool:
@@ -179,10 +188,23 @@ def dask_client(scheduler: str | None = None, workers: int = 2):
         cluster.close()
 
 
+#: default of ``worker_timeout``: seconds a sweep waits while no worker is connected
+WORKER_TIMEOUT = 600.0
+#: seconds between reports while no worker is connected
+WAIT_REPORT_EVERY = 60.0
+
+
 def map_on_client(client, func: Callable, items: Sequence,
-                  progress: Callable | None = None) -> list[TaskResult]:
+                  progress: Callable | None = None, worker_timeout: float | None = None,
+                  on_wait: Callable | None = None) -> list[TaskResult]:
     """:func:`dask_map` on an open client: one task per item, results in item order;
-    ``progress(index, result)`` is called in this process as each item finishes."""
+    ``progress(index, result)`` is called in this process as each item finishes.
+
+    While the cluster has no worker, ``on_wait(pending, seconds)`` is called (at once,
+    then every :data:`WAIT_REPORT_EVERY` seconds) with the number of items pending
+    and how long no worker has been connected. After ``worker_timeout`` seconds
+    without a worker (None: wait for ever) the items still pending are given up: their
+    results have ``ok`` False, ``unfinished`` True and an error saying why."""
     from distributed import as_completed
 
     items = list(items)
@@ -191,21 +213,75 @@ def map_on_client(client, func: Callable, items: Sequence,
     futures = [client.submit(_call_captured, func, item, pure=False) for item in items]
     index = {f.key: k for k, f in enumerate(futures)}
     results: list[TaskResult | None] = [None] * len(items)
-    for future in as_completed(futures):
-        k = index[future.key]
-        try:
-            result = future.result()
-        except Exception as exc:  # the task never returned: worker lost, unpicklable...
-            result = TaskResult(False, None, _one_line(exc), traceback.format_exc())
-        results[k] = result
-        future.release()
-        if progress is not None:
-            progress(k, result)
+    pending = set(index.values())
+    queue = as_completed(futures)
+    poll = 0.2 if worker_timeout is None else min(0.2, max(0.02, worker_timeout / 20))
+    next_check = wallclock.monotonic()
+    alone_since = None  # when the cluster was last seen without a worker
+    next_report = 0.0
+    while pending:
+        batch = queue.next_batch(block=False)
+        if not batch:
+            wallclock.sleep(poll)
+            now = wallclock.monotonic()
+            if now < next_check:
+                continue
+            next_check = now + min(2.0, 10 * poll)
+            if _worker_count(client) > 0:
+                alone_since = None
+                continue
+            if alone_since is None:
+                alone_since, next_report = now, now
+            waited = now - alone_since
+            if on_wait is not None and now >= next_report:
+                on_wait(len(pending), waited)
+                next_report = now + WAIT_REPORT_EVERY
+            if worker_timeout is not None and waited >= worker_timeout:
+                _give_up(client, futures, index, pending, results, progress, waited,
+                         worker_timeout)
+                break
+            continue
+        for future in batch:
+            k = index[future.key]
+            try:
+                result = future.result()
+            except Exception as exc:  # the task never returned: worker lost, unpicklable...
+                result = TaskResult(False, None, _one_line(exc), traceback.format_exc())
+            results[k] = result
+            pending.discard(k)
+            future.release()
+            if progress is not None:
+                progress(k, result)
     return results
 
 
+def _worker_count(client) -> int:
+    """Workers connected to the scheduler now (-1 when it cannot be asked)."""
+    try:
+        return len(client.nthreads())
+    except Exception:  # the scheduler is unreachable: the client reconnects or fails
+        return -1
+
+
+def _give_up(client, futures, index, pending, results, progress, waited, limit):
+    """Mark the pending items unfinished and cancel their tasks."""
+    error = (f"NoWorkers: no Dask worker for {waited:.0f} s (worker timeout "
+             f"{limit:g} s); not run")
+    left = [f for f in futures if index[f.key] in pending]
+    try:
+        client.cancel(left)
+    except Exception:  # nothing to cancel on a scheduler that is gone
+        pass
+    for k in sorted(pending):
+        results[k] = TaskResult(False, None, error, unfinished=True)
+        if progress is not None:
+            progress(k, results[k])
+    pending.clear()
+
+
 def dask_map(func: Callable, items: Iterable, scheduler: str | None = None, workers: int = 2,
-             progress: Callable | None = None) -> list[TaskResult]:
+             progress: Callable | None = None, worker_timeout: float | None = None,
+             on_wait: Callable | None = None) -> list[TaskResult]:
     """Run ``func(item)`` for every item on Dask; return a :class:`TaskResult` per item,
     in the order of ``items``.
 
@@ -217,7 +293,8 @@ def dask_map(func: Callable, items: Iterable, scheduler: str | None = None, work
     ``scheduler``: the address (``tcp://HOST:PORT``) of a running cluster; None starts
     a local cluster of ``workers`` single-threaded processes and shuts it down on
     return. ``progress(index, result)``: called in this process as each item finishes
-    (in completion order).
+    (in completion order). ``worker_timeout`` and ``on_wait``: as for
+    :func:`map_on_client` (what happens while the cluster has no worker).
 
     Example::
 
@@ -233,7 +310,7 @@ def dask_map(func: Callable, items: Iterable, scheduler: str | None = None, work
     if not items:
         return []
     with dask_client(scheduler, workers) as client:
-        return map_on_client(client, func, items, progress)
+        return map_on_client(client, func, items, progress, worker_timeout, on_wait)
 
 
 # ==================================================================== key paths
@@ -387,7 +464,8 @@ def read_runs_file(path) -> list[dict]:
     is a dict key path -> value."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"runs: no such file, got {str(path)!r}")
+        what = "a folder, not a file" if path.is_dir() else "no such file"
+        raise InputError(f"runs: {what}, got {str(path)!r}")
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
@@ -510,7 +588,7 @@ def plan_sweep(case_path, params: Sequence[str] = (), runs_file=None) -> SweepPl
 
     case_path = Path(case_path)
     if not case_path.is_file():
-        raise InputError(f"{case_path}: no such case file")
+        raise missing_file(case_path, "case file")
     try:
         case_text = case_path.read_text(encoding="utf-8")
         base = tomllib.loads(case_text)
@@ -837,26 +915,76 @@ class SweepResult:
 
 
 def _check_out(out: Path) -> None:
-    if out.exists() and not out.is_dir():
-        raise InputError(f"out: not a folder, got {str(out)!r}")
-    if out.is_dir() and any(out.iterdir()) and not (out / "sweep.json").is_file():
+    from demstep.io.lock import check_folder_creatable, folder_is_empty
+
+    check_folder_creatable(out, "out")
+    if out.is_dir() and not folder_is_empty(out) and not (out / "sweep.json").is_file():
         raise InputError(f"out: {out} exists, is not empty and holds no sweep (sweep.json)")
+
+
+def _lock_out(out: Path):
+    """Create ``out`` and lock it for this sweep (InputError when another process
+    holds it); temporary files of interrupted writes are removed."""
+    from demstep.io.atomic import remove_orphans
+    from demstep.io.lock import FolderLock, make_folder
+
+    make_folder(out, "out")
+    lock = FolderLock(out, "out").acquire()
+    remove_orphans(out)
+    return lock
+
+
+def _mark_unfinished(run_dir: Path, message: str) -> None:
+    """A run given up for want of workers: if its folder says 'running' and no
+    process holds it, record status 'unfinished' in its run.json."""
+    from demstep.io.lock import FolderLock
+    from demstep.runner import _write_text
+
+    path = run_dir / "run.json"
+    if not path.is_file():
+        return
+    try:
+        lock = FolderLock(run_dir, "run").acquire()
+    except InputError:  # a worker still runs it
+        return
+    try:
+        info = json.loads(path.read_text(encoding="utf-8"))
+        if isinstance(info, dict) and info.get("status") == "running":
+            info.update({"status": "unfinished", "message": message})
+            _write_text(path, json.dumps(info, indent=2, default=str) + "\n")
+    except (OSError, ValueError):
+        pass
+    finally:
+        lock.release()
 
 
 def run_sweep(case_path, out, params: Sequence[str] = (), runs_file=None,
               scheduler: str | None = None, workers: int = 2, max_steps: int | None = None,
               peak: str | None = None, log_level: str = "INFO",
-              progress: Callable | None = None) -> SweepResult:
+              progress: Callable | None = None,
+              worker_timeout: float | None = WORKER_TIMEOUT,
+              on_wait: Callable | None = None) -> SweepResult:
     """Run a sweep of ``case_path`` into ``out`` (see the module docstring).
 
     Everything is validated (parameters, runs file, every run's case, the output
-    folder, the scheduler connection) before anything is written. Runs already finished
-    in ``out`` are skipped. ``progress(done, total, run_id, row, skipped)`` is called as
-    each run finishes (first for each skipped run). Returns a :class:`SweepResult`."""
+    folder, the scheduler connection) before anything is written. The output folder is
+    locked while the sweep runs (a second sweep into it is an InputError), and each
+    run's folder while the run writes. Runs already finished in ``out`` are skipped.
+    ``progress(done, total, run_id, row, skipped)`` is called as each run finishes
+    (first for each skipped run). While the cluster has no worker,
+    ``on_wait(pending, seconds)`` reports it; after ``worker_timeout`` seconds [s]
+    without a worker (None: no limit) the runs not done are marked 'unfinished'
+    (summary.csv, and run.json of a run a lost worker had started) and the sweep
+    returns. Returns a :class:`SweepResult`."""
     from demstep import __version__
     from demstep.runner import LOG_LEVELS, _write_text
 
     out = Path(out).resolve()
+    if worker_timeout is not None and not (isinstance(worker_timeout, (int, float))
+                                           and not isinstance(worker_timeout, bool)
+                                           and 0 < worker_timeout < math.inf):
+        raise InputError(f"worker-timeout: must be a finite number of seconds > 0, got "
+                         f"{worker_timeout!r}")
     if max_steps is not None and (not isinstance(max_steps, int) or max_steps < 0):
         raise InputError(f"max-steps: must be an integer >= 0, got {max_steps!r}")
     if str(log_level).upper() not in LOG_LEVELS:
@@ -886,7 +1014,6 @@ def run_sweep(case_path, out, params: Sequence[str] = (), runs_file=None,
                 "max_steps": max_steps, "peak": peak, "scheduler": scheduler,
                 "workers": None if scheduler else workers,
                 "started": wallclock.strftime("%Y-%m-%dT%H:%M:%S%z")}
-        out.mkdir(parents=True, exist_ok=True)
         _write_text(out / "sweep.json", json.dumps(meta, indent=2, default=str) + "\n")
         _write_text(out / "case.toml", plan.case_text)
 
@@ -898,37 +1025,54 @@ def run_sweep(case_path, out, params: Sequence[str] = (), runs_file=None,
         if progress is not None:
             progress(count["done"], len(plan.runs), plan.runs[k].run_id, rows[k], skipped_run)
 
-    if todo:
-        tasks = [RunTask(run_id=plan.runs[k].run_id,
-                         overrides=[(key_text(key), v) for key, v in plan.runs[k].overrides.items()],
-                         data=plan.runs[k].data, base_dir=base_dir, source=str(plan.case_path),
-                         run_dir=str(out / "runs" / plan.runs[k].run_id), max_steps=max_steps,
-                         peak=peak, log_level=str(log_level).upper())
-                 for k in todo]
-        with dask_client(scheduler, workers) as client:  # connection errors: nothing written
+    lock = None
+    try:
+        if todo:
+            tasks = [RunTask(run_id=plan.runs[k].run_id,
+                             overrides=[(key_text(key), v)
+                                        for key, v in plan.runs[k].overrides.items()],
+                             data=plan.runs[k].data, base_dir=base_dir,
+                             source=str(plan.case_path),
+                             run_dir=str(out / "runs" / plan.runs[k].run_id),
+                             max_steps=max_steps, peak=peak, log_level=str(log_level).upper())
+                     for k in todo]
+            with dask_client(scheduler, workers) as client:  # connection errors: nothing written
+                lock = _lock_out(out)
+                write_meta()
+                for k in range(len(plan.runs)):
+                    if rows[k] is not None:
+                        report(k, True)
+                write_summary(summary_csv, plan, rows)
+
+                def done(i, result: TaskResult):
+                    k = todo[i]
+                    if result.unfinished:
+                        rows[k] = {"status": "unfinished", "peak_column": peak or "",
+                                   "error": result.error}
+                        _mark_unfinished(Path(tasks[i].run_dir), result.error)
+                    else:
+                        rows[k] = result.value if result.ok else {
+                            "status": "failed", "peak_column": peak or "", "error": result.error}
+                    write_summary(summary_csv, plan, rows)
+                    report(k, False)
+
+                map_on_client(client, run_task, tasks, progress=done,
+                              worker_timeout=worker_timeout, on_wait=on_wait)
+        else:
+            lock = _lock_out(out)
             write_meta()
             for k in range(len(plan.runs)):
-                if rows[k] is not None:
-                    report(k, True)
-            write_summary(summary_csv, plan, rows)
-
-            def done(i, result: TaskResult):
-                k = todo[i]
-                rows[k] = result.value if result.ok else {
-                    "status": "failed", "peak_column": peak or "", "error": result.error}
-                write_summary(summary_csv, plan, rows)
-                report(k, False)
-
-            map_on_client(client, run_task, tasks, progress=done)
-    else:
-        write_meta()
-        for k in range(len(plan.runs)):
-            report(k, True)
-    final = [r if r is not None else {"status": "failed", "error": "no result"} for r in rows]
-    write_summary(summary_csv, plan, final)
-    png = None
-    try:
-        png = plot_summary(out / "summary.png", plan, final)
-    except Exception as exc:  # a figure must not lose the sweep's results
-        log.warning("sweep: summary.png not drawn (%s)", _one_line(exc))
+                report(k, True)
+        final = [r if r is not None else {"status": "failed", "error": "no result"} for r in rows]
+        write_summary(summary_csv, plan, final)
+        png = None
+        try:
+            with warnings.catch_warnings():  # matplotlib on runs without data
+                warnings.simplefilter("ignore", UserWarning)
+                png = plot_summary(out / "summary.png", plan, final)
+        except Exception as exc:  # a figure must not lose the sweep's results
+            log.warning("sweep: summary.png not drawn (%s)", _one_line(exc))
+    finally:
+        if lock is not None:
+            lock.release()
     return SweepResult(plan, final, skipped, summary_csv, png)

@@ -142,6 +142,8 @@ class FCCResult:
     steps: int
     message: str = ""
     curves: dict = field(default_factory=dict)
+    #: where the state was saved when the run diverged (None: it did not)
+    diverged_state: str | None = None
 
     def summary(self) -> dict:
         """The documented JSON of ``demstep fcc --json``."""
@@ -261,11 +263,11 @@ def run_stage2(sim: Simulation, cfg: FCCConfig, progress=None) -> FCCResult:
             progress(s, curves)
 
     sim.every(every, record)
-    status, message = "stable", ""
+    status, message, saved = "stable", "", None
     try:
         sim.run(steps=total_steps)
     except SimulationDiverged as exc:
-        status, message = "unstable", str(exc)
+        status, message, saved = "unstable", str(exc), exc.checkpoint
         record(sim)
     arrays = {k: np.asarray(v, dtype=float) for k, v in curves.items()}
     ratio = arrays["ratio"]
@@ -284,12 +286,17 @@ def run_stage2(sim: Simulation, cfg: FCCConfig, progress=None) -> FCCResult:
                      max_energy_error=max_err, status=status, dt=float(sim.dt),
                      alpha_exact_rotation=float(a_rot), alpha_exact_translation=float(a_trans),
                      alpha_element_coupled=float(a_coupled), steps=sim.step, message=message,
-                     curves=arrays)
+                     curves=arrays, diverged_state=saved)
 
 
-def run_fcc(cfg: FCCConfig, stage1: Simulation | None = None, progress=None) -> FCCResult:
+def run_fcc(cfg: FCCConfig, stage1: Simulation | None = None, progress=None,
+            checkpoint_dir=None) -> FCCResult:
     """Both stages. ``stage1`` (a settled simulation, copied from a checkpoint) skips
-    stage 1."""
+    stage 1. ``checkpoint_dir``: where the state is saved if the run diverges (None:
+    the engine's default, the system's temporary folder); the result's
+    ``diverged_state`` names the file."""
     cfg.validate()
     sim = stage1 if stage1 is not None else run_stage1(cfg)
+    if checkpoint_dir is not None:
+        sim.checkpoint_dir = checkpoint_dir
     return run_stage2(sim, cfg, progress=progress)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import csv
 import json
 import platform
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -135,8 +136,16 @@ def _map(func, items, settings, progress, label):
             if progress:
                 progress(label)
         return results
+    from demstep.sweep import WORKER_TIMEOUT
+
+    def waiting(pending, seconds):  # a cluster without workers: say so, give up in time
+        print(f"demstep paper: waiting for workers: {pending} task(s) of {label} pending, no "
+              f"worker connected for {seconds:.0f} s (giving up after {WORKER_TIMEOUT:g} s)",
+              file=sys.stderr, flush=True)
+
     raw = dask_map(func, items, scheduler=settings.scheduler, workers=settings.workers,
-                   progress=(lambda *a: progress(label)) if progress else None)
+                   progress=(lambda *a: progress(label)) if progress else None,
+                   worker_timeout=WORKER_TIMEOUT, on_wait=waiting)
     return [_unwrap(r) for r in raw]
 
 

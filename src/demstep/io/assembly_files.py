@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from demstep.errors import InputError
+from demstep.errors import InputError, missing_file
 
 
 @dataclass
@@ -37,7 +37,7 @@ def read_assembly(path, format: str = "auto") -> AssemblyData:
 
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: no such file")
+        raise missing_file(path)
     data = read_particle_file(path, format=format)
     return AssemblyData(data.x, data.r, data.m, data.source)
 

@@ -1,23 +1,51 @@
 """Atomic writes: a temporary file in the destination folder, then a rename, so that a
-crash never leaves a half-written output behind."""
+crash never leaves a half-written output behind.
+
+Temporary files are created with mode 0666 less the process umask (as ``open`` does),
+so results are as readable as any other file the user writes, and are named
+``.<target name>.<8 hex digits>.tmp``. A process killed between creating one and the
+rename (SIGKILL, power loss) leaves it behind; :func:`remove_orphans` deletes them
+(the runner calls it on the folders it holds the lock of).
+"""
 
 from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
+import re
+import secrets
 from pathlib import Path
+
+#: names of the temporary files of :func:`atomic_path` (and of ``tempfile.mkstemp``,
+#: which demstep used before: ``tmpXXXXXXXX<suffix>``)
+TEMP_NAME = re.compile(r"^(\..+\.[0-9a-f]{8}\.tmp|tmp[A-Za-z0-9_]{8}(\.npz)?\.tmp)$")
+
+
+def _create_temporary(folder: Path, name: str) -> Path:
+    """Create an empty, new temporary file for ``name`` in ``folder`` (mode 0666 less
+    the umask) and return its path."""
+    for _ in range(100):
+        tmp = folder / f".{name}.{secrets.token_hex(4)}.tmp"
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return tmp
+    raise FileExistsError(f"cannot create a temporary file for {name} in {folder}")
 
 
 @contextlib.contextmanager
 def atomic_path(path, suffix: str = ".tmp"):
-    """Yield a temporary path beside ``path``; on success it replaces ``path``."""
+    """Yield a temporary path beside ``path``; on success it replaces ``path``.
+
+    ``suffix`` is accepted for compatibility; the temporary file is always named
+    ``.<name of path>.<random>.tmp`` (see :data:`TEMP_NAME`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=suffix, dir=path.parent)
-    os.close(fd)
+    tmp = _create_temporary(path.parent, path.name)
     try:
-        yield Path(tmp)
+        yield tmp
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -32,3 +60,23 @@ def write_text_atomic(path, text: str) -> Path:
             fh.flush()
             os.fsync(fh.fileno())
     return Path(path)
+
+
+def remove_orphans(*folders) -> list[Path]:
+    """Delete the temporary files of interrupted atomic writes (:data:`TEMP_NAME`) in
+    ``folders`` (not recursively; missing folders are skipped). Call it only on
+    folders no other process is writing to (e.g. under a :class:`FolderLock`).
+    Returns the files removed."""
+    removed = []
+    for folder in folders:
+        folder = Path(folder)
+        if not folder.is_dir():
+            continue
+        for entry in folder.iterdir():
+            if TEMP_NAME.match(entry.name) and entry.is_file():
+                try:
+                    entry.unlink()
+                    removed.append(entry)
+                except FileNotFoundError:
+                    pass
+    return removed

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from demstep.io.atomic import write_text_atomic
-from demstep.errors import InputError
+from demstep.errors import InputError, missing_file
 
 #: format names understood by :func:`read_particle_file` / :func:`write_particle_file`
 FORMATS = ("csv", "liggghts", "yade")
@@ -107,7 +107,7 @@ def _check_positive(values, path, lines, column: str, what: str):
 def _read_lines(path) -> list[str]:
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: no such file")
+        raise missing_file(path)
     try:
         with open(path, encoding="utf-8") as fh:
             return fh.read().splitlines()
@@ -138,9 +138,9 @@ def read_csv(path) -> ParticleData:
     """CSV with header x,y[,z],r[,m] (any column order, extra columns ignored)."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: no such file")
+        raise missing_file(path)
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: spreadsheet BOM
             reader = csv.reader(fh)
             header = next(reader, None)
             if header is None:
@@ -481,7 +481,7 @@ def detect_format(path) -> str:
     if suffix in _EXTENSIONS:
         return _EXTENSIONS[suffix]
     if not path.is_file():
-        raise InputError(f"{path}: no such file")
+        raise missing_file(path)
     try:
         with open(path, encoding="utf-8") as fh:
             first = ""

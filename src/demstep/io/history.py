@@ -6,6 +6,8 @@ Columns, in order:
   critical-step estimate of ``TimeStep(mode='auto')``; NaN otherwise);
 * every term of the energy ledger [M L^2/T^2] (:meth:`EnergyLedger.as_dict`), which
   ends with ``energy_error`` (the normalized difference of the paper's eq. 22);
+* ``energy_alarm``: 1 when the energy monitor's last check (every ``energy.every``
+  steps) found the error above its ``eps``, else 0 (run.json records the first alarm);
 * ``n_contacts`` (particle-particle plus particle-wall);
 * per wall ``NAME.fx``, ``NAME.fy``(, ``NAME.fz``) the force the particles exert on
   the wall [M L/T^2] (2D: per unit thickness), ``NAME.stress`` its compressive normal
@@ -32,7 +34,7 @@ from typing import Callable
 import numpy as np
 
 from demstep.io.atomic import write_text_atomic
-from demstep.errors import InputError
+from demstep.errors import InputError, missing_file
 
 AXES = "xyz"
 
@@ -41,6 +43,7 @@ def history_columns(sim, extra: dict | None = None) -> list[str]:
     """Column names of the history of ``sim`` (plus the keys of ``extra``)."""
     cols = ["step", "time", "dt", "dt_estimate"]
     cols += list(sim.ledger.as_dict())
+    cols.append("energy_alarm")
     cols.append("n_contacts")
     for wall in sim.walls:
         cols += [f"{wall.name}.f{a}" for a in AXES[: sim.dim]]
@@ -64,6 +67,7 @@ def history_row(sim, extra: dict | None = None) -> list:
     row = [sim.step, float(sim.time), nan if sim.dt is None else float(sim.dt),
            nan if sim.dt_estimate is None else float(sim.dt_estimate)]
     row += [float(v) for v in sim.ledger.as_dict().values()]
+    row.append(int(sim.monitor.alarm))
     row.append(sim.n_contacts)
     if sim.walls:
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -143,7 +147,7 @@ def read_history(path) -> dict[str, np.ndarray]:
     """Columns of a history CSV as float arrays, keyed by column name."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: no such history file")
+        raise missing_file(path, "history file")
     with open(path, newline="", encoding="utf-8") as fh:
         reader = csv.reader(fh)
         header = next(reader, None)

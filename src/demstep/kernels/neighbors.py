@@ -217,20 +217,24 @@ def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None 
     hi += 1e-9
     ncell = np.ones(3, dtype=np.int64)
     cell = np.ones(3)
+    max_cells = 8 * len(r) + 1000  # cells per axis at most (and in all, below)
     for k in range(3):
         if periodic_len[k] > 0:
             lo[k] = 0.0
-            nc = int(periodic_len[k] // reach)
+            nc = int(min(periodic_len[k] // reach, max_cells))
             if nc < 3:
                 raise InputError(f"periodic: box length {periodic_len[k]:g} along axis {'xyz'[k]} "
                                  f"must be at least 3 x (2 r_max + skin) = {3 * reach:g}")
             ncell[k], cell[k] = nc, periodic_len[k] / nc
         else:
             span = hi[k] - lo[k]
-            nc = max(1, int(span // reach))
+            if not np.isfinite(span):
+                raise InputError(f"positions: coordinates along {'xyz'[k]} are not finite or "
+                                 f"span more than float64 holds ({lo[k]:.3g} to {hi[k]:.3g})")
+            nc = max(1, int(min(span // reach, max_cells)))
             # cap the grid so that a dilute assembly does not allocate a huge cell array
             ncell[k], cell[k] = nc, max(span / nc, reach)
-    while ncell.prod() > 8 * len(r) + 1000:
+    while int(ncell[0]) * int(ncell[1]) * int(ncell[2]) > max_cells:  # no int64 overflow
         k = int(np.argmax(ncell))
         if periodic_len[k] > 0 and ncell[k] <= 3:
             break
