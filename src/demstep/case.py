@@ -832,6 +832,8 @@ def build_simulation(case: Case, checkpoint_dir=None):
         return _build_simulation(case, checkpoint_dir)
     except InputError as exc:
         prefix = f"{case.source}: " if case.source else ""
+        if str(exc).startswith(prefix):
+            raise
         raise InputError(f"{prefix}{exc}") from None
 
 
@@ -1005,7 +1007,8 @@ def _check_servo_areas(sim, case: Case, k: int) -> None:
                    sim.periodic_len, sim.dim, areas)
     for w in servo:
         if not (math.isfinite(areas[w]) and areas[w] > 0):
-            raise InputError(f"stages[{k}]: wall \"{sim.walls[w].name}\" is servo-controlled "
+            prefix = f"{case.source}: " if case.source else ""
+            raise InputError(f"{prefix}stages[{k}]: wall \"{sim.walls[w].name}\" is servo-controlled "
                              f"but its loaded area is unknown (no opposite box walls or "
                              f"periodic lengths along the other axes): give its area")
 
@@ -1020,4 +1023,6 @@ def check_stages(case: Case) -> None:
             apply_stage(sim, case, k)
     except InputError as exc:
         prefix = f"{case.source}: " if case.source else ""
+        if str(exc).startswith(prefix):
+            raise
         raise InputError(f"{prefix}{exc}") from None
