@@ -385,5 +385,6 @@ def test_paper_case_restarts_bit_for_bit(tmp_path):
     for key in ha:
         assert np.array_equal(ha[key], hb[key], equal_nan=True), key
     a, b = np.load(straight.checkpoint), np.load(resumed.checkpoint)
-    for key in ("x", "v", "w", "periodic_len", "box_state", "acc", "energy", "wall_point"):
+    for key in ("spheres.x", "spheres.v", "spheres.w", "box.length", "box.sums", "ledger.acc",
+                "ledger.energy", "wall_state.point"):
         assert np.array_equal(a[key], b[key]), key

@@ -94,7 +94,7 @@ def overlapping_pairs(seed):
 def test_pair_forces_equal_numpy_reference(kernel):
     x, v, w, r, m, pi, pj, ft, fd, etan = overlapping_pairs(5)
     law = LinearSpring(k_n=1000.0, k_s=800.0, mu=0.4, damping_normal=3.0, damping_tangential=2.0)
-    params = tuple(law.params())
+    params = law.params()
     dt = 1e-3
     P = len(pi)
     ref = reference.linear_pair_forces(x, v, w, r, m, np.stack([pi, pj], 1), 1000.0, 800.0,
@@ -138,7 +138,7 @@ def test_hertz_pair_forces_equal_numpy_reference(kernel):
     x, v, w, r, m, pi, pj, ft, fd, etan = overlapping_pairs(6)
     law = HertzMindlin(youngs_modulus=2000.0, poisson_ratio=0.3, mu=0.4, restitution=0.6,
                        restitution_tangential=0.8)
-    params = tuple(law.params())
+    params = law.params()
     dt = 1e-3
     P = len(pi)
     beta_n = damping_ratio_from_restitution(0.6)
@@ -180,7 +180,7 @@ def test_pair_forces_without_dashpot_skip_its_history():
     """A law without dashpots: skipping the (all-zero) dashpot history gives the same
     forces, springs and energies as carrying it."""
     x, v, w, r, m, pi, pj, ft, fd, etan = overlapping_pairs(6)
-    params = tuple(LinearSpring(k_n=1000.0, k_s=800.0, mu=0.4).params())
+    params = LinearSpring(k_n=1000.0, k_s=800.0, mu=0.4).params()
     P = len(pi)
     results = []
     for store in (True, False):

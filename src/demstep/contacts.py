@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from demstep.contact.geometry import contact_arms_array
+from demstep.contact.geometry import pair_geometry_arrays
 from demstep.errors import InputError
 from demstep.particles import Particles
 
@@ -160,20 +160,22 @@ def _pair_contacts(x, r, tol, periodic) -> ContactSet:
                 shifted[:, k] = np.mod(x[:, k], box[k])
         tree = cKDTree(shifted, boxsize=box)
         pairs = tree.query_pairs(cutoff, output_type="ndarray")
-        d = shifted[pairs[:, 1]] - shifted[pairs[:, 0]]
-        d -= box * np.round(d / box)
+        lengths = np.array([0.0 if v is None else float(v) for v in periodic])
     else:
         tree = cKDTree(x)
         pairs = tree.query_pairs(cutoff, output_type="ndarray")
-        d = x[pairs[:, 1]] - x[pairs[:, 0]]
+        shifted, lengths = x, np.zeros(dim)
     i, j = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
-    dist = np.sqrt((d * d).sum(axis=1))
+    order = np.lexsort((j, i))
+    i, j = i[order], j[order]
+    x3 = np.zeros((n, 3))
+    x3[:, :dim] = shifted
+    box3 = np.zeros(3)
+    box3[:dim] = lengths
+    d, dist, _, arm_i, arm_j, _ = pair_geometry_arrays(x3, r, i, j, box3)
     keep = dist <= (r[i] + r[j]) * (1.0 + tol)
-    i, j, d, dist = i[keep], j[keep], d[keep], dist[keep]
+    i, j, d, dist, arm_i, arm_j = i[keep], j[keep], d[keep], dist[keep], arm_i[keep], arm_j[keep]
     if np.any(dist <= 0):
         k = int(np.flatnonzero(dist <= 0)[0])
         raise InputError(f"particles: particles {i[k]} and {j[k]} have the same centre")
-    order = np.lexsort((j, i))
-    i, j, d, dist = i[order], j[order], d[order], dist[order]
-    arm_i, arm_j = contact_arms_array(r[i], r[j], dist)
-    return ContactSet(i, j, d / dist[:, None], arm_i, arm_j, 0.0, 0.0)
+    return ContactSet(i, j, d[:, :dim] / dist[:, None], arm_i, arm_j, 0.0, 0.0)

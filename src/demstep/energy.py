@@ -26,10 +26,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from demstep.errors import InputError
-from demstep.kernels.dem import (
-    A_APPLIED, A_BODY, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL, A_WALLS, E_KIN_R,
-    E_KIN_T, E_STRAIN_N, E_STRAIN_T, N_ACC, N_ENERGY,
-)
+
+# The ledger's layout, shared with the compiled kernels (which import it from here).
+#: accumulated terms (array ``EnergyLedger.acc``): work of body forces, applied forces,
+#: walls; dissipation by friction, contact dashpots, local and global damping; the
+#: energy held when the ledger started; work of a deforming periodic box
+A_BODY, A_APPLIED, A_WALLS, A_FRICTION, A_DASHPOT, A_LOCAL, A_GLOBAL, A_INITIAL, A_BOX = range(9)
+N_ACC = 9
+#: state terms (array ``EnergyLedger.energy``): kinetic translation / rotation, strain
+#: normal / tangential
+E_KIN_T, E_KIN_R, E_STRAIN_N, E_STRAIN_T = range(4)
+N_ENERGY = 4
 
 log = logging.getLogger("demstep")
 

@@ -30,14 +30,15 @@ from typing import Callable
 
 import numpy as np
 
-from demstep.contact.geometry import contact_arms_array
-from demstep.contact.laws import P_BETA_N, P_BETA_T, P_CN, P_CT, ContactLaw, LinearSpring
+from demstep.backend import get_backend
+from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
+from demstep.contact.laws import ContactLaw, LinearSpring
 from demstep.contacts import ContactSet
 from demstep.energy import EnergyBalanceError, EnergyLedger, EnergyMonitor
 from demstep.errors import InputError, SimulationDiverged
 from demstep.kernels import dem
-from demstep.kernels.neighbors import build_pair_list, build_wall_list, transfer_history
 from demstep.particles import Particles
+from demstep.state import Bodies, Box, Controls, Ledger, Pairs, Spheres, Walls
 from demstep.walls import Wall
 
 log = logging.getLogger("demstep")
@@ -158,6 +159,12 @@ class Simulation:
     rotation : False locks every particle's rotation (translation only)
     parallel : threaded kernels (True), serial (False), or automatic (None: threaded
         from PARALLEL_MIN_PARTICLES particles on when numba has more than one thread)
+    backend : the kernels' implementation (:mod:`demstep.backend`; "cpu": numba)
+
+    The state lives in the bundles of :mod:`demstep.state` (``spheres``, ``bodies``,
+    ``pairs``, ``wall_state``, ``box``, and the ``ledger``); the familiar names (``x``,
+    ``v``, ``pi``, ``wall_point``, ``periodic_len``, ...) are views of their fields
+    (:data:`STATE_NAMES`).
     """
 
     def __init__(self, particles: Particles, law: ContactLaw | None = None, walls=(),
@@ -166,7 +173,7 @@ class Simulation:
                  skin: float | None = None, energy: EnergyMonitor | None = None,
                  jump_limit: float = 0.25, runaway_factor: float = 10.0,
                  checkpoint_dir: str | os.PathLike | None = None, rotation: bool = True,
-                 parallel: bool | None = None):
+                 parallel: bool | None = None, backend: str = "cpu"):
         self.particles = particles
         self.dim = particles.dim
         self.law = law if law is not None else LinearSpring()
@@ -182,50 +189,49 @@ class Simulation:
         self.runaway_factor = float(runaway_factor)
         self.checkpoint_dir = checkpoint_dir
         n = particles.n
-        self.x = _as3(particles.x)
-        self.r = particles.r
-        self.m = particles.m.copy()
-        self.inertia = particles.inertia.copy()
-        self.v = np.zeros((n, 3)) if velocities is None else _as3(velocities)
-        self.w = np.zeros((n, 3))
+        x = _as3(particles.x)
+        v = np.zeros((n, 3)) if velocities is None else _as3(velocities)
+        w = np.zeros((n, 3))
         if angular_velocities is not None:
             av = np.asarray(angular_velocities, dtype=np.float64)
             if self.dim == 2:
-                self.w[:, 2] = av.reshape(n)
+                w[:, 2] = av.reshape(n)
             else:
-                self.w[:] = av.reshape(n, 3)
-        for name, arr in (("velocities", self.v), ("angular_velocities", self.w)):
+                w[:] = av.reshape(n, 3)
+        for name, arr in (("velocities", v), ("angular_velocities", w)):
             if arr.shape != (n, 3) or not np.isfinite(arr).all():
                 raise InputError(f"{name}: expected {n} finite vectors")
         self.fixed = particles.fixed
-        self.v[self.fixed] = 0.0
-        self.w[self.fixed] = 0.0
-        self.force = np.zeros((n, 3))
-        self.torque = np.zeros((n, 3))
-        self.applied_force = np.zeros((n, 3))
+        v[self.fixed] = 0.0
+        w[self.fixed] = 0.0
+        self.spheres = Spheres.make(x, v, w, particles.r, particles.m.copy(),
+                                    particles.inertia.copy())
+        self.bodies = Bodies.empty(n)
         self.gravity = np.zeros(3) if gravity is None else _as3(gravity)
         if self.gravity.shape != (3,) or not np.isfinite(self.gravity).all():
             raise InputError(f"gravity: expected {self.dim} finite components, got {gravity!r}")
-        self.periodic_len = np.zeros(3)
+        length = np.zeros(3)
         if periodic is not None:
             if len(periodic) != self.dim:
                 raise InputError(f"periodic: expected {self.dim} entries, got {list(periodic)}")
-            for k, length in enumerate(periodic):
-                if length is not None:
-                    if not (math.isfinite(length) and length > 0):
-                        raise InputError(f"periodic: box length along {'xyz'[k]} must be > 0, got {length!r}")
-                    self.periodic_len[k] = float(length)
-        self.box_motion = np.zeros(3, dtype=np.int64)
-        self.box_servo = np.zeros((3, 5))
-        self.box_servo[:, dem.S_MAXSPEED] = np.inf
-        self.box_ref = self.periodic_len.copy()
-        self.box_state = np.zeros((6, 3))
+            for k, value in enumerate(periodic):
+                if value is not None:
+                    if not (math.isfinite(value) and value > 0):
+                        raise InputError(f"periodic: box length along {'xyz'[k]} must be > 0, got {value!r}")
+                    length[k] = float(value)
+        box_servo = np.zeros((3, 5))
+        box_servo[:, dem.S_MAXSPEED] = np.inf
+        self.box = Box(length, np.zeros(3, dtype=np.int64), box_servo, length.copy(),
+                       np.zeros((6, 3)))
         self.skin = 0.15 * float(self.r.mean()) if skin is None else float(skin)
         if not (math.isfinite(self.skin) and self.skin > 0):
             raise InputError(f"skin: must be finite and > 0, got {skin!r}")
         self._set_walls(list(walls))
         self._update_masses()
+        self.backend = get_backend(backend)
         self.ledger = EnergyLedger()
+        self.counters = np.zeros(3)
+        self.pairs = Pairs.empty(n)
         self.step = 0
         self.time = 0.0
         self.dt = None
@@ -234,18 +240,14 @@ class Simulation:
         self._time_ref = (0, 0.0, None)  # (step, time, dt) when dt last changed
         self._first = True
         self._triggers: list[_Trigger] = []
-        self.fd_prev = np.zeros((n, 6))
-        # work space of the pair loop (see _force_buffers)
-        self._force_buf = self._torque_buf = np.zeros((0, n, 3))
+        # work space of the pair loop (see _work_space)
         self._geo_store = np.empty((0, 4))
-        self.td_prev = np.zeros((n, 6))
-        # whether fd_prev / td_prev (damping) and fd (pair dashpots) may hold non-zero
-        # forces of the last step: not at the start; checkpoint restarts set them
+        self._chunks_for = None
+        # whether the damping forces of the last step (Spheres.damp_*) and the pair
+        # dashpot forces may be non-zero: not at the start; checkpoint restarts set them
         self._damping_history = False
         self._dashpot_history = False
-        self.counters = np.zeros(3)
         self._pairs_built = False
-        self._empty_history()
         self._next_dt_update = 0
         self.energy_floor = None
 
@@ -256,38 +258,36 @@ class Simulation:
                 raise InputError(f"wall {wall.name!r}: has {wall.dim} components, the simulation {self.dim}")
         self.walls = walls
         nw = len(walls)
-        self.wall_point = np.zeros((nw, 3))
-        self.wall_normal = np.zeros((nw, 3))
-        self.wall_vel = np.zeros((nw, 3))
-        self.wall_mu = np.zeros(nw)
-        self.wall_motion = np.zeros(nw, dtype=np.int64)
-        self.servo = np.zeros((nw, 5))
+        z3 = np.zeros((nw, 3))
+        point, normal, vel = z3.copy(), z3.copy(), z3.copy()
+        motion = np.zeros(nw, dtype=np.int64)
+        servo = np.zeros((nw, 5))
         for k, wall in enumerate(walls):
-            self.wall_point[k, :self.dim] = wall.point
-            self.wall_normal[k, :self.dim] = wall.normal
-            self.wall_vel[k, :self.dim] = wall.velocity
-            self.wall_motion[k] = {"fixed": dem.WALL_FIXED, "velocity": dem.WALL_VELOCITY,
-                                   "servo": dem.WALL_SERVO}[wall.motion]
-            self.servo[k] = (wall.target_stress, wall.servo_gain, wall.max_speed, wall.area,
-                             wall.servo_factor)
-        self.wall_force = np.zeros((nw, 3))
-        self.wall_force_prev = np.zeros((nw, 3))
-        self.wall_disp_prev = np.zeros((nw, 3))
-        self.wall_areas = np.zeros(nw)
-        self.wall_contacts = np.zeros(nw, dtype=np.int64)
-        self.wall_k = np.zeros(nw)
+            point[k, :self.dim] = wall.point
+            normal[k, :self.dim] = wall.normal
+            vel[k, :self.dim] = wall.velocity
+            motion[k] = {"fixed": dem.WALL_FIXED, "velocity": dem.WALL_VELOCITY,
+                         "servo": dem.WALL_SERVO}[wall.motion]
+            servo[k] = (wall.target_stress, wall.servo_gain, wall.max_speed, wall.area,
+                        wall.servo_factor)
         # axis-aligned walls bounding the specimen (used for loaded areas)
-        self.box_lo = -np.ones(3, dtype=np.int64)
-        self.box_hi = -np.ones(3, dtype=np.int64)
+        box_lo = -np.ones(3, dtype=np.int64)
+        box_hi = -np.ones(3, dtype=np.int64)
         for k in range(nw):
-            axis = int(np.argmax(np.abs(self.wall_normal[k])))
-            if abs(abs(self.wall_normal[k, axis]) - 1.0) < 1e-12:
-                if self.wall_normal[k, axis] > 0:
-                    self.box_lo[axis] = k
+            axis = int(np.argmax(np.abs(normal[k])))
+            if abs(abs(normal[k, axis]) - 1.0) < 1e-12:
+                if normal[k, axis] > 0:
+                    box_lo[axis] = k
                 else:
-                    self.box_hi[axis] = k
+                    box_hi[axis] = k
+        z0 = np.zeros((0, 3))
+        self.wall_state = Walls(point, normal, vel, np.zeros(nw), motion, servo, z3.copy(),
+                                z3.copy(), z3.copy(), point.copy(), np.zeros(nw),
+                                np.zeros(nw, dtype=np.int64), np.zeros(nw), box_lo, box_hi,
+                                np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
+                                z0, z0.copy(), np.zeros(0))
         if nw:
-            dist = np.einsum("pwk,wk->pw", self.x[:, None, :] - self.wall_point[None], self.wall_normal)
+            dist = np.einsum("pwk,wk->pw", self.x[:, None, :] - point[None], normal)
             deep = dist < 0.5 * self.r[:, None]
             if deep.any():
                 p, k = np.argwhere(deep)[0]
@@ -295,17 +295,8 @@ class Simulation:
                                  f"(centre {dist[p, k]:.4g} from the wall, radius {self.r[p]:.4g})")
 
     def _update_masses(self):
-        self.inv_m = np.where(self.fixed, 0.0, 1.0 / self.m)
-        self.inv_I = np.where(self.fixed | (not self.rotation), 0.0, 1.0 / self.inertia)
-
-    def _empty_history(self):
-        z3 = np.zeros((0, 3))
-        self.pi = np.zeros(0, dtype=np.int64)
-        self.pj = np.zeros(0, dtype=np.int64)
-        self.ft, self.fd, self.etan = z3.copy(), z3.copy(), np.zeros(0)
-        self.wp = np.zeros(0, dtype=np.int64)
-        self.ww = np.zeros(0, dtype=np.int64)
-        self.wft, self.wfd, self.wetan = z3.copy(), z3.copy(), np.zeros(0)
+        self.inv_m[:] = np.where(self.fixed, 0.0, 1.0 / self.m)
+        self.inv_I[:] = np.where(self.fixed | (not self.rotation), 0.0, 1.0 / self.inertia)
 
     def scale_mass(self, factor: float):
         """Density (mass) scaling for quasi-static runs: multiply every mass and moment of
@@ -319,28 +310,33 @@ class Simulation:
 
     # ---------------------------------------------------------- neighbour lists
     def _rebuild(self):
+        """New neighbour lists (particles wrapped into the periodic box first), the
+        contact history carried over to them."""
+        be = self.backend
         for k in range(3):
             if self.periodic_len[k] > 0:
                 np.mod(self.x[:, k], self.periodic_len[k], out=self.x[:, k])
         built = self._pairs_built
-        pi, pj = build_pair_list(self.x, self.r, self.skin, self.periodic_len,
-                                 expected_pairs=len(self.pi) if built else None)
+        old, ws = self.pairs, self.wall_state
+        pi, pj = be.build_pair_list(self.x, self.r, self.skin, self.periodic_len,
+                                    expected_pairs=len(old.i) if built else None)
         if self._dashpot_history:
-            self.ft, self.fd, self.etan = transfer_history(
-                self.pi, self.pj, pi, pj, self.ft, self.fd, self.etan)
+            shear, dashpot, energy = be.transfer_history(old.i, old.j, pi, pj, old.shear,
+                                                         old.dashpot, old.shear_energy)
         else:  # no dashpot forces to carry: zeros the kernels never touch
-            self.ft, self.etan = transfer_history(self.pi, self.pj, pi, pj, self.ft, self.etan)
-            self.fd = np.zeros((len(pi), 3))
-        self.pi, self.pj = pi, pj
-        self._chunks = None
-        wp, ww = build_wall_list(self.x, self.r, self.wall_point, self.wall_normal, self.skin,
-                                 expected_pairs=len(self.wp) if built else None)
-        self.wft, self.wfd, self.wetan = transfer_history(
-            self.wp, self.ww, wp, ww, self.wft, self.wfd, self.wetan)
-        self.wp, self.ww = wp, ww
-        self.x_ref = self.x.copy()
-        self.wall_ref = self.wall_point.copy()
-        self.box_ref = self.periodic_len.copy()
+            shear, energy = be.transfer_history(old.i, old.j, pi, pj, old.shear, old.shear_energy)
+            dashpot = np.zeros((len(pi), 3))
+        self.pairs = old._replace(i=pi, j=pj, shear=shear, dashpot=dashpot, shear_energy=energy)
+        self._chunks_for = None
+        wp, ww = be.build_wall_list(self.x, self.r, ws.point, ws.normal, self.skin,
+                                    expected_pairs=len(ws.p) if built else None)
+        wshear, wdash, wenergy = be.transfer_history(ws.p, ws.wall, wp, ww, ws.shear,
+                                                     ws.dashpot, ws.shear_energy)
+        self.wall_state = ws._replace(p=wp, wall=ww, shear=wshear, dashpot=wdash,
+                                      shear_energy=wenergy)
+        self.x_ref[:] = self.x
+        self.wall_state.ref[:] = self.wall_state.point
+        self.box.ref[:] = self.box.length
         self._pairs_built = True
         self.n_rebuilds = getattr(self, "n_rebuilds", 0) + 1
 
@@ -374,17 +370,13 @@ class Simulation:
         coefficients assumed (see :meth:`_contacts_covered`)."""
         dim = self.dim
         params = self.law.params()
-        law_id = int(params[0])
+        law_id = int(params.law)
         if horizon is not None:
             speed = self._reach_speed(horizon)
         parts = []
         if len(self.pi):
-            d = self.x[self.pj] - self.x[self.pi]
-            for k in range(3):
-                if self.periodic_len[k] > 0:
-                    d[:, k] -= self.periodic_len[k] * np.rint(d[:, k] / self.periodic_len[k])
-            dist = np.linalg.norm(d, axis=1)
-            delta = self.r[self.pi] + self.r[self.pj] - dist
+            d, dist, delta, arm_i, arm_j, _ = pair_geometry_arrays(self.x, self.r, self.pi,
+                                                                   self.pj, self.periodic_len)
             if horizon is None:
                 on = delta > 0
                 delta_eval = delta[on]
@@ -393,6 +385,7 @@ class Simulation:
                 delta_eval = np.maximum(delta, 0.0) + np.minimum(
                     2.0 * horizon * (speed[self.pi] + speed[self.pj]), self.skin)
             i, j, d, dist = self.pi[on], self.pj[on], d[on], dist[on]
+            arm_i, arm_j = arm_i[on], arm_j[on]
             r_star = self.r[i] * self.r[j] / (self.r[i] + self.r[j])
             if horizon is not None and self.law.law_id != 0:
                 delta_eval = np.maximum(delta_eval, self.timestep.overlap * r_star)
@@ -400,7 +393,7 @@ class Simulation:
             m_star = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), self.m[i])
             kn, kt, cn, ct = self._coefficients(law_id, params, delta_eval, r_star, m_star)
             if horizon is None:
-                ai, aj = contact_arms_array(self.r[i], self.r[j], dist)
+                ai, aj = arm_i, arm_j
             else:  # the longest arms a contact can have (they shorten as it closes)
                 ai, aj = self.r[i].copy(), self.r[j].copy()
             parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
@@ -408,8 +401,8 @@ class Simulation:
             if cover is not None:
                 cover["pairs"] = _sorted_keys(i * len(self.r) + j, delta_eval)
         if len(self.wp):
-            dist = np.einsum("qk,qk->q", self.x[self.wp] - self.wall_point[self.ww], self.wall_normal[self.ww])
-            delta = self.r[self.wp] - dist
+            _, dist, delta, _ = wall_geometry_arrays(self.x, self.r, self.wp, self.ww,
+                                                     self.wall_point, self.wall_normal)
             if horizon is None:
                 on = delta > 0
                 delta_eval = delta[on]
@@ -447,7 +440,7 @@ class Simulation:
         """k_n, k_t [M/T^2], c_n, c_t [M/T] of contacts at overlaps ``delta``."""
         from demstep.contact.laws import contact_coefficients
 
-        return contact_coefficients(law_id, tuple(params), np.ascontiguousarray(delta, float),
+        return contact_coefficients(law_id, params, np.ascontiguousarray(delta, float),
                                     np.ascontiguousarray(r_star, float),
                                     np.ascontiguousarray(m_star, float))
 
@@ -501,7 +494,7 @@ class Simulation:
         r = float(self.r.max())
         m = self.m_min
         # a wall contact (R* = r_max) at the TimeStep overlap: the law's stiffness_max()
-        kn, kt, cn, ct = self._coefficients(int(params[0]), params,
+        kn, kt, cn, ct = self._coefficients(int(params.law), params,
                                             np.array([self.timestep.overlap * r]),
                                             np.array([r]), np.array([0.5 * m]))
         return densest_packing_dt(self.dim, m, kn[0], kt[0], cn[0], ct[0],
@@ -539,6 +532,84 @@ class Simulation:
             if scheduled:
                 self._next_dt_update = self.step + int(ts.every)
 
+    # ---------------------------------------------------------------- state
+    #: the bundles whose STATE fields make the dynamic state (:meth:`state_dict`)
+    BUNDLES = ("spheres", "bodies", "pairs", "wall_state", "box")
+
+    def state_dict(self) -> dict:
+        """The complete dynamic state as named arrays (what a checkpoint saves): the
+        STATE fields of every bundle as ``bundle.field``, the ledger, gravity, radii and
+        fixed flags (to check a restore), the scalars (step, time, dt, ...), the law's
+        parameters, the energy monitor's alarm state and the 'auto' time-step state."""
+        if not self._pairs_built:
+            self._rebuild()
+        out = {}
+        for name in self.BUNDLES:
+            bundle = getattr(self, name)
+            for f in bundle.STATE:
+                out[f"{name}.{f}"] = getattr(bundle, f)
+        out.update({"ledger.acc": self.ledger.acc, "ledger.energy": self.ledger.energy,
+                    "ledger.counters": self.counters, "gravity": self.gravity, "r": self.r,
+                    "fixed": self.fixed, "law": np.asarray(self.law.params()),
+                    "monitor": self.monitor.state()})
+        out["scalars"] = np.array([
+            self.step, self.time, np.nan if self.dt is None else self.dt, self.dt_prev,
+            float(self._first), self.monitor.max_error, float(self._next_dt_update),
+            np.nan if self.dt_estimate is None else self.dt_estimate,
+            float(self._time_ref[0]), self._time_ref[1],
+            np.nan if self._time_ref[2] is None else self._time_ref[2]])
+        out.update(self.timestep_state())
+        return out
+
+    def load_state_dict(self, data: dict, source: str = "state"):
+        """Restore :meth:`state_dict` into this Simulation (built from the same case:
+        the same particles and walls, else InputError naming ``source``)."""
+        needed = [f"{n}.{f}" for n in self.BUNDLES for f in getattr(self, n).STATE]
+        needed += ["ledger.acc", "ledger.energy", "ledger.counters", "gravity", "r", "scalars"]
+        missing = [k for k in needed if k not in data]
+        if missing:
+            raise InputError(f"{source}: a damaged checkpoint (array {missing[0]!r} missing)")
+        if data["r"].shape != self.r.shape or not np.array_equal(data["r"], self.r):
+            raise InputError(f"{source}: the checkpoint's particles do not match the simulation")
+        if data["wall_state.point"].shape != self.wall_state.point.shape:
+            raise InputError(f"{source}: the checkpoint's walls do not match the simulation")
+        if data["bodies.x"].shape != self.bodies.x.shape:
+            raise InputError(f"{source}: the checkpoint's bodies do not match the simulation")
+        if np.shape(data["scalars"]) != (11,):
+            raise InputError(f"{source}: a damaged checkpoint (scalars of shape "
+                             f"{np.shape(data['scalars'])})")
+        for name in self.BUNDLES:
+            bundle = getattr(self, name)
+            setattr(self, name, bundle._replace(**{
+                f: np.ascontiguousarray(data[f"{name}.{f}"]) for f in bundle.STATE}))
+        self.ledger.acc[:] = data["ledger.acc"]
+        self.ledger.energy[:] = data["ledger.energy"]
+        self.counters[:] = data["ledger.counters"]
+        self.gravity = np.ascontiguousarray(data["gravity"], dtype=np.float64)
+        if "monitor" in data:
+            self.monitor.restore_state(data["monitor"])
+        self.restore_timestep_state({k: data[k] for k in data if k.startswith("ts_")})
+        step, time, dt, dt_prev, first, max_err, next_dt, dt_est, t_step, t_time, t_dt = \
+            np.asarray(data["scalars"], dtype=np.float64)
+        self.step = int(step)
+        self.time = float(time)
+        self.dt = None if np.isnan(dt) else float(dt)
+        self.dt_prev = float(dt_prev)
+        self._first = bool(first)
+        self.monitor.max_error = float(max_err)
+        self._next_dt_update = int(next_dt)
+        self.dt_estimate = None if np.isnan(dt_est) else float(dt_est)
+        self._time_ref = (int(t_step), float(t_time), None if np.isnan(t_dt) else float(t_dt))
+        self._damping_history = True  # restored damping forces of the last step
+        self._dashpot_history = True  # and pair dashpot forces
+        self._update_masses()
+        self._chunks_for = None
+        self._pairs_built = True
+        self.energy_floor = None
+        for t in self._triggers:  # the next multiple of each interval, as in an unbroken run
+            t.next_step = (self.step // t.every + 1) * t.every
+        return self
+
     def timestep_state(self) -> dict:
         """Arrays of the 'auto' time-step control that a restart needs to continue bit for
         bit (the last critical mode, which warm-starts the solver, and the contacts the
@@ -570,17 +641,12 @@ class Simulation:
             return False
         checks = []
         if len(self.pi):
-            d = self.x[self.pj] - self.x[self.pi]
-            for k in range(3):
-                if self.periodic_len[k] > 0:
-                    d[:, k] -= self.periodic_len[k] * np.rint(d[:, k] / self.periodic_len[k])
-            delta = self.r[self.pi] + self.r[self.pj] - np.linalg.norm(d, axis=1)
+            delta = pair_geometry_arrays(self.x, self.r, self.pi, self.pj, self.periodic_len)[2]
             on = delta > 0
             checks.append(("pairs", self.pi[on] * len(self.r) + self.pj[on], delta[on]))
         if len(self.wp):
-            dist = np.einsum("qk,qk->q", self.x[self.wp] - self.wall_point[self.ww],
-                             self.wall_normal[self.ww])
-            delta = self.r[self.wp] - dist
+            delta = wall_geometry_arrays(self.x, self.r, self.wp, self.ww, self.wall_point,
+                                         self.wall_normal)[2]
             on = delta > 0
             checks.append(("walls", self.wp[on] * max(1, len(self.walls)) + self.ww[on], delta[on]))
         for name, keys, delta in checks:
@@ -650,12 +716,12 @@ class Simulation:
         if budget < 0:
             raise InputError(f"run: steps must be >= 0, got {budget}")
         params = self.law.params()
-        law_id = int(params[0])
-        self.wall_mu[:] = [params[10] if w.friction is None else w.friction for w in self.walls]
+        law_id = int(params.law)
+        self.wall_mu[:] = [params.mu_wall if w.friction is None else w.friction for w in self.walls]
         done = 0
         parallel = self._parallel()
         damped = self.damping.local > 0.0 or self.damping.viscous > 0.0
-        dashpot = bool(np.any(params[[P_CN, P_CT, P_BETA_N, P_BETA_T]] > 0.0))
+        dashpot = params.has_dashpots
         next_check = self.step + check_every
         while done < budget:
             chunk = budget - done
@@ -668,22 +734,16 @@ class Simulation:
                 chunk = min(chunk, max(1, self._next_dt_update - self.step),
                             self.AUTO_CHECK_EVERY)
             chunk = max(1, chunk)
-            n_done, reason = dem.advance(
-                chunk, self.dt, self.dt_prev, self._first, self.skin,
-                self.x, self.v, self.w, self.r, self.m, self.inertia, self.inv_m, self.inv_I,
-                self.force, self.torque, self.applied_force, self.gravity,
-                self.damping.local, self.damping.viscous, self.fd_prev, self.td_prev, self.x_ref,
-                damped or self._damping_history,
-                self.pi, self.pj, *self._force_buffers(parallel), self.ft, self.fd, self.etan,
-                dashpot or self._dashpot_history,
-                self.periodic_len, self.box_motion, self.box_servo, self.box_ref, self.box_state,
-                law_id, params,
-                self.wp, self.ww, self.wft, self.wfd, self.wetan, self.wall_point, self.wall_normal,
-                self.wall_vel, self.wall_mu, self.wall_motion, self.servo, self.box_lo, self.box_hi,
-                self.dim, self.wall_force, self.wall_force_prev, self.wall_disp_prev, self.wall_ref,
-                self.wall_areas, self.wall_contacts, self.wall_k,
-                self.ledger.acc, self.ledger.energy, self.counters, self.jump_limit,
-                self.runaway_factor, self.energy_floor, parallel)
+            controls = Controls(
+                float(self.dt), float(self.dt_prev), bool(self._first), float(self.skin),
+                int(self.dim), self.gravity, float(self.damping.local),
+                float(self.damping.viscous), bool(damped or self._damping_history),
+                bool(dashpot or self._dashpot_history), float(self.jump_limit),
+                float(self.runaway_factor), float(self.energy_floor), bool(parallel))
+            self.pairs = self._work_space(parallel)
+            n_done, reason = self.backend.advance(
+                chunk, controls, self.spheres, self.pairs, self.wall_state, self.box,
+                Ledger(self.ledger.acc, self.ledger.energy, self.counters), law_id, params)
             self._first = False
             # the damping forces of the last step are stored only while damping is on
             # (and once more after it is switched off, to clear them)
@@ -730,40 +790,43 @@ class Simulation:
     #: below this many particles the serial kernels are faster than threaded ones
     PARALLEL_MIN_PARTICLES = 5000
 
-    def _force_buffers(self, parallel: bool):
-        """Pair chunks (one per thread, equal numbers of pairs), the particle range of
-        each chunk's buffer (:func:`dem.pair_chunks`), their force/torque buffers
-        (chunks, N, 3) and the pair geometry work space (P, 4); rebuilt when the pair
-        list or the thread count changes. The work space keeps its memory across
+    def _work_space(self, parallel: bool) -> Pairs:
+        """The pair list with its work space: chunks (one per thread, equal numbers of
+        pairs), the particle range of each chunk's buffer (:func:`dem.pair_chunks`), the
+        force/torque buffers (chunks, N, 3) and the pair geometry (P, 4); rebuilt when
+        the pair list or the thread count changes. The geometry keeps its memory across
         rebuilds (fresh pages cost a fault each)."""
         import numba
 
         n_chunks = numba.get_num_threads() if parallel else 1
-        if self._chunks is None or len(self._chunks) != n_chunks + 1:
-            n_pairs = len(self.pi)
-            self._chunks, self._spans = dem.pair_chunks(self.pi, self.pj, len(self.r), n_chunks)
-            shape = (n_chunks, len(self.r), 3)
-            if self._force_buf.shape != shape:
-                self._force_buf = np.zeros(shape)
-                self._torque_buf = np.zeros(shape)
-            if len(self._geo_store) < n_pairs:
-                self._geo_store = np.empty((int(1.25 * n_pairs) + 64, 4))
-            self._geo = self._geo_store[:n_pairs]
-        return self._chunks, self._spans, self._force_buf, self._torque_buf, self._geo
+        if self._chunks_for == n_chunks:
+            return self.pairs
+        pairs = self.pairs
+        n_pairs = len(pairs.i)
+        chunks, spans = self.backend.pair_chunks(pairs.i, pairs.j, len(self.r), n_chunks)
+        shape = (n_chunks, len(self.r), 3)
+        force_buf, torque_buf = pairs.force_buf, pairs.torque_buf
+        if force_buf.shape != shape:
+            force_buf = np.zeros(shape)
+            torque_buf = np.zeros(shape)
+        if len(self._geo_store) < n_pairs:
+            self._geo_store = np.empty((int(1.25 * n_pairs) + 64, 4))
+        self._chunks_for = n_chunks
+        return pairs._replace(chunks=chunks, spans=spans, force_buf=force_buf,
+                              torque_buf=torque_buf, geo=self._geo_store[:n_pairs])
 
     def contact_forces(self):
         """Pairs in contact now: (i, j) (C, 2), the force on j (C, 3) [M L/T^2] (elastic at
         the current positions plus the stored tangential spring and dashpot forces) and
         the unit normals (C, 3) from i to j."""
-        from demstep.kernels.dem import pair_contact_forces
-
         if not self._pairs_built or len(self.pi) == 0:
             return np.zeros((0, 2), dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3))
         force = np.zeros((len(self.pi), 3))
         normal = np.zeros((len(self.pi), 3))
-        on = pair_contact_forces(self.x, self.r, self.pi, self.pj, self.periodic_len,
-                                 int(self.law.params()[0]), tuple(self.law.params()),
-                                 self.ft, self.fd, force, normal)
+        params = self.law.params()
+        on = self.backend.pair_contact_forces(self.x, self.r, self.pi, self.pj, self.periodic_len,
+                                              int(params.law), params, self.ft, self.fd,
+                                              force, normal)
         return np.stack([self.pi[on], self.pj[on]], axis=1), force[on], normal[on]
 
     def _parallel(self) -> bool:
@@ -891,3 +954,40 @@ class Simulation:
         positive), V the box volume (area in 2D). Wall contacts are not included."""
         volume = float(np.prod(self.extents()))
         return self.box_state[0, :self.dim] / volume
+
+
+#: the familiar names of the state: views of the bundles' fields (name: (bundle, field))
+STATE_NAMES = {
+    **{f: ("spheres", f) for f in ("x", "v", "w", "r", "m", "inertia", "inv_m", "inv_I",
+                                     "force", "torque", "x_ref")},
+    "applied_force": ("spheres", "applied"), "fd_prev": ("spheres", "damp_force"),
+    "td_prev": ("spheres", "damp_torque"),
+    "pi": ("pairs", "i"), "pj": ("pairs", "j"), "ft": ("pairs", "shear"),
+    "fd": ("pairs", "dashpot"), "etan": ("pairs", "shear_energy"),
+    "wp": ("wall_state", "p"), "ww": ("wall_state", "wall"), "wft": ("wall_state", "shear"),
+    "wfd": ("wall_state", "dashpot"), "wetan": ("wall_state", "shear_energy"),
+    "wall_point": ("wall_state", "point"), "wall_normal": ("wall_state", "normal"),
+    "wall_vel": ("wall_state", "vel"), "wall_mu": ("wall_state", "mu"),
+    "wall_motion": ("wall_state", "motion"), "servo": ("wall_state", "servo"),
+    "wall_force": ("wall_state", "force"), "wall_force_prev": ("wall_state", "force_prev"),
+    "wall_disp_prev": ("wall_state", "disp_prev"), "wall_ref": ("wall_state", "ref"),
+    "wall_areas": ("wall_state", "areas"), "wall_contacts": ("wall_state", "contacts"),
+    "wall_k": ("wall_state", "k_sum"), "box_lo": ("wall_state", "box_lo"),
+    "box_hi": ("wall_state", "box_hi"),
+    "periodic_len": ("box", "length"), "box_motion": ("box", "motion"),
+    "box_servo": ("box", "servo"), "box_ref": ("box", "ref"), "box_state": ("box", "sums"),
+}
+
+
+def _state_view(bundle: str, field: str) -> property:
+    def get(self):
+        return getattr(getattr(self, bundle), field)
+
+    def put(self, value):
+        setattr(self, bundle, getattr(self, bundle)._replace(**{field: value}))
+
+    return property(get, put, doc=f"``{bundle}.{field}``")
+
+
+for _name, (_bundle, _field) in STATE_NAMES.items():
+    setattr(Simulation, _name, _state_view(_bundle, _field))

@@ -152,33 +152,29 @@ class ContactModel:
         return text
 
     # -------------------------------------------------------------- coefficients
-    def law_params(self, e_star: float = 0.0, g_star: float = 0.0) -> np.ndarray:
-        """The engine's law parameter vector for one material pair."""
+    def law_params(self, e_star: float = 0.0, g_star: float = 0.0):
+        """The engine's :class:`~demstep.contact.laws.LawParams` for one material pair."""
         from demstep.contact import laws
 
-        p = np.zeros(laws.N_PARAMS)
         if self.model == "linear":
-            p[laws.P_LAW] = laws.LAW_LINEAR
-            p[laws.P_KN] = self.k_n
-            p[laws.P_KS] = self.k_n if self.k_t is None else self.k_t
+            p = laws.LawParams(law=float(laws.LAW_LINEAR), k_n=float(self.k_n),
+                               k_s=float(self.k_n if self.k_t is None else self.k_t))
         else:
-            p[laws.P_LAW] = laws.LAW_HERTZ
-            p[laws.P_ESTAR] = e_star
-            p[laws.P_GSTAR] = g_star
-        p[laws.P_CN] = self.gamma_n
-        p[laws.P_CT] = self.gamma_t
+            p = laws.LawParams(law=float(laws.LAW_HERTZ), e_star=float(e_star),
+                               g_star=float(g_star))
+        p = p._replace(c_n=float(self.gamma_n), c_t=float(self.gamma_t))
         if self.restitution is not None:
             beta = laws.damping_ratio_from_restitution(self.restitution)
-            p[laws.P_BETA_N] = beta
+            p = p._replace(beta_n=beta)
             if self.convention == "liggghts":
                 # Hertz: the same beta on k_t; linear: c_t = c_n (set after)
                 if self.tangential_damping and self.model == "hertz":
-                    p[laws.P_BETA_T] = beta
+                    p = p._replace(beta_t=beta)
             elif self.restitution_tangential is not None:
-                p[laws.P_BETA_T] = laws.damping_ratio_from_restitution(self.restitution_tangential)
+                p = p._replace(beta_t=laws.damping_ratio_from_restitution(
+                    self.restitution_tangential))
         if not self.tangential_damping:
-            p[laws.P_CT] = 0.0
-            p[laws.P_BETA_T] = 0.0
+            p = p._replace(c_t=0.0, beta_t=0.0)
         return p
 
     def apply(self, contacts: ContactSet, particles: Particles, types: np.ndarray) -> ContactSet:
@@ -208,7 +204,7 @@ class ContactModel:
                     e_star, g_star = effective_moduli(self.material(a), self.material(b))
                     groups.append((sel, self.law_params(e_star, g_star)))
         for sel, params in groups:
-            coeffs = contact_coefficients(int(params[0]), tuple(params), delta[sel], r_star[sel],
+            coeffs = contact_coefficients(int(params.law), params, delta[sel], r_star[sel],
                                           m_star[sel])
             for k in range(4):
                 out[k][sel] = coeffs[k]

@@ -1,5 +1,7 @@
 """Contact-point geometry shared by the engine and the time-step analysis."""
 
+import math
+
 import numpy as np
 
 from demstep._numba import njit
@@ -24,6 +26,77 @@ def contact_arms(r_i, r_j, distance):
     """
     half_overlap = 0.5 * (r_i + r_j - distance)
     return r_i - half_overlap, r_j - half_overlap
+
+
+@njit(inline="always")
+def pair_geometry(xi0, xi1, xi2, xj0, xj1, xj2, r_i, r_j, len0, len1, len2):
+    """The geometry of a pair, the one place it is computed: branch vector from i to j
+    (d0, d1, d2) [L] with the minimum image along periodic axes (lengths ``len*`` [L],
+    0: not periodic), centre distance [L], overlap delta_n = r_i + r_j - distance [L]
+    (> 0: touching), the arms from each centre to the contact point [L]
+    (:func:`contact_arms`) and the image counts (n0, n1, n2) subtracted. Scalars only
+    (array arguments cost a reference count per call in the compiled loops)."""
+    d0 = xj0 - xi0
+    d1 = xj1 - xi1
+    d2 = xj2 - xi2
+    n0 = image_count(d0, len0)
+    n1 = image_count(d1, len1)
+    n2 = image_count(d2, len2)
+    d0 -= len0 * n0
+    d1 -= len1 * n1
+    d2 -= len2 * n2
+    dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    a_i, a_j = contact_arms(r_i, r_j, dist)
+    return d0, d1, d2, dist, r_i + r_j - dist, a_i, a_j, n0, n1, n2
+
+
+@njit
+def pair_geometry_arrays(x, r, i, j, periodic_len):
+    """:func:`pair_geometry` of pairs (i, j) (C,): branch vectors (C, 3), distances,
+    overlaps, arms (C,) each and image counts (C, 3)."""
+    c = i.shape[0]
+    branch = np.empty((c, 3))
+    images = np.empty((c, 3))
+    dist = np.empty(c)
+    delta = np.empty(c)
+    arm_i = np.empty(c)
+    arm_j = np.empty(c)
+    for k in range(c):
+        p = i[k]
+        q = j[k]
+        (branch[k, 0], branch[k, 1], branch[k, 2], dist[k], delta[k], arm_i[k], arm_j[k],
+         images[k, 0], images[k, 1], images[k, 2]) = pair_geometry(
+            x[p, 0], x[p, 1], x[p, 2], x[q, 0], x[q, 1], x[q, 2], r[p], r[q],
+            periodic_len[0], periodic_len[1], periodic_len[2])
+    return branch, dist, delta, arm_i, arm_j, images
+
+
+@njit(inline="always")
+def wall_geometry(x0, x1, x2, r, p0, p1, p2, n0, n1, n2):
+    """The geometry of a particle (centre x, radius r) against the plane through p with
+    unit normal n (into the packing): contact normal from the particle to the wall
+    (-n), centre distance to the plane [L], overlap r - distance [L] and the arm
+    (:func:`wall_contact_arm`)."""
+    dist = (x0 - p0) * n0 + (x1 - p1) * n1 + (x2 - p2) * n2
+    return -n0, -n1, -n2, dist, r - dist, wall_contact_arm(dist)
+
+
+@njit
+def wall_geometry_arrays(x, r, p, w, point, normal):
+    """:func:`wall_geometry` of particle-wall pairs (p, w) (C,): normals (C, 3),
+    distances, overlaps, arms (C,) each."""
+    c = p.shape[0]
+    nrm = np.empty((c, 3))
+    dist = np.empty(c)
+    delta = np.empty(c)
+    arm = np.empty(c)
+    for k in range(c):
+        a = p[k]
+        b = w[k]
+        nrm[k, 0], nrm[k, 1], nrm[k, 2], dist[k], delta[k], arm[k] = wall_geometry(
+            x[a, 0], x[a, 1], x[a, 2], r[a], point[b, 0], point[b, 1], point[b, 2],
+            normal[b, 0], normal[b, 1], normal[b, 2])
+    return nrm, dist, delta, arm
 
 
 @njit(inline="always")

@@ -66,14 +66,12 @@ def contact_lines(sim):
     positive) and force on j (C, 3); pairs across periodic boundaries left out."""
     if not getattr(sim, "_pairs_built", False) or len(sim.pi) == 0:
         return np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.zeros((0, 3))
+    from demstep.contact.geometry import pair_geometry_arrays
+
     pairs, force, normal = sim.contact_forces()
     i, j = pairs[:, 0], pairs[:, 1]
-    d = sim.x[j] - sim.x[i]
-    wrapped = np.zeros(len(i), dtype=bool)
-    for k in range(3):
-        length = sim.periodic_len[k]
-        if length > 0:
-            wrapped |= np.rint(d[:, k] / length) != 0
+    images = pair_geometry_arrays(sim.x, sim.r, i, j, sim.periodic_len)[5]
+    wrapped = np.any(images != 0, axis=1)
     f_n = np.einsum("ck,ck->c", force, normal)
     keep = ~wrapped
     return np.stack([i[keep], j[keep]], axis=1), f_n[keep], force[keep]

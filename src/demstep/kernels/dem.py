@@ -28,15 +28,13 @@ import math
 import numpy as np
 
 from demstep._numba import compile_parallel_and_serial, njit, prange
-from demstep.contact.geometry import contact_arms, image_count, wall_contact_arm
-from demstep.contact.laws import P_MU, dashpot_coefficients, normal_force, tangential_stiffness
+from demstep.contact.geometry import contact_arms, image_count, pair_geometry, wall_geometry
+from demstep.contact.laws import dashpot_coefficients, normal_force, tangential_stiffness
 
-# ledger accumulators (float array ``acc``)
-A_BODY, A_APPLIED, A_WALLS, A_FRICTION, A_DASHPOT, A_LOCAL, A_GLOBAL, A_INITIAL, A_BOX = range(9)
-N_ACC = 9
-# state energies (float array ``energy``): kinetic translation / rotation, strain normal / tangential
-E_KIN_T, E_KIN_R, E_STRAIN_N, E_STRAIN_T = range(4)
-N_ENERGY = 4
+from demstep.energy import (  # the ledger's layout is the energy module's
+    A_APPLIED, A_BODY, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL, A_WALLS, E_KIN_R,
+    E_KIN_T, E_STRAIN_N, E_STRAIN_T,
+)
 
 # stop reasons returned by advance()
 STOP_DONE, STOP_REBUILD, STOP_NONFINITE, STOP_RUNAWAY, STOP_JUMP = range(5)
@@ -171,19 +169,14 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     kc0 = 0.0
     kc1 = 0.0
     kc2 = 0.0
-    mu = params[P_MU]
+    mu = params.mu
     len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
     rate0, rate1, rate2 = box_rate[0], box_rate[1], box_rate[2]
     for k in prange(pi.shape[0]):
         i = pi[k]
         j = pj[k]
-        d0 = x[j, 0] - x[i, 0]
-        d1 = x[j, 1] - x[i, 1]
-        d2 = x[j, 2] - x[i, 2]
-        d0 -= len0 * image_count(d0, len0)
-        d1 -= len1 * image_count(d1, len1)
-        d2 -= len2 * image_count(d2, len2)
-        dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        d0, d1, d2, dist, _, _, _, _, _, _ = pair_geometry(
+            x[i, 0], x[i, 1], x[i, 2], x[j, 0], x[j, 1], x[j, 2], r[i], r[j], len0, len1, len2)
         inv_dist = 1.0 / dist
         geo[k, 0] = d0 * inv_dist
         geo[k, 1] = d1 * inv_dist
@@ -315,19 +308,16 @@ def pair_contact_forces(x, r, pi, pj, periodic_len, law, params, ft, fd, force, 
     for k in range(pi.shape[0]):
         i = pi[k]
         j = pj[k]
-        d = np.empty(3)
-        for a in range(3):
-            d[a] = x[j, a] - x[i, a]
-            d[a] -= periodic_len[a] * image_count(d[a], periodic_len[a])
-        dist = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-        delta = r[i] + r[j] - dist
+        d0, d1, d2, dist, delta, _, _, _, _, _ = pair_geometry(
+            x[i, 0], x[i, 1], x[i, 2], x[j, 0], x[j, 1], x[j, 2], r[i], r[j],
+            periodic_len[0], periodic_len[1], periodic_len[2])
         if delta <= 0.0:
             continue
         on[k] = True
         f_el, _, _ = normal_force(law, params, delta, r[i] * r[j] / (r[i] + r[j]))
-        for a in range(3):
-            normal[k, a] = d[a] / dist
-            force[k, a] = f_el * d[a] / dist + ft[k, a] + fd[k, a]
+        for a, d in enumerate((d0, d1, d2)):
+            normal[k, a] = d / dist
+            force[k, a] = f_el * d / dist + ft[k, a] + fd[k, a]
     return on
 
 
@@ -363,15 +353,13 @@ def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu
                        _particle_boundary(wp, (n_pairs * (c + 1)) // n_chunks)):
             p = wp[q]
             wi = ww[q]
-            nx, ny, nz = -wall_normal[wi, 0], -wall_normal[wi, 1], -wall_normal[wi, 2]
-            dist = -((x[p, 0] - wall_point[wi, 0]) * nx + (x[p, 1] - wall_point[wi, 1]) * ny
-                     + (x[p, 2] - wall_point[wi, 2]) * nz)
-            delta = r[p] - dist
+            nx, ny, nz, dist, delta, a = wall_geometry(
+                x[p, 0], x[p, 1], x[p, 2], r[p], wall_point[wi, 0], wall_point[wi, 1],
+                wall_point[wi, 2], wall_normal[wi, 0], wall_normal[wi, 1], wall_normal[wi, 2])
             if delta <= 0.0 and wetan[q] == 0.0 and wft[q, 0] == 0.0 and wft[q, 1] == 0.0 \
                     and wft[q, 2] == 0.0 and wfd[q, 0] == 0.0 and wfd[q, 1] == 0.0 \
                     and wfd[q, 2] == 0.0:
                 continue
-            a = wall_contact_arm(dist)
             vix = v[p, 0] + a * (w[p, 1] * nz - w[p, 2] * ny)
             viy = v[p, 1] + a * (w[p, 2] * nx - w[p, 0] * nz)
             viz = v[p, 2] + a * (w[p, 0] * ny - w[p, 1] * nx)
@@ -569,33 +557,35 @@ wall_forces, wall_forces_serial = compile_parallel_and_serial(_wall_loop)
 
 
 @njit
-def advance(n_steps, dt, dt_prev, first, skin,
-            x, v, w, r, m, inertia, inv_m, inv_I, force, torque, f_app, gravity,
-            local_damping, global_damping, fd_prev, td_prev, x_ref, store_damping,
-            pi, pj, chunks, spans, force_buf, torque_buf, geo, ft, fd, etan, store_dashpot,
-            periodic_len, box_motion, box_servo, box_ref, box_state,
-            law, params,
-            wp, ww, wft, wfd, wetan, wall_point, wall_normal, wall_vel, wall_mu, wall_motion,
-            servo, box_lo, box_hi, dim, wall_force, wall_force_prev, wall_disp_prev, wall_ref,
-            wall_areas_out, wall_contacts, wall_k,
-            acc, energy, counters, jump_limit, runaway_factor, energy_floor, parallel):
-    """Run up to ``n_steps`` steps (``parallel``: threaded loops, else serial ones).
-    Returns (steps done, stop reason).
+def advance(n_steps, ctl, sph, pairs, walls, box, ledger, law, params):
+    """Run up to ``n_steps`` steps of the documented order
+    (:meth:`demstep.engine.Simulation.run`) on the bundles of :mod:`demstep.state`
+    (``ctl`` Controls, ``sph`` Spheres, ``pairs`` Pairs, ``walls`` Walls, ``box`` Box,
+    ``ledger`` Ledger) with the law ``law`` (its id) and ``params``
+    (:class:`~demstep.contact.laws.LawParams`); ``ctl.parallel``: threaded loops, else
+    serial ones. Returns (steps done, stop reason).
 
-    Periodic box: ``box_motion`` (3,) fixed / rate / servo; ``box_servo`` (3, 5) with
-    the columns of ``servo`` (rate in the gain column for BOX_RATE: dL/dt [L/T]);
-    ``box_state`` (6, 3): virial, crossing sum, crossing contacts, their k_n sum, the
-    previous crossing sum and the last change of length. ``counters`` (3,):
-    particle-particle contacts, particle-wall contacts, largest jump |v| dt / r."""
+    Periodic box: ``box.motion`` (3,) fixed / rate / servo; ``box.servo`` (3, 5) with
+    the columns of the wall ``servo`` (rate in the gain column for BOX_RATE: dL/dt
+    [L/T]); ``box.sums`` (6, 3): virial, crossing sum, crossing contacts, their k_n
+    sum, the previous crossing sum and the last change of length. ``ledger.counters``
+    (3,): particle-particle contacts, particle-wall contacts, largest jump |v| dt / r."""
+    x, v, w, r, m = sph.x, sph.v, sph.w, sph.r, sph.m
+    inv_m, force, torque = sph.inv_m, sph.force, sph.torque
+    acc, energy, counters = ledger.acc, ledger.energy, ledger.counters
+    periodic_len, box_state = box.length, box.sums
+    wall_point, wall_normal, wall_vel = walls.point, walls.normal, walls.vel
+    wall_force, servo = walls.force, walls.servo
+    dt = ctl.dt
+    dt_prev = ctl.dt_prev
+    first = ctl.first
+    parallel = ctl.parallel
     out = np.empty(8)
     box_sums = np.zeros((4, 3))
     box_rate = np.zeros(3)
-    # law parameters as a tuple of scalars: loop invariants the compiler can hoist
-    # (an array might alias the arrays written in the loops; measured 10x slower)
-    law_params = (params[0], params[1], params[2], params[3], params[4], params[5],
-                  params[6], params[7], params[8], params[9], params[10])
     extents = np.empty(3)
     nw = wall_point.shape[0]
+    n_chunks = pairs.force_buf.shape[0]
     for step in range(n_steps):
         # 1-2. contact forces; the slip increment of step n is x(t) - x(t - dt_prev)
         dt_slip = 0.0 if first else dt_prev
@@ -603,29 +593,31 @@ def advance(n_steps, dt, dt_prev, first, skin,
             box_rate[k] = 0.0 if first else box_state[5, k] / dt_prev
         if parallel:
             e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
-                x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, law_params, dt_slip,
-                ft, fd, etan, store_dashpot, chunks, spans, force_buf, torque_buf, box_sums, geo)
+                x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, law, params,
+                dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
+                pairs.chunks, pairs.spans, pairs.force_buf, pairs.torque_buf, box_sums, pairs.geo)
         else:
             e_n, e_t, d_fric, d_dash, n_pp = pair_forces_serial(
-                x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, law_params, dt_slip,
-                ft, fd, etan, store_dashpot, chunks, spans, force_buf, torque_buf, box_sums, geo)
-        if force_buf.shape[0] == 1:
-            force[:] = force_buf[0]
-            torque[:] = torque_buf[0]
+                x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, law, params,
+                dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
+                pairs.chunks, pairs.spans, pairs.force_buf, pairs.torque_buf, box_sums, pairs.geo)
+        if n_chunks == 1:
+            force[:] = pairs.force_buf[0]
+            torque[:] = pairs.torque_buf[0]
         elif parallel:
-            reduce_forces(force_buf, torque_buf, spans, force, torque)
+            reduce_forces(pairs.force_buf, pairs.torque_buf, pairs.spans, force, torque)
         else:
-            reduce_forces_serial(force_buf, torque_buf, spans, force, torque)
+            reduce_forces_serial(pairs.force_buf, pairs.torque_buf, pairs.spans, force, torque)
         if parallel:
             we_n, we_t, wd_fric, wd_dash = wall_forces(
-                x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
-                law, law_params, dt_slip, wft, wfd, wetan, force, torque, wall_force,
-                wall_contacts, wall_k, force_buf.shape[0])
+                x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
+                law, params, dt_slip, walls.shear, walls.dashpot, walls.shear_energy, force,
+                torque, wall_force, walls.contacts, walls.k_sum, n_chunks)
         else:
             we_n, we_t, wd_fric, wd_dash = wall_forces_serial(
-                x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
-                law, law_params, dt_slip, wft, wfd, wetan, force, torque, wall_force,
-                wall_contacts, wall_k, 1)
+                x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
+                law, params, dt_slip, walls.shear, walls.dashpot, walls.shear_energy, force,
+                torque, wall_force, walls.contacts, walls.k_sum, 1)
         for row in range(4):
             for k in range(3):
                 box_state[row, k] = box_sums[row, k]
@@ -633,64 +625,65 @@ def advance(n_steps, dt, dt_prev, first, skin,
         # a change of periodic length dL does work (crossing sum) * dL on the contacts
         if not first:
             for wi in range(nw):
-                acc[A_WALLS] -= 0.5 * ((wall_force_prev[wi, 0] + wall_force[wi, 0]) * wall_disp_prev[wi, 0]
-                                       + (wall_force_prev[wi, 1] + wall_force[wi, 1]) * wall_disp_prev[wi, 1]
-                                       + (wall_force_prev[wi, 2] + wall_force[wi, 2]) * wall_disp_prev[wi, 2])
+                acc[A_WALLS] -= 0.5 * ((walls.force_prev[wi, 0] + wall_force[wi, 0]) * walls.disp_prev[wi, 0]
+                                       + (walls.force_prev[wi, 1] + wall_force[wi, 1]) * walls.disp_prev[wi, 1]
+                                       + (walls.force_prev[wi, 2] + wall_force[wi, 2]) * walls.disp_prev[wi, 2])
             for k in range(3):
                 acc[A_BOX] += 0.5 * (box_state[4, k] + box_sums[1, k]) * box_state[5, k]
         # servo-controlled walls: velocity along the normal from the stress error
-        wall_areas(wall_point, wall_normal, servo, box_lo, box_hi, periodic_len, dim,
-                   wall_areas_out)
+        wall_areas(wall_point, wall_normal, servo, walls.box_lo, walls.box_hi, periodic_len,
+                   ctl.dim, walls.areas)
         for wi in range(nw):
-            if wall_motion[wi] == WALL_SERVO:
+            if walls.motion[wi] == WALL_SERVO:
                 push = -(wall_force[wi, 0] * wall_normal[wi, 0] + wall_force[wi, 1] * wall_normal[wi, 1]
                          + wall_force[wi, 2] * wall_normal[wi, 2])
-                speed = servo_speed(push / wall_areas_out[wi], servo[wi, S_TARGET], servo[wi, S_GAIN],
-                                    servo[wi, S_FACTOR], wall_areas_out[wi], wall_contacts[wi],
-                                    wall_k[wi], dt, servo[wi, S_MAXSPEED])
+                speed = servo_speed(push / walls.areas[wi], servo[wi, S_TARGET], servo[wi, S_GAIN],
+                                    servo[wi, S_FACTOR], walls.areas[wi], walls.contacts[wi],
+                                    walls.k_sum[wi], dt, servo[wi, S_MAXSPEED])
                 for k in range(3):
                     wall_vel[wi, k] = speed * wall_normal[wi, k]
         # periodic box lengths: prescribed rate or servo on the Love stress
-        box_extents(wall_point, box_lo, box_hi, periodic_len, dim, extents)
+        box_extents(wall_point, walls.box_lo, walls.box_hi, periodic_len, ctl.dim, extents)
         volume = extents[0] * extents[1] * extents[2]
         box_speed = np.zeros(3)
         for k in range(3):
             if periodic_len[k] > 0.0:
-                if box_motion[k] == BOX_RATE:
-                    box_speed[k] = box_servo[k, S_GAIN]
-                elif box_motion[k] == BOX_SERVO:
+                if box.motion[k] == BOX_RATE:
+                    box_speed[k] = box.servo[k, S_GAIN]
+                elif box.motion[k] == BOX_SERVO:
                     stress = box_sums[0, k] / volume
                     # shrinking the box (negative speed) raises the stress
-                    box_speed[k] = -servo_speed(stress, box_servo[k, S_TARGET], box_servo[k, S_GAIN],
-                                                box_servo[k, S_FACTOR], volume / periodic_len[k],
+                    box_speed[k] = -servo_speed(stress, box.servo[k, S_TARGET], box.servo[k, S_GAIN],
+                                                box.servo[k, S_FACTOR], volume / periodic_len[k],
                                                 int(box_sums[2, k]), box_sums[3, k], dt,
-                                                box_servo[k, S_MAXSPEED])
+                                                box.servo[k, S_MAXSPEED])
         # 3-4. central-difference update with damping; particle ledger terms
         if parallel:
-            integrate(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
-                      dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first,
-                      store_damping, out)
+            integrate(x, v, w, m, sph.inertia, inv_m, sph.inv_I, r, force, torque, sph.applied,
+                      ctl.gravity, dt, dt_prev, ctl.local_damping, ctl.viscous_damping,
+                      sph.damp_force, sph.damp_torque, sph.x_ref, first, ctl.store_damping, out)
         else:
-            integrate_serial(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity,
-                             dt, dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref,
-                             first, store_damping, out)
+            integrate_serial(x, v, w, m, sph.inertia, inv_m, sph.inv_I, r, force, torque,
+                             sph.applied, ctl.gravity, dt, dt_prev, ctl.local_damping,
+                             ctl.viscous_damping, sph.damp_force, sph.damp_torque, sph.x_ref,
+                             first, ctl.store_damping, out)
         # walls and the periodic box move
         boundary_move = 0.0
         for wi in range(nw):
             d2 = 0.0
             for k in range(3):
-                disp = dt * wall_vel[wi, k] if wall_motion[wi] != WALL_FIXED else 0.0
+                disp = dt * wall_vel[wi, k] if walls.motion[wi] != WALL_FIXED else 0.0
                 wall_point[wi, k] += disp
-                wall_disp_prev[wi, k] = disp
-                wall_force_prev[wi, k] = wall_force[wi, k]
-                dd = wall_point[wi, k] - wall_ref[wi, k]
+                walls.disp_prev[wi, k] = disp
+                walls.force_prev[wi, k] = wall_force[wi, k]
+                dd = wall_point[wi, k] - walls.ref[wi, k]
                 d2 += dd * dd
             boundary_move = max(boundary_move, math.sqrt(d2))
         for k in range(3):
             box_state[4, k] = box_sums[1, k]
             box_state[5, k] = dt * box_speed[k]
             periodic_len[k] += dt * box_speed[k]
-            boundary_move += abs(periodic_len[k] - box_ref[k])
+            boundary_move += abs(periodic_len[k] - box.ref[k])
         # 5. ledger
         acc[A_BODY] += out[0]
         acc[A_APPLIED] += out[1]
@@ -705,7 +698,7 @@ def advance(n_steps, dt, dt_prev, first, skin,
         counters[0] = n_pp
         wc = 0
         for wi in range(nw):
-            wc += wall_contacts[wi]
+            wc += walls.contacts[wi]
         counters[1] = wc
         counters[2] = out[7]
         if first:
@@ -717,12 +710,13 @@ def advance(n_steps, dt, dt_prev, first, skin,
         ke = out[4] + out[5]
         if not (math.isfinite(ke) and math.isfinite(e_n + we_n + e_t + we_t)):
             return step + 1, STOP_NONFINITE
-        if out[7] > jump_limit:
+        if out[7] > ctl.jump_limit:
             return step + 1, STOP_JUMP
         supplied = acc[A_BODY] + acc[A_APPLIED] + acc[A_WALLS] + acc[A_BOX] + acc[A_INITIAL]
-        if runaway_factor > 0.0 and ke > runaway_factor * max(supplied + energy_floor, energy_floor):
+        floor = ctl.energy_floor
+        if ctl.runaway_factor > 0.0 and ke > ctl.runaway_factor * max(supplied + floor, floor):
             return step + 1, STOP_RUNAWAY
         # neighbour lists expire after skin / 2 of particle, wall or box motion
-        if math.sqrt(out[6]) + boundary_move > 0.5 * skin:
+        if math.sqrt(out[6]) + boundary_move > 0.5 * ctl.skin:
             return step + 1, STOP_REBUILD
     return n_steps, STOP_DONE

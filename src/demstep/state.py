@@ -1,0 +1,222 @@
+"""The simulation state as typed bundles of arrays: what the compiled step takes.
+
+Each bundle is a named tuple of float64/int64 arrays (C-contiguous, 3 components per
+vector: disks live in the plane z = 0), so the compiled kernels read its fields by
+name and numba types it once. A Simulation owns one bundle of each kind; a bundle is
+immutable as a tuple (its arrays are written in place), and ``_replace`` makes a new
+one when an array changes size (a neighbour-list rebuild).
+
+``STATE`` of each bundle lists the fields that define the state (checkpoints save them,
+:meth:`demstep.engine.Simulation.state_dict`); the other fields are work space rebuilt
+from them.
+
+=========== ====================================================================
+``Spheres``  the member spheres: what contact detection and contact laws see
+``Bodies``   rigid bodies made of member spheres (clumps): pose, momenta, mass
+             properties and the member map; empty when every body is one sphere
+``Pairs``    the Verlet pair list with each pair's contact history
+``Walls``    rigid planes, their motion and servo state, and the particle-wall list
+``Box``      the periodic box: lengths, their motion and the boundary sums
+``Ledger``   the energy ledger's arrays (layout: :mod:`demstep.energy`) and counters
+``Controls`` the scalars of one call of the step: dt, damping, limits, switches
+=========== ====================================================================
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+
+class Spheres(NamedTuple):
+    """Member spheres, N of them: centres ``x`` [L], half-step velocities ``v`` [L/T]
+    and angular velocities ``w`` [1/T], radii ``r`` [L], masses ``m`` [M] and moments of
+    inertia ``inertia`` [M L^2] with their reciprocals (zero: fixed, or rotation
+    locked), contact ``force`` [M L/T^2] and ``torque`` [M L^2/T^2] of the last
+    evaluation, ``applied`` forces, positions ``x_ref`` when the lists were built, and
+    the damping force and torque of the last step ``damp_force``/``damp_torque`` (N, 6:
+    local, then global; for the trapezoidal ledger)."""
+
+    x: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
+    r: np.ndarray
+    m: np.ndarray
+    inertia: np.ndarray
+    inv_m: np.ndarray
+    inv_I: np.ndarray
+    force: np.ndarray
+    torque: np.ndarray
+    applied: np.ndarray
+    x_ref: np.ndarray
+    damp_force: np.ndarray
+    damp_torque: np.ndarray
+
+    STATE = ("x", "v", "w", "m", "inertia", "applied", "x_ref", "damp_force", "damp_torque")
+
+    @classmethod
+    def make(cls, x, v, w, r, m, inertia) -> "Spheres":
+        n = len(r)
+        z = np.zeros((n, 3))
+        return cls(x, v, w, r, m, inertia, np.zeros(n), np.zeros(n), z.copy(), z.copy(),
+                   z.copy(), x.copy(), np.zeros((n, 6)), np.zeros((n, 6)))
+
+
+class Bodies(NamedTuple):
+    """Rigid bodies of several member spheres (clumps), B of them. Pose: centre of mass
+    ``x`` [L] and orientation quaternion ``q`` (B, 4) (w, x, y, z: body to world);
+    momenta: half-step velocity ``v`` [L/T] and angular momentum ``L`` [M L^2/T] (world
+    frame); mass ``m`` [M], principal moments ``inertia`` (B, 3) [M L^2] with their
+    reciprocals (``inv_m`` zero: fixed; ``inv_I`` zero: rotation locked); ``force`` and
+    ``torque`` summed from the members; members ``start`` (B + 1,) into ``member``
+    (the member sphere indices) and ``offset`` (M, 3) [L], each member's centre in the
+    body frame. ``sphere_body`` (N,) the body of each sphere (-1: a free sphere)."""
+
+    x: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    L: np.ndarray
+    m: np.ndarray
+    inertia: np.ndarray
+    inv_m: np.ndarray
+    inv_I: np.ndarray
+    force: np.ndarray
+    torque: np.ndarray
+    applied: np.ndarray
+    start: np.ndarray
+    member: np.ndarray
+    offset: np.ndarray
+    sphere_body: np.ndarray
+    damp_force: np.ndarray
+    damp_torque: np.ndarray
+
+    STATE = ("x", "q", "v", "L", "m", "inertia", "applied", "damp_force", "damp_torque")
+
+    @classmethod
+    def empty(cls, n_spheres: int) -> "Bodies":
+        z3 = np.zeros((0, 3))
+        return cls(z3, np.zeros((0, 4)), z3.copy(), z3.copy(), np.zeros(0), z3.copy(),
+                   np.zeros(0), z3.copy(), z3.copy(), z3.copy(), z3.copy(),
+                   np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64), z3.copy(),
+                   np.full(n_spheres, -1, dtype=np.int64), np.zeros((0, 6)), np.zeros((0, 6)))
+
+    @property
+    def n(self) -> int:
+        return len(self.m)
+
+
+class Pairs(NamedTuple):
+    """The Verlet pair list, P pairs (i < j in index, sorted by i) with their history:
+    tangential spring force on j ``shear`` (P, 3) [M L/T^2], dashpot force on j
+    ``dashpot`` (P, 3), stored tangential energy ``shear_energy`` (P,) [M L^2/T^2].
+    Work space: pair ``chunks`` (one per thread) and the particle ``spans`` of their
+    force buffers ``force_buf``/``torque_buf`` (chunks, N, 3), and ``geo`` (P, 4), the
+    unit normals and distances of the first pass of the pair loop."""
+
+    i: np.ndarray
+    j: np.ndarray
+    shear: np.ndarray
+    dashpot: np.ndarray
+    shear_energy: np.ndarray
+    chunks: np.ndarray
+    spans: np.ndarray
+    force_buf: np.ndarray
+    torque_buf: np.ndarray
+    geo: np.ndarray
+
+    STATE = ("i", "j", "shear", "dashpot", "shear_energy")
+
+    @classmethod
+    def empty(cls, n: int) -> "Pairs":
+        z3 = np.zeros((0, 3))
+        return cls(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), z3, z3.copy(),
+                   np.zeros(0), np.zeros(2, dtype=np.int64), np.array([[0, n]], dtype=np.int64),
+                   np.zeros((1, n, 3)), np.zeros((1, n, 3)), np.empty((0, 4)))
+
+
+class Walls(NamedTuple):
+    """W rigid planes through ``point`` [L] with unit ``normal`` pointing into the
+    packing, velocity ``vel`` [L/T], friction ``mu``, ``motion`` (fixed / velocity /
+    servo, :mod:`demstep.kernels.dem`), ``servo`` (W, 5) parameters; the force the
+    particles exert ``force`` [M L/T^2] (and of the last step ``force_prev``, with the
+    last displacement ``disp_prev``), positions ``ref`` when the lists were built,
+    loaded ``areas`` [L^2], touching ``contacts`` and their summed ``k_sum`` [M/T^2];
+    ``box_lo``/``box_hi`` (3,): the axis-aligned walls bounding the specimen (-1: none).
+    The particle-wall list: particle ``p``, wall ``wall`` and each pair's history
+    ``shear``, ``dashpot``, ``shear_energy`` (as :class:`Pairs`)."""
+
+    point: np.ndarray
+    normal: np.ndarray
+    vel: np.ndarray
+    mu: np.ndarray
+    motion: np.ndarray
+    servo: np.ndarray
+    force: np.ndarray
+    force_prev: np.ndarray
+    disp_prev: np.ndarray
+    ref: np.ndarray
+    areas: np.ndarray
+    contacts: np.ndarray
+    k_sum: np.ndarray
+    box_lo: np.ndarray
+    box_hi: np.ndarray
+    p: np.ndarray
+    wall: np.ndarray
+    shear: np.ndarray
+    dashpot: np.ndarray
+    shear_energy: np.ndarray
+
+    STATE = ("point", "vel", "motion", "servo", "force", "force_prev", "disp_prev", "ref",
+             "k_sum", "p", "wall", "shear", "dashpot", "shear_energy")
+
+
+class Box(NamedTuple):
+    """The periodic box: ``length`` (3,) [L] (0: not periodic), per-axis ``motion``
+    (fixed / rate / servo) and ``servo`` (3, 5) parameters (the rate [L/T] in the gain
+    column), lengths ``ref`` when the lists were built, and ``sums`` (6, 3): virial,
+    crossing sum, crossing contacts, their k_n sum, the previous crossing sum and the
+    last change of length (see :func:`demstep.kernels.dem.advance`)."""
+
+    length: np.ndarray
+    motion: np.ndarray
+    servo: np.ndarray
+    ref: np.ndarray
+    sums: np.ndarray
+
+    STATE = ("length", "motion", "servo", "ref", "sums")
+
+
+class Ledger(NamedTuple):
+    """The energy ledger's arrays, laid out by :mod:`demstep.energy`: accumulated terms
+    ``acc`` and state terms ``energy``; ``counters`` (3,): particle-particle contacts,
+    particle-wall contacts, the largest jump |v| dt / r of the last step."""
+
+    acc: np.ndarray
+    energy: np.ndarray
+    counters: np.ndarray
+
+    STATE = ("acc", "energy", "counters")
+
+
+class Controls(NamedTuple):
+    """Scalars of one call of the compiled step: ``dt`` and the previous step
+    ``dt_prev`` [T], ``first`` (initialise the half-step velocities), Verlet ``skin``
+    [L], ``dim``, ``gravity`` (3,) [L/T^2], local and global viscous damping,
+    whether the last step's damping and dashpot forces must be kept (``store_*``),
+    divergence limits, the ledger's energy floor, and ``parallel``."""
+
+    dt: float
+    dt_prev: float
+    first: bool
+    skin: float
+    dim: int
+    gravity: np.ndarray
+    local_damping: float
+    viscous_damping: float
+    store_damping: bool
+    store_dashpot: bool
+    jump_limit: float
+    runaway_factor: float
+    energy_floor: float
+    parallel: bool
