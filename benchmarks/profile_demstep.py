@@ -70,14 +70,16 @@ def main(argv=None):
 
     params = sim.law.params()
     parallel = sim._parallel()
-    chunks, spans, force_buf, torque_buf, geo = sim._force_buffers(parallel)
+    pairs = sim._work_space(parallel)
+    chunks, spans, force_buf, torque_buf, geo = (pairs.chunks, pairs.spans, pairs.force_buf,
+                                                 pairs.torque_buf, pairs.geo)
     names = {
-        "periodic_len": sim.periodic_len, "law": int(params[0]),
-        "params": tuple(float(p) for p in params), "box_rate": np.zeros(3),
+        "periodic_len": sim.periodic_len, "law": int(params.law),
+        "params": params, "box_rate": np.zeros(3),
         "dt": sim.dt, "dt_prev": sim.dt, "f_app": sim.applied_force,
         "local_damping": sim.damping.local, "global_damping": sim.damping.viscous,
         "first": False, "acc_out": np.empty(8), "box_sums": np.zeros((4, 3)),
-        "store_dashpot": bool(np.any(params[6:10] > 0)), "store_damping": False,
+        "store_dashpot": params.has_dashpots, "store_damping": False,
         "chunks": chunks, "spans": spans, "force_buf": force_buf, "torque_buf": torque_buf,
         "geo": geo, "n_chunks": len(chunks) - 1,
     }

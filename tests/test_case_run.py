@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from demstep.case import apply_stage, build_simulation, load_case
-from demstep.cli_run import main as cli_main
+from demstep.cli.run import main as cli_main
 from demstep.io.checkpoint import load_checkpoint, save_checkpoint
 from demstep.io.history import read_history
 from demstep.plotting_run import plot_run
@@ -318,7 +318,7 @@ def test_sigterm_in_a_subprocess_saves_a_checkpoint(tmp_path):
     case = tmp_path / "long.toml"
     case.write_text(SMALL.replace("steps = 300", "steps = 100000000"))
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "demstep.cli_run", "run", str(case),
+    proc = subprocess.Popen([sys.executable, "-m", "demstep.cli.run", "run", str(case),
                              "--out", str(out), "--quiet"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     history = out / "history.csv"

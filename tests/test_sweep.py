@@ -15,7 +15,7 @@ import time
 import psutil
 import pytest
 
-from demstep.cli_sweep import main as sweep_main
+from demstep.cli.sweep import main as sweep_main
 from demstep.errors import InputError
 from demstep.sweep import (dask_map, key_text, parse_key, parse_param, parse_value,
                            read_runs_file, run_id, set_key, value_text, worker_info)

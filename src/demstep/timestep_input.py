@@ -36,7 +36,7 @@ import numpy as np
 
 from demstep.contacts import DEFAULT_CONTACT_TOL, ContactSet, find_contacts
 from demstep.errors import InputError
-from demstep.particles import INERTIA_FACTOR, Particles, particle_inertia
+from demstep.particles import Particles, particle_inertia
 from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.estimates import Materials
 

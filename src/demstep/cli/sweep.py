@@ -1,10 +1,5 @@
 """``demstep sweep``: parameter sweeps of a case on Dask (:mod:`demstep.sweep`).
 
-Register it in ``demstep.cli.build_parser``::
-
-    from demstep.cli_sweep import add_sweep_parser
-    add_sweep_parser(sub)
-
 Bad input (a key that is not in the schema, a value the schema refuses, a bad runs
 file, an unreachable scheduler) raises InputError before anything is written (the main
 CLI prints ``demstep: error: ...`` and exits 2; so does an output folder another sweep
@@ -12,9 +7,6 @@ is writing into). Exit status: 0 when every run finished (completed, diverged or
 energy_stop: results of the sweep), 1 when any run failed with an error or was left
 unfinished because no worker was connected for ``--worker-timeout`` seconds (its
 message is in summary.csv; running the sweep again re-runs it).
-
-Until the registration is in place, ``python -m demstep.cli_sweep sweep CASE ...`` runs
-it alone.
 """
 
 from __future__ import annotations
@@ -152,22 +144,11 @@ def cmd_sweep(args) -> int:
     return 1 if result.count("failed") or result.count("unfinished") else 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """A parser with only ``sweep`` (standalone use and tests)."""
-    from demstep.cli import _Parser
-
-    parser = _Parser(prog="demstep", description="Explicit DEM with a certified time step.")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    sub.required = True
-    add_sweep_parser(sub)
-    return parser
-
-
 def main(argv=None) -> int:
-    """Entry point of ``python -m demstep.cli_sweep``: as ``demstep.cli.main``."""
-    from demstep.cli import run_parser
+    """``python -m demstep.cli.sweep``: only this module's subcommands."""
+    from demstep.cli.common import run_parser, subcommand_parser
 
-    return run_parser(build_parser(), argv)
+    return run_parser(subcommand_parser(add_sweep_parser), argv)
 
 
 if __name__ == "__main__":

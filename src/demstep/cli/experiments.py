@@ -1,7 +1,4 @@
-"""The ``demstep`` command line: a thin layer; each subcommand imports what it needs.
-
-Bad input gives a one-line ``demstep: error: ...`` on stderr and exit status 2.
-"""
+"""``demstep fcc``, ``demstep stability`` and ``demstep paper``: the paper's studies."""
 
 from __future__ import annotations
 
@@ -9,48 +6,8 @@ import argparse
 import json
 import sys
 
+from demstep.cli.common import non_negative, positive, positive_int
 from demstep.errors import InputError
-
-
-def _positive(name):
-    def parse(text):
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: not a number: {text!r}") from None
-        if not (v > 0 and v < float("inf")):
-            raise argparse.ArgumentTypeError(f"{name}: must be a finite positive number, got {text!r}")
-        return v
-    return parse
-
-
-def _non_negative(name):
-    def parse(text):
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: not a number: {text!r}") from None
-        if not (v >= 0 and v < float("inf")):
-            raise argparse.ArgumentTypeError(f"{name}: must be a finite number >= 0, got {text!r}")
-        return v
-    return parse
-
-
-def _positive_int(name):
-    def parse(text):
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: not an integer: {text!r}") from None
-        if v < 1:
-            raise argparse.ArgumentTypeError(f"{name}: must be >= 1, got {text!r}")
-        return v
-    return parse
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line, exit 2
-        self.exit(2, f"demstep: error: {message}\n")
 
 
 # ----------------------------------------------------------------------- fcc
@@ -61,15 +18,15 @@ def _finite_or_none(d: dict) -> dict:
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
 
 
-def _add_fcc(sub):
+def add_fcc_parser(sub):
     p = sub.add_parser("fcc", help="the paper's FCC plane-strain compression at one alpha",
                        description="Plane-strain compression of 150 FCC spheres (paper Figs. "
                        "10-12): peak stress ratio against Thornton's theory and the energy "
                        "balance.")
-    p.add_argument("--mu", type=_non_negative("mu"), default=0.3, help="friction (default 0.3)")
-    p.add_argument("--alpha", type=_positive("alpha"), default=0.05,
+    p.add_argument("--mu", type=non_negative("mu"), default=0.3, help="friction (default 0.3)")
+    p.add_argument("--alpha", type=positive("alpha"), default=0.05,
                    help="time step as alpha sqrt(m/K) (default 0.05)")
-    p.add_argument("--strain", type=_positive("strain"), default=0.02,
+    p.add_argument("--strain", type=positive("strain"), default=0.02,
                    help="final axial strain (default 0.02)")
     p.add_argument("--rotation", action=argparse.BooleanOptionalAction, default=True,
                    help="free particle rotation (default) or blocked")
@@ -129,16 +86,16 @@ def cmd_fcc(args) -> int:
 
 # ----------------------------------------------------------------- stability
 
-def _add_stability(sub):
+def add_stability_parser(sub):
     from demstep.experiments.stability import STUDY_NAMES
 
     p = sub.add_parser("stability", help="measured stability threshold against the estimates",
                        description="Bisection for the smallest alpha at which the engine goes "
                        "unstable on a pre-compressed periodic specimen, beside every estimate.")
     p.add_argument("--lattice", required=True, help=f"one of {', '.join(STUDY_NAMES)}")
-    p.add_argument("--rtol", type=_positive("rtol"), default=2e-3,
+    p.add_argument("--rtol", type=positive("rtol"), default=2e-3,
                    help="relative tolerance of the bisection (default 2e-3)")
-    p.add_argument("--steps", type=_positive_int("steps"), default=3000,
+    p.add_argument("--steps", type=positive_int("steps"), default=3000,
                    help="steps per trial (default 3000)")
     p.add_argument("--json", action="store_true", help="print the documented JSON")
     p.set_defaults(func=cmd_stability)
@@ -163,13 +120,13 @@ def cmd_stability(args) -> int:
 
 # --------------------------------------------------------------------- paper
 
-def _add_paper(sub):
+def add_paper_parser(sub):
     p = sub.add_parser("paper", help="reproduce the paper's validation with plots and a report",
                        description="The critical-step tables (Figs. 8, 9), the FCC alpha study "
                        "(Figs. 11, 12), the measured stability thresholds, and report.html.")
     p.add_argument("--out", default="demstep-paper", help="output folder (default demstep-paper)")
     p.add_argument("--quick", action="store_true", help="shorter runs (under 2 minutes)")
-    p.add_argument("--workers", type=_positive_int("workers"), default=2,
+    p.add_argument("--workers", type=positive_int("workers"), default=2,
                    help="Dask workers on this machine (default 2)")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler (tcp://HOST:PORT)")
     p.add_argument("--quiet", action="store_true", help="no progress display")
@@ -195,76 +152,3 @@ def cmd_paper(args) -> int:
     return 0
 
 
-# -------------------------------------------------------------------------- main
-
-def build_parser() -> argparse.ArgumentParser:
-    from demstep import __version__
-
-    parser = _Parser(prog="demstep", description="Explicit DEM with a certified time step.")
-    parser.add_argument("--version", action="version", version=f"demstep {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    sub.required = True
-    from demstep.cli_dt import add_dt_parser
-
-    add_dt_parser(sub)
-    _add_fcc(sub)
-    _add_stability(sub)
-    _add_paper(sub)
-    from demstep.cli_run import add_plot_parser, add_run_parser
-
-    add_run_parser(sub)
-    add_plot_parser(sub)
-    from demstep.cli_sweep import add_sweep_parser
-
-    add_sweep_parser(sub)
-    return parser
-
-
-def run_parser(parser: argparse.ArgumentParser, argv=None) -> int:
-    """Parse ``argv`` and run the chosen subcommand: InputError -> one line, exit 2;
-    an operating-system error (disk full, no permission) -> one line, exit 1;
-    Ctrl-C -> exit 130; a closed standard output (``| head``) -> quiet exit 141 as for
-    the Unix tools killed by SIGPIPE."""
-    args = parser.parse_args(argv)
-    try:
-        status = int(args.func(args) or 0)
-        sys.stdout.flush()  # a closed pipe fails here, not at exit
-        return status
-    except BrokenPipeError:
-        return _stdout_closed()
-    except InputError as exc:
-        print(f"demstep: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("demstep: interrupted", file=sys.stderr)
-        return 130
-    except OSError as exc:
-        where = f": {exc.filename}" if getattr(exc, "filename", None) else ""
-        print(f"demstep: error: {exc.strerror or type(exc).__name__}{where}", file=sys.stderr)
-        return 1
-
-
-#: exit status after the reader of standard output went away (128 + SIGPIPE)
-EXIT_BROKEN_PIPE = 141
-
-
-def _stdout_closed() -> int:
-    """Standard output is a pipe whose reader has gone: stop quietly. Point the file
-    descriptor at /dev/null so that the interpreter's final flush does not fail again
-    (https://docs.python.org/3/library/signal.html#note-on-sigpipe)."""
-    import os
-
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-    except (OSError, ValueError):
-        pass
-    return EXIT_BROKEN_PIPE
-
-
-def main(argv=None) -> int:
-    return run_parser(build_parser(), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

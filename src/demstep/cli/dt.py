@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from demstep.cli.common import number, positive_int
 from demstep.errors import InputError
 
 #: documented defaults (the paper's Table I)
@@ -31,32 +31,6 @@ BYTES_PER_PARTICLE = 4000
 INPUT_FORMATS = ("auto", "csv", "liggghts", "yade", "case", "checkpoint")
 #: image formats of --plot (matplotlib)
 PLOT_FORMATS = (".png", ".pdf", ".svg")
-
-
-def _number(name, minimum=None, strict=False):
-    def parse(text):
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: not a number: {text!r}") from None
-        if not math.isfinite(v) or (minimum is not None and (v < minimum or (strict and v == minimum))):
-            rel = ">" if strict else ">="
-            raise argparse.ArgumentTypeError(f"{name}: must be a finite number {rel} {minimum:g}, "
-                                             f"got {text!r}")
-        return v
-    return parse
-
-
-def _positive_int(name):
-    def parse(text):
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: not an integer: {text!r}") from None
-        if v < 1:
-            raise argparse.ArgumentTypeError(f"{name}: must be >= 1, got {text!r}")
-        return v
-    return parse
 
 
 def add_dt_parser(sub):
@@ -78,59 +52,59 @@ def add_dt_parser(sub):
     src.add_argument("--snapshot", type=int, default=-1,
                      help="which snapshot of a dump (0 first, -1 last; default -1)")
     src.add_argument("--case", help="case file of a checkpoint (default: the run folder's case.toml)")
-    src.add_argument("--stage", type=_positive_int("stage"), default=1,
+    src.add_argument("--stage", type=positive_int("stage"), default=1,
                      help="case files: the stage whose settings apply (default 1)")
     src.add_argument("--lattice", help="regular lattice: square, hex, sc, bcc, fcc, rhombic")
-    src.add_argument("--size", type=_positive_int("size"), default=4,
+    src.add_argument("--size", type=positive_int("size"), default=4,
                      help="lattice block of SIZE^dim conventional cells (default 4)")
     src.add_argument("--periodic", nargs="?", const="lattice", default=None, metavar="AXES",
                      help="lattice: a periodic supercell; files: the periodic axes, e.g. x,y,z "
                      "(dumps: default from their BOX BOUNDS flags)")
-    src.add_argument("--box", nargs="+", type=_number("box"), metavar="LO_HI",
+    src.add_argument("--box", nargs="+", type=number("box"), metavar="LO_HI",
                      help="box bounds xlo xhi ylo yhi [zlo zhi] (files without one, or to override)")
     src.add_argument("--wall", action="append", default=[], metavar="SPEC",
                      help="a wall: a box side (x-, x+, y-, y+, z-, z+) or 'px,py,pz:nx,ny,nz' "
                      "(normal into the packing); repeat for several")
-    src.add_argument("--radius", type=_number("radius", 0, strict=True), default=DEFAULT_RADIUS,
+    src.add_argument("--radius", type=number("radius", 0, strict=True), default=DEFAULT_RADIUS,
                      help=f"lattice particle radius (default {DEFAULT_RADIUS:g})")
-    src.add_argument("--density", type=_number("density", 0, strict=True), default=None,
+    src.add_argument("--density", type=number("density", 0, strict=True), default=None,
                      help=f"particle density without a mass column (default {DEFAULT_DENSITY:g})")
-    src.add_argument("--contact-tol", type=_number("contact-tol", 0), default=1e-6,
+    src.add_argument("--contact-tol", type=number("contact-tol", 0), default=1e-6,
                      help="relative gap still counted as contact (default 1e-6)")
     mod = p.add_argument_group("contact model and damping")
     mod.add_argument("--model", choices=("linear", "hertz"), default=None,
                      help="linear (--kn, --ks) or hertz (--youngs, --poisson); default: hertz "
                      "when --youngs or --materials is given, else linear")
-    mod.add_argument("--kn", type=_number("kn", 0, strict=True), default=None,
+    mod.add_argument("--kn", type=number("kn", 0, strict=True), default=None,
                      help=f"linear normal stiffness (default {DEFAULT_KN:g}, the paper's Table I)")
-    mod.add_argument("--ks", type=_number("ks", 0), default=None,
+    mod.add_argument("--ks", type=number("ks", 0), default=None,
                      help="linear tangential stiffness (default: equal to --kn)")
-    mod.add_argument("--youngs", type=_number("youngs", 0, strict=True), default=None,
+    mod.add_argument("--youngs", type=number("youngs", 0, strict=True), default=None,
                      help="Hertz: Young's modulus of every particle")
-    mod.add_argument("--poisson", type=_number("poisson"), default=None,
+    mod.add_argument("--poisson", type=number("poisson"), default=None,
                      help="Hertz: Poisson's ratio of every particle")
     mod.add_argument("--materials", metavar="FILE.toml",
                      help="Hertz: materials per particle type ([[material]] type, youngs, "
                      "poisson, density)")
-    mod.add_argument("--overlap", type=_number("overlap", 0), default=None,
+    mod.add_argument("--overlap", type=number("overlap", 0), default=None,
                      help="Hertz: evaluate stiffnesses at least at this overlap / R* "
                      "(default 0: the actual overlaps; case files: their timestep.overlap)")
-    mod.add_argument("--restitution", type=_number("restitution"), default=None,
+    mod.add_argument("--restitution", type=number("restitution"), default=None,
                      help="dashpots from a coefficient of restitution in (0, 1]")
-    mod.add_argument("--restitution-t", type=_number("restitution-t"), default=None,
+    mod.add_argument("--restitution-t", type=number("restitution-t"), default=None,
                      help="demstep convention: tangential dashpot from this restitution")
-    mod.add_argument("--gamma-n", type=_number("gamma-n", 0), default=0.0,
+    mod.add_argument("--gamma-n", type=number("gamma-n", 0), default=0.0,
                      help="absolute normal dashpot coefficient [M/T] (force -gamma v_n)")
-    mod.add_argument("--gamma-t", type=_number("gamma-t", 0), default=0.0,
+    mod.add_argument("--gamma-t", type=number("gamma-t", 0), default=0.0,
                      help="absolute tangential dashpot coefficient [M/T]")
     mod.add_argument("--tangential-damping", action=argparse.BooleanOptionalAction,
                      default=True, help="LIGGGHTS' tangential_damping (default on)")
     mod.add_argument("--convention", choices=("demstep", "liggghts"), default=None,
                      help="restitution to dashpots: demstep's engine or LIGGGHTS 3.8 "
                      "(default: liggghts for dumps, demstep otherwise)")
-    mod.add_argument("--viscous", type=_number("viscous", 0), default=0.0,
+    mod.add_argument("--viscous", type=number("viscous", 0), default=0.0,
                      help="global mass-proportional damping a1 [1/T] (force -a1 m v)")
-    mod.add_argument("--rayleigh", nargs=2, type=_number("rayleigh", 0), metavar=("A1", "A2"),
+    mod.add_argument("--rayleigh", nargs=2, type=number("rayleigh", 0), metavar=("A1", "A2"),
                      help="Rayleigh damping C = A1 M + A2 K (paper eq. 26)")
     ana = p.add_argument_group("analysis and output")
     ana.add_argument("--rotation", action=argparse.BooleanOptionalAction, default=None,
@@ -139,14 +113,14 @@ def add_dt_parser(sub):
     ana.add_argument("--mass-split", choices=("uniform", "zoned"), default="uniform",
                      help="element mass split for element-paper (default uniform)")
     ana.add_argument("--methods", help="comma-separated subset of methods to compute")
-    ana.add_argument("--impact-velocity", type=_number("impact-velocity", 0, strict=True),
+    ana.add_argument("--impact-velocity", type=number("impact-velocity", 0, strict=True),
                      default=None, help="Hertz time: the impact velocity [L/T] (default: twice "
                      "the largest particle speed in the file, as LIGGGHTS)")
     ana.add_argument("--top", type=int, default=10,
                      help="how many particles and contacts of the critical mode to list (default 10)")
     ana.add_argument("--mode-vtk", metavar="FILE.vtu",
                      help="write the critical mode per particle as VTK (ParaView)")
-    ana.add_argument("--max-memory", type=_number("max-memory", 0, strict=True), default=None,
+    ana.add_argument("--max-memory", type=number("max-memory", 0, strict=True), default=None,
                      metavar="GB", help="refuse analyses estimated to need more (default: the "
                      "memory available)")
     ana.add_argument("--json", action="store_true", help="print JSON instead of a table")

@@ -1,10 +1,4 @@
-"""``demstep run`` and ``demstep plot``: subcommands for :mod:`demstep.cli`.
-
-Register them in ``demstep.cli.build_parser``::
-
-    from demstep.cli_run import add_plot_parser, add_run_parser
-    add_run_parser(sub)
-    add_plot_parser(sub)
+"""``demstep run`` and ``demstep plot``: subcommands of :mod:`demstep.cli`.
 
 Heavy modules are imported only when a subcommand runs. Bad input raises InputError
 (the main CLI prints ``demstep: error: ...`` and exits 2) before anything is written.
@@ -14,9 +8,6 @@ SIGINT and 143 after SIGTERM (128 + the signal number, as the shell reports a pr
 killed by it): the first signal saves a checkpoint and stops (status 'interrupted'),
 a second one stops at once without a checkpoint (status 'aborted'); both are recorded
 in run.json.
-
-Until the registration is in place, ``python -m demstep.cli_run run CASE --out DIR``
-runs them alone.
 """
 
 from __future__ import annotations
@@ -102,23 +93,11 @@ def cmd_plot(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """A parser with only ``run`` and ``plot`` (standalone use and tests)."""
-    from demstep.cli import _Parser
-
-    parser = _Parser(prog="demstep", description="Explicit DEM with a certified time step.")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    sub.required = True
-    add_run_parser(sub)
-    add_plot_parser(sub)
-    return parser
-
-
 def main(argv=None) -> int:
-    """Entry point of ``python -m demstep.cli_run``: as ``demstep.cli.main``."""
-    from demstep.cli import run_parser
+    """``python -m demstep.cli.run``: only this module's subcommands."""
+    from demstep.cli.common import run_parser, subcommand_parser
 
-    return run_parser(build_parser(), argv)
+    return run_parser(subcommand_parser(add_run_parser, add_plot_parser), argv)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,7 @@
+"""``python -m demstep.cli``: the ``demstep`` command."""
+
+import sys
+
+from demstep.cli import main
+
+sys.exit(main())
