@@ -674,10 +674,10 @@ def test_sweep_folder_is_locked(tmp_path, small, capsys, no_worker_scheduler):
 
 
 def test_unfinished_run_folder_is_marked(tmp_path):
-    from demstep.sweep import _mark_unfinished
+    from demstep.sweep import mark_unfinished
 
     (tmp_path / "run.json").write_text(json.dumps({"status": "running"}))
-    _mark_unfinished(tmp_path, "NoWorkers: gone")
+    mark_unfinished(tmp_path, "NoWorkers: gone")
     assert run_json(tmp_path) == {"status": "unfinished", "message": "NoWorkers: gone"}
 
 

@@ -35,7 +35,7 @@ def add_run_parser(subparsers):
         "history, VTK frames and checkpoints into --out. The whole case is checked before "
         "the folder is created. SIGINT/SIGTERM save a checkpoint and stop; --restart "
         "continues bit for bit.")
-    p.add_argument("case", help="case file (TOML; see demstep.case for the keys)")
+    p.add_argument("case", help="case file (TOML; see demstep.case.schema for the keys)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--log-level", default="INFO", metavar="LEVEL",

@@ -47,7 +47,7 @@ def add_sweep_parser(subparsers):
         "  demstep sweep case.toml --param 'stages[1].mu=0.2,0.5' --max-steps 1000 --out s\n"
         "  demstep sweep case.toml --runs runs.csv --scheduler tcp://10.0.0.5:8786 --out s",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("case", help="case file (TOML; see demstep.case for the keys)")
+    p.add_argument("case", help="case file (TOML; see demstep.case.schema for the keys)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=V1,V2,...",
                    help="a dotted key of the case (contact.mu, timestep.alpha, "
                    "stages[1].mu, particles.density) and its values, TOML scalars "

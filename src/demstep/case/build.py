@@ -1,0 +1,258 @@
+"""Building a Simulation from a validated case: particles, law, walls, time step, and
+the checks of the initial state (see :mod:`demstep.case.schema` for the keys)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from demstep.case.schema import (
+    AXES, MAX_COORDINATE_RADII, MAX_INITIAL_OVERLAP, MAX_MAGNITUDE, MIN_MAGNITUDE, Case,
+    TimestepSection, WallMotion,
+)
+from demstep.errors import InputError
+
+
+# -------------------------------------------------------------------- building
+def generate_particles(case: Case):
+    """Positions (N, dim) [L], radii (N,) [L] and masses (N,) [M] or None of the case."""
+    p = case.particles
+    dim = case.dim
+    m = None
+    if p.generator == "lattice":
+        from demstep.packings import lattice as make_lattice
+
+        lat = make_lattice(p.lattice, p.radius)
+        sizes = p.size if isinstance(p.size, list) else [p.size] * dim
+        grid = np.stack(np.meshgrid(*[np.arange(s) for s in sizes], indexing="ij"), -1)
+        origins = grid.reshape(-1, dim) * lat.cell
+        x = (origins[:, None, :] + lat.basis[None]).reshape(-1, dim)
+        if p.origin is not None:
+            x = x + np.asarray(p.origin)
+        keep = np.ones(len(x), dtype=bool)
+        tol = 1e-9 * p.radius
+        if p.clip_lower is not None:
+            keep &= (x >= np.asarray(p.clip_lower) - tol).all(axis=1)
+        if p.clip_upper is not None:
+            keep &= (x <= np.asarray(p.clip_upper) + tol).all(axis=1)
+        x = x[keep]
+        if len(x) == 0:
+            raise InputError(f"particles.clip_lower: no lattice site inside the clip box "
+                             f"[{p.clip_lower}, {p.clip_upper}]")
+        r = np.full(len(x), p.radius)
+    elif p.generator == "grid":
+        rng = np.random.default_rng(p.seed)
+        grid = np.stack(np.meshgrid(*[np.arange(c, dtype=float) for c in p.count],
+                                    indexing="ij"), -1).reshape(-1, dim)
+        x = p.spacing * (grid + 0.5 + p.jitter * rng.uniform(-1.0, 1.0, grid.shape))
+        if p.origin is not None:
+            x = x + np.asarray(p.origin)
+        r = rng.uniform(p.radius_min, p.radius_max, len(x))
+    else:
+        from demstep.io.formats import read_particle_file
+
+        data = read_particle_file(case.particle_file(), p.format, p.snapshot)
+        x, r, m = data.x, data.r, data.m
+    return np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(r), m
+
+
+def _fixed_flags(case: Case, x: np.ndarray) -> np.ndarray:
+    flags = np.zeros(len(x), dtype=bool)
+    sel = case.particles.fixed
+    if sel is None:
+        return flags
+    for i in sel.indices:
+        if i >= len(x):
+            raise InputError(f"particles.fixed.indices: index beyond the {len(x)} particles, got {i}")
+        flags[i] = True
+    if sel.lower is not None:
+        flags |= ((x >= np.asarray(sel.lower)) & (x <= np.asarray(sel.upper))).all(axis=1)
+    return flags
+
+
+def build_law(case: Case):
+    """The contact law object of the case."""
+    from demstep.contact.laws import HertzMindlin, LinearSpring
+
+    c = case.contact
+    common = dict(mu=c.mu, mu_wall=c.mu_wall, damping_normal=c.damping_normal,
+                  damping_tangential=c.damping_tangential, restitution=c.restitution,
+                  restitution_tangential=c.restitution_tangential)
+    if c.law == "linear":
+        return LinearSpring(k_n=c.k_n, k_s=c.k_s, **common)
+    return HertzMindlin(youngs_modulus=c.youngs_modulus, poisson_ratio=c.poisson_ratio, **common)
+
+
+def apply_motion(wall, motion: WallMotion):
+    """Set a Wall's motion settings (before the Simulation exists)."""
+    if motion.motion is not None:
+        wall.motion = motion.motion
+    if motion.velocity is not None:
+        wall.velocity = np.asarray(motion.velocity, dtype=np.float64)
+    for key in ("target_stress", "servo_gain", "servo_factor", "max_speed", "area", "friction"):
+        value = getattr(motion, key)
+        if value is not None and hasattr(wall, key):
+            setattr(wall, key, float(value))
+
+
+def build_timestep(ts: TimestepSection):
+    """The engine's TimeStep for a (resolved) [timestep] section."""
+    from demstep.engine import TimeStep
+
+    return TimeStep(mode=ts.mode, dt=ts.dt, alpha=ts.alpha if ts.alpha is not None else 0.1,
+                    safety=ts.safety, method=ts.method, every=ts.every, growth=ts.growth,
+                    overlap=ts.overlap)
+
+
+def build_walls(case: Case, x: np.ndarray, r: np.ndarray) -> list:
+    """The walls of the case: box walls first (x-, x+, ...), then [[walls]]."""
+    from demstep.walls import Wall, box_walls
+
+    walls = []
+    if case.box is not None:
+        b = case.box
+        if b.lower is not None:
+            lower, upper = np.asarray(b.lower), np.asarray(b.upper)
+        else:
+            lower = (x - r[:, None]).min(axis=0) - b.margin
+            upper = (x + r[:, None]).max(axis=0) + b.margin
+        walls = box_walls(lower, upper)
+        for w in walls:
+            if w.name in b.walls:
+                apply_motion(w, b.walls[w.name])
+    for spec in case.walls:
+        w = Wall(np.asarray(spec.point), np.asarray(spec.normal), name=spec.name)
+        apply_motion(w, spec)
+        walls.append(w)
+    return walls
+
+
+def build_simulation(case: Case, checkpoint_dir=None):
+    """A Simulation of the case at t = 0 (stage changes are applied by the runner,
+    :func:`apply_stage`). Raises InputError (prefixed with the case file) when the
+    particles, walls or parameters do not make a valid simulation."""
+    try:
+        return _build_simulation(case, checkpoint_dir)
+    except InputError as exc:
+        prefix = f"{case.source}: " if case.source else ""
+        if str(exc).startswith(prefix):
+            raise
+        raise InputError(f"{prefix}{exc}") from None
+
+
+def _build_simulation(case: Case, checkpoint_dir):
+    from demstep.energy import EnergyMonitor
+    from demstep.engine import Damping, Simulation
+    from demstep.particles import Particles, particle_inertia
+
+    x, r, m = generate_particles(case)
+    fixed = _fixed_flags(case, x)
+    p = case.particles
+    if m is None or (p.generator == "file" and p.density is not None):
+        try:
+            particles = Particles.from_density(x, r, p.density, fixed=fixed)
+        except InputError as exc:
+            if str(exc).startswith("density:"):
+                raise InputError(f"particles.{exc}") from None
+            raise
+    else:
+        particles = Particles(x, r, m, particle_inertia(m, r, x.shape[1]), fixed)
+    periodic = None
+    if case.periodic is not None:
+        periodic = [getattr(case.periodic, a) for a in AXES[: case.dim]]
+        if all(v is None for v in periodic):
+            periodic = None
+    timestep = build_timestep(case.timestep)
+    en = case.energy
+    sim = Simulation(
+        particles, build_law(case), walls=build_walls(case, x, r), gravity=case.gravity,
+        periodic=periodic, damping=Damping(case.damping.local, case.damping.viscous),
+        timestep=timestep, skin=case.numerics.skin,
+        energy=EnergyMonitor(eps=en.eps, every=en.every, action=en.action, floor=en.floor),
+        jump_limit=case.numerics.jump_limit, runaway_factor=case.numerics.runaway_factor,
+        checkpoint_dir=checkpoint_dir, rotation=case.rotation)
+    if case.mass_scaling != 1.0:
+        sim.scale_mass(case.mass_scaling)
+    check_initial_state(sim, case.numerics.max_initial_overlap)
+    return sim
+
+
+def check_initial_state(sim, max_overlap: float = MAX_INITIAL_OVERLAP) -> None:
+    """Refuse an initial state the engine cannot integrate meaningfully (InputError):
+
+    * coordinates beyond :data:`MAX_COORDINATE_RADII` smallest radii from the origin
+      (float64 no longer resolves the contacts);
+    * a periodic length shorter than the neighbour search needs (three cells of
+      2 r_max + skin);
+    * coincident centres, or two particles overlapping by more than ``max_overlap``
+      of the smaller radius (pairs of fixed particles are exempt);
+    * masses, moments of inertia, stiffness, the time step or the energy scale that
+      are not finite and positive (e.g. a density whose masses overflow).
+    """
+    from demstep.kernels.neighbors import build_pair_list
+
+    r_min = float(sim.r.min())
+    far = np.abs(sim.x).max(axis=1)
+    k = int(np.argmax(far))
+    if far[k] > MAX_COORDINATE_RADII * r_min:
+        raise InputError(f"particles: particle {k} lies at {far[k]:.3g} from the origin, more "
+                         f"than {MAX_COORDINATE_RADII:g} x the smallest radius "
+                         f"({r_min:.3g}): float64 cannot resolve its contacts")
+    x = sim.x.copy()
+    for axis in range(3):
+        if sim.periodic_len[axis] > 0:
+            np.mod(x[:, axis], sim.periodic_len[axis], out=x[:, axis])
+    pi, pj = build_pair_list(x, sim.r, sim.skin, sim.periodic_len)
+    if len(pi):
+        d = x[pj] - x[pi]
+        for axis in range(3):
+            length = sim.periodic_len[axis]
+            if length > 0:
+                d[:, axis] -= length * np.rint(d[:, axis] / length)
+        dist = np.linalg.norm(d, axis=1)
+        r_i, r_j = sim.r[pi], sim.r[pj]
+        relative = (r_i + r_j - dist) / np.minimum(r_i, r_j)
+        free = ~(sim.fixed[pi] & sim.fixed[pj])
+        same = free & (dist <= 1e-12 * (r_i + r_j))
+        if same.any():
+            q = int(np.flatnonzero(same)[0])
+            raise InputError(f"particles: particles {pi[q]} and {pj[q]} have coincident "
+                             f"centres at {x[pi[q], :sim.dim].tolist()}")
+        heavy = free & (relative > max_overlap)
+        if heavy.any():
+            q = int(np.flatnonzero(heavy)[0])
+            raise InputError(f"particles: particles {pi[q]} and {pj[q]} overlap by "
+                             f"{relative[q]:.3g} of the smaller radius at the start (centres "
+                             f"{dist[q]:.4g} apart, radii {r_i[q]:.4g} and {r_j[q]:.4g}), "
+                             f"more than numerics.max_initial_overlap = {max_overlap:g} "
+                             f"(raise it to accept such an overlap)")
+    _check_scales(sim)
+
+
+def _check_scales(sim) -> None:
+    """Masses, inertia, stiffness, time step and energies finite and > 0."""
+    with np.errstate(all="ignore"):
+        for name, values in (("mass", sim.m), ("moment of inertia", sim.inertia)):
+            bad = ~(np.isfinite(values) & (values > 0))
+            if bad.any():
+                k = int(np.flatnonzero(bad)[0])
+                raise InputError(f"particles.density: the {name} of particle {k} is "
+                                 f"{values[k]:.3g} (radius {sim.r[k]:.3g}): not a finite "
+                                 f"positive number")
+        k_max = sim.stiffness_max()
+        m_min = sim.m_min
+        dt_scale = math.sqrt(m_min / k_max) if k_max > 0 else math.inf
+        energy = float(k_max * np.float64(sim.r.max()) ** 2 * len(sim.r))
+    if not (math.isfinite(k_max) and k_max > 0):
+        raise InputError(f"contact: the largest contact stiffness is {k_max:.3g}: not a finite "
+                         f"positive number")
+    low, high = MIN_MAGNITUDE ** 2, MAX_MAGNITUDE ** 2
+    if not (low <= dt_scale <= high and low <= energy <= high):
+        raise InputError(f"contact: stiffness {k_max:.3g} with the smallest mass "
+                         f"{m_min:.3g} and the largest radius {float(sim.r.max()):.3g} "
+                         f"gives a time scale sqrt(m/K) = {dt_scale:.3g} and energies of "
+                         f"{energy:.3g}, outside [{low:g}, {high:g}]: "
+                         f"choose consistent units")
+
+

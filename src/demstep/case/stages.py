@@ -1,0 +1,88 @@
+"""Stages of a case: the changes applied when a stage starts, and the check that every
+stage can start before a run writes anything."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from demstep.case.build import apply_motion, build_simulation, build_timestep
+from demstep.case.schema import AXES, Case
+from demstep.errors import InputError
+
+
+def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
+    """Apply the changes of stage ``k`` at its start. ``fresh`` False replays them on
+    a restart (the checkpoint then restores the state; the ledger is not reset)."""
+
+    stage = case.stages[k]
+    dim = sim.dim
+    if stage.mu is not None:
+        sim.law.mu = float(stage.mu)
+    if stage.mu_wall is not None:
+        sim.law.mu_wall = float(stage.mu_wall)
+    if stage.damping is not None:
+        if stage.damping.local is not None:
+            sim.damping.local = float(stage.damping.local)
+        if stage.damping.viscous is not None:
+            sim.damping.viscous = float(stage.damping.viscous)
+    if stage.gravity is not None:
+        sim.gravity[:] = 0.0
+        sim.gravity[:dim] = stage.gravity
+    index = {w.name: i for i, w in enumerate(sim.walls)}
+    for name, change in stage.walls.items():
+        i = index[name]
+        wall = sim.walls[i]
+        apply_motion(wall, change)
+        sim.set_wall_motion(i, wall.motion, velocity=change.velocity,
+                            target_stress=wall.target_stress, servo_gain=wall.servo_gain,
+                            servo_factor=wall.servo_factor, max_speed=wall.max_speed,
+                            area=wall.area, friction=wall.friction)
+    for axis, change in stage.periodic.items():
+        sim.set_box(AXES.index(axis), change.motion,
+                    rate=change.rate if change.rate is not None else 0.0,
+                    target_stress=change.target_stress or 0.0, servo_factor=change.servo_factor,
+                    servo_gain=change.servo_gain,
+                    max_speed=change.max_speed if change.max_speed is not None else np.inf)
+    if stage.timestep is not None:
+        sim.timestep = build_timestep(stage.timestep)
+        sim.timestep.validate()
+        sim.dt = None  # chosen anew by the next run (a restart restores it)
+    _check_servo_areas(sim, case, k)
+    if fresh and stage.reset_ledger:
+        sim.ledger.reset()
+
+
+def _check_servo_areas(sim, case: Case, k: int) -> None:
+    """A servo wall needs its loaded area: given, or from the opposite box walls or
+    periodic lengths along the other axes (else its speed is NaN at the first step)."""
+    from demstep.kernels import dem
+
+    servo = np.flatnonzero(sim.wall_motion == dem.WALL_SERVO)
+    if not len(servo):
+        return
+    areas = np.empty(len(sim.walls))
+    dem.wall_areas(sim.wall_point, sim.wall_normal, sim.servo, sim.box_lo, sim.box_hi,
+                   sim.periodic_len, sim.dim, areas)
+    for w in servo:
+        if not (math.isfinite(areas[w]) and areas[w] > 0):
+            prefix = f"{case.source}: " if case.source else ""
+            raise InputError(f"{prefix}stages[{k}]: wall \"{sim.walls[w].name}\" is servo-controlled "
+                             f"but its loaded area is unknown (no opposite box walls or "
+                             f"periodic lengths along the other axes): give its area")
+
+
+def check_stages(case: Case) -> None:
+    """Build the case's simulation and apply every stage's changes in turn, so that
+    what only shows when a stage starts (a servo wall without a loaded area, a box
+    motion on an axis that is not periodic) is an InputError before a run writes."""
+    sim = build_simulation(case)
+    try:
+        for k in range(len(case.stages)):
+            apply_stage(sim, case, k)
+    except InputError as exc:
+        prefix = f"{case.source}: " if case.source else ""
+        if str(exc).startswith(prefix):
+            raise
+        raise InputError(f"{prefix}{exc}") from None

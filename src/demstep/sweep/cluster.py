@@ -1,0 +1,256 @@
+"""Dask execution of independent tasks: a local or remote cluster, :func:`dask_map`
+in order with failures recorded, and the wait for workers (see :mod:`demstep.sweep`)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import platform
+import re
+import time as wallclock
+import traceback
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Sequence
+
+from demstep.errors import InputError
+
+
+#: environment of local-cluster worker processes: one thread each for numba, OpenMP
+#: and BLAS (the worker processes themselves use the cores)
+WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+              "OPENBLAS_NUM_THREADS": "1"}
+#: seconds to wait for an existing scheduler to answer
+CONNECT_TIMEOUT = 20
+
+log = logging.getLogger("demstep")
+
+
+
+# ============================================================== Dask execution
+@dataclass
+class TaskResult:
+    """The outcome of one item of :func:`dask_map`: ``ok`` and the ``value`` returned,
+    or ``ok`` False (``failed`` True) with ``error`` (one line, ``"ValueError: ..."``)
+    and the worker's ``traceback``."""
+
+    ok: bool
+    value: Any = None
+    error: str = ""
+    traceback: str = ""
+    #: the item was never finished: no worker served it within the time limit
+    unfinished: bool = False
+
+    @property
+    def failed(self) -> bool:
+        """``not ok``."""
+        return not self.ok
+
+    def unwrap(self):
+        """The value, or a RuntimeError carrying the error of a failed item."""
+        if not self.ok:
+            raise RuntimeError(self.error)
+        return self.value
+
+
+def one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def numba_one_thread() -> None:
+    try:
+        from demstep._numba import set_threads
+
+        set_threads(1)
+    except Exception:  # pragma: no cover - numba missing or unusable: nothing to limit
+        pass
+
+
+def _call_captured(func: Callable, item) -> TaskResult:
+    """Run on a worker: ``func(item)`` with numba on one thread, exceptions captured."""
+    numba_one_thread()
+    try:
+        return TaskResult(True, func(item))
+    except Exception as exc:
+        return TaskResult(False, None, one_line(exc), traceback.format_exc())
+
+
+def worker_info(item=None) -> dict:
+    """Where a task runs: host, process id and numba threads (check a cluster with
+    ``dask_map(worker_info, range(4), scheduler=...)``)."""
+    import numba
+
+    return {"item": item, "host": platform.node(), "pid": os.getpid(),
+            "numba_threads": numba.get_num_threads(),
+            "NUMBA_NUM_THREADS": os.environ.get("NUMBA_NUM_THREADS")}
+
+
+def check_scheduler_address(address: str) -> str:
+    """``tcp://HOST:PORT`` (any protocol://, as distributed accepts); else InputError."""
+    text = str(address).strip()
+    if not re.match(r"^[a-z][a-z0-9+.-]*://\S+$", text):
+        raise InputError(f"scheduler: expected an address like tcp://HOST:PORT, got {address!r}")
+    return text
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: str | None = None, workers: int = 2):
+    """A ``distributed.Client``: connected to the existing cluster at ``scheduler``
+    (closed on exit; the cluster keeps running), or to a new
+    ``LocalCluster(n_workers=workers, threads_per_worker=1, processes=True)`` whose
+    workers run with :data:`WORKER_ENV` (shut down on exit). Raises InputError when
+    the scheduler cannot be reached."""
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        address = check_scheduler_address(scheduler)
+        try:
+            client = Client(address, timeout=CONNECT_TIMEOUT)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(f"scheduler: cannot connect to {address} ({one_line(exc)})") from None
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
+        raise InputError(f"workers: must be an integer >= 1, got {workers!r}")
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR,
+                           env=dict(WORKER_ENV))
+    try:
+        client = Client(cluster)
+        try:
+            yield client
+        finally:
+            client.close()
+    finally:
+        cluster.close()
+
+
+#: default of ``worker_timeout``: seconds a sweep waits while no worker is connected
+WORKER_TIMEOUT = 600.0
+#: seconds between reports while no worker is connected
+WAIT_REPORT_EVERY = 60.0
+
+
+def map_on_client(client, func: Callable, items: Sequence,
+                  progress: Callable | None = None, worker_timeout: float | None = None,
+                  on_wait: Callable | None = None) -> list[TaskResult]:
+    """:func:`dask_map` on an open client: one task per item, results in item order;
+    ``progress(index, result)`` is called in this process as each item finishes.
+
+    While the cluster has no worker, ``on_wait(pending, seconds)`` is called (at once,
+    then every :data:`WAIT_REPORT_EVERY` seconds) with the number of items pending
+    and how long no worker has been connected. After ``worker_timeout`` seconds
+    without a worker (None: wait for ever) the items still pending are given up: their
+    results have ``ok`` False, ``unfinished`` True and an error saying why."""
+    from distributed import as_completed
+
+    items = list(items)
+    if not items:
+        return []
+    futures = [client.submit(_call_captured, func, item, pure=False) for item in items]
+    index = {f.key: k for k, f in enumerate(futures)}
+    results: list[TaskResult | None] = [None] * len(items)
+    pending = set(index.values())
+    queue = as_completed(futures)
+    poll = 0.2 if worker_timeout is None else min(0.2, max(0.02, worker_timeout / 20))
+    next_check = wallclock.monotonic()
+    alone_since = None  # when the cluster was last seen without a worker
+    next_report = 0.0
+    while pending:
+        batch = queue.next_batch(block=False)
+        if not batch:
+            wallclock.sleep(poll)
+            now = wallclock.monotonic()
+            if now < next_check:
+                continue
+            next_check = now + min(2.0, 10 * poll)
+            if _worker_count(client) > 0:
+                alone_since = None
+                continue
+            if alone_since is None:
+                alone_since, next_report = now, now
+            waited = now - alone_since
+            if on_wait is not None and now >= next_report:
+                on_wait(len(pending), waited)
+                next_report = now + WAIT_REPORT_EVERY
+            if worker_timeout is not None and waited >= worker_timeout:
+                _give_up(client, futures, index, pending, results, progress, waited,
+                         worker_timeout)
+                break
+            continue
+        for future in batch:
+            k = index[future.key]
+            try:
+                result = future.result()
+            except Exception as exc:  # the task never returned: worker lost, unpicklable...
+                result = TaskResult(False, None, one_line(exc), traceback.format_exc())
+            results[k] = result
+            pending.discard(k)
+            future.release()
+            if progress is not None:
+                progress(k, result)
+    return results
+
+
+def _worker_count(client) -> int:
+    """Workers connected to the scheduler now (-1 when it cannot be asked)."""
+    try:
+        return len(client.nthreads())
+    except Exception:  # the scheduler is unreachable: the client reconnects or fails
+        return -1
+
+
+def _give_up(client, futures, index, pending, results, progress, waited, limit):
+    """Mark the pending items unfinished and cancel their tasks."""
+    error = (f"NoWorkers: no Dask worker for {waited:.0f} s (worker timeout "
+             f"{limit:g} s); not run")
+    left = [f for f in futures if index[f.key] in pending]
+    try:
+        client.cancel(left)
+    except Exception:  # nothing to cancel on a scheduler that is gone
+        pass
+    for k in sorted(pending):
+        results[k] = TaskResult(False, None, error, unfinished=True)
+        if progress is not None:
+            progress(k, results[k])
+    pending.clear()
+
+
+def dask_map(func: Callable, items: Iterable, scheduler: str | None = None, workers: int = 2,
+             progress: Callable | None = None, worker_timeout: float | None = None,
+             on_wait: Callable | None = None) -> list[TaskResult]:
+    """Run ``func(item)`` for every item on Dask; return a :class:`TaskResult` per item,
+    in the order of ``items``.
+
+    ``func`` must be importable on the workers (a top-level function of an installed
+    module, not a lambda or a closure) and items and results must pickle. Each call
+    runs with numba on one thread. An exception in ``func`` does not stop the others:
+    its item's result has ``ok`` False and ``error`` (``"ValueError: ..."``).
+
+    ``scheduler``: the address (``tcp://HOST:PORT``) of a running cluster; None starts
+    a local cluster of ``workers`` single-threaded processes and shuts it down on
+    return. ``progress(index, result)``: called in this process as each item finishes
+    (in completion order). ``worker_timeout`` and ``on_wait``: as for
+    :func:`map_on_client` (what happens while the cluster has no worker).
+
+    Example::
+
+        from demstep.sweep import dask_map
+
+        results = dask_map(my_module.simulate, [0.1, 0.2, 0.4])
+        for r in results:
+            print(r.value if r.ok else r.error)
+
+    A script calling it with a local cluster must guard its entry point with
+    ``if __name__ == "__main__":`` (worker processes are spawned)."""
+    items = list(items)
+    if not items:
+        return []
+    with dask_client(scheduler, workers) as client:
+        return map_on_client(client, func, items, progress, worker_timeout, on_wait)
+
+
