@@ -1,17 +1,30 @@
 """The Simulation: particles, a contact law, walls, time-step control, and the loop.
 
-One step, in order (the compiled kernels in :mod:`demstep.kernels.dem` do 2-6)::
+The order of one step, documented here only (:func:`demstep.kernels.dem.advance` runs
+steps 1-8 in compiled code, numbered as here; :meth:`Simulation.run` does the rest
+between its calls)::
 
-    1. neighbour update if any particle or wall moved more than skin/2 since the last
-       build (cell list + Verlet skin; contact history carried over)
-    2. contact forces (particle-particle)
-    3. wall forces; servo walls set their velocity from the stress error
-    4. body force, applied forces, local and global damping
-    5. central-difference update: v(t+dt/2) = v(t-dt/2) + dt F/m, x(t+dt) = x(t) + dt v(t+dt/2)
-       (and omega with torque / I); walls move
-    6. energy ledger (state terms at t, work and dissipation over the last step)
-    7. time-step monitor (every N steps: estimate, adapt dt if 'auto')
-    8. energy balance monitor, divergence detector, callbacks and writers (every N steps)
+    1. contact forces of the Verlet pairs at x(t), their tangential slip from the
+       lagged half-step velocities (du = dt v(t - dt/2) at the contact point), summed
+       per particle (one buffer per thread, then reduced)
+    2. particle-wall contact forces, the force on each wall
+    3. boundary work over the last step (walls, a deforming periodic box; trapezoid)
+    4. servo walls set their velocity from the stress error; periodic lengths their
+       rate (prescribed, or servo on the Love stress)
+    5. central-difference update with body force, applied forces, local and global
+       damping (on v(t - dt/2)): v(t + dt/2) = v(t - dt/2) + dt F(t)/m,
+       x(t + dt) = x(t) + dt v(t + dt/2), and omega with torque / I; the particles'
+       terms of the energy ledger
+    6. walls move, periodic lengths change
+    7. energy ledger: state terms at t (kinetic from the mean of the two half-step
+       velocities, strain), accumulated work and dissipation over [t - dt, t]
+    8. divergence checks (non-finite values, a particle jumping, runaway kinetic
+       energy); the neighbour lists expire after skin / 2 of motion: return
+    9. (Python) rebuild expired lists, carrying the contact history over
+   10. (Python) energy balance monitor; writers and callbacks on their triggers
+   11. (Python) 'auto' time step: a new estimate when scheduled (every N steps) or
+       when a contact closed that the last estimate did not cover (checked at least
+       every AUTO_CHECK_EVERY steps)
 
 The half-step velocity is initialised at the first step by a half backward kick,
 v(-dt/2) = v(0) - dt/2 F(0)/m, so the given initial velocities are those at t = 0.

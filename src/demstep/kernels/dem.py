@@ -4,17 +4,9 @@ All arrays are 3D (disks live in the plane z = 0 with rotation about z), float64
 C-contiguous. :func:`advance` runs whole steps inside compiled code until a stop
 condition (step budget, neighbour-list expiry, divergence) and returns to Python.
 
-One step, in order (DESIGN.md 2; the engine documents the same order):
-
-1. particle-particle contact forces per Verlet pair, accumulated per particle in one
-   buffer per thread (no write conflicts), then summed;
-2. particle-wall contact forces; wall forces, stresses and servo velocities;
-3. body force, applied forces, local and global damping;
-4. central difference: v(t+dt/2) = v(t-dt/2) + dt F(t)/m, x(t+dt) = x(t) + dt v(t+dt/2),
-   likewise omega with torque / I; walls move;
-5. energy ledger: kinetic energy at t from the mean of the two half-step velocities,
-   strain energy at t, and the work and dissipation over [t - dt, t] by the
-   trapezoidal rule (second order, exact for constant forces).
+The order of a step is documented once, in :mod:`demstep.engine`; :func:`advance`
+numbers its stages the same way. The energy ledger's work and dissipation terms use
+the trapezoidal rule over [t - dt, t] (second order, exact for constant forces).
 
 Slip increments use the lagged half-step velocities v(t - dt/2) (so du = x(t) - x(t-dt)
 at the contact point); damping forces likewise use v(t - dt/2), the form for which
@@ -587,7 +579,7 @@ def advance(n_steps, ctl, sph, pairs, walls, box, ledger, law, params):
     nw = wall_point.shape[0]
     n_chunks = pairs.force_buf.shape[0]
     for step in range(n_steps):
-        # 1-2. contact forces; the slip increment of step n is x(t) - x(t - dt_prev)
+        # 1. pair contact forces; the slip increment of step n is x(t) - x(t - dt_prev)
         dt_slip = 0.0 if first else dt_prev
         for k in range(3):
             box_rate[k] = 0.0 if first else box_state[5, k] / dt_prev
@@ -608,6 +600,7 @@ def advance(n_steps, ctl, sph, pairs, walls, box, ledger, law, params):
             reduce_forces(pairs.force_buf, pairs.torque_buf, pairs.spans, force, torque)
         else:
             reduce_forces_serial(pairs.force_buf, pairs.torque_buf, pairs.spans, force, torque)
+        # 2. particle-wall contact forces
         if parallel:
             we_n, we_t, wd_fric, wd_dash = wall_forces(
                 x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
@@ -621,7 +614,7 @@ def advance(n_steps, ctl, sph, pairs, walls, box, ledger, law, params):
         for row in range(4):
             for k in range(3):
                 box_state[row, k] = box_sums[row, k]
-        # boundary work over the last step (trapezoid): walls push particles with -F;
+        # 3. boundary work over the last step (trapezoid): walls push particles with -F;
         # a change of periodic length dL does work (crossing sum) * dL on the contacts
         if not first:
             for wi in range(nw):
@@ -630,7 +623,7 @@ def advance(n_steps, ctl, sph, pairs, walls, box, ledger, law, params):
                                        + (walls.force_prev[wi, 2] + wall_force[wi, 2]) * walls.disp_prev[wi, 2])
             for k in range(3):
                 acc[A_BOX] += 0.5 * (box_state[4, k] + box_sums[1, k]) * box_state[5, k]
-        # servo-controlled walls: velocity along the normal from the stress error
+        # 4. servo-controlled walls: velocity along the normal from the stress error
         wall_areas(wall_point, wall_normal, servo, walls.box_lo, walls.box_hi, periodic_len,
                    ctl.dim, walls.areas)
         for wi in range(nw):
@@ -657,7 +650,7 @@ def advance(n_steps, ctl, sph, pairs, walls, box, ledger, law, params):
                                                 box.servo[k, S_FACTOR], volume / periodic_len[k],
                                                 int(box_sums[2, k]), box_sums[3, k], dt,
                                                 box.servo[k, S_MAXSPEED])
-        # 3-4. central-difference update with damping; particle ledger terms
+        # 5. central-difference update with damping; particle ledger terms
         if parallel:
             integrate(x, v, w, m, sph.inertia, inv_m, sph.inv_I, r, force, torque, sph.applied,
                       ctl.gravity, dt, dt_prev, ctl.local_damping, ctl.viscous_damping,
@@ -667,7 +660,7 @@ def advance(n_steps, ctl, sph, pairs, walls, box, ledger, law, params):
                              sph.applied, ctl.gravity, dt, dt_prev, ctl.local_damping,
                              ctl.viscous_damping, sph.damp_force, sph.damp_torque, sph.x_ref,
                              first, ctl.store_damping, out)
-        # walls and the periodic box move
+        # 6. walls and the periodic box move
         boundary_move = 0.0
         for wi in range(nw):
             d2 = 0.0
@@ -684,7 +677,7 @@ def advance(n_steps, ctl, sph, pairs, walls, box, ledger, law, params):
             box_state[5, k] = dt * box_speed[k]
             periodic_len[k] += dt * box_speed[k]
             boundary_move += abs(periodic_len[k] - box.ref[k])
-        # 5. ledger
+        # 7. ledger
         acc[A_BODY] += out[0]
         acc[A_APPLIED] += out[1]
         acc[A_LOCAL] += out[2]
@@ -706,7 +699,7 @@ def advance(n_steps, ctl, sph, pairs, walls, box, ledger, law, params):
             acc[A_INITIAL] = out[4] + out[5] + e_n + we_n + e_t + we_t
         dt_prev = dt
         first = False
-        # divergence checks
+        # 8. divergence checks, then the expiry of the neighbour lists
         ke = out[4] + out[5]
         if not (math.isfinite(ke) and math.isfinite(e_n + we_n + e_t + we_t)):
             return step + 1, STOP_NONFINITE
