@@ -68,33 +68,51 @@ A = 1e-9 (displacements of ~1e-9 r0), zero total momentum, and with rotation an
 angular velocity of the same scale / r. Every state has no pair with |gap| below
 MARGIN = 1e-5 mean diameters, so even an amplitude grown a hundredfold neither opens
 nor closes a contact, and no contact slides. The same perturbation (fixed seed per
-case) is used for every dt of a case, so the verdicts are monotone in dt. LIGGGHTS
-samples E = translational + rotational kinetic energy every 10 steps (thermo) and
-checks E > F E(0) every 500 steps to stop early. A trial is *unstable* when some sample
-has E > F E(0), E is not finite, atoms are lost, or LIGGGHTS dies after its set-up;
-it is *stable* when N steps end with every sample E <= F E(0).
+case) is used for every dt of a case, so the verdicts are monotone in dt.
 
+The observed quantity is E = the kinetic energy of the *half-step* velocities,
+v[n+1/2] = v[n] + (dt/2) f[n]/m and w[n+1/2] = w[n] + (dt/2) tq[n]/I, computed at the
+end of each step from LIGGGHTS' v, f, omega, torque (atom-style variable, summed by
+``compute reduce``), sampled every 10 steps (thermo). A trial is *unstable* when
+(a) some sample has E > B E(0), B = 1e6 (LIGGGHTS also checks this every 500 steps and
+stops early), or (b) after N steps, max E over the second half > F x max E over the
+first half, F = 10, or (c) E is not finite, atoms are lost, or LIGGGHTS dies after its
+set-up. Otherwise it is *stable*.
+
+* Why half-step velocities: near the threshold the critical mode flips sign every step
+  (step-map eigenvalue ~ -1), so its full-step velocity v[n] = (v[n-1/2] + v[n+1/2])/2
+  nearly cancels. In a damped case (eigenvalue -(1 + c eps)) LIGGGHTS' own kinetic
+  energy sees the critical mode reduced by (c eps / 2)^2 ~ 1e-8, which delays the
+  verdict by ~18 e-folds of growth (a first version using ``ke`` put strongly damped
+  thresholds up to 5e-4 too high).
+* Why growth between the halves and not E > F E(0): the half-step energy of a stable
+  run can exceed E(0) transiently. Undamped, each mode keeps the leapfrog invariant
+  v[n+1/2]^2 + w^2 x[n] x[n+1]; started at x = 0 its half-step velocity grows through
+  -w^2 x[n] x[n+1] by up to 1 + 1/(2 eps') for a mode at a relative distance eps'
+  below the threshold; lightly damped near-critical modes do the same by ~(2/g)^2,
+  g = dt c/m per step. The FCC's top frequency is highly degenerate (its critical
+  modes hold ~14 % of E(0)), so E/E(0) reached 137 in stable runs 4e-4 below the
+  threshold, and a criterion E > 100 E(0) put fcc-linear-undamped-norot one bisection
+  step too low. A bounded run has the same maximum in both halves (late growth
+  ~ 1 undamped, << 1 damped; the transient peak lies in the first half); an unstable
+  one grows. B = 1e6 only catches fast blow-ups early: the transients above stay far
+  below it (they would need eps' < 5e-7 or g < 2e-3; the lightest dashpot here,
+  e = 0.9 normal only, has g ~ 0.02).
 * Why every 10 steps and not only at the chunk ends: above the threshold with
   mu = 0.5, the growing mode makes contacts slide once E/E(0) ~ 1e10; sliding
   dissipates it and leaves the contacts at the Coulomb limit (no tangential stiffness),
   after which E decays again. A check every 500 steps missed such spikes (a first
   version of this harness put the threshold of fcc-linear-n-e0.9-norot 9.7 % too high).
-* Growth factor F = 10. In a stable undamped linear system started from the
-  equilibrium position, each mode's velocity never exceeds its initial value (the
-  leapfrog invariant v^2 + w^2 (1 - w^2 dt^2/4) x^2 is maximal in v at x = 0), so
-  E(t) <= E(0); with dashpots E decays. Every stable trial of the matrix indeed has
-  max E/E(0) = 1 (the first sample), so F = 10 is a tenfold margin against false
-  "unstable" verdicts; a small F shortens the growth needed before the verdict flips.
 * Number of steps N = 20000 (default). Just above the threshold, dt = dt_c (1 + eps):
   undamped, the critical eigenvalue of the step map leaves the unit circle at -1 as
   -(1 + sqrt(8 eps)), so eps = 1e-6 already grows E by e^(2 sqrt(8e-6) N) ~ e^110.
   With dashpots the crossing is a single real eigenvalue -(1 + c eps), slow: for one
   damped oscillator under LIGGGHTS' scheme (the dashpot sees the half-step velocity)
   c = (W + 2 zeta) / zeta >= 2, W = w dt_c; the matrix's strongly damped cases show
-  c ~ 3. The critical mode holds only ~1/(6 n) of E(0) (n spheres), so it must grow
-  by ~F 6 n ~ 1.5e4 (ln ~ 10) before the verdict flips: the upward bias of the
-  bracket is eps ~ 10 / (2 c N) ~ 1e-4 at N = 2e4 and c = 3, a tenth of the
-  bisection tolerance. This is checked for every case: after the bisection, the
+  c ~ 3. The critical mode holds a share s ~ 1/(6 n) of E(0) (n spheres) and must
+  end above F E(0), so the verdict flips once 2 c eps N > ln(F / s) ~ 10: the upward
+  bias of the bracket is eps ~ 10 / (2 c N) ~ 1e-4 at N = 2e4 and c = 3, a tenth of
+  the bisection tolerance. This is checked for every case: after the bisection, the
   stable end of the bracket is run again with 2N steps; if it turns unstable, the
   bisection is redone below it with 2N (then 4N, ...).
 * Bracketing starts at a hint (0.3 sqrt(m_min / k_max), k_max the largest contact
@@ -163,7 +181,8 @@ RELAX_KE_TOL = 1.0e-18    # J, total kinetic energy at which relaxation stops
 MARGIN = 1.0e-5           # no pair of a state may have |gap| < MARGIN x mean diameter
 
 PERTURBATION = 1.0e-9     # velocity std = PERTURBATION * R0 * sqrt(kn / m_ref)
-GROWTH_FACTOR = 10.0      # unstable when E > F E(0) at any sample
+GROWTH_FACTOR = 10.0      # unstable when max E over the 2nd half > F x max over the 1st half
+BLOWUP = 1.0e6            # unstable at once when E > BLOWUP E(0) (LIGGGHTS stops early)
 CHUNK = 500               # steps between the early-stop checks inside LIGGGHTS
 SAMPLE = 10               # steps between energy samples (thermo output)
 DEFAULT_STEPS = 20_000
@@ -699,7 +718,10 @@ def build_states(names: set[str], regen: bool, log) -> dict:
                 f"min {summary['overlap_rel_min']:.3g} max {summary['overlap_rel_max']:.3g}, "
                 f"residual |F|/<Fn> {summary['residual_force_rel']:.2g}")
         if todo:
-            log(f"states built in {time.perf_counter() - t0:.1f} s")
+            built = time.perf_counter() - t0
+            for name in todo:
+                meta[name]["build_wall_s"] = built  # of the batch that built it
+            log(f"states built in {built:.1f} s")
             meta_path.write_text(json.dumps(meta, indent=1) + "\n")
     return meta
 
@@ -715,19 +737,37 @@ class Trial:
     reason: str
     steps_run: int
     energy_ratio: float        # max E / E(0) seen (inf when not finite)
-    growth_per_step: float | None  # d ln(amplitude)/d step over the last chunk
+    late_growth: float         # max E over the 2nd half / max E over the 1st half
+    growth_per_step: float | None  # d ln(amplitude)/d step over the last 200 steps
     max_rot_energy: float
     wall_s: float
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
-        for k in ("energy_ratio", "growth_per_step"):
+        for k in ("energy_ratio", "late_growth", "growth_per_step"):
             if d[k] is not None and not math.isfinite(d[k]):
                 d[k] = str(d[k])
         return d
 
 
-THERMO_RE = re.compile(r"^\s*(\d+)\s+(\d+)\s+(\S+)\s+(\S+)\s*$", re.M)
+THERMO_RE = re.compile(r"^\s*(\d+)\s+(\d+)\s+(\S+)\s+(\S+)\s+(\S+)\s*$", re.M)
+
+
+def half_step_energy_lines(half_dt: float, rotation: bool) -> list[str]:
+    """Commands defining ``c_ehalf``: the kinetic energy [J] of the half-step velocities
+    v[n+1/2] = v[n] + (dt/2) f[n]/m (and w[n+1/2] = w[n] + (dt/2) tq[n]/I, I = 2/5 m r^2,
+    with rotation), computed at the end of step n from v, f (omega, torque). Near the
+    threshold the critical mode alternates in sign every step, so its full-step
+    velocity v[n] = (v[n-1/2] + v[n+1/2])/2 nearly vanishes: LIGGGHTS' own kinetic
+    energy is almost blind to it (by (c eps / 2)^2 ~ 1e-8 in the damped cases)."""
+    h = repr(half_dt)
+    trans = (f"0.5*mass*((vx+{h}*fx/mass)^2+(vy+{h}*fy/mass)^2+(vz+{h}*fz/mass)^2)")
+    expr = trans
+    if rotation:
+        inertia = "(0.4*mass*r*r)"
+        expr += (f"+0.5*{inertia}*((omegax+{h}*tqx/{inertia})^2+(omegay+{h}*tqy/{inertia})^2"
+                 f"+(omegaz+{h}*tqz/{inertia})^2)")
+    return [f"variable ehalf_atom atom {expr}", "compute ehalf all reduce sum v_ehalf_atom"]
 
 
 def _float(s: str) -> float:
@@ -770,14 +810,15 @@ class Runner:
         lines = header_lines("perturbed.data", 0.1 * R0) + model_lines(self.params) + [
             f"fix integr all {integ}",
             "compute erot all erotate/sphere",
-            "variable etot equal ke+c_erot",
+            *half_step_energy_lines(0.5 * dt, self.case.rotation),
+            "variable etot equal c_ehalf",
             f"timestep {dt!r}",
-            "thermo_style custom step atoms ke c_erot",
+            "thermo_style custom step atoms c_ehalf ke c_erot",
             "thermo_modify lost ignore norm no format float %.17g",
             f"thermo {SAMPLE}",
             "run 0",
             'print "SETUP_OK"',
-            f"variable limit equal ${{etot}}*{GROWTH_FACTOR!r}",
+            f"variable limit equal ${{etot}}*{BLOWUP!r}",
             f"variable k loop {chunks}",
             "label chunk",
             f"run {CHUNK} pre no post no",
@@ -795,16 +836,23 @@ class Runner:
         wall = time.perf_counter() - t0
         if "SETUP_OK" not in out:
             raise RuntimeError(f"{self.case.name}: LIGGGHTS set-up failed (exit {rc}):\n{out[-3000:]}")
-        rows = [(int(s), int(a), _float(k), _float(e)) for s, a, k, e in THERMO_RE.findall(out)]
+        found = THERMO_RE.findall(out)
+        rows = [(int(s), int(a), _float(eh), _float(e)) for s, a, eh, k, e in found]
         if not rows:
             raise RuntimeError(f"{self.case.name}: no thermo output:\n{out[-3000:]}")
-        e0 = rows[0][2] + rows[0][3]
-        energies = np.array([k + e for _, _, k, e in rows])
+        e0 = rows[0][2]
+        energies = np.array([eh for _, _, eh, _ in rows])
         finite = np.all(np.isfinite(energies))
         ratio = float(np.nanmax(energies) / e0) if finite else float("inf")
         steps_run = max(s for s, *_ in rows)
         lost = any(a < self.n for _, a, _, _ in rows)
         max_rot = float(np.nanmax([e for *_, e in rows]))
+        step_arr = np.array([st for st, *_ in rows])
+        late_growth = float("inf")
+        if finite:
+            first = energies[step_arr <= steps // 2]
+            second = energies[step_arr > steps // 2]
+            late_growth = float(second.max() / first.max()) if len(second) and first.max() > 0 else 0.0
         growth = None
         if finite and np.all(energies > 0):
             # amplitude growth rate per step: slope of ln(E)/2 over the last 200 steps
@@ -816,17 +864,19 @@ class Runner:
             unstable, reason = True, "energy not finite"
         elif lost:
             unstable, reason = True, "atoms lost"
-        elif ratio > GROWTH_FACTOR:
-            unstable, reason = True, f"E grew by more than {GROWTH_FACTOR:g}"
+        elif ratio > BLOWUP:
+            unstable, reason = True, f"E exceeded {BLOWUP:g} E(0)"
         elif rc != 0 or "RUN_END" not in out:
             unstable, reason = True, f"LIGGGHTS stopped after set-up (exit {rc})"
         elif steps_run < steps:
             raise RuntimeError(f"{self.case.name}: only {steps_run} of {steps} steps, no verdict")
+        elif late_growth > GROWTH_FACTOR:
+            unstable, reason = True, f"max E of the 2nd half > {GROWTH_FACTOR:g} x that of the 1st"
         else:
             unstable, reason = False, "bounded"
         if not self.case.rotation and max_rot != 0.0:
             raise RuntimeError(f"{self.case.name}: rotation locked but rotational energy {max_rot:g}")
-        t = Trial(dt, steps, unstable, reason, steps_run, ratio, growth, max_rot, wall)
+        t = Trial(dt, steps, unstable, reason, steps_run, ratio, late_growth, growth, max_rot, wall)
         self.trials.append(t)
         return t
 
@@ -837,7 +887,8 @@ def bisect_threshold(runner: Runner, hint: float, steps: int, tol: float, log) -
     def verdict(dt, n):
         t = runner.trial(dt, n)
         log(f"    dt = {dt:.9g}  N = {n:6d}: {'UNSTABLE' if t.unstable else 'stable  '} "
-            f"(E/E0 max {t.energy_ratio:.3g}, {t.steps_run} steps, {t.wall_s:.1f} s)")
+            f"(E/E0 max {t.energy_ratio:.3g}, late growth {t.late_growth:.3g}, {t.steps_run} steps, "
+            f"{t.wall_s:.1f} s)")
         return t.unstable
 
     lo = hi = None
@@ -969,7 +1020,7 @@ def main(argv=None) -> int:
                 "dt": res["dt"], "bracket": res["bracket"], "rel_width": res["rel_width"],
                 "steps": res["steps"], "steps_requested": steps, "n_check": res["checks"],
                 "growth_per_step_at_hi": hi_trials[-1].growth_per_step if hi_trials else None,
-                "growth_factor": GROWTH_FACTOR, "chunk": CHUNK, "tolerance": tol,
+                "growth_factor": GROWTH_FACTOR, "blowup": BLOWUP, "chunk": CHUNK, "tolerance": tol,
                 "perturbation": runner.perturbation, "start": hint, "start_from": hint_from,
                 "trials": [t.as_dict() for t in runner.trials],
                 "liggghts_version": version, "wall_s": wall,
@@ -982,7 +1033,10 @@ def main(argv=None) -> int:
                 "description": "LIGGGHTS' measured critical time step (bisection), see "
                                "validation/liggghts_thresholds.py",
                 "liggghts_version": version,
-                "protocol": {"growth_factor": GROWTH_FACTOR, "chunk": CHUNK,
+                "protocol": {"growth_factor": GROWTH_FACTOR, "blowup": BLOWUP, "chunk": CHUNK,
+                             "sample": SAMPLE,
+                             "observable": "kinetic energy of the half-step velocities",
+                             "margin": MARGIN, "tolerance": tol,
                              "perturbation": PERTURBATION, "default_steps": DEFAULT_STEPS,
                              "bracket_factor": BRACKET_FACTOR, "units": "SI (m, kg, s, N)"},
                 "states": meta,
