@@ -1,7 +1,7 @@
 """LIGGGHTS' own stability threshold of the time step, measured by bisection.
 
     python validation/liggghts_thresholds.py [--quick] [--cases PATTERN ...]
-        [--steps N] [--tol 1e-3] [--regen-states] [--list] [--out FILE]
+        [--steps N] [--tol 1e-3] [--regen-states] [--states-only] [--list] [--out FILE]
 
 For every case of a matrix (packing x contact model x damping x rotation) this script
 runs LIGGGHTS (serially, one process per trial) from a static, pre-stressed, fully
@@ -449,8 +449,9 @@ def _dump_at_rest_lines(dump_file: str, diag_file: str) -> list[str]:
 
 
 def _check_state(dump_path: Path, diag_path: Path | None, box, name: str) -> dict:
-    """Check a freshly written state dump (box exact, pp flags, at rest) and add the
-    force residual: max |F_i| / mean contact normal force."""
+    """Check a freshly written state dump (BOX BOUNDS pp pp pp and exactly the
+    simulated box) and summarise it, with the largest residual force [N] from the
+    force dump of the same step."""
     st = read_dump(dump_path)
     if st["bounds"] != ["pp", "pp", "pp"]:
         raise RuntimeError(f"{name}: BOX BOUNDS flags {st['bounds']}, expected pp pp pp")
@@ -516,8 +517,9 @@ def _round_side(side: float, digits: int = 4) -> float:
     return float(f"{side:.{digits}g}")
 
 
-def _relax_lines(gamma_visc: float, ke_tol: float, chunk: int, max_chunks: int) -> list[str]:
-    """Run in chunks until the kinetic energy is below ke_tol (or max_chunks)."""
+def _relax_lines(ke_tol: float, chunk: int, max_chunks: int) -> list[str]:
+    """Run in chunks until the kinetic energy [J] is below ``ke_tol``, at most
+    ``max_chunks`` chunks; print RELAXED only if it is."""
     return [
         "compute erot all erotate/sphere",
         "variable etot equal ke+c_erot",
@@ -531,21 +533,23 @@ def _relax_lines(gamma_visc: float, ke_tol: float, chunk: int, max_chunks: int) 
         "next rk",
         "jump SELF relax",
         "label relaxed",
-        'print "RELAXED"',
+        f'if "${{etot}} < {ke_tol!r}" then "print RELAXED"',
     ]
 
 
 def _relax_run(folder: Path, x, r, side: float, law: str, pre: list[str] = ()) -> dict:
     """One LIGGGHTS preparation run in ``folder``: read the spheres (at rest), run the
     ``pre`` commands (e.g. a compression), relax with the frictionless ``law``
-    ('linear' or 'hertz'), strong contact damping (restitution 0.1) and ``fix viscous``
+    ('linear' or 'hertz'), a strong normal dashpot (restitution 0.1) and ``fix viscous``
     until E < RELAX_KE_TOL, zero the velocities and dump the state (run 0)."""
     folder.mkdir(parents=True, exist_ok=True)
     write_data(folder / "start.data", x, r, [side] * 3)
     m_ref = float(sphere_mass(r.mean()))
     m_min = float(sphere_mass(r.min()))
     case = Case("poly", law, "nt" if law == "hertz" else "n", 0.1, True)
-    params = case_parameters(case, m_ref)
+    # no tangential dashpot: with mu = 0 LIGGGHTS still applies it while a contact's
+    # shear history is exactly 0, which spins spheres up (fix viscous damps no spin)
+    params = {**case_parameters(case, m_ref), "tangential_damping": False}
     dt = 0.1 * math.sqrt(m_min / KN)
     # viscous damping ~critical for a mode at 5 % of a typical frequency sqrt(6 kn / m)
     gamma_visc = 2.0 * m_ref * 0.05 * math.sqrt(6.0 * KN / m_ref)
@@ -554,14 +558,14 @@ def _relax_run(folder: Path, x, r, side: float, law: str, pre: list[str] = ()) -
         f"fix visc all viscous {gamma_visc!r}",
         f"timestep {dt!r}",
         *pre,
-    ] + _relax_lines(gamma_visc, RELAX_KE_TOL, 5000, 100) + _dump_at_rest_lines("state.dump", "diag.dump")
+    ] + _relax_lines(RELAX_KE_TOL, 5000, 100) + _dump_at_rest_lines("state.dump", "diag.dump")
     rc, out = run_liggghts("\n".join(lines) + "\n", folder, timeout=1800)
     if rc != 0 or "RELAXED" not in out:
         raise RuntimeError(f"{folder.name}: LIGGGHTS preparation failed ({rc}):\n{out[-3000:]}")
     steps = re.findall(r"^\s*(\d+)\s+\d+\s+[-+0-9.eE]+", out, flags=re.M)
     return {"box": [side] * 3, "dump": folder / "state.dump", "diag": folder / "diag.dump",
             "law": law, "prep": {"dt": dt, "gamma_viscous": gamma_visc, "friction": 0.0,
-                                 "contact_damping": f"{law}, restitution 0.1",
+                                 "contact_damping": f"{law}, restitution 0.1, normal dashpot only",
                                  "relax_ke_tol": RELAX_KE_TOL,
                                  "steps": int(steps[-1]) if steps else 0}}
 
@@ -967,6 +971,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tol", type=float, default=None, help=f"relative bracket width (default {TOL:g})")
     ap.add_argument("--regen-states", action="store_true", help="rebuild the saved states")
     ap.add_argument("--list", action="store_true", help="list the case names and exit")
+    ap.add_argument("--states-only", action="store_true",
+                    help="build (with --regen-states: rebuild) the states of the selected cases, no thresholds")
     ap.add_argument("--out", type=Path, default=None, help="JSON results file")
     ap.add_argument("--keep", action="store_true", help="keep the LIGGGHTS work folders")
     args = ap.parse_args(argv)
@@ -992,6 +998,8 @@ def main(argv=None) -> int:
     version = liggghts_version()
     log(f"LIGGGHTS {version}; {len(cases)} cases, N = {steps}, tol = {tol:g}")
     meta = build_states({c.state for c in cases}, args.regen_states, log)
+    if args.states_only:
+        return 0
 
     RESULTS.mkdir(parents=True, exist_ok=True)
     report = json.loads(out_path.read_text()) if out_path.exists() else {}
