@@ -405,6 +405,12 @@ element-coupled bound below the measured bracket in {len(bounds) - len(bad_bound
   `dump_modify format` says: box sides are chosen with at most 6 digits and checked.
 * Re-reading a state (data file) resets the tangential history; the states are prepared
   frictionless so that they have none.
+* Every `run` (also `pre no`) re-evaluates the forces once with the setup flag: the
+  contact history is not advanced and the dashpots see the full-step velocity; a contact
+  with zero shear history then takes the non-sliding branch even at friction 0, so its
+  tangential dashpot acts (it spun spheres up in a frictionless Hertz relaxation run in
+  chunks; the preparation now has no tangential dashpot). In the threshold runs this
+  happens once per 500 steps and does not show in the thresholds.
 * Above the threshold with friction 0.5 the growing mode makes contacts slide at
   E/E(0) ~ 1e10; sliding dissipates it and leaves the contacts at the Coulomb limit, after
   which the run looks stable again: the energy must be sampled often (every 10 steps).

@@ -133,6 +133,20 @@ Quirks of LIGGGHTS 3.8.0 met here (see also the report in docs/validation-ligggh
 * The property names of ``hooke/stiffness`` in ``fix property/global`` are ``kn``,
   ``kt``, ``gamman_abs``, ``gammat_abs`` (with ``absolute_damping on``).
 * Re-reading a state from a data file resets the tangential (shear) history to 0.
+* Velocity Verlet evaluates the contact forces after the first half kick, so the
+  dashpots see the half-step velocity; the damped threshold is where
+  4 M - 2 dt C - dt^2 K stops being positive definite (see step_map_check.py).
+* Every ``run`` (also with ``pre no``) first re-evaluates the forces with the setup
+  flag on: the contact history is not advanced and the dashpots see the full-step
+  velocity. In that evaluation a contact with a zero shear history takes the
+  non-sliding branch even at mu = 0 (the test is kt |shear| > mu |Fn|, 0 > 0), so its
+  tangential dashpot acts: frictionless Hertz relaxations in chunks spun the spheres
+  up (no spin damping from ``fix viscous``); the preparation therefore runs without
+  tangential dashpot. In the threshold runs this happens once per 500-step chunk and
+  is harmless (the measured thresholds match the linearised step map).
+* ``thermo`` ``ke`` uses the full-step velocities (blind to the critical mode, see
+  above); ``read_data`` silently misreads malformed numbers (``np.float64(3.0)`` as a
+  box bound gave 0.5): data files are written with %.17g.
 
 Every run is serial (one process, OMP_NUM_THREADS=1).
 """
