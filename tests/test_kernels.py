@@ -215,7 +215,8 @@ def test_integrate_equals_numpy_leapfrog(kernel, store_damping):
     xx, vv, ww = x.copy(), v.copy(), w.copy()
     (dem.integrate_serial if kernel == "serial" else dem.integrate)(
         xx, vv, ww, m, inertia, 1 / m, 1 / inertia, r, force, torque, np.zeros((50, 3)), g, dt, dt,
-        0.0, 0.0, np.zeros((50, 6)), np.zeros((50, 6)), x.copy(), False, store_damping, out)
+        0.0, 0.0, np.zeros((50, 6)), np.zeros((50, 6)), x.copy(), False, store_damping, out,
+        np.full(50, -1))
     assert np.allclose(xx, x_ref, rtol=1e-14, atol=1e-14)
     assert np.allclose(vv, v_ref, rtol=1e-14, atol=1e-14)
     assert np.allclose(ww, w_ref, rtol=1e-14, atol=1e-14)

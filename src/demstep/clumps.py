@@ -362,3 +362,67 @@ def expand(clumps: ClumpSet):
         return (np.zeros((0, dim)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
     return (np.concatenate(xs), np.concatenate(rs), np.concatenate(body).astype(np.int64),
             np.concatenate(offs))
+
+
+def with_members(free, clumps: ClumpSet, rotation: bool = True, fixed=None,
+                 velocities=None, angular_velocities=None):
+    """The spheres of a simulation with clumps and its Bodies bundle.
+
+    ``free``: Particles of the free spheres (None: none); the members follow them. A
+    member's mass is its body's (the effective mass of its contacts' dashpots, as
+    LIGGGHTS' multisphere does). ``fixed`` (B,) holds bodies in place; ``velocities``
+    (B, dim) [L/T] and ``angular_velocities`` (B, 3) [1/T] (2D: (B,)) are the bodies'
+    at t = 0. Returns (Particles of every sphere, Bodies, index of the first member)."""
+    from demstep.particles import INERTIA_FACTOR, Particles
+    from demstep.state import Bodies
+
+    dim = clumps.dim
+    if free is not None and free.dim != dim:
+        raise InputError(f"clumps: {dim}D bodies with {free.dim}D free particles")
+    xm, rm, body, offset = expand(clumps)
+    n_free = 0 if free is None else free.n
+    b_count = clumps.n
+    masses = np.array([clumps.frames[k][2] for k in clumps.kind])
+    moments = np.array([clumps.frames[k][1] for k in clumps.kind]).reshape(b_count, 3)
+    m_member = masses[body]
+    parts = [(free.x, free.r, free.m, free.inertia, free.fixed)] if n_free else []
+    parts.append((xm, rm, m_member, INERTIA_FACTOR[dim] * m_member * rm**2,
+                  np.zeros(len(rm), dtype=bool)))
+    x, r, m, inertia, fx = (np.concatenate([p[k] for p in parts]) for k in range(5))
+    spheres = Particles(x, r, m, inertia, fx)
+    fixed = np.zeros(b_count, dtype=bool) if fixed is None else np.asarray(fixed, bool)
+    if fixed.shape != (b_count,):
+        raise InputError(f"clumps: fixed: expected {b_count} flags, got shape {fixed.shape}")
+    x3 = np.zeros((b_count, 3))
+    x3[:, :dim] = clumps.x
+    v3 = np.zeros((b_count, 3))
+    if velocities is not None:
+        v = np.asarray(velocities, dtype=np.float64)
+        if v.shape != (b_count, dim) or not np.isfinite(v).all():
+            raise InputError(f"clumps: velocities: expected {b_count} finite vectors of {dim}")
+        v3[:, :dim] = v
+    L = np.zeros((b_count, 3))
+    if angular_velocities is not None:
+        w = np.asarray(angular_velocities, dtype=np.float64)
+        w = w.reshape(b_count, 1) * np.array([[0.0, 0.0, 1.0]]) if dim == 2 else w.reshape(b_count, 3)
+        if not np.isfinite(w).all():
+            raise InputError("clumps: angular_velocities: must be finite")
+        R = quat_to_matrix(clumps.q)
+        # L = R diag(I) R^T omega
+        L = np.einsum("bij,bj->bi", R, moments * np.einsum("bji,bj->bi", R, w))
+    v3[fixed] = 0.0
+    L[fixed] = 0.0
+    inv_m = np.where(fixed, 0.0, 1.0 / masses)
+    inv_I = np.where((fixed | (not rotation))[:, None], 0.0, 1.0 / moments)
+    if not rotation:
+        L[:] = 0.0
+    start = np.zeros(b_count + 1, dtype=np.int64)
+    np.add.at(start, body + 1, 1)
+    start = np.cumsum(start)
+    sphere_body = np.full(spheres.n, -1, dtype=np.int64)
+    sphere_body[n_free:] = body
+    z3 = np.zeros((b_count, 3))
+    bodies = Bodies(x3, clumps.q.copy(), v3, L, masses, moments, inv_m, inv_I, z3.copy(),
+                    z3.copy(), z3.copy(), start, np.arange(n_free, spheres.n, dtype=np.int64),
+                    offset, sphere_body, np.zeros((b_count, 6)), np.zeros((b_count, 6)))
+    return spheres, bodies, n_free

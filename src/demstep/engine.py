@@ -186,9 +186,28 @@ class Simulation:
                  skin: float | None = None, energy: EnergyMonitor | None = None,
                  jump_limit: float = 0.25, runaway_factor: float = 10.0,
                  checkpoint_dir: str | os.PathLike | None = None, rotation: bool = True,
-                 parallel: bool | None = None, backend: str = "cpu"):
+                 parallel: bool | None = None, backend: str = "cpu", clumps=None,
+                 clump_velocities=None, clump_angular_velocities=None, clump_fixed=None):
+        bodies = None
+        if clumps is not None:
+            from demstep.clumps import with_members
+
+            free = particles
+            particles, bodies, self.n_free = with_members(
+                free, clumps, rotation, clump_fixed, clump_velocities, clump_angular_velocities)
+            if (velocities is not None or angular_velocities is not None) and self.n_free == 0:
+                raise InputError("velocities: give the bodies' as clump_velocities")
+            if velocities is not None:
+                velocities = np.concatenate([_as3(velocities), np.zeros((particles.n - self.n_free, 3))])
+            if angular_velocities is not None:
+                av = np.asarray(angular_velocities, dtype=np.float64)
+                pad = np.zeros((particles.n - self.n_free,) + av.shape[1:])
+                angular_velocities = np.concatenate([av, pad])
+        elif particles is None:
+            raise InputError("particles: give particles, clumps or both")
         self.particles = particles
         self.dim = particles.dim
+        self.clumps = clumps
         self.law = law if law is not None else LinearSpring()
         self.law.validate()
         self.damping = damping if damping is not None else Damping()
@@ -219,7 +238,13 @@ class Simulation:
         w[self.fixed] = 0.0
         self.spheres = Spheres.make(x, v, w, particles.r, particles.m.copy(),
                                     particles.inertia.copy())
-        self.bodies = Bodies.empty(n)
+        self.bodies = Bodies.empty(n) if bodies is None else bodies
+        if bodies is not None:  # members move with their bodies from the first step
+            from demstep.kernels.bodies import member_velocities
+
+            member_velocities(self.bodies.x, self.bodies.q, self.bodies.v, self.bodies.L,
+                              self.bodies.inv_I, self.bodies.start, self.bodies.member,
+                              self.bodies.offset, v, w)
         self.gravity = np.zeros(3) if gravity is None else _as3(gravity)
         if self.gravity.shape != (3,) or not np.isfinite(self.gravity).all():
             raise InputError(f"gravity: expected {self.dim} finite components, got {gravity!r}")
@@ -310,6 +335,10 @@ class Simulation:
     def _update_masses(self):
         self.inv_m[:] = np.where(self.fixed, 0.0, 1.0 / self.m)
         self.inv_I[:] = np.where(self.fixed | (not self.rotation), 0.0, 1.0 / self.inertia)
+        b = self.bodies
+        if b.n:
+            b.inv_m[:] = np.where(b.inv_m > 0, 1.0 / b.m, 0.0)
+            b.inv_I[:] = np.where(b.inv_I > 0, 1.0 / b.inertia, 0.0)
 
     def scale_mass(self, factor: float):
         """Density (mass) scaling for quasi-static runs: multiply every mass and moment of
@@ -318,6 +347,9 @@ class Simulation:
             raise InputError(f"mass scaling factor: must be finite and > 0, got {factor!r}")
         self.m *= factor
         self.inertia *= factor
+        self.bodies.m[:] *= factor
+        self.bodies.inertia[:] *= factor
+        self.bodies.L[:] *= factor
         self._update_masses()
         self.dt = None
 
@@ -329,10 +361,23 @@ class Simulation:
         for k in range(3):
             if self.periodic_len[k] > 0:
                 np.mod(self.x[:, k], self.periodic_len[k], out=self.x[:, k])
+        bodies = self.bodies
+        if bodies.n:  # bodies wrapped, their members placed exactly on them
+            from demstep.kernels.bodies import place_members
+
+            for k in range(3):
+                if self.periodic_len[k] > 0:
+                    np.mod(bodies.x[:, k], self.periodic_len[k], out=bodies.x[:, k])
+            place_members(bodies.x, bodies.q, bodies.start, bodies.member, bodies.offset,
+                          self.x, self.periodic_len)
         built = self._pairs_built
         old, ws = self.pairs, self.wall_state
         pi, pj = be.build_pair_list(self.x, self.r, self.skin, self.periodic_len,
                                     expected_pairs=len(old.i) if built else None)
+        if bodies.n:  # no contacts within a body
+            sb = bodies.sphere_body
+            keep = (sb[pi] < 0) | (sb[pi] != sb[pj])
+            pi, pj = pi[keep], pj[keep]
         if self._dashpot_history:
             shear, dashpot, energy = be.transfer_history(old.i, old.j, pi, pj, old.shear,
                                                          old.dashpot, old.shear_energy)
@@ -356,8 +401,13 @@ class Simulation:
     # ------------------------------------------------------------- time step
     @property
     def m_min(self) -> float:
-        free = ~self.fixed
-        return float(self.m[free].min()) if free.any() else float(self.m.min())
+        """The lightest free particle's or body's mass [M]."""
+        free = ~self.fixed & (self.bodies.sphere_body < 0)
+        masses = [self.m[free]]
+        if self.bodies.n:
+            masses.append(self.bodies.m[self.bodies.inv_m > 0])
+        masses = np.concatenate(masses)
+        return float(masses.min()) if len(masses) else float(self.m.min())
 
     def stiffness_max(self) -> float:
         """K_max for alpha: the law's largest stiffness (Hertz: at the TimeStep overlap)."""
@@ -483,14 +533,31 @@ class Simulation:
         p = self.particles_now()
         rotation = rotation and self.rotation
         damping = self._global_damping()
+        bodies = self.rigid_bodies()
         if method == "element-coupled":
-            return element_coupled_dt(p, contacts, rotation, damping=damping)
+            return element_coupled_dt(p, contacts, rotation, damping=damping, bodies=bodies)
         mode = getattr(self, "_dt_mode", None)
-        result = exact_critical_step(p, contacts, rotation, damping, v0=mode)
+        result = exact_critical_step(p, contacts, rotation, damping, v0=mode, bodies=bodies)
         if _record:
             self._dt_mode = result.mode
             self.dt_exact_undamped = result.dt_undamped
         return result.dt
+
+    def rigid_bodies(self):
+        """The clumps in the form the time-step analysis takes
+        (:class:`demstep.timestep.bodies.RigidBodies`: members' arms and the bodies' world
+        inertia tensors at the current orientation), or None without clumps."""
+        b = self.bodies
+        if not b.n:
+            return None
+        from demstep.clumps import quat_to_matrix
+        from demstep.timestep.bodies import RigidBodies
+
+        R = quat_to_matrix(b.q)
+        arm = np.zeros((len(self.r), 3))
+        arm[b.member] = np.einsum("mij,mj->mi", R[b.sphere_body[b.member]], b.offset)
+        inertia = np.einsum("bij,bj,bkj->bik", R, b.inertia, R)
+        return RigidBodies(b.sphere_body, arm, b.m.copy(), inertia, b.inv_m == 0)
 
     def _global_damping(self):
         from demstep.timestep.damping import GlobalDamping
@@ -506,6 +573,10 @@ class Simulation:
         params = self.law.params()
         r = float(self.r.max())
         m = self.m_min
+        b = self.bodies
+        if b.n:  # a body's contact point is at most its extent from its centre
+            arm = np.linalg.norm(self.rigid_bodies().arm, axis=1).max() + r
+            m = min(m, float(np.min(1.0 / (1.0 / b.m + arm * arm / b.inertia.min(axis=1)))))
         # a wall contact (R* = r_max) at the TimeStep overlap: the law's stiffness_max()
         kn, kt, cn, ct = self._coefficients(int(params.law), params,
                                             np.array([self.timestep.overlap * r]),
@@ -755,7 +826,7 @@ class Simulation:
                 float(self.runaway_factor), float(self.energy_floor), bool(parallel))
             self.pairs = self._work_space(parallel)
             n_done, reason = self.backend.advance(
-                chunk, controls, self.spheres, self.pairs, self.wall_state, self.box,
+                chunk, controls, self.spheres, self.bodies, self.pairs, self.wall_state, self.box,
                 Ledger(self.ledger.acc, self.ledger.energy, self.counters), law_id, params)
             self._first = False
             # the damping forces of the last step are stored only while damping is on

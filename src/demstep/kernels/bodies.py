@@ -101,6 +101,57 @@ def world_omega(q0, q1, q2, q3, L0, L1, L2, i0, i1, i2):
     return quat_rotate(q0, q1, q2, q3, l0 * i0, l1 * i1, l2 * i2)
 
 
+@njit
+def _kick(b, k, f, t, omega, m, inv_m, rotating, gravity, v, L, x, applied, damp_force,
+          damp_torque, dt, dt_prev, local_damping, global_damping, first, store_damping):
+    """Component k of body b: the leapfrog kick of the velocity and the angular
+    momentum with gravity, applied force and damping, the drift of the centre; returns
+    the lagged angular momentum and the ledger terms (gravity work, applied work, local
+    and global damping dissipation, kinetic energy of translation at t)."""
+    g = gravity[k]
+    fl = f + m * g + applied[b, k]
+    v_old = v[b, k]
+    L_old = L[b, k]
+    if first:
+        v_old -= 0.5 * dt * fl * inv_m[b]
+        L_old -= 0.5 * dt * t
+    fdk = 0.0
+    tdk = 0.0
+    if local_damping > 0.0:
+        fdk = -local_damping * abs(fl) * np.sign(v_old)
+        tdk = -local_damping * abs(t) * np.sign(omega)
+    gdk = 0.0
+    gtk = 0.0
+    if global_damping > 0.0:
+        gdk = -global_damping * m * v_old
+        gtk = -global_damping * L_old
+    v_new = v_old + dt * (fl + fdk + gdk) * inv_m[b]
+    L_new = L_old + dt * (t + tdk + gtk) if rotating else 0.0
+    w_body = 0.0
+    w_app = 0.0
+    d_local = 0.0
+    d_global = 0.0
+    if not first:
+        dx = dt_prev * v_old
+        w_body = m * g * dx
+        w_app = applied[b, k] * dx
+        if store_damping:
+            dth = dt_prev * omega
+            d_local = -0.5 * ((damp_force[b, k] + fdk) * dx + (damp_torque[b, k] + tdk) * dth)
+            d_global = -0.5 * ((damp_force[b, 3 + k] + gdk) * dx
+                               + (damp_torque[b, 3 + k] + gtk) * dth)
+    if store_damping:
+        damp_force[b, k] = fdk
+        damp_torque[b, k] = tdk
+        damp_force[b, 3 + k] = gdk
+        damp_torque[b, 3 + k] = gtk
+    vm = 0.5 * (v_old + v_new)
+    v[b, k] = v_new
+    L[b, k] = L_new
+    x[b, k] += dt * v_new
+    return L_old, w_body, w_app, d_local, d_global, 0.5 * m * vm * vm
+
+
 def _body_loop(bx, bq, bv, bL, bm, binertia, binv_m, binv_I, bforce, btorque, bapplied,
                start, member, offset, damp_force, damp_torque, x, v, w, r, force, torque,
                x_ref, gravity, dt, dt_prev, local_damping, global_damping, first,
@@ -146,63 +197,31 @@ def _body_loop(bx, bq, bv, bL, bm, binertia, binv_m, binv_I, bforce, btorque, ba
         i0, i1, i2 = binv_I[b, 0], binv_I[b, 1], binv_I[b, 2]
         # 2. translation and angular momentum (leapfrog, damping on the lagged values)
         xo0, xo1, xo2 = bx[b, 0], bx[b, 1], bx[b, 2]
-        for k in range(3):
-            g = gravity[k]
-            fl = (f0 if k == 0 else (f1 if k == 1 else f2)) + m * g + bapplied[b, k]
-            tl = t0 if k == 0 else (t1 if k == 1 else t2)
-            v_old = bv[b, k]
-            L_old = bL[b, k]
-            if first:
-                v_old -= 0.5 * dt * fl * binv_m[b]
-                L_old -= 0.5 * dt * tl
-            wk = 0.0
-            if binv_I[b, 0] > 0.0:
-                om = world_omega(q0, q1, q2, q3, bL[b, 0], bL[b, 1], bL[b, 2], i0, i1, i2)
-                wk = om[k]
-            fdk = 0.0
-            tdk = 0.0
-            if local_damping > 0.0:
-                fdk = -local_damping * abs(fl) * np.sign(v_old)
-                tdk = -local_damping * abs(tl) * np.sign(wk)
-            gdk = 0.0
-            gtk = 0.0
-            if global_damping > 0.0:
-                gdk = -global_damping * m * v_old
-                gtk = -global_damping * L_old
-            v_new = v_old + dt * (fl + fdk + gdk) * binv_m[b]
-            L_new = L_old + dt * (tl + tdk + gtk) if binv_I[b, 0] > 0.0 else 0.0
-            if not first:
-                dx = dt_prev * v_old
-                w_body += m * g * dx
-                w_app += bapplied[b, k] * dx
-                if store_damping:
-                    dth = dt_prev * wk
-                    d_local -= 0.5 * ((damp_force[b, k] + fdk) * dx + (damp_torque[b, k] + tdk) * dth)
-                    d_global -= 0.5 * ((damp_force[b, 3 + k] + gdk) * dx
-                                       + (damp_torque[b, 3 + k] + gtk) * dth)
-            if store_damping:
-                damp_force[b, k] = fdk
-                damp_torque[b, k] = tdk
-                damp_force[b, 3 + k] = gdk
-                damp_torque[b, 3 + k] = gtk
-            vm = 0.5 * (v_old + v_new)
-            ke_t += 0.5 * m * vm * vm
-            bv[b, k] = v_new
-            bL[b, k] = L_new if k == 0 else L_new
-            bx[b, k] += dt * v_new
-            if k == 0:
-                lo0 = L_old
-            elif k == 1:
-                lo1 = L_old
-            else:
-                lo2 = L_old
+        rotating = binv_I[b, 0] > 0.0
+        om0, om1, om2 = 0.0, 0.0, 0.0
+        if rotating:
+            om0, om1, om2 = world_omega(q0, q1, q2, q3, bL[b, 0], bL[b, 1], bL[b, 2], i0, i1, i2)
+        lo0, wb0, wa0, dl0, dg0, ke0 = _kick(b, 0, f0, t0, om0, m, binv_m, rotating, gravity, bv, bL, bx, bapplied,
+                        damp_force, damp_torque, dt, dt_prev, local_damping, global_damping,
+                        first, store_damping)
+        lo1, wb1, wa1, dl1, dg1, ke1 = _kick(b, 1, f1, t1, om1, m, binv_m, rotating, gravity, bv, bL, bx, bapplied,
+                        damp_force, damp_torque, dt, dt_prev, local_damping, global_damping,
+                        first, store_damping)
+        lo2, wb2, wa2, dl2, dg2, ke2 = _kick(b, 2, f2, t2, om2, m, binv_m, rotating, gravity, bv, bL, bx, bapplied,
+                        damp_force, damp_torque, dt, dt_prev, local_damping, global_damping,
+                        first, store_damping)
+        w_body += wb0 + wb1 + wb2
+        w_app += wa0 + wa1 + wa2
+        d_local += dl0 + dl1 + dl2
+        d_global += dg0 + dg1 + dg2
+        ke_t += ke0 + ke1 + ke2
         # rotational kinetic energy at t from the mean angular momentum (body frame)
         lm0, lm1, lm2 = quat_rotate(q0, -q1, -q2, -q3, 0.5 * (lo0 + bL[b, 0]),
                                     0.5 * (lo1 + bL[b, 1]), 0.5 * (lo2 + bL[b, 2]))
         ke_r += 0.5 * (lm0 * lm0 * i0 + lm1 * lm1 * i1 + lm2 * lm2 * i2)
         # 3. orientation
         n0, n1, n2, n3 = q0, q1, q2, q3
-        if binv_I[b, 0] > 0.0:
+        if rotating:
             n0, n1, n2, n3 = free_rotation(q0, q1, q2, q3, bL[b, 0], bL[b, 1], bL[b, 2],
                                            i0, i1, i2, dt)
         bq[b, 0], bq[b, 1], bq[b, 2], bq[b, 3] = n0, n1, n2, n3
@@ -211,9 +230,7 @@ def _body_loop(bx, bq, bv, bL, bm, binertia, binv_m, binv_I, bforce, btorque, ba
         if d0 < 0.0:
             d0, d1, d2, d3 = -d0, -d1, -d2, -d3
         s = math.sqrt(d1 * d1 + d2 * d2 + d3 * d3)
-        om0 = 0.0
-        om1 = 0.0
-        om2 = 0.0
+        om0, om1, om2 = 0.0, 0.0, 0.0
         if s > 0.0:
             angle = 2.0 * math.atan2(s, d0)
             om0 = angle * d1 / (s * dt)
@@ -265,3 +282,21 @@ def place_members(bx, bq, start, member, offset, x, periodic_len):
                 if periodic_len[j] > 0.0:
                     value = value - periodic_len[j] * math.floor(value / periodic_len[j])
                 x[p, j] = value
+
+
+@njit
+def member_velocities(bx, bq, bv, bL, binv_I, start, member, offset, v, w):
+    """Members' velocities v_b + omega x (R d) and angular velocities omega of bodies at
+    rest or moving (omega = R I^-1 R^T L), at the start of a run."""
+    for b in range(bx.shape[0]):
+        q0, q1, q2, q3 = bq[b, 0], bq[b, 1], bq[b, 2], bq[b, 3]
+        om = world_omega(q0, q1, q2, q3, bL[b, 0], bL[b, 1], bL[b, 2],
+                         binv_I[b, 0], binv_I[b, 1], binv_I[b, 2])
+        for k in range(start[b], start[b + 1]):
+            p = member[k]
+            a = quat_rotate(q0, q1, q2, q3, offset[k, 0], offset[k, 1], offset[k, 2])
+            v[p, 0] = bv[b, 0] + om[1] * a[2] - om[2] * a[1]
+            v[p, 1] = bv[b, 1] + om[2] * a[0] - om[0] * a[2]
+            v[p, 2] = bv[b, 2] + om[0] * a[1] - om[1] * a[0]
+            for j in range(3):
+                w[p, j] = om[j]

@@ -22,6 +22,7 @@ import numpy as np
 from demstep._numba import compile_parallel_and_serial, njit, prange
 from demstep.contact.geometry import contact_arms, image_count, pair_geometry, wall_geometry
 from demstep.contact.laws import dashpot_coefficients, normal_force, tangential_stiffness
+from demstep.kernels.bodies import body_step, body_step_serial
 
 from demstep.energy import (  # the ledger's layout is the energy module's
     A_APPLIED, A_BODY, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL, A_WALLS, E_KIN_R,
@@ -459,14 +460,15 @@ def servo_speed(stress, target, gain, factor, area, n_contacts, k_sum, dt, max_s
 
 def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
                     dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first,
-                    store_damping, acc_out):
+                    store_damping, acc_out, sphere_body):
     """Central-difference update of all particles with damping and the particle terms
     of the ledger. ``acc_out`` (8,): work of gravity, of applied forces, local and
     global damping dissipation, kinetic energy (translation, rotation) at t, the
     largest squared displacement since the list was built, the largest |v| dt / r.
     ``fd_prev``/``td_prev`` (N, 6) hold the damping forces of the last step (local,
     global) for the trapezoid; ``store_damping`` False (damping off and those arrays
-    all zero) skips reading and writing them."""
+    all zero) skips reading and writing them. Members of rigid bodies
+    (``sphere_body`` >= 0) are left to :mod:`demstep.kernels.bodies`."""
     w_body = 0.0
     w_app = 0.0
     d_local = 0.0
@@ -477,8 +479,8 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
     jump = 0.0
     g0, g1, g2 = gravity[0], gravity[1], gravity[2]
     for p in prange(x.shape[0]):
-        if inv_m[p] == 0.0:
-            continue  # fixed particle
+        if inv_m[p] == 0.0 or sphere_body[p] >= 0:
+            continue  # fixed particle, or a member of a body
         for k in range(3):
             g = g0 if k == 0 else (g1 if k == 1 else g2)
             fl = force[p, k] + m[p] * g + f_app[p, k]
@@ -549,10 +551,10 @@ wall_forces, wall_forces_serial = compile_parallel_and_serial(_wall_loop)
 
 
 @njit
-def advance(n_steps, ctl, sph, pairs, walls, box, ledger, law, params):
+def advance(n_steps, ctl, sph, bodies, pairs, walls, box, ledger, law, params):
     """Run up to ``n_steps`` steps of the documented order
     (:meth:`demstep.engine.Simulation.run`) on the bundles of :mod:`demstep.state`
-    (``ctl`` Controls, ``sph`` Spheres, ``pairs`` Pairs, ``walls`` Walls, ``box`` Box,
+    (``ctl`` Controls, ``sph`` Spheres, ``bodies`` Bodies, ``pairs`` Pairs, ``walls`` Walls, ``box`` Box,
     ``ledger`` Ledger) with the law ``law`` (its id) and ``params``
     (:class:`~demstep.contact.laws.LawParams`); ``ctl.parallel``: threaded loops, else
     serial ones. Returns (steps done, stop reason).
@@ -573,6 +575,7 @@ def advance(n_steps, ctl, sph, pairs, walls, box, ledger, law, params):
     first = ctl.first
     parallel = ctl.parallel
     out = np.empty(8)
+    out_bodies = np.empty(8)
     box_sums = np.zeros((4, 3))
     box_rate = np.zeros(3)
     extents = np.empty(3)
@@ -654,12 +657,34 @@ def advance(n_steps, ctl, sph, pairs, walls, box, ledger, law, params):
         if parallel:
             integrate(x, v, w, m, sph.inertia, inv_m, sph.inv_I, r, force, torque, sph.applied,
                       ctl.gravity, dt, dt_prev, ctl.local_damping, ctl.viscous_damping,
-                      sph.damp_force, sph.damp_torque, sph.x_ref, first, ctl.store_damping, out)
+                      sph.damp_force, sph.damp_torque, sph.x_ref, first, ctl.store_damping, out,
+                      bodies.sphere_body)
         else:
             integrate_serial(x, v, w, m, sph.inertia, inv_m, sph.inv_I, r, force, torque,
                              sph.applied, ctl.gravity, dt, dt_prev, ctl.local_damping,
                              ctl.viscous_damping, sph.damp_force, sph.damp_torque, sph.x_ref,
-                             first, ctl.store_damping, out)
+                             first, ctl.store_damping, out, bodies.sphere_body)
+        if bodies.m.shape[0] > 0:
+            # rigid bodies: forces summed from their members, leapfrog, members follow
+            if parallel:
+                body_step(bodies.x, bodies.q, bodies.v, bodies.L, bodies.m, bodies.inertia,
+                          bodies.inv_m, bodies.inv_I, bodies.force, bodies.torque, bodies.applied,
+                          bodies.start, bodies.member, bodies.offset, bodies.damp_force,
+                          bodies.damp_torque, x, v, w, r, force, torque, sph.x_ref, ctl.gravity,
+                          dt, dt_prev, ctl.local_damping, ctl.viscous_damping, first,
+                          ctl.store_damping, out_bodies)
+            else:
+                body_step_serial(bodies.x, bodies.q, bodies.v, bodies.L, bodies.m,
+                                 bodies.inertia, bodies.inv_m, bodies.inv_I, bodies.force,
+                                 bodies.torque, bodies.applied, bodies.start, bodies.member,
+                                 bodies.offset, bodies.damp_force, bodies.damp_torque, x, v, w,
+                                 r, force, torque, sph.x_ref, ctl.gravity, dt, dt_prev,
+                                 ctl.local_damping, ctl.viscous_damping, first,
+                                 ctl.store_damping, out_bodies)
+            for k in range(6):
+                out[k] += out_bodies[k]
+            out[6] = max(out[6], out_bodies[6])
+            out[7] = max(out[7], out_bodies[7])
         # 6. walls and the periodic box move
         boundary_move = 0.0
         for wi in range(nw):

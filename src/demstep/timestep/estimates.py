@@ -141,27 +141,35 @@ def element_paper_dt(particles, contacts, rotation, mass_split="uniform", dampin
     return float(np.min([x.min() for x in dts]))
 
 
-def element_coupled_dt(particles, contacts, rotation, mass_split="uniform", damping=None) -> float:
+def element_coupled_dt(particles, contacts, rotation, mass_split="uniform", damping=None,
+                       bodies=None) -> float:
     """min over contacts of the coupled elements' steps [T]: a rigorous lower bound on the
     exact (damped) step for any partition of the masses
-    (:func:`~demstep.timestep.elements.coupled_element_damped_dt`)."""
+    (:func:`~demstep.timestep.elements.coupled_element_damped_dt`; with ``bodies``, the
+    elements of :func:`~demstep.timestep.bodies.body_element_dt`)."""
     d = _damping(damping)
-    dt = coupled_element_damped_dt(contacts, element_mass(particles, contacts, mass_split),
-                                   rotation, d.mass, d.stiffness).min()
+    if bodies is not None and bodies.n:
+        from demstep.timestep.bodies import body_element_dt
+
+        dt = body_element_dt(particles, contacts, bodies, rotation, d.mass, d.stiffness).min()
+    else:
+        dt = coupled_element_damped_dt(contacts, element_mass(particles, contacts, mass_split),
+                                       rotation, d.mass, d.stiffness).min()
     if d.mass > 0:
         dt = min(dt, 2.0 / d.mass)  # DOFs outside every element's coupling
     return float(dt)
 
 
-def exact_dt(particles, contacts, rotation, damping=None) -> float:
+def exact_dt(particles, contacts, rotation, damping=None, bodies=None) -> float:
     """The certified exact critical step [T] (damped when the contacts have dashpots or
     ``damping`` is given; :func:`demstep.timestep.exact.exact_critical_step`)."""
     from demstep.timestep.exact import exact_critical_step
 
-    return exact_critical_step(particles, contacts, rotation, _damping(damping)).dt
+    return exact_critical_step(particles, contacts, rotation, _damping(damping),
+                               bodies=bodies).dt
 
 
-def nodal_dt(particles, contacts, rotation, damping=None) -> float:
+def nodal_dt(particles, contacts, rotation, damping=None, bodies=None) -> float:
     """YADE GlobalStiffnessTimeStepper's rule without safety factor [T]:
     sqrt(2) * sqrt(min over free DOFs of M_dd / K_dd), K_dd the summed contact
     stiffness of the DOF (translation and, with rotation, rotation). Damped:
@@ -169,6 +177,16 @@ def nodal_dt(particles, contacts, rotation, damping=None) -> float:
     from demstep.kernels.timestep_kernels import damping_diagonal_kernel
 
     d = _damping(damping)
+    if bodies is not None and bodies.n:  # YADE's rule for clumps: members summed to the body
+        from demstep.timestep.bodies import body_stiffness_diagonal, owner_mass_diagonal
+
+        kdiag = body_stiffness_diagonal(particles, contacts, bodies, rotation)
+        cdiag = body_stiffness_diagonal(particles, contacts, bodies, rotation, "c")
+        mdiag, free_owner = owner_mass_diagonal(particles, bodies, rotation)
+        ok = free_owner[:, None] & (kdiag > 0)
+        k = 2.0 * kdiag[ok] / mdiag[ok]
+        c = d.mass + 2.0 * (d.stiffness * kdiag[ok] + cdiag[ok]) / mdiag[ok]
+        return float(damped_dt(k, c).min())
     diag = stiffness_diagonal(particles, contacts, rotation)
     free = (inverse_sqrt_mass(particles, rotation) > 0) & (diag > 0)
     mass = lumped_mass(particles, rotation)[free]
@@ -252,7 +270,7 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
                         mass_split: str = "uniform", damping=None, methods=None,
                         lattice=None, density: float | None = None,
                         materials: Materials | None = None, rayleigh=None,
-                        v0: np.ndarray | None = None) -> TimeStepReport:
+                        v0: np.ndarray | None = None, bodies=None) -> TimeStepReport:
     """Every estimate for ``particles`` with ``contacts`` (their stiffnesses and dashpots).
 
     ``damping``: :class:`GlobalDamping` (or ``rayleigh`` = (a1, a2), the same thing).
@@ -260,7 +278,10 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     ``exact-periodic`` (uniform coefficients taken from the contacts). ``materials``
     adds the material rules. ``element-coupled`` always uses the uniform split, whose
     partition makes it a rigorous bound; ``element-paper`` uses ``mass_split``.
-    ``v0`` warm-starts the exact eigensolver.
+    ``v0`` warm-starts the exact eigensolver. ``bodies``
+    (:class:`~demstep.timestep.bodies.RigidBodies`): clumps (``element-paper`` and
+    ``exact-periodic`` are not defined for them; m_min is the lightest free sphere or
+    body).
     """
     if contacts.n == 0:
         raise InputError("contacts: the assembly has no contacts (check radii, positions "
@@ -282,7 +303,16 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
         methods.remove("exact-periodic")
     if "exact-undamped" in methods and not damped:
         methods.remove("exact-undamped")
-    m_min = float(particles.m[~particles.fixed].min())
+    has_bodies = bodies is not None and bodies.n > 0
+    if has_bodies:
+        for name in ("element-paper", "exact-periodic"):
+            if name in methods:
+                methods.remove(name)
+                report.notes.append(f"{name}: not defined for clumps")
+        free = (bodies.sphere_body < 0) & ~particles.fixed
+        m_min = float(np.concatenate([particles.m[free], bodies.mass[~bodies.fixed]]).min())
+    else:
+        m_min = float(particles.m[~particles.fixed].min())
     k_max = contacts.k_max()
     beta = dashpot_ratio(contacts)
     report.m_min, report.k_max = m_min, k_max
@@ -291,15 +321,16 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     if "exact" in methods or "exact-undamped" in methods:
         from demstep.timestep.exact import exact_critical_step
 
-        exact = exact_critical_step(particles, contacts, rotation, d, v0=v0)
+        exact = exact_critical_step(particles, contacts, rotation, d, v0=v0, bodies=bodies)
         report.exact = exact
     compute = {
         "exact": lambda: exact.dt,
         "exact-undamped": lambda: exact.dt_undamped,
         "exact-periodic": lambda: _periodic_dt(lattice, contacts, density, rotation, d),
-        "element-coupled": lambda: element_coupled_dt(particles, contacts, rotation, damping=d),
+        "element-coupled": lambda: element_coupled_dt(particles, contacts, rotation, damping=d,
+                                                      bodies=bodies),
         "element-paper": lambda: element_paper_dt(particles, contacts, rotation, mass_split, d),
-        "nodal": lambda: nodal_dt(particles, contacts, rotation, d),
+        "nodal": lambda: nodal_dt(particles, contacts, rotation, d, bodies),
         "itasca": lambda: itasca_dt(m_min, k_max, beta, d),
         "guidance": lambda: guidance_dt(m_min, k_max, dim, beta, d),
     }

@@ -32,7 +32,7 @@ import scipy.sparse.linalg as spla
 
 from demstep.contacts import ContactSet
 from demstep.errors import InputError
-from demstep.kernels.timestep_kernels import contact_energies, scaled_contact_matvec
+from demstep.kernels.timestep_kernels import contact_energies, contact_matvec, scaled_contact_matvec
 from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
 from demstep.timestep.damping import GlobalDamping
@@ -55,7 +55,7 @@ class ScaledContactOperator:
     A(sigma) = sigma C^ + K^ is a shift added by the caller."""
 
     def __init__(self, particles: Particles, contacts: ContactSet, rotation: bool,
-                 damping: GlobalDamping | None = None):
+                 damping: GlobalDamping | None = None, bodies=None):
         if contacts.n and contacts.dim != particles.dim:
             raise InputError(f"contacts: dimension {contacts.dim} does not match the "
                              f"particles' {particles.dim}")
@@ -67,6 +67,14 @@ class ScaledContactOperator:
         self.scale = inverse_sqrt_mass(particles, rotation).reshape(particles.n, self.nd)
         self.size = particles.n * self.nd
         self._work = np.empty_like(self.scale)
+        self.bodies = bodies if bodies is not None and bodies.n else None
+        self.owner_map = None
+        if self.bodies is not None:
+            from demstep.timestep.bodies import OwnerMap, check_bodies
+
+            check_bodies(particles, self.bodies)
+            self.owner_map = OwnerMap(self.scale, self.bodies, particles.dim, self.rotation)
+            self.size = self.owner_map.n_owners * self.nd
 
     def springs(self, sigma: float):
         """(k_n, k_t) per contact of the pencil at ``sigma``."""
@@ -78,9 +86,15 @@ class ScaledContactOperator:
                 (1.0 + sigma * a2) * c.k_s + sigma * c.c_t)
 
     def apply(self, x: np.ndarray, k_n, k_t) -> np.ndarray:
-        """S K(k_n, k_t) S x for flat x (size,)."""
-        return scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation, self.scale,
-                                     x, self._work)
+        """S K(k_n, k_t) S x for flat x (size,) (with bodies: G^T K G through the owner
+        map, :mod:`demstep.timestep.bodies`)."""
+        if self.owner_map is None:
+            return scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation, self.scale,
+                                         x, self._work)
+        om = self.owner_map
+        u = om.expand(np.asarray(x).reshape(om.n_owners, self.nd), self.particles.n)
+        y = contact_matvec(self.contacts, k_n, k_t, self.rotation, u)
+        return om.reduce(y).reshape(-1)
 
     def stiffness(self, x):
         return self.apply(x, self.contacts.k_n, self.contacts.k_s)
@@ -95,6 +109,8 @@ class ScaledContactOperator:
 
     def dense_pencil(self, sigma: float) -> np.ndarray:
         k_n, k_t = self.springs(sigma)
+        if self.owner_map is not None:  # small systems: column by column
+            return np.stack([self.apply(e, k_n, k_t) for e in np.eye(self.size)], axis=1)
         springs = replace(self.contacts, k_n=k_n, k_s=k_t)
         return assemble_stiffness(self.particles, springs, self.rotation,
                                   scale=self.scale.reshape(-1)).toarray()
@@ -119,7 +135,18 @@ class ScaledContactOperator:
 
         d = self.damping
         bound = d.mass
-        if self.contacts.n:
+        if self.contacts.n and self.bodies is not None:
+            from demstep.timestep.bodies import body_element_matrices
+
+            # lambda_max(W^1/2 X W^1/2) <= lambda_max(X) lambda_max(W) per element
+            W, D, G = body_element_matrices(self.particles, self.contacts, self.bodies,
+                                            self.rotation)
+            wmax = np.linalg.eigvalsh(W)[:, -1]
+            if d.stiffness:
+                bound += d.stiffness * float(np.max(np.linalg.eigvalsh(D)[:, -1] * wmax))
+            if self.contacts.damped:
+                bound += float(np.max(np.linalg.eigvalsh(G)[:, -1] * wmax))
+        elif self.contacts.n:
             mass = element_mass(self.particles, self.contacts)
             if d.stiffness:
                 bound += d.stiffness * float(coupled_element_lambda(self.contacts, mass,
@@ -130,15 +157,15 @@ class ScaledContactOperator:
         return bound
 
     def mode_shares(self, q: np.ndarray):
-        """Where the mode q (unit, mass-scaled) lives: per particle the translational and
-        rotational shares of its kinetic energy (N,), (N,) (all shares sum to 1), and per
-        contact its share of the strain energy (C,)."""
-        qq = (q.reshape(self.scale.shape)) ** 2
+        """Where the mode q (unit, mass-scaled) lives: per owner (particle, or body) the
+        translational and rotational shares of its kinetic energy (all shares sum to 1),
+        and per contact its share of the strain energy (C,)."""
         dim = self.particles.dim
+        qq = (q.reshape(-1, self.nd)) ** 2
         trans = qq[:, :dim].sum(axis=1)
         rot = qq[:, dim:].sum(axis=1)
         total = trans.sum() + rot.sum()
-        u = self.scale * q.reshape(self.scale.shape)
+        u = self.displacement(q)
         energy = contact_energies(self.contacts, self.contacts.k_n, self.contacts.k_s,
                                   self.rotation, u)
         e_sum = energy.sum()
@@ -146,7 +173,10 @@ class ScaledContactOperator:
                 energy / e_sum if e_sum > 0 else energy)
 
     def displacement(self, q: np.ndarray) -> np.ndarray:
-        """The physical mode shape M^-1/2 q (N, nd) [L; rad for rotations]."""
+        """The physical mode shape of every sphere (N, nd) [L; rad for rotations]: M^-1/2 q
+        (with bodies, the members move with their bodies)."""
+        if self.owner_map is not None:
+            return self.owner_map.expand(q.reshape(-1, self.nd), self.particles.n)
         return self.scale * q.reshape(self.scale.shape)
 
 
@@ -175,10 +205,11 @@ class ExactStep:
 def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bool,
                         damping: GlobalDamping | None = None, v0: np.ndarray | None = None,
                         dense_limit: int = DENSE_LIMIT, rtol: float = SIGMA_RTOL,
-                        max_iter: int = 100) -> ExactStep:
+                        max_iter: int = 100, bodies=None) -> ExactStep:
     """Exact (and certified) critical step, with contact dashpots and global damping when
-    present; ``v0`` warm-starts the eigensolver (a previous ``mode``)."""
-    op = ScaledContactOperator(particles, contacts, rotation, damping)
+    present; ``v0`` warm-starts the eigensolver (a previous ``mode``); ``bodies``
+    (:class:`demstep.timestep.bodies.RigidBodies`): clumps, six DOFs each."""
+    op = ScaledContactOperator(particles, contacts, rotation, damping, bodies)
     if contacts.n == 0 and not op.damping.mass:
         raise InputError("contacts: the assembly has no contacts")
     top = op.top(0.0, v0=v0, dense_limit=dense_limit)

@@ -1,0 +1,337 @@
+"""Rigid bodies (clumps) in the critical-step analysis (DESIGN 1.8).
+
+A body's degrees of freedom are the velocity v and angular velocity omega of its centre
+of mass; a member sphere at the arm a = R d from it moves with u_m = v + omega x a and
+omega_m = omega, so the member contacts' stiffness maps to the body as
+K_body = G^T K_members G. The mass matrix is block diagonal: m I and the world inertia
+tensor I_w = R I_principal R^T of each body, whose M^-1/2 block is
+R diag(I_k^-1/2) R^T. Free spheres keep their own DOFs; a sphere that belongs to a body
+is an "owner" no more. The central-difference scheme of the engine for bodies
+(:mod:`demstep.kernels.bodies`) linearised about rest is the central difference with
+this mass matrix, so lambda_max(M^-1/2 K M^-1/2) gives its exact critical step.
+
+Owners are numbered: the free spheres in their order, then the bodies.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from demstep.errors import InputError
+
+
+@dataclass
+class RigidBodies:
+    """The bodies of an assembly: ``sphere_body`` (N,) the body of each sphere (-1:
+    free), ``arm`` (N, 3) [L] each member's centre relative to its body's centre of
+    mass (world frame), body ``mass`` (B,) [M], world ``inertia`` (B, 3, 3) [M L^2]
+    and ``fixed`` (B,) bodies (infinite mass)."""
+
+    sphere_body: np.ndarray
+    arm: np.ndarray
+    mass: np.ndarray
+    inertia: np.ndarray
+    fixed: np.ndarray
+
+    def __post_init__(self):
+        self.sphere_body = np.asarray(self.sphere_body, dtype=np.int64)
+        self.arm = np.ascontiguousarray(self.arm, dtype=np.float64)
+        self.mass = np.asarray(self.mass, dtype=np.float64)
+        self.inertia = np.asarray(self.inertia, dtype=np.float64).reshape(-1, 3, 3)
+        self.fixed = np.asarray(self.fixed, dtype=bool)
+
+    @property
+    def n(self) -> int:
+        return len(self.mass)
+
+    @classmethod
+    def from_members(cls, x, r, body, density: float) -> "RigidBodies":
+        """Bodies made of the spheres at ``x`` (N, dim) [L] with radii ``r`` that share
+        a ``body`` id (>= 0; -1: a free sphere), for a ``density``: the mass
+        properties of each union of members (:func:`demstep.clumps.mass_properties`) in
+        the world frame."""
+        from demstep.clumps import check_connected, mass_properties
+
+        x = np.asarray(x, dtype=np.float64)
+        body = np.asarray(body, dtype=np.int64)
+        dim = x.shape[1]
+        ids = np.unique(body[body >= 0])
+        index = np.full(len(body), -1, dtype=np.int64)
+        arm = np.zeros((len(body), 3))
+        mass, inertia = [], []
+        for b, ident in enumerate(ids):
+            members = np.flatnonzero(body == ident)
+            check_connected(x[members], r[members], f"body {ident}")
+            props = mass_properties(x[members], r[members], density)
+            index[members] = b
+            arm[members, :dim] = x[members] - props.com
+            mass.append(props.mass)
+            inertia.append(props.inertia)
+        return cls(index, arm, np.array(mass), np.array(inertia).reshape(-1, 3, 3),
+                   np.zeros(len(ids), dtype=bool))
+
+
+def owners(n_spheres: int, bodies: RigidBodies | None):
+    """(owner of each sphere (N,), number of free spheres, number of owners)."""
+    if bodies is None or bodies.n == 0:
+        return np.arange(n_spheres, dtype=np.int64), n_spheres, n_spheres
+    sb = bodies.sphere_body
+    free = sb < 0
+    owner = np.empty(n_spheres, dtype=np.int64)
+    n_free = int(free.sum())
+    owner[free] = np.arange(n_free)
+    owner[~free] = n_free + sb[~free]
+    return owner, n_free, n_free + bodies.n
+
+
+def _inv_sqrt_blocks(inertia: np.ndarray, dim: int, fixed) -> np.ndarray:
+    """I^-1/2 of world inertia tensors (B, n_rot, n_rot) (2D: the zz entry); zero for
+    fixed bodies."""
+    if dim == 2:
+        out = (1.0 / np.sqrt(inertia[:, 2, 2]))[:, None, None]
+    else:
+        w, V = np.linalg.eigh(inertia)
+        out = np.einsum("bij,bj,bkj->bik", V, 1.0 / np.sqrt(w), V)
+    out = out.copy()
+    out[fixed] = 0.0
+    return out
+
+
+class OwnerMap:
+    """Scaled owner DOFs <-> sphere DOFs. ``expand`` takes q (owners, nd), the DOFs
+    scaled by M^1/2, to physical sphere displacements (N, nd); ``reduce`` takes sphere
+    forces back to scaled owner forces (the transpose). Spheres' own scales come from
+    ``sphere_scale`` (N, nd) (M^-1/2 of free spheres)."""
+
+    def __init__(self, sphere_scale: np.ndarray, bodies: RigidBodies, dim: int, rotation: bool):
+        n = sphere_scale.shape[0]
+        self.nd = sphere_scale.shape[1]
+        self.owner, self.n_free, self.n_owners = owners(n, bodies)
+        self.rotation = rotation
+        self.dim = dim
+        sb = bodies.sphere_body
+        self.free_index = np.flatnonzero(sb < 0)
+        self.member_index = np.flatnonzero(sb >= 0)
+        self.member_body = sb[self.member_index]
+        self.arm = bodies.arm[self.member_index]
+        self.free_scale = sphere_scale[self.free_index]
+        self.body_trans = np.where(bodies.fixed, 0.0, 1.0 / np.sqrt(bodies.mass))
+        self.body_rot = (_inv_sqrt_blocks(bodies.inertia, dim, bodies.fixed) if rotation
+                         else np.zeros((bodies.n, 0, 0)))
+        self.n_bodies = bodies.n
+
+    def expand(self, q: np.ndarray, n_spheres: int) -> np.ndarray:
+        nd, dim = self.nd, self.dim
+        u = np.zeros((n_spheres, nd))
+        u[self.free_index] = self.free_scale * q[:self.n_free]
+        qb = q[self.n_free:]
+        ut = qb[:, :dim] * self.body_trans[:, None]
+        member_u = ut[self.member_body]
+        if self.rotation:
+            th = np.einsum("bij,bj->bi", self.body_rot, qb[:, dim:])
+            tm = th[self.member_body]
+            if dim == 2:  # theta z x arm
+                member_u = member_u + tm[:, 0:1] * np.stack([-self.arm[:, 1], self.arm[:, 0]], 1)
+            else:
+                member_u = member_u + np.cross(tm, self.arm)
+            u[self.member_index, dim:] = tm
+        u[self.member_index, :dim] = member_u
+        return u
+
+    def reduce(self, y: np.ndarray) -> np.ndarray:
+        nd, dim = self.nd, self.dim
+        out = np.zeros((self.n_owners, nd))
+        out[:self.n_free] = self.free_scale * y[self.free_index]
+        ym = y[self.member_index]
+        f = np.zeros((self.n_bodies, dim))
+        np.add.at(f, self.member_body, ym[:, :dim])
+        out[self.n_free:, :dim] = f * self.body_trans[:, None]
+        if self.rotation:
+            if dim == 2:
+                tau_m = ym[:, 2:3] + (self.arm[:, 0] * ym[:, 1] - self.arm[:, 1] * ym[:, 0])[:, None]
+            else:
+                tau_m = ym[:, dim:] + np.cross(self.arm, ym[:, :dim])
+            tau = np.zeros((self.n_bodies, tau_m.shape[1]))
+            np.add.at(tau, self.member_body, tau_m)
+            out[self.n_free:, dim:] = np.einsum("bij,bj->bi", self.body_rot, tau)
+        return out
+
+
+# ---------------------------------------------------------- element bounds for bodies
+def _cross(v):
+    """[v]x (C, 3, 3)."""
+    X = np.zeros(v.shape[:-1] + (3, 3))
+    X[..., 0, 1], X[..., 0, 2] = -v[..., 2], v[..., 1]
+    X[..., 1, 0], X[..., 1, 2] = v[..., 2], -v[..., 0]
+    X[..., 2, 0], X[..., 2, 1] = -v[..., 1], v[..., 0]
+    return X
+
+
+def contact_arms_from_owner(contacts, bodies: RigidBodies | None, dim: int):
+    """For each contact, the vector from each side's owner centre to the contact point
+    (C, 3) [L]: r_i = arm_i + a_i n, r_j = arm_j - a_j n (a wall side: zero)."""
+    n3 = np.zeros((contacts.n, 3))
+    n3[:, :dim] = contacts.normal
+    ri = contacts.arm_i[:, None] * n3
+    rj = -contacts.arm_j[:, None] * n3
+    if bodies is not None and bodies.n:
+        ri = ri + bodies.arm[contacts.i]
+        pp = contacts.j >= 0
+        rj[pp] = rj[pp] + bodies.arm[contacts.j[pp]]
+    rj[contacts.j < 0] = 0.0
+    return ri, rj
+
+
+def owner_mass_shares(particles, contacts, bodies: RigidBodies | None, rotation: bool):
+    """The uniform Rayleigh partition over owners: each owner's mass and inertia
+    (3x3, world) divided by its number of contacts (walls included). Returns for sides
+    i and j the reciprocal mass (C,) and the inverse inertia share (C, 3, 3) (zero:
+    walls, fixed)."""
+    n = particles.n
+    owner, n_free, n_owners = owners(n, bodies)
+    inv_m = np.zeros(n_owners)
+    inv_I = np.zeros((n_owners, 3, 3))
+    free = np.flatnonzero(owner < n_free) if bodies is not None and bodies.n else np.arange(n)
+    fo = owner[free]
+    inv_m[fo] = np.where(particles.fixed[free], 0.0, 1.0 / particles.m[free])
+    if rotation:
+        iso = np.where(particles.fixed[free], 0.0, 1.0 / particles.inertia[free])
+        inv_I[fo] = iso[:, None, None] * np.eye(3)
+    if bodies is not None and bodies.n:
+        b = np.arange(bodies.n) + n_free
+        inv_m[b] = np.where(bodies.fixed, 0.0, 1.0 / bodies.mass)
+        if rotation:
+            if particles.dim == 2:
+                inv_I[b] = (1.0 / bodies.inertia[:, 2, 2])[:, None, None] * np.eye(3)
+            else:
+                inv_I[b] = np.linalg.inv(bodies.inertia)
+            inv_I[b[bodies.fixed]] = 0.0
+    oi = owner[contacts.i]
+    pp = contacts.j >= 0
+    oj = np.where(pp, owner[np.maximum(contacts.j, 0)], -1)
+    counts = np.bincount(oi, minlength=n_owners) + np.bincount(oj[pp], minlength=n_owners)
+    counts = np.maximum(counts, 1)
+    mi = inv_m[oi] * counts[oi]
+    Ii = inv_I[oi] * counts[oi][:, None, None]
+    mj = np.where(pp, inv_m[np.maximum(oj, 0)] * counts[np.maximum(oj, 0)], 0.0)
+    Ij = np.where(pp[:, None, None], inv_I[np.maximum(oj, 0)] * counts[np.maximum(oj, 0)][:, None, None], 0.0)
+    return mi, Ii, mj, Ij
+
+
+def body_element_matrices(particles, contacts, bodies, rotation: bool):
+    """W = B M_e^-1 B^T (C, 3, 3) of every contact element with owners' shares
+    (:func:`owner_mass_shares`) and the local spring and dashpot matrices D, G (C, 3, 3)
+    (k_n n n^T + k_t (I - n n^T), likewise c_n, c_t), global frame; 2D in the plane."""
+    dim = particles.dim
+    mi, Ii, mj, Ij = owner_mass_shares(particles, contacts, bodies, rotation)
+    ri, rj = contact_arms_from_owner(contacts, bodies, dim)
+    W = (mi + mj)[:, None, None] * np.eye(3)
+    if rotation:
+        Xi, Xj = _cross(ri), _cross(rj)
+        W = W + np.einsum("cij,cjk,clk->cil", Xi, Ii, Xi) + np.einsum("cij,cjk,clk->cil", Xj, Ij, Xj)
+    n3 = np.zeros((contacts.n, 3))
+    n3[:, :dim] = contacts.normal
+    P = np.einsum("ci,cj->cij", n3, n3)
+    tang = np.eye(3) - P
+    if dim == 2:
+        tang[:, 2, 2] = 0.0  # no out-of-plane slip in 2D
+        W[:, 2, :] = 0.0
+        W[:, :, 2] = 0.0
+    D = contacts.k_n[:, None, None] * P + contacts.k_s[:, None, None] * tang
+    G = contacts.c_n[:, None, None] * P + contacts.c_t[:, None, None] * tang
+    return W, D, G
+
+
+def body_element_dt(particles, contacts, bodies, rotation: bool, mass_damping: float = 0.0,
+                    stiffness_damping: float = 0.0) -> np.ndarray:
+    """Critical step (C,) [T] of each contact element of an assembly with bodies, the
+    owners' masses and inertia tensors split uniformly among their contacts (Rayleigh's
+    partition, rigorous as :func:`demstep.timestep.elements.coupled_element_damped_dt`):
+    the largest root sigma of det(sigma^2 I - sigma (a1 I + W^1/2 (a2 D + G) W^1/2) -
+    W^1/2 D W^1/2) = 0 on the element's strain space, dt = 2 / sigma."""
+    W, D, G = body_element_matrices(particles, contacts, bodies, rotation)
+    w, V = np.linalg.eigh(W)
+    w = np.clip(w, 0.0, None)
+    Wh = np.einsum("cij,cj,ckj->cik", V, np.sqrt(w), V)
+    B = np.einsum("cij,cjk,ckl->cil", Wh, D, Wh)
+    A = np.einsum("cij,cjk,ckl->cil", Wh, stiffness_damping * D + G, Wh)
+    if not A.any() and mass_damping == 0.0:
+        lam = np.linalg.eigvalsh(B)[:, -1]
+        with np.errstate(divide="ignore"):
+            return np.where(lam > 0, 2.0 / np.sqrt(lam), np.inf)
+    c = contacts.n
+    L = np.zeros((c, 6, 6))
+    L[:, :3, 3:] = np.eye(3)
+    L[:, 3:, :3] = B
+    L[:, 3:, 3:] = A + mass_damping * np.eye(3)
+    ev = np.linalg.eigvals(L)
+    real = np.where(np.abs(ev.imag) <= 1e-9 * np.maximum(np.abs(ev).max(axis=1, keepdims=True), 1e-300),
+                    ev.real, -np.inf)
+    sigma = real.max(axis=1)
+    with np.errstate(divide="ignore"):
+        return np.where(sigma > 0, 2.0 / sigma, np.inf)
+
+
+def body_stiffness_diagonal(particles, contacts, bodies, rotation: bool, springs="k"):
+    """The diagonal of K (or C with springs='c') per owner DOF (owners, nd), for the
+    nodal rule: sum over contacts of diag(B^T D B) of each side."""
+    dim = particles.dim
+    owner, n_free, n_owners = owners(particles.n, bodies)
+    ri, rj = contact_arms_from_owner(contacts, bodies, dim)
+    n3 = np.zeros((contacts.n, 3))
+    n3[:, :dim] = contacts.normal
+    kn, kt = (contacts.k_n, contacts.k_s) if springs == "k" else (contacts.c_n, contacts.c_t)
+    P = np.einsum("ci,cj->cij", n3, n3)
+    D = kn[:, None, None] * P + kt[:, None, None] * (np.eye(3) - P)
+    nrot = (1 if dim == 2 else 3) if rotation else 0
+    nd = dim + nrot
+    diag = np.zeros((n_owners, nd))
+    for side, r in ((contacts.i, ri), (contacts.j, rj)):
+        ok = side >= 0
+        o = owner[np.maximum(side, 0)][ok]
+        dt_ = np.einsum("cii->ci", D)[ok, :dim]
+        np.add.at(diag, (o, slice(0, dim)), dt_)
+        if rotation:
+            X = _cross(r[ok])
+            rot = np.einsum("cji,cjk,cki->ci", X, D[ok], X)  # diag of X^T D X
+            if dim == 2:
+                np.add.at(diag, (o, slice(dim, nd)), rot[:, 2:3])
+            else:
+                np.add.at(diag, (o, slice(dim, nd)), rot)
+    return diag
+
+
+def owner_mass_diagonal(particles, bodies, rotation: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(mass diagonal per owner DOF (owners, nd), free flags (owners,))."""
+    dim = particles.dim
+    owner, n_free, n_owners = owners(particles.n, bodies)
+    nrot = (1 if dim == 2 else 3) if rotation else 0
+    diag = np.zeros((n_owners, dim + nrot))
+    free_flag = np.zeros(n_owners, dtype=bool)
+    sph = np.flatnonzero(owner < n_free) if bodies is not None and bodies.n else np.arange(particles.n)
+    diag[owner[sph], :dim] = particles.m[sph, None]
+    if rotation:
+        diag[owner[sph], dim:] = particles.inertia[sph, None]
+    free_flag[owner[sph]] = ~particles.fixed[sph]
+    if bodies is not None and bodies.n:
+        b = n_free + np.arange(bodies.n)
+        diag[b, :dim] = bodies.mass[:, None]
+        if rotation:
+            if dim == 2:
+                diag[b, dim:] = bodies.inertia[:, 2, 2][:, None]
+            else:
+                diag[b, dim:] = np.einsum("bii->bi", bodies.inertia)
+        free_flag[b] = ~bodies.fixed
+    return diag, free_flag
+
+
+def check_bodies(particles, bodies):
+    if bodies is None:
+        return
+    if bodies.sphere_body.shape != (particles.n,):
+        raise InputError(f"bodies: expected a body index per sphere ({particles.n}), got "
+                         f"{bodies.sphere_body.shape}")
+
+
