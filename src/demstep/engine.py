@@ -356,7 +356,20 @@ class Simulation:
     # ---------------------------------------------------------- neighbour lists
     def _rebuild(self):
         """New neighbour lists (particles wrapped into the periodic box first), the
-        contact history carried over to them."""
+        contact history carried over to them. Small systems (the serial kernels) build
+        them on one thread: a parallel region costs more than the work (and far more on
+        a loaded machine)."""
+        import numba
+
+        threads = numba.get_num_threads()
+        if threads > 1 and not self._parallel():
+            numba.set_num_threads(1)
+        try:
+            self._rebuild_lists()
+        finally:
+            numba.set_num_threads(threads)
+
+    def _rebuild_lists(self):
         be = self.backend
         for k in range(3):
             if self.periodic_len[k] > 0:

@@ -1,0 +1,263 @@
+"""Clumps: mass properties, rigid-body dynamics against analytic solutions, the
+critical step of clump assemblies against dense references, restarts, bad input."""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from demstep.clumps import (ClumpTemplate, _integrate_union, _separate, mass_properties, place,
+                            principal_frame, quat_to_matrix, random_quaternions)
+from demstep.contact.laws import LinearSpring
+from demstep.contacts import find_contacts
+from demstep.engine import Damping, Simulation, TimeStep
+from demstep.errors import InputError
+from demstep.particles import Particles
+from demstep.timestep.assembly import assemble_stiffness
+from demstep.timestep.bodies import RigidBodies, body_element_dt
+from demstep.timestep.damping import GlobalDamping
+from demstep.timestep.exact import exact_critical_step
+from demstep.walls import Wall
+
+ASYM = ClumpTemplate("asym", np.array([[0, 0, 0], [1.6, 0, 0], [0, 1.2, 0], [0, 0, 0.8]]),
+                     np.array([1.0, 0.8, 0.7, 0.6]))
+
+
+# -------------------------------------------------------------- mass properties
+def test_separate_members_exact_and_numerical_agree():
+    c = np.array([[0, 0, 0], [3.0, 0.5, -1], [0.2, 2.5, 0.7]])
+    r = np.array([1.0, 1.2, 0.8])
+    exact = mass_properties(c, r, 2.0)
+    assert exact.exact
+    numeric = _integrate_union(c, r, 2.0, 1024)
+    assert numeric.mass == pytest.approx(exact.mass, rel=1e-4)
+    assert numeric.com == pytest.approx(exact.com, abs=1e-4)
+    assert np.abs(numeric.inertia - exact.inertia).max() < 1e-4 * np.abs(exact.inertia).max()
+
+
+def test_overlapping_members_converge_to_the_lens_volume():
+    """Two unit spheres at distance d: union = two spheres minus the lens
+    pi (4r + d)(2r - d)^2 / 12; its inertia about the axis by a fine reference."""
+    for d in (0.5, 1.0, 1.7):
+        props = mass_properties(np.array([[0, 0, 0], [d, 0, 0]]), np.ones(2), 1.0)
+        volume = 2 * 4 / 3 * math.pi - math.pi * (4 + d) * (2 - d) ** 2 / 12
+        assert not props.exact
+        assert props.mass == pytest.approx(volume, rel=1e-4)
+        assert props.com[0] == pytest.approx(d / 2, abs=1e-6)
+        fine = _integrate_union(np.array([[0, 0, 0], [d, 0, 0]]), np.ones(2), 1.0, 2048)
+        assert np.abs(props.inertia - fine.inertia).max() < 5e-3 * np.abs(fine.inertia).max()
+
+
+def test_principal_frame_diagonalises_the_inertia():
+    rel, moments, mass, axes, com, props = principal_frame(ASYM, 2.0)
+    # members' offsets in the principal frame rebuild the tensor as a diagonal one
+    back = axes @ np.diag(moments) @ axes.T
+    assert back == pytest.approx(props.inertia, rel=1e-12, abs=1e-12 * moments.max())
+    assert np.linalg.det(axes) == pytest.approx(1.0)
+    assert (rel * np.array([1.0])).shape == (4, 3)
+    assert np.abs((rel * np.array([[1]])).sum(axis=0)).max() < 10  # sanity of shapes
+    assert moments[0] < moments[1] < moments[2]
+
+
+# --------------------------------------------------------------------- dynamics
+def free_clump(omega, dt, steps):
+    cs = place([ASYM], [0], [[0, 0, 0]], random_quaternions(1, np.random.default_rng(1)), 1.0)
+    sim = Simulation(None, LinearSpring(k_n=1e3), clumps=cs, clump_angular_velocities=[omega],
+                     timestep=TimeStep.fixed(dt))
+    L0 = sim.bodies.L.copy()
+    sim.run(steps=1)
+    e0 = sim.ledger.kinetic
+    sim.run(steps=steps)
+    return sim, L0, e0
+
+
+def test_torque_free_rotation_conserves_L_and_energy_to_second_order():
+    """The largest kinetic-energy error over the same 20 time units (sampled at the same
+    times) falls by 4 when dt halves; L stays exactly constant."""
+    errors = []
+    for dt, every in ((4e-3, 2), (2e-3, 4), (1e-3, 8)):
+        sim, L0, e0 = free_clump([0.3, 1.5, 0.4], dt, 1)
+        energies = []
+        sim.every(every, lambda s: energies.append(s.ledger.kinetic))
+        sim.run(steps=int(round(20.0 / dt)))
+        assert np.abs(sim.bodies.L - L0).max() <= 1e-12 * np.abs(L0).max()
+        errors.append(max(abs(e / e0 - 1) for e in energies))
+    assert errors[0] / errors[1] == pytest.approx(4.0, rel=0.02)
+    assert errors[1] / errors[2] == pytest.approx(4.0, rel=0.02)
+
+
+def test_intermediate_axis_flips():
+    """Spin about the intermediate principal axis with a small perturbation: the
+    body-frame angular momentum along it reverses (the tennis-racket effect), while the
+    spin about the largest axis is stable."""
+    cs = place([ASYM], [0], [[0, 0, 0]], np.array([[1.0, 0, 0, 0]]), 1.0)
+    moments = cs.frames[0][1]
+
+    def body_L(sim):
+        R = quat_to_matrix(sim.bodies.q[0])
+        return R.T @ sim.bodies.L[0]
+
+    for axis, flips in ((1, True), (2, False)):
+        omega_body = np.full(3, 1e-3)
+        omega_body[axis] = 1.0
+        R0 = quat_to_matrix(cs.q[0])
+        sim = Simulation(None, LinearSpring(k_n=1e3), clumps=cs, timestep=TimeStep.fixed(2e-3),
+                         clump_angular_velocities=[R0 @ omega_body])
+        start = body_L(sim)[axis]
+        signs = []
+        sim.every(50, lambda s: signs.append(np.sign(body_L(s)[axis])))
+        sim.run(steps=30000)
+        assert (min(signs) < 0) == flips, (axis, start)
+
+
+def test_clump_comes_to_rest_on_a_floor():
+    cs = place([ASYM], [0], [[0, 0, 3.0]], random_quaternions(1, np.random.default_rng(5)), 1.0)
+    sim = Simulation(None, LinearSpring(k_n=1e5, mu=0.5, restitution=0.3, restitution_tangential=0.3),
+                     walls=[Wall(np.zeros(3), np.array([0, 0, 1.0]), name="floor")],
+                     gravity=[0, 0, -9.81], clumps=cs, damping=Damping(local=0.3),
+                     timestep=TimeStep.auto(safety=0.8, method="exact", every=100))
+    sim.run(duration=8.0)
+    weight = sim.bodies.m[0] * 9.81
+    assert np.linalg.norm(sim.bodies.v[0]) < 1e-3
+    assert -sim.wall_force[0, 2] == pytest.approx(weight, rel=1e-3)
+    assert sim.contact_set().n >= 3  # a stable rest on at least three members
+
+
+def test_dimer_rolls_down_an_incline_at_the_analytic_acceleration():
+    """Two equal touching spheres (axis horizontal) roll without slipping:
+    a = g sin(theta) / (1 + I / (m r_c^2)), I = 0.4 m r^2 about the axis, r_c the
+    distance from the axis to the contact point (r minus the overlap)."""
+    r = 0.5
+    dimer = ClumpTemplate("dimer", np.array([[0, -r, 0], [0, r, 0]]), np.array([r, r]))
+    theta = math.radians(20)
+    n = np.array([-math.sin(theta), 0, math.cos(theta)])
+    cs = place([dimer], [0], [n * r * 0.999], np.array([[1.0, 0, 0, 0]]), 1000.0)
+    sim = Simulation(None, LinearSpring(k_n=1e6, k_s=1e6, mu=0.9, restitution=0.3,
+                                        restitution_tangential=0.3),
+                     walls=[Wall(np.zeros(3), n, name="incline")], gravity=[0, 0, -9.81],
+                     clumps=cs, timestep=TimeStep.from_alpha(0.05))
+    sim.run(duration=0.2)
+    v0, t0 = sim.bodies.v[0].copy(), sim.time
+    sim.run(duration=0.5)
+    a = (sim.bodies.v[0] - v0) / (sim.time - t0)
+    downhill = -np.array([math.cos(theta), 0, math.sin(theta)])
+    r_c = float(np.dot(sim.bodies.x[0], n))  # the centre's height above the plane
+    m = sim.bodies.m[0]
+    theory = 9.81 * math.sin(theta) / (1 + 0.4 * m * r * r / (m * r_c * r_c))
+    assert a @ downhill == pytest.approx(theory, rel=2e-3)
+    assert abs(a @ np.array([0, 1.0, 0])) < 1e-6 * theory
+
+
+def test_clump_restart_is_bit_identical(tmp_path):
+    from demstep.io.checkpoint import load_checkpoint, save_checkpoint
+
+    def build():
+        rng = np.random.default_rng(2)
+        pos = np.stack(np.meshgrid(np.arange(3), np.arange(3), [0], indexing="ij"), -1).reshape(-1, 3) * 4.5
+        cs = place([ASYM], [0] * len(pos), pos + [0, 0, 2.0], random_quaternions(len(pos), rng), 1.0)
+        return Simulation(None, LinearSpring(k_n=1e4, mu=0.4, restitution=0.5),
+                          walls=[Wall(np.zeros(3), np.array([0, 0, 1.0]), name="floor")],
+                          gravity=[0, 0, -9.81], clumps=cs, timestep=TimeStep.from_alpha(0.1),
+                          clump_velocities=rng.normal(0, 0.5, (len(pos), 3)))
+
+    a = build()
+    a.run(steps=300)
+    save_checkpoint(a, tmp_path / "c.npz")
+    a.run(steps=400)
+    b = build()
+    load_checkpoint(b, tmp_path / "c.npz")
+    b.run(steps=400)
+    assert np.array_equal(a.bodies.x, b.bodies.x) and np.array_equal(a.bodies.q, b.bodies.q)
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.ledger.acc, b.ledger.acc)
+    assert a.n_contacts > 0
+
+
+# -------------------------------------------------------------- the certificate
+def clump_assembly(seed, n_bodies=5, inflate=1.25):
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform(0, 5.0, (n_bodies, 3))
+    cs = place([ASYM], [0] * n_bodies, pos, random_quaternions(n_bodies, rng), 1.0)
+    from demstep.clumps import expand
+
+    xm, rm, body, off = expand(cs)
+    p = Particles.from_density(xm, rm * inflate, 1.0)
+    R = quat_to_matrix(cs.q)
+    arm = np.einsum("mij,mj->mi", R[body], off)
+    mass = np.array([cs.frames[0][2]] * n_bodies)
+    Iw = np.einsum("bij,bj,bkj->bik", R, np.array([cs.frames[0][1]] * n_bodies), R)
+    bodies = RigidBodies(body, arm, mass, Iw, np.zeros(n_bodies, bool))
+    c = find_contacts(p, 1.0)
+    c = c.subset(body[c.i] != body[c.j])
+    c.k_n[:] = rng.random(c.n) + 0.5
+    c.k_s[:] = rng.random(c.n) * 0.7
+    return p, c, bodies, rng
+
+
+def body_matrices(p, c, bodies, rotation=True):
+    """Dense G^T K G, G^T C G and the block mass matrix of the bodies (reference)."""
+    K = assemble_stiffness(p, c, True).toarray()
+    Cd = assemble_stiffness(p, replace(c, k_n=c.c_n, k_s=c.c_t), True).toarray()
+    n, nb = p.n, bodies.n
+    G = np.zeros((n * 6, nb * 6))
+    for s in range(n):
+        b, a = bodies.sphere_body[s], bodies.arm[s]
+        X = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+        G[6 * s:6 * s + 3, 6 * b:6 * b + 3] = np.eye(3)
+        G[6 * s:6 * s + 3, 6 * b + 3:6 * b + 6] = -X
+        G[6 * s + 3:6 * s + 6, 6 * b + 3:6 * b + 6] = np.eye(3)
+    M = np.zeros((nb * 6, nb * 6))
+    for b in range(nb):
+        M[6 * b:6 * b + 3, 6 * b:6 * b + 3] = bodies.mass[b] * np.eye(3)
+        M[6 * b + 3:6 * b + 6, 6 * b + 3:6 * b + 6] = bodies.inertia[b]
+    return G.T @ K @ G, G.T @ Cd @ G, M
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_exact_step_of_clumps_equals_dense_body_matrices(seed):
+    p, c, bodies, _ = clump_assembly(seed)
+    assert c.n >= 3
+    Kb, _, M = body_matrices(p, c, bodies)
+    lam = scipy.linalg.eigh(Kb, M, eigvals_only=True)[-1]
+    for dense_limit in (10**6, 0):
+        e = exact_critical_step(p, c, True, bodies=bodies, dense_limit=dense_limit)
+        assert e.dt == pytest.approx(2 / math.sqrt(lam), rel=1e-8)
+    assert body_element_dt(p, c, bodies, True).min() <= e.dt * (1 + 1e-12)
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_damped_exact_step_of_clumps_is_the_amplification_threshold(seed):
+    p, c, bodies, rng = clump_assembly(seed)
+    c = replace(c, c_n=rng.random(c.n) * 0.3, c_t=rng.random(c.n) * 0.3)
+    Kb, Cb, M = body_matrices(p, c, bodies)
+    Cb = Cb + 0.05 * M
+    Minv = np.linalg.inv(M)
+    n = len(M)
+    eye = np.eye(n)
+
+    def rho(dt):
+        A = np.block([[eye - dt * dt * Minv @ Kb, dt * (eye - dt * Minv @ Cb)],
+                      [-dt * Minv @ Kb, eye - dt * Minv @ Cb]])
+        mu = np.linalg.eigvals(A)
+        return np.abs(mu[np.abs(mu - 1) > 1e-5]).max()
+
+    lo, hi = 0.0, 10.0
+    for _ in range(45):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if rho(mid) > 1 + 1e-9 else (mid, hi)
+    e = exact_critical_step(p, c, True, damping=GlobalDamping(0.05), bodies=bodies)
+    assert e.dt == pytest.approx(lo, rel=1e-6) and e.dt <= lo * (1 + 1e-9)
+    assert body_element_dt(p, c, bodies, True, 0.05).min() <= e.dt
+
+
+# -------------------------------------------------------------------- bad input
+@pytest.mark.parametrize("centers,radii,needle", [
+    (np.zeros((0, 3)), np.zeros(0), "at least one member"),
+    (np.array([[0, 0, 0], [1.0, 0, 0]]), np.array([1.0, -0.5]), "radius must be > 0"),
+    (np.array([[0, 0, 0], [5.0, 0, 0]]), np.array([1.0, 1.0]), "not one rigid body"),
+    (np.array([[0, 0, 0], [0, 0, 0]]), np.array([1.0, 1.0]), "same centre"),
+])
+def test_bad_templates(centers, radii, needle):
+    with pytest.raises(InputError, match=needle):
+        ClumpTemplate("t", centers, radii)
