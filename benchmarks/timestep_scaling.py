@@ -81,7 +81,7 @@ n, path = int(sys.argv[1]), sys.argv[2]
 x, r = jittered_polydisperse(n, 3, seed=1, overlap=0.12)
 side = round(len(r) ** (1 / 3))
 m = 2000.0 * 4.0 / 3.0 * np.pi * r ** 3
-write_liggghts_dump(path, x + 0.5, r, m=m, box=[(0.0, float(side))] * 3)
+write_liggghts_dump(path, x + 0.5, r, m=m, box=[(0.0, float(side))] * 3, periodic=True)
 """
 
 

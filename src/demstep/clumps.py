@@ -426,3 +426,23 @@ def with_members(free, clumps: ClumpSet, rotation: bool = True, fixed=None,
                     z3.copy(), z3.copy(), start, np.arange(n_free, spheres.n, dtype=np.int64),
                     offset, sphere_body, np.zeros((b_count, 6)), np.zeros((b_count, 6)))
     return spheres, bodies, n_free
+
+
+def clumps_from_members(x, r, body, density: float, names=None) -> ClumpSet:
+    """A ClumpSet from member spheres in the world (a particle file's ``body`` column):
+    each body id >= 0 is one clump whose template is its members as they lie
+    (orientation: the identity of that frame)."""
+    x = np.asarray(x, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    body = np.asarray(body, dtype=np.int64)
+    ids = np.unique(body[body >= 0])
+    templates, positions = [], []
+    for ident in ids:
+        members = np.flatnonzero(body == ident)
+        origin = x[members[0]]
+        templates.append(ClumpTemplate(f"body {ident}" if names is None else names[ident],
+                                       x[members] - origin, r[members]))
+        positions.append(origin)
+    dim = x.shape[1]
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (len(ids), 1))
+    return place(templates, np.arange(len(ids)), np.array(positions).reshape(-1, dim), q, density)

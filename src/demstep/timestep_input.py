@@ -298,6 +298,7 @@ class AnalysisInput:
     notes: list[str] = field(default_factory=list)
     rotation: bool = True  # False: the state's own rotation lock
     simulation: object = None
+    bodies: object = None  # RigidBodies of clumps, or None
 
 
 def periodic_lengths(box: np.ndarray, periodic: np.ndarray, x: np.ndarray, r: np.ndarray,
@@ -354,21 +355,29 @@ def from_particles(particles: Particles, model: ContactModel, types=None, period
                    walls=(), contact_tol: float = DEFAULT_CONTACT_TOL,
                    damping: GlobalDamping | None = None, velocities=None,
                    impact_velocity: float | None = None, source: str = "particles",
-                   notes=None) -> AnalysisInput:
+                   notes=None, bodies=None) -> AnalysisInput:
     """Contacts from geometry (touching within ``contact_tol``) with the model's
-    coefficients."""
+    coefficients; with ``bodies`` (RigidBodies), none within a body."""
     model.validate()
     types = np.ones(particles.n, dtype=np.int64) if types is None else np.asarray(types, np.int64)
     check_types(model, types, source)
     geometry = find_contacts(particles, 1.0, 1.0, contact_tol, walls=walls, periodic=periodic)
+    if bodies is not None and bodies.n:
+        sb = bodies.sphere_body
+        jj = np.maximum(geometry.j, 0)
+        geometry = geometry.subset((geometry.j < 0) | (sb[geometry.i] < 0) | (sb[geometry.i] != sb[jj]))
     contacts = model.apply(geometry, particles, types)
     if impact_velocity is None and velocities is not None and model.model == "hertz":
         speed = np.linalg.norm(velocities, axis=1).max()
         impact_velocity = 2.0 * float(speed) if speed > 0 else None
     out = AnalysisInput(particles, contacts, damping or GlobalDamping(), types,
                         make_materials(model, particles, types, impact_velocity),
-                        velocities=velocities, notes=list(notes or []))
+                        velocities=velocities, notes=list(notes or []), bodies=bodies)
     out.notes.append("contacts: " + model.describe())
+    if bodies is not None and bodies.n:
+        out.notes.append(f"{bodies.n} clumps of {int((bodies.sphere_body >= 0).sum())} "
+                         f"member spheres: six degrees of freedom each, the world inertia "
+                         f"tensor of each union of members")
     return out
 
 
@@ -427,10 +436,25 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
         periodic, x = periodic_lengths(box_arr, flags, x, data.r, str(path))
         notes.append("periodic along " + ", ".join(f"{'xyz'[a]} (L = {periodic[a]:g})"
                                                      for a in range(dim) if periodic[a]))
+    bodies = None
+    body = data.extra.get("body")
+    if body is not None and (body >= 0).any():
+        from demstep.timestep.bodies import RigidBodies
+
+        rho = density
+        if rho is None:  # the members' own density (a mass column)
+            from demstep.particles import particle_mass
+
+            rho = float(np.median(m / particle_mass(data.r, 1.0, dim)))
+        bodies = RigidBodies.from_members(x, data.r, body, rho)
+        m = m.copy()
+        members = bodies.sphere_body >= 0
+        m[members] = bodies.mass[bodies.sphere_body[members]]  # contacts' effective masses
     inertia = particle_inertia(m, data.r, dim)
     particles = Particles(x, data.r, m, inertia)
     return from_particles(particles, model, types, periodic, _walls(walls, box_arr, dim),
-                          contact_tol, damping, data.v, impact_velocity, str(path), notes)
+                          contact_tol, damping, data.v, impact_velocity, str(path), notes,
+                          bodies)
 
 
 def _all_densities(model: ContactModel) -> bool:
@@ -510,7 +534,8 @@ def from_simulation(sim, source: str, notes=None) -> AnalysisInput:
                          np.ones(particles.n, dtype=np.int64), None,
                          notes=list(notes or []) + [f"contacts of {source}: the engine's law "
                                                     f"({type(sim.law).__name__}, demstep "
-                                                    f"convention)"])
+                                                    f"convention)"],
+                         bodies=sim.rigid_bodies())
 
 
 def model_from_law(law, overlap: float = 0.0) -> ContactModel:
@@ -549,7 +574,8 @@ def from_case(path, stage: int = 1, contact_tol: float = DEFAULT_CONTACT_TOL,
     out = from_particles(sim.particles_now(), model, None,
                          periodic if any(v is not None for v in periodic) else None,
                          sim.walls, contact_tol, GlobalDamping(mass=float(sim.damping.viscous)),
-                         sim.v[:, :sim.dim], impact_velocity, str(path), notes)
+                         sim.v[:, :sim.dim], impact_velocity, str(path), notes,
+                         sim.rigid_bodies())
     out.rotation = sim.rotation
     return out
 

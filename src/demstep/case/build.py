@@ -15,11 +15,19 @@ from demstep.errors import InputError
 
 
 # -------------------------------------------------------------------- building
-def generate_particles(case: Case):
-    """Positions (N, dim) [L], radii (N,) [L] and masses (N,) [M] or None of the case."""
+def generate_particles(case: Case, with_body: bool = False):
+    """Positions (N, dim) [L], radii (N,) [L] and masses (N,) [M] or None of the case
+    (and, ``with_body``, the clump of each sphere from a file's body column, or None).
+    The "clumps" generator gives its member spheres."""
     p = case.particles
     dim = case.dim
     m = None
+    body = None
+    if p.generator == "clumps":
+        from demstep.clumps import expand
+
+        x, r, body_of = expand(_clump_set(case))[:3]
+        return (x, r, None, body_of) if with_body else (x, r, None)
     if p.generator == "lattice":
         from demstep.packings import lattice as make_lattice
 
@@ -54,7 +62,47 @@ def generate_particles(case: Case):
 
         data = read_particle_file(case.particle_file(), p.format, p.snapshot)
         x, r, m = data.x, data.r, data.m
-    return np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(r), m
+        body = data.extra.get("body")
+    out = np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(r), m
+    return out + (body,) if with_body else out
+
+
+def _particles(case: Case, x, r, m):
+    """Particles of the case's spheres (masses from the file, or from the density)."""
+    from demstep.particles import Particles, particle_inertia
+
+    p = case.particles
+    fixed = _fixed_flags(case, x)
+    if m is None or (p.generator == "file" and p.density is not None):
+        try:
+            return Particles.from_density(x, r, p.density, fixed=fixed)
+        except InputError as exc:
+            if str(exc).startswith("density:"):
+                raise InputError(f"particles.{exc}") from None
+            raise
+    return Particles(x, r, m, particle_inertia(m, r, x.shape[1]), fixed)
+
+
+def _clump_set(case: Case):
+    """The bodies of ``generator = "clumps"``: the templates in turn on the grid."""
+    from demstep.case.schema import clump_templates
+    from demstep.clumps import place, random_quaternions
+
+    p = case.particles
+    templates = clump_templates(case)
+    dim = case.dim
+    grid = np.stack(np.meshgrid(*[np.arange(c, dtype=float) for c in p.count], indexing="ij"),
+                    -1).reshape(-1, dim)
+    pos = p.spacing * (grid + 0.5)
+    if p.origin is not None:
+        pos = pos + np.asarray(p.origin)
+    chosen = [templates[name] for name in p.templates]
+    kind = np.arange(len(pos)) % len(chosen)
+    if p.orientation == "random":
+        q = random_quaternions(len(pos), np.random.default_rng(p.seed), dim)
+    else:
+        q = np.tile([1.0, 0.0, 0.0, 0.0], (len(pos), 1))
+    return place(chosen, kind, pos, q, p.density)
 
 
 def _fixed_flags(case: Case, x: np.ndarray) -> np.ndarray:
@@ -144,20 +192,36 @@ def build_simulation(case: Case, checkpoint_dir=None):
 def _build_simulation(case: Case, checkpoint_dir):
     from demstep.energy import EnergyMonitor
     from demstep.engine import Damping, Simulation
-    from demstep.particles import Particles, particle_inertia
 
-    x, r, m = generate_particles(case)
-    fixed = _fixed_flags(case, x)
     p = case.particles
-    if m is None or (p.generator == "file" and p.density is not None):
-        try:
-            particles = Particles.from_density(x, r, p.density, fixed=fixed)
-        except InputError as exc:
-            if str(exc).startswith("density:"):
-                raise InputError(f"particles.{exc}") from None
-            raise
+    clumps = clump_fixed = body = None
+    if p.generator == "clumps":
+        clumps = _clump_set(case)
+        clump_fixed = _fixed_flags(case, clumps.x)
+        particles = None
+        x = r = None
     else:
-        particles = Particles(x, r, m, particle_inertia(m, r, x.shape[1]), fixed)
+        x, r, m, body = generate_particles(case, with_body=True)
+    if clumps is None and body is not None and (body >= 0).any():
+        from demstep.clumps import clumps_from_members
+
+        if p.density is None:
+            raise InputError("particles.density: clumps need a density (the mass properties "
+                             "of their members' union)")
+        clumps = clumps_from_members(x[body >= 0], r[body >= 0], body[body >= 0], p.density)
+        free = body < 0
+        x, r, m = x[free], r[free], (None if m is None else m[free])
+        clump_fixed = np.zeros(clumps.n, dtype=bool)
+    if x is not None and len(x) == 0:
+        particles = None
+    elif x is not None:
+        particles = _particles(case, x, r, m)
+    if clumps is not None:
+        from demstep.clumps import expand
+
+        xm, rm = expand(clumps)[:2]
+        x = xm if x is None or len(x) == 0 else np.concatenate([x, xm])
+        r = rm if r is None or len(r) == 0 else np.concatenate([r, rm])
     periodic = None
     if case.periodic is not None:
         periodic = [getattr(case.periodic, a) for a in AXES[: case.dim]]
@@ -171,7 +235,8 @@ def _build_simulation(case: Case, checkpoint_dir):
         timestep=timestep, skin=case.numerics.skin,
         energy=EnergyMonitor(eps=en.eps, every=en.every, action=en.action, floor=en.floor),
         jump_limit=case.numerics.jump_limit, runaway_factor=case.numerics.runaway_factor,
-        checkpoint_dir=checkpoint_dir, rotation=case.rotation)
+        checkpoint_dir=checkpoint_dir, rotation=case.rotation, clumps=clumps,
+        clump_fixed=clump_fixed)
     if case.mass_scaling != 1.0:
         sim.scale_mass(case.mass_scaling)
     check_initial_state(sim, case.numerics.max_initial_overlap)
@@ -214,6 +279,8 @@ def check_initial_state(sim, max_overlap: float = MAX_INITIAL_OVERLAP) -> None:
         r_i, r_j = sim.r[pi], sim.r[pj]
         relative = (r_i + r_j - dist) / np.minimum(r_i, r_j)
         free = ~(sim.fixed[pi] & sim.fixed[pj])
+        sb = sim.bodies.sphere_body
+        free &= (sb[pi] < 0) | (sb[pi] != sb[pj])  # members of one body overlap by design
         same = free & (dist <= 1e-12 * (r_i + r_j))
         if same.any():
             q = int(np.flatnonzero(same)[0])

@@ -32,6 +32,18 @@ scaling for quasi-static runs; the critical step grows by its square root).
   yade), ``snapshot`` (LIGGGHTS: 0 first, -1 last). ``density`` may be omitted when the
   file has masses.
 
+* ``generator = "clumps"``: rigid bodies of several spheres (:mod:`demstep.clumps`):
+  ``templates`` (names of ``[[clumps]]`` shapes, used in turn), ``count`` (bodies per
+  axis), ``spacing`` [L], ``origin`` [L], ``orientation`` ("random": uniform, from
+  ``seed``; "fixed"), ``density``. The mass, centre of mass and inertia tensor of each
+  body are those of the union of its members (overlaps counted once).
+* a ``file`` with a ``body`` column (CSV ``body``, dump ``body`` or ``mol``) makes the
+  spheres that share an id >= 0 one clump (its members as they lie).
+
+``[[clumps]]``: clump shapes: ``name``, ``members`` = [[x, y, (z,) r], ...] [L] in the
+template's frame (or ``file``, a CSV x,y[,z],r relative to the case file). The members
+must touch or overlap one another (one rigid body), radii > 0.
+
 ``[particles.fixed]``: particles held in place: ``indices`` (0-based) and/or the box
 ``lower``/``upper`` [L] (every centre inside is fixed).
 
@@ -109,6 +121,7 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
+import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, ValidationError
 
 from demstep.errors import InputError, missing_file
@@ -204,8 +217,34 @@ class FileParticles(_ParticlesBase):
     density: Positive | None = None
 
 
-ParticlesSection = Annotated[Union[LatticeParticles, GridParticles, FileParticles],
+class ClumpParticles(_ParticlesBase):
+    """Clumps (rigid bodies of the ``[[clumps]]`` templates) on a grid of ``count`` body
+    positions [L] ``spacing`` apart, the templates taken in turn (``templates``: their
+    names), each turned by a random orientation (``orientation = "random"``, from
+    ``seed``) or not ("fixed"); ``fixed`` selects bodies (by index or centre)."""
+
+    generator: Literal["clumps"]
+    templates: Annotated[list[Name], Field(min_length=1)]
+    count: Annotated[list[PositiveInt], Field(min_length=2, max_length=3)]
+    spacing: Positive
+    density: Positive
+    orientation: Literal["random", "fixed"] = "random"
+    seed: NonNegativeInt = 0
+    origin: Vector | None = None
+
+
+ParticlesSection = Annotated[Union[LatticeParticles, GridParticles, FileParticles, ClumpParticles],
                              Field(discriminator="generator")]
+
+
+class ClumpTemplateSpec(_Section):
+    """A clump shape: ``name`` and its ``members``, rows of centre and radius
+    [x, y, (z,) r] [L] in the template's frame, or a CSV ``file`` (x,y[,z],r) relative
+    to the case file."""
+
+    name: Name
+    members: list[Annotated[list[float], Field(min_length=3, max_length=4)]] = []
+    file: str | None = None
 
 
 # ---------------------------------------------------------------------- contact
@@ -363,6 +402,7 @@ class Case(_Section):
     mass_scaling: Positive = 1.0
     periodic: PeriodicSection | None = None
     particles: ParticlesSection
+    clumps: list[ClumpTemplateSpec] = []
     contact: ContactSection
     walls: list[WallSpec] = []
     box: BoxSection | None = None
@@ -541,7 +581,7 @@ def _particle_dim(case: Case) -> int:
     p = case.particles
     if p.generator == "lattice":
         return LATTICE_DIM[p.lattice]
-    if p.generator == "grid":
+    if p.generator in ("grid", "clumps"):
         return len(p.count)
     from demstep.io.formats import read_particle_file
 
@@ -552,10 +592,56 @@ def _particle_dim(case: Case) -> int:
     return read_particle_file(path, p.format, p.snapshot).dim
 
 
+def clump_templates(case: Case) -> dict:
+    """The ``[[clumps]]`` shapes by name (:class:`demstep.clumps.ClumpTemplate`)."""
+    from demstep.clumps import ClumpTemplate
+
+    out = {}
+    for k, spec in enumerate(case.clumps):
+        where = f"clumps[{k}]"
+        if spec.name in out:
+            raise InputError(f"{where}.name: a second template named {spec.name!r}")
+        if spec.file is not None:
+            if spec.members:
+                raise InputError(f"{where}: give members or file, not both")
+            from demstep.io.formats import read_csv
+
+            path = Path(spec.file).expanduser()
+            data = read_csv(path if path.is_absolute() else case.base_dir / path)
+            centers, radii = data.x, data.r
+        else:
+            rows = spec.members
+            if not rows:
+                raise InputError(f"{where}.members: a clump needs at least one member")
+            widths = {len(row) for row in rows}
+            if len(widths) != 1:
+                raise InputError(f"{where}.members: every row needs the same length, got "
+                                 f"{sorted(widths)}")
+            arr = np.array(rows, dtype=np.float64)
+            centers, radii = arr[:, :-1], arr[:, -1]
+        try:
+            out[spec.name] = ClumpTemplate(spec.name, centers, radii)
+        except InputError as exc:
+            raise InputError(f"{where}: {exc}") from None
+    return out
+
+
 def check_case(case: Case) -> None:
     """Cross-field checks the schema cannot express; raises InputError naming the key."""
     p = case.particles
     dim = case.dim
+    templates = clump_templates(case)
+    if p.generator == "clumps":
+        _need_len("particles.count", p.count, dim)
+        for name in p.templates:
+            if name not in templates:
+                raise InputError(f"particles.templates: no [[clumps]] template named {name!r} "
+                                 f"(have {', '.join(templates) or 'none'})")
+            if templates[name].dim != dim:
+                raise InputError(f"clumps: template {name!r} is {templates[name].dim}D, the "
+                                 f"case {dim}D")
+        if math.prod(p.count) * max(templates[n].n_members for n in p.templates) > MAX_PARTICLES:
+            raise InputError(f"particles.count: more than {MAX_PARTICLES} member spheres")
     # particles
     if p.generator == "lattice":
         if isinstance(p.size, list):

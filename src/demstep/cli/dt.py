@@ -333,7 +333,7 @@ def cmd_dt(args) -> int:
     report = estimate_time_steps(data.particles, data.contacts, rotation=rotation,
                                  mass_split=args.mass_split, damping=data.damping,
                                  methods=methods, lattice=data.lattice, density=data.density,
-                                 materials=data.materials)
+                                 materials=data.materials, bodies=data.bodies)
     report.notes[:0] = data.notes
     danger = critical_mode_report(report, data, args.top)
     if args.json:
@@ -367,10 +367,29 @@ def critical_mode_report(report, data, top: int) -> dict | None:
     share = trans + rot
     p = data.particles
     order = np.argsort(-share, kind="stable")[:top]
-    particles = [{"index": int(k), "radius": float(p.r[k]), "mass": float(p.m[k]),
-                  "share": float(share[k]), "translation": float(trans[k]),
-                  "rotation": float(rot[k]), "contacts": int(data.contacts.count_per_particle(p.n)[k])}
-                 for k in order]
+    counts = data.contacts.count_per_particle(p.n)
+    if data.bodies is not None and data.bodies.n:  # owners: free spheres, then bodies
+        from demstep.timestep.bodies import owners
+
+        owner, n_free, _ = owners(p.n, data.bodies)
+        free = np.flatnonzero(data.bodies.sphere_body < 0)
+        owner_counts = np.bincount(owner, weights=counts, minlength=len(share))
+        particles = []
+        for k in order:
+            if k < n_free:
+                s_index = int(free[k])
+                entry = {"index": s_index, "radius": float(p.r[s_index]), "mass": float(p.m[s_index])}
+            else:
+                b = int(k - n_free)
+                entry = {"index": None, "body": b, "radius": None,
+                         "mass": float(data.bodies.mass[b])}
+            entry.update(share=float(share[k]), translation=float(trans[k]),
+                         rotation=float(rot[k]), contacts=int(owner_counts[k]))
+            particles.append(entry)
+    else:
+        particles = [{"index": int(k), "radius": float(p.r[k]), "mass": float(p.m[k]),
+                      "share": float(share[k]), "translation": float(trans[k]),
+                      "rotation": float(rot[k]), "contacts": int(counts[k])} for k in order]
     c = data.contacts
     corder = np.argsort(-contact_share, kind="stable")[:top]
     contacts = [{"i": int(c.i[k]), "j": int(c.j[k]) if c.j[k] >= 0 else None,
@@ -410,7 +429,9 @@ def format_report(report, danger=None) -> str:
         lines.append(f"  {'particle':>9}{'radius':>12}{'mass':>12}{'contacts':>9}{'share':>8}"
                      f"{'transl.':>9}{'rotat.':>8}")
         for q in danger["particles"]:
-            lines.append(f"  {q['index']:>9}{q['radius']:>12.4g}{q['mass']:>12.4g}"
+            label = q["index"] if q.get("index") is not None else f"body {q['body']}"
+            radius = f"{q['radius']:>12.4g}" if q.get("radius") is not None else f"{'-':>12}"
+            lines.append(f"  {label:>9}{radius}{q['mass']:>12.4g}"
                          f"{q['contacts']:>9}{q['share']:>8.3f}{q['translation']:>9.3f}"
                          f"{q['rotation']:>8.3f}")
         lines.append("  and the contacts carrying most of its strain energy:")

@@ -3,7 +3,8 @@
 Three text formats carry particle centres [L] and radii [L]:
 
 * **CSV** (demstep's own): header ``x,y,r`` (2D) or ``x,y,z,r`` (3D), optional ``m``
-  column (mass [M]); any column order, extra columns ignored.
+  column (mass [M]), ``type`` (material, >= 1) and ``body`` (the clump a sphere belongs
+  to, -1: a free sphere); any column order, extra columns ignored.
 * **LIGGGHTS / LAMMPS** ``dump custom`` text files: repeated snapshots of::
 
       ITEM: TIMESTEP
@@ -18,7 +19,8 @@ Three text formats carry particle centres [L] and radii [L]:
 
   Positions from ``x y z`` (or unwrapped ``xu yu zu``, or scaled ``xs ys zs`` mapped
   through the box bounds), the radius from ``radius`` (or ``diameter``), optional
-  ``mass``, velocities ``vx vy vz`` and angular velocities ``omegax omegay omegaz``.
+  ``mass``, velocities ``vx vy vz``, angular velocities ``omegax omegay omegaz`` and
+  the clump of each sphere ``body`` (or LAMMPS' molecule id ``mol``, 0: none).
   Rows are sorted by ``id``. A dump without a ``z`` column is read as 2D.
 * **YADE** text exports (``yade.export.text``, read by ``ymport.text``): one particle
   per line, ``x y z r`` separated by blanks, further columns (e.g. a material id)
@@ -152,7 +154,7 @@ def read_csv(path) -> ParticleData:
             if missing:
                 raise InputError(f"{path}:1: missing column {missing[0]!r} (header must be "
                                  f"x,y,r or x,y,z,r, optional m; got {','.join(header)})")
-            cols = needed + (["m"] if "m" in header else [])
+            cols = needed + [c for c in ("m", "type", "body") if c in header]
             index = [header.index(c) for c in cols]
             rows, lines = [], []
             for line, row in enumerate(reader, start=2):
@@ -173,13 +175,33 @@ def read_csv(path) -> ParticleData:
     _check_positive(r, path, lines, "r", "radius")
     m = None
     if "m" in cols:
-        m = data[:, dim + 1]
+        m = data[:, cols.index("m")]
         _check_positive(m, path, lines, "m", "mass")
-    return ParticleData(np.ascontiguousarray(x), r.copy(), m, source=str(path))
+    types = _integer_column(data, cols, "type", path, lines, minimum=1)
+    out = ParticleData(np.ascontiguousarray(x), r.copy(), m, types=types, source=str(path))
+    body = _integer_column(data, cols, "body", path, lines, minimum=-1)
+    if body is not None:
+        out.extra["body"] = body
+    return out
 
 
-def write_csv(path, x, r, m=None) -> Path:
-    """Write particles as CSV (header x,y,r or x,y,z,r, plus m if given), atomically."""
+def _integer_column(data, cols, name, path, lines, minimum):
+    """An optional integer column (``type``: >= 1; ``body``: the clump of each sphere,
+    -1 for a free sphere) or None."""
+    if name not in cols:
+        return None
+    values = data[:, cols.index(name)]
+    bad = np.flatnonzero((values != np.round(values)) | (values < minimum))
+    if len(bad):
+        k = bad[0]
+        raise InputError(f"{path}:{lines[k]}: column {name!r}: expected an integer >= "
+                         f"{minimum}, got {values[k]:g}")
+    return values.astype(np.int64)
+
+
+def write_csv(path, x, r, m=None, body=None) -> Path:
+    """Write particles as CSV (header x,y,r or x,y,z,r, plus m and body (clump ids) if
+    given), atomically."""
     x, r = _columns(x, r)
     names = ["x", "y", "z"][: x.shape[1]] + ["r"]
     cols = [x, r[:, None]]
@@ -187,7 +209,9 @@ def write_csv(path, x, r, m=None) -> Path:
         names.append("m")
         cols.append(np.asarray(m, dtype=np.float64).reshape(-1, 1))
     data = np.hstack(cols)
-    lines = [",".join(names)] + [",".join(repr(float(v)) for v in row) for row in data]
+    lines = [",".join(names + (["body"] if body is not None else []))]
+    bodies = [""] * len(data) if body is None else [f",{int(b)}" for b in body]
+    lines += [",".join(repr(float(v)) for v in row) + tail for row, tail in zip(data, bodies)]
     return _write_text_atomically(path, "\n".join(lines) + "\n")
 
 
@@ -312,8 +336,8 @@ def read_liggghts_dump(path, snapshot: int = -1, timestep: int | None = None) ->
         raise InputError(f"{path}:{snap.first_line - 1}: ITEM: ATOMS: missing column 'radius' "
                          f"(or 'diameter')")
     wanted = axes + [radius_col]
-    optional = [c for c in ("id", "type", "mass", "vx", "vy", "vz", "omegax", "omegay", "omegaz")
-                if c in cols]
+    optional = [c for c in ("id", "type", "mass", "vx", "vy", "vz", "omegax", "omegay", "omegaz",
+                            "body", "mol") if c in cols]
     index = {c: cols.index(c) for c in wanted + optional}
     data = {c: np.empty(len(snap.rows)) for c in index}
     lines = np.arange(snap.first_line, snap.first_line + len(snap.rows))
@@ -349,19 +373,27 @@ def read_liggghts_dump(path, snapshot: int = -1, timestep: int | None = None) ->
     w = None
     if all(c in data for c in ("omegax", "omegay", "omegaz")):
         w = np.stack([data[c] for c in ("omegax", "omegay", "omegaz")], axis=1)[order]
-    return ParticleData(
+    out = ParticleData(
         np.ascontiguousarray(x[order]), r[order].copy(), m, v, w,
         ids=data["id"][order].astype(np.int64) if "id" in data else None,
         types=data["type"][order].astype(np.int64) if "type" in data else None,
         timestep=snap.timestep, box=snap.box[:dim].copy(), periodic=snap.periodic[:dim].copy(),
         source=str(path))
+    body_col = "body" if "body" in data else ("mol" if "mol" in data else None)
+    if body_col is not None:
+        # the clump of each sphere (LAMMPS' molecule id: 0 means none)
+        body = data[body_col][order].astype(np.int64)
+        out.extra["body"] = np.where(body <= 0, -1, body) if body_col == "mol" else body
+    return out
 
 
 def format_liggghts_snapshot(x, r, m=None, v=None, timestep: int = 0, box=None, ids=None,
-                             types=None) -> str:
+                             types=None, periodic=None, body=None) -> str:
     """One ``dump custom`` snapshot as text: columns ``id type x y z radius`` then
-    ``mass`` and ``vx vy vz`` when given. 2D data is written with z = 0. ``box``
-    (dim, 2) [L] defaults to the particles' bounding box (centre -/+ radius)."""
+    ``mass``, ``vx vy vz`` and ``body`` (clump ids) when given. 2D data is written with
+    z = 0. ``box`` (dim, 2) [L] defaults to the particles' bounding box (centre -/+
+    radius); ``periodic`` (a bool or one per axis) marks periodic axes ``pp`` in BOX
+    BOUNDS, the others ``ff`` (and z of 2D data)."""
     x, r = _columns(x, r)
     n, dim = x.shape
     x3 = np.zeros((n, 3))
@@ -386,20 +418,31 @@ def format_liggghts_snapshot(x, r, m=None, v=None, timestep: int = 0, box=None, 
         v3[:, :dim] = np.asarray(v, dtype=np.float64).reshape(n, -1)[:, :dim]
         names += ["vx", "vy", "vz"]
         cols.append(v3)
+    if body is not None:
+        names.append("body")
+        cols.append(np.asarray(body, dtype=np.float64).reshape(n, 1))
     data = np.hstack(cols)
+    flags = np.zeros(3, dtype=bool)
+    if periodic is not None:
+        flags[:dim] = np.broadcast_to(np.asarray(periodic, dtype=bool), (dim,))
     out = ["ITEM: TIMESTEP", str(int(timestep)), "ITEM: NUMBER OF ATOMS", str(n),
-           "ITEM: BOX BOUNDS " + ("pp pp pp" if dim == 3 else "pp pp ff")]
+           "ITEM: BOX BOUNDS " + " ".join("pp" if f else "ff" for f in flags)]
     out += [f"{lo!r} {hi!r}" for lo, hi in box3.tolist()]
     out.append("ITEM: ATOMS " + " ".join(names))
+    last = len(names) - 2 - (1 if body is not None else 0)  # float columns before body
     for i, t, row in zip(ids.tolist(), types.tolist(), data.tolist()):
-        out.append(f"{i} {t} " + " ".join(repr(float(vv)) for vv in row))
+        text = " ".join(repr(float(vv)) for vv in row[:last])
+        if body is not None:
+            text += f" {int(row[-1])}"
+        out.append(f"{i} {t} {text}")
     return "\n".join(out) + "\n"
 
 
 def write_liggghts_dump(path, x, r, m=None, v=None, timestep: int = 0, box=None, ids=None,
-                        types=None, append: bool = False) -> Path:
-    """Write (or, with ``append``, add) one snapshot to a LIGGGHTS dump file."""
-    text = format_liggghts_snapshot(x, r, m, v, timestep, box, ids, types)
+                        types=None, append: bool = False, periodic=None, body=None) -> Path:
+    """Write (or, with ``append``, add) one snapshot to a LIGGGHTS dump file
+    (:func:`format_liggghts_snapshot`)."""
+    text = format_liggghts_snapshot(x, r, m, v, timestep, box, ids, types, periodic, body)
     path = Path(path)
     if append and path.exists():
         with open(path, "a", encoding="utf-8") as fh:

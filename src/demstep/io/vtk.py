@@ -17,8 +17,11 @@ Each frame writes up to three unstructured-grid files (``.vtu``, via meshio):
 * ``walls_STEP.vtu``: each wall as a quad (3D) or a line (2D) spanning the specimen,
   with cell data ``force`` (exerted by the particles), ``stress``, ``velocity`` and
   ``wall_id``.
+* ``bodies_STEP.vtu`` (clumps only): one vertex per body at its centre of mass with its
+  velocity, angular momentum, mass, principal moments and axes (:func:`body_mesh`); the
+  particles' ``body`` point data says which body each member sphere belongs to.
 
-``particles.pvd``, ``contacts.pvd`` and ``walls.pvd`` list the frames with their
+``particles.pvd``, ``contacts.pvd``, ``walls.pvd`` (and ``bodies.pvd``) list the frames with their
 simulated times [T]; they are rewritten atomically after every frame.
 """
 
@@ -33,7 +36,7 @@ import numpy as np
 from demstep.io.atomic import atomic_path, write_text_atomic
 from demstep.errors import InputError
 
-SERIES = ("particles", "contacts", "walls")
+SERIES = ("particles", "contacts", "walls", "bodies")
 _FRAME = re.compile(r"_(\d+)\.vtu$")
 
 
@@ -58,7 +61,28 @@ def particle_mesh(sim):
             "torque": np.array(sim.torque, dtype=np.float64),
             "fixed": sim.fixed.astype(np.int32),
             "id": np.arange(n, dtype=np.int64),
+            "body": np.array(sim.bodies.sphere_body, dtype=np.int64),
         })
+
+
+def body_mesh(sim):
+    """Clumps as vertices at their centres of mass, with point data ``velocity`` [L/T],
+    ``angular_momentum`` [M L^2/T], ``mass`` [M], the principal ``moments`` [M L^2] and
+    the principal axes ``axis_1``, ``axis_2``, ``axis_3`` (unit vectors, world frame;
+    in ParaView: Glyph, arrows, orientation by an axis)."""
+    from demstep.clumps import quat_to_matrix
+
+    meshio = _meshio()
+    b = sim.bodies
+    R = quat_to_matrix(b.q)
+    return meshio.Mesh(
+        np.array(b.x, dtype=np.float64), [("vertex", np.arange(b.n).reshape(-1, 1))],
+        point_data={"velocity": np.array(b.v), "angular_momentum": np.array(b.L),
+                    "mass": np.array(b.m), "moments": np.array(b.inertia),
+                    "axis_1": np.ascontiguousarray(R[:, :, 0]),
+                    "axis_2": np.ascontiguousarray(R[:, :, 1]),
+                    "axis_3": np.ascontiguousarray(R[:, :, 2]),
+                    "id": np.arange(b.n, dtype=np.int64)})
 
 
 def contact_lines(sim):
@@ -230,6 +254,8 @@ class VtkWriter:
             meshes["contacts"] = contact_mesh
         if len(sim.walls):
             meshes["walls"] = wall_mesh
+        if sim.bodies.n:
+            meshes["bodies"] = body_mesh
         for series, make in meshes.items():
             name = f"{series}_{sim.step:010d}.vtu"
             written.append(write_mesh(self.folder / name, make(sim)))
