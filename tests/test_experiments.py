@@ -205,6 +205,14 @@ def test_paper_quick_end_to_end(tmp_path, capsys):
     report = (out / "report.md").read_text()
     assert "Thornton" in report and "Resolved parameters" in report
     assert "Damping and the critical step" in report
+    # clumps: every shape's measured threshold on its exact step, the body element
+    # bound below it
+    clumps = [r for r in summary["clumps"] if "alpha_empirical" in r]
+    assert {r["members"] for r in clumps} == {2, 3, 4, 8} and len(clumps) == 8
+    for r in clumps:
+        assert r["alpha_empirical"] == pytest.approx(r["estimates"]["exact"], rel=0.02)
+        assert r["estimates"]["element-coupled"] <= r["alpha_empirical"]
+    assert "Clumps" in report and (out / "clumps.png").exists()
 
 
 def test_engine_api_example_runs():

@@ -160,3 +160,38 @@ def plot_damping(results, path) -> Path:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     return save_figure(fig, path)
+
+
+def plot_clumps(results, stability, path) -> Path:
+    """Critical alpha (measured, exact, element bound, nodal rule) of the clump packings
+    against their contacts per body, rotation free and locked; the FCC sphere specimen
+    and the paper's 0.17 for reference."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for rotation, marker in ((True, "o"), (False, "s")):
+        rows = sorted((r for r in results if "alpha_empirical" in r and r["rotation"] == rotation),
+                      key=lambda r: r["contacts_per_body"])
+        if not rows:
+            continue
+        cn = [r["contacts_per_body"] for r in rows]
+        tag = "rotation free" if rotation else "rotation locked"
+        ax.plot(cn, [r["alpha_empirical"] for r in rows], marker, mfc="none", ms=9,
+                color="k", label=f"measured ({tag})")
+        ax.plot(cn, [r["estimates"]["exact"] for r in rows], marker + "-", ms=4,
+                label=f"exact ({tag})")
+        ax.plot(cn, [r["estimates"]["element-coupled"] for r in rows], marker + ":", ms=4,
+                label=f"element bound ({tag})")
+        for r in rows:
+            ax.annotate(r["shape"], (r["contacts_per_body"], r["alpha_empirical"]),
+                        textcoords="offset points", xytext=(4, 4), fontsize=7)
+    sphere = next((r for r in stability if r.get("lattice") == "fcc-specimen"
+                   and "alpha_empirical" in r), None)
+    if sphere is not None:
+        ax.plot([12], [sphere["alpha_empirical"]], "k*", ms=10, label="FCC spheres (measured)")
+    ax.axhline(0.17, color="tab:red", ls="--", lw=1, label="paper's guidance 0.17")
+    ax.set_xlabel("contacts per body")
+    ax.set_ylabel(r"$\alpha = \Delta t / \sqrt{m_{body}/K}$")
+    ax.set_title("Clump packings: the critical step")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    return save_figure(fig, path)

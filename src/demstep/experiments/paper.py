@@ -9,7 +9,9 @@
 4. Damping and the critical step: the FCC specimen with contact dashpots of
    restitution 0.9, 0.5 and 0.2 (normal and tangential), its damped and undamped exact
    steps, the measured thresholds, and where the 20 % Rayleigh-time rule falls.
-5. report.md and report.html with PNG figures, CSV data beside them, the resolved
+5. Clumps (the paper's closing warning): the critical alpha of clump packings of 2, 3,
+   4 and 8 members against their coordination, measured and exact, beside the rules.
+6. report.md and report.html with PNG figures, CSV data beside them, the resolved
    parameters and the package version.
 
 Runs are independent tasks mapped on Dask (:func:`demstep.sweep.dask_map`), so both
@@ -47,6 +49,7 @@ class PaperSettings:
     stability_steps: int = 3000
     stability_names: tuple = ("square", "hex", "sc", "bcc", "fcc", "rhombic", "fcc-specimen")
     damping_restitutions: tuple = (1.0, 0.9, 0.5, 0.2)
+    clump_cases: tuple = (("dimer", 1.0), ("trimer", 0.75), ("square", 1.0), ("cube8", 0.75))
     workers: int = 2
     scheduler: str | None = None
     fcc: dict = field(default_factory=dict)
@@ -111,6 +114,21 @@ def damping_task(item):
     out = damping_study(restitution, rtol=rtol, steps=steps)
     out["wall_time"] = time.perf_counter() - start
     return out
+
+
+def clump_task(item):
+    """The clump study of one shape, rotation free and locked. item = (shape, spacing,
+    rtol, steps)."""
+    from demstep.experiments.clump_stability import clump_study
+
+    shape, spacing, rtol, steps = item
+    _quiet_logs()
+    start = time.perf_counter()
+    rows = [clump_study(shape, spacing, rotation, rtol=rtol, steps=steps)
+            for rotation in (True, False)]
+    for row in rows:
+        row["wall_time"] = time.perf_counter() - start
+    return rows
 
 
 def _quiet_logs():
@@ -180,7 +198,8 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
     (out / "data").mkdir(exist_ok=True)
     started = time.perf_counter()
     n_tasks = (4 + len(settings.alphas) + len(settings.alphas_no_rotation)
-               + len(settings.stability_names) + len(settings.damping_restitutions))
+               + len(settings.stability_names) + len(settings.damping_restitutions)
+               + len(settings.clump_cases))
     progress, finish = _progress(show_progress, n_tasks)
 
     # 1. Figures 8 and 9
@@ -238,6 +257,18 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
                if isinstance(res, Exception) else res
                for (e, _, _), res in zip(dp_items, dp_results)]
     _write_json(out / "data" / "damping.json", damping)
+    # 5. clumps
+    cl_items = [(shape, spacing, settings.stability_rtol, settings.stability_steps)
+                for shape, spacing in settings.clump_cases]
+    cl_results = _map(clump_task, cl_items, settings, progress, "clump study")
+    clumps = []
+    for (shape, spacing, _, _), res in zip(cl_items, cl_results):
+        if isinstance(res, Exception):
+            clumps.append({"shape": shape, "spacing": spacing, "status": "failed",
+                           "message": str(res)})
+        else:
+            clumps.extend(res)
+    _write_json(out / "data" / "clumps.json", clumps)
 
     # 4. figures and report
     from demstep import plotting
@@ -250,6 +281,7 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
                                                  out / "fcc_energy_error.png"),
         "stability": plotting.plot_stability(stability, out / "stability.png"),
         "damping": plotting.plot_damping(damping, out / "damping.png"),
+        "clumps": plotting.plot_clumps(clumps, stability, out / "clumps.png"),
     }
     progress("figures")
     summary = {
@@ -259,6 +291,7 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
         "fcc": [{k: v for k, v in r.items() if k != "curves"} for r in fcc_summary],
         "stability": stability,
         "damping": damping,
+        "clumps": clumps,
         "critical_step_minima": table["minima"],
     }
     summary["wall_time_s"] = time.perf_counter() - started

@@ -224,7 +224,48 @@ def write_report(out: Path, summary: dict, table: dict, figures: dict) -> None:
           "about 0.43 of the undamped one. A fixed fraction of the Rayleigh time, blind to "
           "damping, is safe for light damping and unsafe for heavy damping.")
 
-    rep.h(2, "5. Resolved parameters")
+    # 5 ---------------------------------------------------------------------
+    rep.h(2, "5. Clumps: the paper's closing warning, measured")
+    rep.p("The paper ends on clusters of glued spheres, whose coordination is far above a "
+          "sphere's. Periodic packings of clumps (2, 3, 4 and 8 members, touching or "
+          "overlapping by their member spacing) on lattices at rest by symmetry, every "
+          "contact closed; each body has six degrees of freedom and its world inertia "
+          "tensor. Measured as in section 3. alpha = dt / sqrt(m/K) with m the body's mass "
+          "(the lightest body, as the rules take it); the paper's guidance is 0.17.")
+    rows = []
+    for r in summary.get("clumps", []):
+        if "alpha_empirical" not in r:
+            rows.append([r.get("shape", "?"), "-", "-", "-", "failed"] + ["-"] * 5)
+            continue
+        est = r["estimates"]
+        rows.append([r["shape"], str(r["members"]), _f(r["spacing"], ".2f"),
+                     "free" if r["rotation"] else "locked", f"{r['contacts_per_body']:.1f}",
+                     f"{r['alpha_empirical']:.4f}", f"{est['exact']:.4f}",
+                     f"{100 * (r['alpha_empirical'] / est['exact'] - 1):+.2f} %",
+                     f"{est['element-coupled']:.4f}", f"{est['nodal']:.4f}"
+                     + (" (above)" if est["nodal"] > r["alpha_empirical"] else "")])
+    sphere = next((r for r in summary.get("stability", []) if r.get("lattice") == "fcc-specimen"
+                   and "alpha_empirical" in r), None)
+    if sphere is not None:
+        est = sphere["estimates"]
+        rows.append(["FCC spheres", "1", "-", "free", "12.0", f"{sphere['alpha_empirical']:.4f}",
+                     f"{est['exact']:.4f}",
+                     f"{100 * (sphere['alpha_empirical'] / est['exact'] - 1):+.2f} %",
+                     f"{est['element-coupled']:.4f}", f"{est['nodal']:.4f}"])
+    rep.table(["shape", "members", "member spacing", "rotation", "contacts per body",
+               "measured", "exact", "measured vs exact", "element (bodies)", "nodal (YADE)"],
+              rows)
+    if "clumps" in figures:
+        rep.image(figures["clumps"].name, "Critical alpha of clump packings")
+    rep.p("The exact step of the bodies' dynamics (six degrees of freedom, the full "
+          "inertia tensor) predicts the measured threshold within the bisection "
+          "tolerance for every shape; the body element bound stays below it; the critical "
+          "alpha falls as members, and with them contacts per body, are added. The "
+          "paper's 0.17 holds here because alpha uses the body's mass; taken with a "
+          "member's mass, as a sphere-minded rule would, it would be more conservative "
+          "still, at a large cost in steps.")
+
+    rep.h(2, "6. Resolved parameters")
     rep.code(json.dumps(s, indent=2, default=str))
     (out / "report.md").write_text(rep.markdown())
     (out / "report.html").write_text(rep.html())
