@@ -276,3 +276,122 @@ def test_engine_threshold_of_clump_packings_matches_the_exact_step(shape, spacin
     assert row["alpha_empirical"] == pytest.approx(exact, rel=5e-3)
     # the body element bound: below the exact step (equal to it for some locked packings)
     assert row["estimates"]["element-coupled"] <= exact * (1 + 1e-12)
+
+
+# ------------------------------------------------------------------- case files
+CLUMP_CASE = """
+name = "clumps"
+gravity = [0.0, 0.0, -9.81]
+
+[[clumps]]
+name = "tetra"
+members = [[0.0, 0.0, 0.0, 0.5], [0.8, 0.0, 0.0, 0.5], [0.4, 0.7, 0.0, 0.5], [0.4, 0.23, 0.65, 0.5]]
+
+[[clumps]]
+name = "dimer"
+members = [[0.0, 0.0, 0.0, 0.5], [0.9, 0.0, 0.0, 0.45]]
+
+[particles]
+generator = "clumps"
+templates = ["tetra", "dimer"]
+count = [3, 3, 2]
+spacing = 2.5
+density = 2500.0
+seed = 3
+
+[contact]
+law = "linear"
+k_n = 1.0e5
+mu = 0.4
+restitution = 0.5
+
+[box]
+lower = [0.0, 0.0, 0.0]
+upper = [7.5, 7.5, 10.0]
+
+[timestep]
+alpha = 0.1
+
+[[stages]]
+name = "settle"
+steps = 1200
+
+[output]
+history_every = 100
+checkpoint_every = 600
+"""
+
+
+def test_clump_case_runs_and_restarts_bit_for_bit(tmp_path):
+    from demstep.case import case_from_text
+    from demstep.runner import run_case
+
+    case = case_from_text(CLUMP_CASE, base_dir=tmp_path, source="clumps.toml")
+    straight = run_case(case, tmp_path / "a", quiet=True)
+    assert straight.status == "completed"
+    half = sorted((tmp_path / "a" / "checkpoints").glob("*600.npz"))[0]
+    resumed = run_case(case, tmp_path / "b", quiet=True, restart=half)
+    assert resumed.status == "completed"
+    a, b = np.load(straight.checkpoint), np.load(resumed.checkpoint)
+    for key in ("bodies.x", "bodies.q", "bodies.L", "spheres.x", "ledger.acc"):
+        assert np.array_equal(a[key], b[key]), key
+    assert a["bodies.x"].shape == (18, 3)
+    # the bodies fell and landed: contacts between bodies, none within one
+    from demstep.io.checkpoint import load_checkpoint
+    from demstep.case import build_simulation
+
+    sim = build_simulation(case)
+    load_checkpoint(sim, straight.checkpoint)
+    c = sim.contact_set()
+    sb = sim.bodies.sphere_body
+    assert c.n > 0 and not np.any((c.j >= 0) & (sb[c.i] == sb[np.maximum(c.j, 0)]))
+
+
+@pytest.mark.parametrize("change,needle", [
+    (('members = [[0.0, 0.0, 0.0, 0.5], [0.9, 0.0, 0.0, 0.45]]', 'members = []'),
+     "at least one member"),
+    (('[0.9, 0.0, 0.0, 0.45]', '[0.9, 0.0, 0.0, -0.45]'), "radius must be > 0"),
+    (('[0.9, 0.0, 0.0, 0.45]', '[3.0, 0.0, 0.0, 0.45]'), "not one rigid body"),
+    (('templates = ["tetra", "dimer"]', 'templates = ["tetra", "rod"]'), "no [[clumps]] template named 'rod'"),
+])
+def test_bad_clump_cases_give_one_line(tmp_path, change, needle, capsys):
+    from demstep.cli import main
+
+    path = tmp_path / "bad.toml"
+    path.write_text(CLUMP_CASE.replace(*change))
+    code = main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"])
+    _, err = capsys.readouterr()
+    assert code == 2 and needle in err and err.count("\n") == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_body_file_naming_a_missing_template(tmp_path, capsys):
+    from demstep.cli import main
+
+    (tmp_path / "bodies.csv").write_text("x,y,z,template\n1.5,1.5,1.5,tetra\n4,1.5,1.5,rod\n")
+    text = (CLUMP_CASE.replace('templates = ["tetra", "dimer"]\ncount = [3, 3, 2]\nspacing = 2.5\n',
+                               'file = "bodies.csv"\n'))
+    (tmp_path / "case.toml").write_text(text)
+    code = main(["run", str(tmp_path / "case.toml"), "--out", str(tmp_path / "out"), "--quiet"])
+    _, err = capsys.readouterr()
+    assert code == 2 and "column 'template'" in err and "'rod'" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_dt_on_a_file_with_a_body_column(tmp_path, capsys):
+    """`demstep dt` on spheres with a body column: clumps with six DOFs, the same exact
+    step as the bodies of the Python API."""
+    import json
+
+    from demstep.cli import main
+    from demstep.io.formats import write_csv
+
+    p, c, bodies, _ = clump_assembly(11, inflate=1.0)
+    write_csv(tmp_path / "c.csv", p.x, p.r, body=bodies.sphere_body)
+    code = main(["dt", str(tmp_path / "c.csv"), "--kn", "1", "--density", "1", "--json",
+                 "--contact-tol", "0.3"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    data = json.loads(out)
+    assert any("clumps" in n for n in data["notes"])
+    assert "element-paper" not in [e["method"] for e in data["estimates"]]

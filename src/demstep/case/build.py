@@ -91,17 +91,27 @@ def _clump_set(case: Case):
     p = case.particles
     templates = clump_templates(case)
     dim = case.dim
-    grid = np.stack(np.meshgrid(*[np.arange(c, dtype=float) for c in p.count], indexing="ij"),
-                    -1).reshape(-1, dim)
-    pos = p.spacing * (grid + 0.5)
+    q = None
+    if p.file is not None:
+        from demstep.case.schema import read_body_file
+
+        pos, names, q = read_body_file(case)
+        order = sorted(set(names))
+        chosen = [templates[name] for name in order]
+        kind = np.array([order.index(name) for name in names], dtype=np.int64)
+    else:
+        grid = np.stack(np.meshgrid(*[np.arange(c, dtype=float) for c in p.count],
+                                    indexing="ij"), -1).reshape(-1, dim)
+        pos = p.spacing * (grid + 0.5)
+        chosen = [templates[name] for name in p.templates]
+        kind = np.arange(len(pos)) % len(chosen)
     if p.origin is not None:
         pos = pos + np.asarray(p.origin)
-    chosen = [templates[name] for name in p.templates]
-    kind = np.arange(len(pos)) % len(chosen)
-    if p.orientation == "random":
-        q = random_quaternions(len(pos), np.random.default_rng(p.seed), dim)
-    else:
-        q = np.tile([1.0, 0.0, 0.0, 0.0], (len(pos), 1))
+    if q is None:
+        if p.orientation == "random":
+            q = random_quaternions(len(pos), np.random.default_rng(p.seed), dim)
+        else:
+            q = np.tile([1.0, 0.0, 0.0, 0.0], (len(pos), 1))
     return place(chosen, kind, pos, q, p.density)
 
 

@@ -221,12 +221,15 @@ class ClumpParticles(_ParticlesBase):
     """Clumps (rigid bodies of the ``[[clumps]]`` templates) on a grid of ``count`` body
     positions [L] ``spacing`` apart, the templates taken in turn (``templates``: their
     names), each turned by a random orientation (``orientation = "random"``, from
-    ``seed``) or not ("fixed"); ``fixed`` selects bodies (by index or centre)."""
+    ``seed``) or not ("fixed"); or listed in a CSV ``file`` (columns x, y[, z] [L] of
+    the template's origin, ``template`` (a name) and optionally the orientation
+    ``qw, qx, qy, qz``). ``fixed`` selects bodies (by index or centre)."""
 
     generator: Literal["clumps"]
-    templates: Annotated[list[Name], Field(min_length=1)]
-    count: Annotated[list[PositiveInt], Field(min_length=2, max_length=3)]
-    spacing: Positive
+    templates: list[Name] = []
+    count: Annotated[list[PositiveInt], Field(min_length=2, max_length=3)] | None = None
+    spacing: Positive | None = None
+    file: str | None = None
     density: Positive
     orientation: Literal["random", "fixed"] = "random"
     seed: NonNegativeInt = 0
@@ -581,8 +584,10 @@ def _particle_dim(case: Case) -> int:
     p = case.particles
     if p.generator == "lattice":
         return LATTICE_DIM[p.lattice]
-    if p.generator in ("grid", "clumps"):
-        return len(p.count)
+    if p.generator == "grid" or (p.generator == "clumps" and p.file is None):
+        return len(p.count or [0, 0, 0])
+    if p.generator == "clumps":
+        return len(read_body_file(case)[0][0])
     from demstep.io.formats import read_particle_file
 
     path = case.particle_file()
@@ -590,6 +595,56 @@ def _particle_dim(case: Case) -> int:
         what = "a folder, not a file" if path.is_dir() else "no such file"
         raise InputError(f"particles.path: {what}, got {p.path!r}")
     return read_particle_file(path, p.format, p.snapshot).dim
+
+
+def read_body_file(case: Case):
+    """The ``particles.file`` of the clumps generator: (positions (B, dim) [L],
+    template names (B,), orientations (B, 4) or None)."""
+    import csv
+
+    path = Path(case.particles.file).expanduser()
+    path = path if path.is_absolute() else case.base_dir / path
+    if not path.is_file():
+        raise InputError(f"particles.file: no such file, got {str(path)!r}")
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.reader(fh))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"particles.file: {path}: cannot read ({exc})") from None
+    if not rows:
+        raise InputError(f"particles.file: {path}: empty file")
+    header = [h.strip().lower() for h in rows[0]]
+    axes = ["x", "y", "z"] if "z" in header else ["x", "y"]
+    for col in axes + ["template"]:
+        if col not in header:
+            raise InputError(f"{path}:1: missing column {col!r} (header x,y[,z],template"
+                             f"[,qw,qx,qy,qz])")
+    quat = [c for c in ("qw", "qx", "qy", "qz") if c in header]
+    if quat and len(quat) != 4:
+        raise InputError(f"{path}:1: the orientation needs all of qw, qx, qy, qz")
+    pos, names, qs = [], [], []
+    for line, row in enumerate(rows[1:], start=2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) < len(header):
+            raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
+        try:
+            pos.append([float(row[header.index(a)]) for a in axes])
+            if quat:
+                qs.append([float(row[header.index(c)]) for c in quat])
+        except ValueError:
+            raise InputError(f"{path}:{line}: coordinates and orientation must be numbers") from None
+        names.append(row[header.index("template")].strip())
+    if not pos:
+        raise InputError(f"{path}: no bodies")
+    q = None
+    if quat:
+        q = np.array(qs)
+        norms = np.linalg.norm(q, axis=1)
+        if not (np.isfinite(q).all() and (norms > 0).all()):
+            raise InputError(f"{path}: orientations must be finite, non-zero quaternions")
+        q = q / norms[:, None]
+    return np.array(pos), names, q
 
 
 def clump_templates(case: Case) -> dict:
@@ -632,15 +687,29 @@ def check_case(case: Case) -> None:
     dim = case.dim
     templates = clump_templates(case)
     if p.generator == "clumps":
-        _need_len("particles.count", p.count, dim)
-        for name in p.templates:
+        if p.file is None:
+            if p.count is None or p.spacing is None or not p.templates:
+                raise InputError("particles: the clumps generator needs templates, count and "
+                                 "spacing, or a file")
+            _need_len("particles.count", p.count, dim)
+        else:
+            if p.count is not None or p.spacing is not None:
+                raise InputError("particles.file: give either a file or count and spacing")
+            names = sorted(set(read_body_file(case)[1]))
+            p_templates = names
+            for name in names:
+                if name not in templates:
+                    raise InputError(f"particles.file: column 'template': no [[clumps]] template "
+                                     f"named {name!r} (have {', '.join(templates) or 'none'})")
+        for name in (p.templates if p.file is None else p_templates):
             if name not in templates:
                 raise InputError(f"particles.templates: no [[clumps]] template named {name!r} "
                                  f"(have {', '.join(templates) or 'none'})")
             if templates[name].dim != dim:
                 raise InputError(f"clumps: template {name!r} is {templates[name].dim}D, the "
                                  f"case {dim}D")
-        if math.prod(p.count) * max(templates[n].n_members for n in p.templates) > MAX_PARTICLES:
+        if p.file is None and (math.prod(p.count) * max(templates[n].n_members for n in p.templates)
+                               > MAX_PARTICLES):
             raise InputError(f"particles.count: more than {MAX_PARTICLES} member spheres")
     # particles
     if p.generator == "lattice":
