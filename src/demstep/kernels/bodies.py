@@ -34,6 +34,7 @@ import math
 import numpy as np
 
 from demstep._numba import compile_parallel_and_serial, njit, prange
+from demstep.kernels.integration import moved_since_build, store_step_terms
 
 
 @njit(inline="always")
@@ -247,23 +248,12 @@ def _body_loop(bx, bq, bv, bL, bm, binertia, binv_m, binv_I, bforce, btorque, ba
             w[p, 0] = om0
             w[p, 1] = om1
             w[p, 2] = om2
-            d2sum = 0.0
-            vv = 0.0
             for j in range(3):
                 x[p, j] += dt * v[p, j]
-                dd = x[p, j] - x_ref[p, j]
-                d2sum += dd * dd
-                vv += v[p, j] * v[p, j]
-            disp2 = max(disp2, d2sum)
-            jump = max(jump, math.sqrt(vv) * dt / r[p])
-    out[0] = w_body
-    out[1] = w_app
-    out[2] = d_local
-    out[3] = d_global
-    out[4] = ke_t
-    out[5] = ke_r
-    out[6] = disp2
-    out[7] = jump
+            d2, jp = moved_since_build(x, v, x_ref, r, p, dt)
+            disp2 = max(disp2, d2)
+            jump = max(jump, jp)
+    store_step_terms(out, w_body, w_app, d_local, d_global, ke_t, ke_r, disp2, jump)
 
 
 body_step, body_step_serial = compile_parallel_and_serial(_body_loop)

@@ -23,6 +23,7 @@ from demstep._numba import compile_parallel_and_serial, njit, prange
 from demstep.contact.geometry import contact_arms, image_count, pair_geometry, wall_geometry
 from demstep.contact.laws import dashpot_coefficients, normal_force, tangential_stiffness
 from demstep.kernels.bodies import body_step, body_step_serial
+from demstep.kernels.integration import moved_since_build, store_step_terms
 
 from demstep.energy import (  # the ledger's layout is the energy module's
     A_APPLIED, A_BODY, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL, A_WALLS, E_KIN_R,
@@ -524,22 +525,10 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
             v[p, k] = v_new
             w[p, k] = w_new
             x[p, k] += dt * v_new
-        d2 = 0.0
-        vv = 0.0
-        for k in range(3):
-            dd = x[p, k] - x_ref[p, k]
-            d2 += dd * dd
-            vv += v[p, k] * v[p, k]
+        d2, jp = moved_since_build(x, v, x_ref, r, p, dt)
         disp2 = max(disp2, d2)
-        jump = max(jump, math.sqrt(vv) * dt / r[p])
-    acc_out[0] = w_body
-    acc_out[1] = w_app
-    acc_out[2] = d_local
-    acc_out[3] = d_global
-    acc_out[4] = ke_t
-    acc_out[5] = ke_r
-    acc_out[6] = disp2
-    acc_out[7] = jump
+        jump = max(jump, jp)
+    store_step_terms(acc_out, w_body, w_app, d_local, d_global, ke_t, ke_r, disp2, jump)
 
 
 # every loop driver compiled twice: in parallel (prange) and serially, for small
