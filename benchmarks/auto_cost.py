@@ -1,0 +1,97 @@
+"""The cost of the certified 'auto' time step during a run (issue target: at most 5 % of
+the run time at 1e5 particles with the exact method re-evaluated every 500 steps).
+
+The peer problems of ``peers.py`` (``dense``: a pre-compressed FCC block in a box;
+``settle``: spheres falling onto a floor, contacts forming all the time) run with
+``TimeStep.auto(safety=0.8, method="exact", every=500)``; the time spent choosing dt
+(the estimates, warm-started from the last critical mode) and checking that every
+closed contact was covered is measured against the whole run. One process per case.
+
+    python benchmarks/auto_cost.py [--n 100000] [--steps 2000] [--threads 1] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+CASE = r"""
+import json, sys, time
+import numpy as np
+import numba
+sys.path.insert(0, sys.argv[5])
+from peers import make_problem
+from demstep.contact.laws import LinearSpring
+from demstep.engine import Simulation, TimeStep
+from demstep.particles import Particles
+from demstep.walls import Wall
+
+problem, n, steps, threads = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+numba.set_num_threads(threads)
+x, spec = make_problem(problem, n)
+particles = Particles.from_density(x, np.full(len(x), spec["radius"]), spec["density"])
+law = LinearSpring(k_n=spec["k_n"], k_s=spec["k_s"], mu=spec["mu"], restitution=spec["restitution"])
+walls = []
+for w in spec["walls"]:
+    point = np.zeros(3); point[w["axis"]] = w["pos"]
+    normal = np.zeros(3); normal[w["axis"]] = w["sense"]
+    walls.append(Wall(point, normal))
+sim = Simulation(particles, law, walls, gravity=spec["gravity"], skin=spec["skin"],
+                 timestep=TimeStep.auto(safety=0.8, method="exact", every=500))
+spent = {"choose_dt": 0.0, "covered": 0.0, "estimates": 0, "checks": 0}
+choose, covered = sim._choose_dt, sim._contacts_covered
+
+def timed_choose(*a, **k):
+    t = time.perf_counter(); out = choose(*a, **k)
+    spent["choose_dt"] += time.perf_counter() - t; spent["estimates"] += 1
+    return out
+
+def timed_covered():
+    t = time.perf_counter(); out = covered()
+    spent["covered"] += time.perf_counter() - t; spent["checks"] += 1
+    return out
+
+sim._choose_dt, sim._contacts_covered = timed_choose, timed_covered
+sim.run(steps=20)  # compile / load caches, first estimate
+for key in ("choose_dt", "covered", "estimates", "checks"):
+    spent[key] = 0
+t = time.perf_counter()
+sim.run(steps=steps)
+total = time.perf_counter() - t
+print(json.dumps({"problem": problem, "n": len(x), "steps": steps, "threads": threads,
+                  "total_s": total, **spent,
+                  "fraction": (spent["choose_dt"] + spent["covered"]) / total,
+                  "dt": sim.dt, "dt_estimate": sim.dt_estimate, "contacts": sim.n_contacts}))
+"""
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=100_000)
+    ap.add_argument("--steps", type=int, default=2000)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--problems", default="dense,settle")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    rows = []
+    for problem in args.problems.split(","):
+        out = subprocess.run([sys.executable, "-c", CASE, problem, str(args.n), str(args.steps),
+                              str(args.threads), str(HERE)], capture_output=True, text=True,
+                             check=True)
+        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        r = rows[-1]
+        if not args.json:
+            print(f"{problem:7s} N={r['n']} {r['steps']} steps: run {r['total_s']:.1f} s, estimates "
+                  f"{r['choose_dt']:.2f} s ({r['estimates']}), coverage checks {r['covered']:.2f} s "
+                  f"({r['checks']}): {100 * r['fraction']:.1f} % of the run", flush=True)
+    if args.json:
+        print(json.dumps({"benchmark": "auto_cost", "results": rows}))
+
+
+if __name__ == "__main__":
+    main()
