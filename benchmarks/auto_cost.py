@@ -43,20 +43,19 @@ for w in spec["walls"]:
     walls.append(Wall(point, normal))
 sim = Simulation(particles, law, walls, gravity=spec["gravity"], skin=spec["skin"],
                  timestep=TimeStep.auto(safety=0.8, method="exact", every=500))
-spent = {"choose_dt": 0.0, "covered": 0.0, "estimates": 0, "checks": 0}
-choose, covered = sim._choose_dt, sim._contacts_covered
+spent = {"choose_dt": 0.0, "covered": 0.0, "estimates": 0, "checks": 0}  # checks: coverage and extensions
+choose, uncovered, certify = sim._choose_dt, sim._uncovered, sim._certify_added
 
-def timed_choose(*a, **k):
-    t = time.perf_counter(); out = choose(*a, **k)
-    spent["choose_dt"] += time.perf_counter() - t; spent["estimates"] += 1
-    return out
+def timed(func, key, count):
+    def wrapper(*a, **k):
+        t = time.perf_counter(); out = func(*a, **k)
+        spent[key] += time.perf_counter() - t; spent[count] += 1
+        return out
+    return wrapper
 
-def timed_covered():
-    t = time.perf_counter(); out = covered()
-    spent["covered"] += time.perf_counter() - t; spent["checks"] += 1
-    return out
-
-sim._choose_dt, sim._contacts_covered = timed_choose, timed_covered
+sim._choose_dt = timed(choose, "choose_dt", "estimates")
+sim._uncovered = timed(uncovered, "covered", "checks")
+sim._certify_added = timed(certify, "covered", "checks")
 sim.run(steps=20)  # compile / load caches, first estimate
 for key in ("choose_dt", "covered", "estimates", "checks"):
     spent[key] = 0

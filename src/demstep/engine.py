@@ -541,6 +541,7 @@ class Simulation:
         contacts = self.contact_set(horizon, cover)
         if _record:
             self._dt_cover = cover
+            self._dt_cert = None
         if contacts.n == 0:
             return None
         p = self.particles_now()
@@ -548,12 +549,19 @@ class Simulation:
         damping = self._global_damping()
         bodies = self.rigid_bodies()
         if method == "element-coupled":
-            return element_coupled_dt(p, contacts, rotation, damping=damping, bodies=bodies)
+            dt = element_coupled_dt(p, contacts, rotation, damping=damping, bodies=bodies)
+            if _record:
+                from demstep.timestep.exact import ScaledContactOperator
+
+                op = ScaledContactOperator(p, contacts, rotation, damping, bodies)
+                self._dt_cert = (2.0 / dt, op.damping_bound())
+            return dt
         mode = getattr(self, "_dt_mode", None)
         result = exact_critical_step(p, contacts, rotation, damping, v0=mode, bodies=bodies)
         if _record:
             self._dt_mode = result.mode
             self.dt_exact_undamped = result.dt_undamped
+            self._dt_cert = (2.0 / result.dt, result.operator.damping_bound())
         return result.dt
 
     def rigid_bodies(self):
@@ -715,6 +723,9 @@ class Simulation:
         mode = getattr(self, "_dt_mode", None)
         if mode is not None:
             out["ts_mode"] = mode
+        cert = getattr(self, "_dt_cert", None)
+        if cert is not None:
+            out["ts_cert"] = np.array(cert, dtype=np.float64)
         for name, (keys, assumed) in (getattr(self, "_dt_cover", None) or {}).items():
             out[f"ts_cover_{name}_keys"] = keys
             out[f"ts_cover_{name}_overlap"] = assumed
@@ -723,6 +734,7 @@ class Simulation:
     def restore_timestep_state(self, data: dict):
         """Inverse of :meth:`timestep_state`."""
         self._dt_mode = np.array(data["ts_mode"]) if "ts_mode" in data else None
+        self._dt_cert = tuple(float(v) for v in data["ts_cert"]) if "ts_cert" in data else None
         cover = {}
         for name in ("pairs", "walls"):
             if f"ts_cover_{name}_keys" in data:
@@ -730,35 +742,135 @@ class Simulation:
                                np.array(data[f"ts_cover_{name}_overlap"]))
         self._dt_cover = cover if cover or "ts_mode" in data else None
 
+    def _uncovered(self):
+        """Masks over the pair and wall lists of the closed contacts the last 'auto'
+        estimate did not cover (or covered at a smaller overlap than they have now,
+        for a non-linear law); None when there was no estimate."""
+        cover = getattr(self, "_dt_cover", None)
+        if cover is None:
+            return None
+        masks = []
+        for name, n_list in (("pairs", len(self.pi)), ("walls", len(self.wp))):
+            mask = np.zeros(n_list, dtype=bool)
+            if n_list:
+                if name == "pairs":
+                    delta = pair_geometry_arrays(self.x, self.r, self.pi, self.pj,
+                                                 self.periodic_len)[2]
+                    keys = self.pi * len(self.r) + self.pj
+                else:
+                    delta = wall_geometry_arrays(self.x, self.r, self.wp, self.ww,
+                                                 self.wall_point, self.wall_normal)[2]
+                    keys = self.wp * max(1, len(self.walls)) + self.ww
+                on = np.flatnonzero(delta > 0)
+                if len(on):
+                    if name not in cover or len(cover[name][0]) == 0:
+                        mask[on] = True
+                    else:
+                        known, assumed = cover[name]
+                        pos = np.minimum(np.searchsorted(known, keys[on]), len(known) - 1)
+                        missing = known[pos] != keys[on]
+                        if self.law.law_id != 0:  # a non-linear law stiffer than assumed
+                            missing |= delta[on] > assumed[pos]
+                        mask[on[missing]] = True
+            masks.append(mask)
+        return masks[0], masks[1]
+
     def _contacts_covered(self) -> bool:
         """Whether every contact closed now was part of the last 'auto' estimate, at no
         larger overlap than it assumed (False also when there was no estimate)."""
-        cover = getattr(self, "_dt_cover", None)
-        if cover is None:
+        masks = self._uncovered()
+        return masks is not None and not (masks[0].any() or masks[1].any())
+
+    def _certify_added(self, pair_mask, wall_mask) -> bool:
+        """Whether dt stays certified with the uncovered contacts added, without a new
+        estimate: with sigma = 2 / dt, sigma_c the certified root of the last estimate
+        (lambda_max(sigma_c C^ + K^) <= sigma_c^2) and Lambda_C >= lambda_max(C^), the old
+        contacts give lambda_max(sigma C^ + K^) <= sigma_c^2 + (sigma - sigma_c) Lambda_C
+        (the left side is convex in sigma with slope <= Lambda_C); the added ones, by
+        Weyl's inequality, at most the largest of their elements with each particle's
+        whole mass (Rayleigh's theorem on them alone). If the sum stays below sigma^2 the
+        step is certified for the enlarged set; the cover and the certificate are then
+        extended to it (True). Else False: a full estimate is due."""
+        cert = getattr(self, "_dt_cert", None)
+        if cert is None or self.dt is None:
             return False
-        checks = []
-        if len(self.pi):
-            delta = pair_geometry_arrays(self.x, self.r, self.pi, self.pj, self.periodic_len)[2]
-            on = delta > 0
-            checks.append(("pairs", self.pi[on] * len(self.r) + self.pj[on], delta[on]))
-        if len(self.wp):
-            delta = wall_geometry_arrays(self.x, self.r, self.wp, self.ww, self.wall_point,
-                                         self.wall_normal)[2]
-            on = delta > 0
-            checks.append(("walls", self.wp[on] * max(1, len(self.walls)) + self.ww[on], delta[on]))
-        for name, keys, delta in checks:
-            if len(keys) == 0:
+        sigma_c, lam_c = cert
+        sigma = 2.0 / self.dt
+        added = self._contacts_of(pair_mask, wall_mask)
+        if added.n == 0:
+            return True
+        bodies = self.rigid_bodies()
+        rotation = self.rotation
+        p = self.particles_now()
+        if bodies is None:
+            from demstep.timestep.mass_split import element_mass
+
+            mass = element_mass(p, added)
+            c_m = mass.inv_m_i + mass.inv_m_j
+            c_r = (added.arm_i**2 * mass.inv_I_i + added.arm_j**2 * mass.inv_I_j) if rotation else 0.0
+            lam_add = float(np.max(np.maximum((sigma * added.c_n + added.k_n) * c_m,
+                                              (sigma * added.c_t + added.k_s) * (c_m + c_r))))
+            lam_c_add = float(np.max(np.maximum(added.c_n * c_m, added.c_t * (c_m + c_r))))
+        else:
+            from demstep.timestep.bodies import body_element_matrices
+
+            W, D, G = body_element_matrices(p, added, bodies, rotation)
+            w, V = np.linalg.eigh(W)
+            Wh = np.einsum("cij,cj,ckj->cik", V, np.sqrt(np.clip(w, 0.0, None)), V)
+            lam_add = float(np.linalg.eigvalsh(Wh @ (sigma * G + D) @ Wh)[:, -1].max())
+            lam_c_add = float(np.linalg.eigvalsh(Wh @ G @ Wh)[:, -1].max())
+        if sigma * sigma < sigma_c * sigma_c + (sigma - sigma_c) * lam_c + lam_add:
+            return False
+        # certified at sigma for the enlarged set: extend the record
+        self._dt_cert = (sigma, lam_c + lam_c_add)
+        cover = self._dt_cover
+        for name, mask, keys_of in (
+                ("pairs", pair_mask, lambda: self.pi * len(self.r) + self.pj),
+                ("walls", wall_mask, lambda: self.wp * max(1, len(self.walls)) + self.ww)):
+            if not mask.any():
                 continue
-            if name not in cover:
-                return False
-            known, assumed = cover[name]
-            pos = np.searchsorted(known, keys)
-            pos = np.minimum(pos, len(known) - 1)
-            if not np.array_equal(known[pos], keys):
-                return False
-            if self.law.law_id != 0 and np.any(delta > assumed[pos]):
-                return False  # a non-linear law stiffer than assumed
+            if name == "pairs":
+                delta = pair_geometry_arrays(self.x, self.r, self.pi, self.pj, self.periodic_len)[2]
+            else:
+                delta = wall_geometry_arrays(self.x, self.r, self.wp, self.ww, self.wall_point,
+                                             self.wall_normal)[2]
+            keys = keys_of()[mask]
+            known, assumed = cover.get(name, (np.zeros(0, dtype=np.int64), np.zeros(0)))
+            merged, inverse = np.unique(np.concatenate([known, keys]), return_inverse=True)
+            values = np.full(len(merged), -np.inf)
+            np.maximum.at(values, inverse, np.concatenate([assumed, delta[mask]]))
+            cover[name] = (merged, values)
+        self.n_dt_extensions = getattr(self, "n_dt_extensions", 0) + 1
         return True
+
+    def _contacts_of(self, pair_mask, wall_mask) -> ContactSet:
+        """The pairs and wall contacts selected by the masks as a ContactSet at their
+        current geometry and overlap (coefficients from the law)."""
+        dim = self.dim
+        params = self.law.params()
+        law_id = int(params.law)
+        parts = []
+        if pair_mask.any():
+            i, j = self.pi[pair_mask], self.pj[pair_mask]
+            d, dist, delta, ai, aj, _ = pair_geometry_arrays(self.x, self.r, i, j,
+                                                             self.periodic_len)
+            r_star = self.r[i] * self.r[j] / (self.r[i] + self.r[j])
+            inv = self.inv_m[i] + self.inv_m[j]
+            m_star = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), self.m[i])
+            kn, kt, cn, ct = self._coefficients(law_id, params, delta, r_star, m_star)
+            parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
+                                    c_n=cn, c_t=ct))
+        if wall_mask.any():
+            p, wi = self.wp[wall_mask], self.ww[wall_mask]
+            _, dist, delta, arm = wall_geometry_arrays(self.x, self.r, p, wi, self.wall_point,
+                                                       self.wall_normal)
+            kn, kt, cn, ct = self._coefficients(law_id, params, delta, self.r[p], self.m[p])
+            parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim],
+                                    arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct))
+        if not parts:
+            return ContactSet(np.zeros(0), np.zeros(0), np.zeros((0, dim)), np.zeros(0),
+                              np.zeros(0), 0.0, 0.0)
+        return ContactSet.concatenate(parts)
 
     # --------------------------------------------------------------- running
     def every(self, n: int, callback: Callable[["Simulation"], None]):
@@ -873,8 +985,11 @@ class Simulation:
             if self.timestep.mode == "auto":
                 if self.step >= self._next_dt_update:
                     self._choose_dt(force=True)
-                elif not self._contacts_covered():
-                    self._choose_dt(force=True, scheduled=False)
+                else:
+                    masks = self._uncovered()
+                    if masks is None or ((masks[0].any() or masks[1].any())
+                                         and not self._certify_added(*masks)):
+                        self._choose_dt(force=True, scheduled=False)
             if until is not None and self.step >= next_check:
                 next_check = self.step + check_every
                 if until(self):
