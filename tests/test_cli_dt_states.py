@@ -338,3 +338,21 @@ def test_memory_refused_before_allocating(capsys):
     assert code == 2 and "memory" in err and "GB" in err
     code, out, err = run(["dt", "--lattice", "fcc", "--size", "10", "--max-memory", "0.001"], capsys)
     assert code == 2 and "--max-memory" in err
+
+
+def test_plot_path_checked_before_the_work_and_help_lists_formats(tmp_path, capsys):
+    """Issue 13, item 7: a bad plot path is refused up front (no traceback, nothing
+    computed or written); and `dt --help` names every input format."""
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    code, out, err = run(["dt", "--lattice", "hex", "--size", "2", "--plot",
+                          str(blocker / "sub" / "dt.png")], capsys)
+    assert code == 2 and "plot" in err and "not a folder" in err and out == ""
+    code, out, err = run(["dt", "--lattice", "hex", "--size", "2", "--plot",
+                          str(tmp_path / "dt.txt")], capsys)
+    assert code == 2 and ".png" in err and out == ""
+    assert not (tmp_path / "dt.txt").exists()
+    code, help_text, _ = run(["dt", "--help"], capsys)
+    assert code == 0
+    for word in ("CSV", "LIGGGHTS", "LAMMPS", "YADE", "case", "checkpoint"):
+        assert word in help_text
