@@ -32,11 +32,14 @@ import scipy.sparse.linalg as spla
 
 from demstep.contacts import ContactSet
 from demstep.errors import InputError
-from demstep.kernels.timestep_kernels import contact_energies, scaled_contact_matvec
+from demstep.kernels.timestep_kernels import (chunked_scaled_contact_matvec, contact_chunks,
+                                              contact_energies, contact_quadratic_forms,
+                                              scaled_contact_matvec)
 from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
 from demstep.timestep.damping import GlobalDamping
-from demstep.timestep.eigen import DENSE_LIMIT, EIGSH_TOL, Eigenpair, top_eigenpair
+from demstep.timestep.eigen import (DENSE_LIMIT, EIGSH_TOL, WARM_START_MIX, Eigenpair,
+                                    top_eigenpair)
 from demstep.timestep.elements import dofs_per_particle
 from demstep.timestep.stability import damped_sigma
 
@@ -44,6 +47,21 @@ from demstep.timestep.stability import damped_sigma
 SIGMA_RTOL = 1e-10
 #: first relative margin tried when certifying sigma_max from above
 CERTIFY_MARGIN = 1e-9
+#: the closed-form upper bound is accepted within this of the iterate
+CLOSED_FORM_RTOL = 1e-6
+#: eigen-tolerance of the intermediate solves of the safeguarded iteration: each only
+#: needs a vector good enough for a Rayleigh-functional value, whose error is quadratic
+#: in the vector's (measured: benchmarks/RESULTS.md, "Exact damped step: solver choices")
+LOOSE_TOL = 1e-6
+#: the solves turn tight (``tol``) once the iterate moves by less than this
+TIGHT_SWITCH = 1e-6
+#: random share mixed into the warm starts of the intermediate solves (the previous
+#: iterate's vector); the certifying solves mix in CERTIFY_MIX, the first solve (from
+#: the caller's ``v0``) eigen.WARM_START_MIX
+CHAIN_MIX = 1e-4
+CERTIFY_MIX = WARM_START_MIX
+#: contacts from which the products run on several threads (when numba has them)
+PARALLEL_MIN_CONTACTS = 20_000
 
 
 class ScaledContactOperator:
@@ -55,7 +73,7 @@ class ScaledContactOperator:
     A(sigma) = sigma C^ + K^ is a shift added by the caller."""
 
     def __init__(self, particles: Particles, contacts: ContactSet, rotation: bool,
-                 damping: GlobalDamping | None = None):
+                 damping: GlobalDamping | None = None, threads: int | None = None):
         if contacts.n and contacts.dim != particles.dim:
             raise InputError(f"contacts: dimension {contacts.dim} does not match the "
                              f"particles' {particles.dim}")
@@ -67,6 +85,15 @@ class ScaledContactOperator:
         self.scale = inverse_sqrt_mass(particles, rotation).reshape(particles.n, self.nd)
         self.size = particles.n * self.nd
         self._work = np.empty_like(self.scale)
+        if threads is None:
+            import numba
+
+            threads = numba.get_num_threads() if contacts.n >= PARALLEL_MIN_CONTACTS else 1
+        #: number of contact runs summed in parallel (1: the serial product)
+        self.threads = max(1, min(int(threads), max(contacts.n, 1)))
+        self._chunks, self._spans = contact_chunks(contacts, particles.n, self.threads)
+        self._buf = (np.empty((self.threads, particles.n, self.nd)) if self.threads > 1
+                     else None)
 
     def springs(self, sigma: float):
         """(k_n, k_t) per contact of the pencil at ``sigma``."""
@@ -77,10 +104,15 @@ class ScaledContactOperator:
         return ((1.0 + sigma * a2) * c.k_n + sigma * c.c_n,
                 (1.0 + sigma * a2) * c.k_s + sigma * c.c_t)
 
-    def apply(self, x: np.ndarray, k_n, k_t) -> np.ndarray:
-        """S K(k_n, k_t) S x for flat x (size,)."""
+    def apply(self, x: np.ndarray, k_n, k_t, out: np.ndarray | None = None) -> np.ndarray:
+        """S K(k_n, k_t) S x for flat x (size,) (into ``out`` when given); on
+        ``threads`` > 1 the contact runs are summed in parallel."""
+        if self.threads > 1:
+            return chunked_scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation,
+                                                 self.scale, x, self._work, self._chunks,
+                                                 self._spans, self._buf, out)
         return scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation, self.scale,
-                                     x, self._work)
+                                     x, self._work, out)
 
     def stiffness(self, x):
         return self.apply(x, self.contacts.k_n, self.contacts.k_s)
@@ -90,8 +122,7 @@ class ScaledContactOperator:
 
     def pencil(self, sigma: float) -> spla.LinearOperator:
         k_n, k_t = self.springs(sigma)
-        return spla.LinearOperator((self.size, self.size), dtype=np.float64,
-                                   matvec=lambda x: self.apply(np.ravel(x), k_n, k_t))
+        return _Pencil(self, k_n, k_t)
 
     def dense_pencil(self, sigma: float) -> np.ndarray:
         k_n, k_t = self.springs(sigma)
@@ -100,15 +131,17 @@ class ScaledContactOperator:
                                   scale=self.scale.reshape(-1)).toarray()
 
     def top(self, sigma: float, v0=None, dense_limit: int = DENSE_LIMIT,
-            tol: float = EIGSH_TOL) -> Eigenpair:
+            tol: float = EIGSH_TOL, solver: str = "lanczos",
+            mix: float = WARM_START_MIX) -> Eigenpair:
         """Top eigenpair of the pencil at ``sigma`` (without the a1 shift)."""
         return top_eigenpair(self.pencil(sigma), v0=v0, dense_limit=dense_limit, tol=tol,
-                             dense=lambda: self.dense_pencil(sigma))
+                             dense=lambda: self.dense_pencil(sigma), solver=solver, mix=mix)
 
     def rayleigh_terms(self, q: np.ndarray):
-        """(k_q, c_q): q.K^ q and q.C^ q for a unit vector q (C^ with a1 and a2)."""
-        kq = float(q @ self.stiffness(q))
-        cq = float(q @ self.dashpots(q)) if self.contacts.damped else 0.0
+        """(k_q, c_q): q.K^ q and q.C^ q for a unit vector q (C^ with a1 and a2), summed
+        over the contacts in one pass (Delta.D Delta per contact)."""
+        kq, cq = contact_quadratic_forms(self.contacts, self.rotation, self.displacement(q),
+                                         self._chunks, parallel=self.threads > 1)
         return kq, cq + self.damping.mass + self.damping.stiffness * kq
 
     def damping_bound(self) -> float:
@@ -150,6 +183,24 @@ class ScaledContactOperator:
         return self.scale * q.reshape(self.scale.shape)
 
 
+class _Pencil(spla.LinearOperator):
+    """The pencil K(k_n, k_t) of a :class:`ScaledContactOperator` as a LinearOperator
+    with ``matvec_into(x, out)`` for the Lanczos iteration."""
+
+    def __init__(self, op: ScaledContactOperator, k_n, k_t):
+        super().__init__(np.float64, (op.size, op.size))
+        self.op, self.k_n, self.k_t = op, k_n, k_t
+
+    def _matvec(self, x):
+        return self.op.apply(np.ravel(x), self.k_n, self.k_t)
+
+    def _rmatvec(self, x):
+        return self._matvec(x)
+
+    def matvec_into(self, x, out):
+        self.op.apply(x, self.k_n, self.k_t, out)
+
+
 @dataclass
 class ExactStep:
     """The exact critical step of an assembly.
@@ -160,7 +211,7 @@ class ExactStep:
     ``lambda_undamped`` [1/T^2]: the Ritz value of lambda_max(M^-1 K);
     ``mode`` (size,): the critical mode, unit and mass-scaled (q = M^1/2 u);
     ``iterations``: safeguarded iterations (0 undamped); ``damped``: whether damping
-    entered."""
+    entered; ``matvecs``: products with the operator (0 on the dense path)."""
 
     dt: float
     dt_undamped: float
@@ -170,53 +221,88 @@ class ExactStep:
     iterations: int
     damped: bool
     operator: ScaledContactOperator
+    matvecs: int = 0
 
 
 def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bool,
                         damping: GlobalDamping | None = None, v0: np.ndarray | None = None,
                         dense_limit: int = DENSE_LIMIT, rtol: float = SIGMA_RTOL,
-                        max_iter: int = 100) -> ExactStep:
+                        max_iter: int = 100, tol: float = EIGSH_TOL,
+                        loose_tol: float = LOOSE_TOL, threads: int | None = None,
+                        solver: str = "lanczos") -> ExactStep:
     """Exact (and certified) critical step, with contact dashpots and global damping when
-    present; ``v0`` warm-starts the eigensolver (a previous ``mode``)."""
-    op = ScaledContactOperator(particles, contacts, rotation, damping)
+    present; ``v0`` warm-starts the eigensolver (a previous ``mode``).
+
+    ``tol``: relative residual of the certifying eigen-solves (the undamped one and the
+    last damped ones); ``loose_tol``: that of the intermediate solves of the
+    safeguarded iteration (``tol`` for all of them when ``loose_tol <= tol``);
+    ``threads``: contact runs summed in parallel in each product (None: numba's threads
+    from :data:`PARALLEL_MIN_CONTACTS` contacts on); ``solver``: "lanczos" or "arpack".
+
+    The iteration stops when the Rayleigh-functional value no longer grows by ``rtol``
+    (relative) or when the certified bracket [rho(q), sigma_up] on sigma_max, from a
+    tight solve, is narrower than ``rtol``; intermediate solves are loose until the
+    iterate moves by less than :data:`TIGHT_SWITCH`."""
+    op = ScaledContactOperator(particles, contacts, rotation, damping, threads=threads)
     if contacts.n == 0 and not op.damping.mass:
         raise InputError("contacts: the assembly has no contacts")
-    top = op.top(0.0, v0=v0, dense_limit=dense_limit)
+    top = op.top(0.0, v0=v0, dense_limit=dense_limit, tol=tol, solver=solver)
+    matvecs = top.matvecs
     lam = top.value
     dt_undamped = 2.0 / np.sqrt(top.upper) if top.upper > 0 else np.inf
     damped = contacts.damped or op.damping.active
     if not damped:
         return ExactStep(float(dt_undamped), float(dt_undamped), float(np.sqrt(lam)), lam,
-                         top.vector, 0, False, op)
+                         top.vector, 0, False, op, matvecs)
     a1 = op.damping.mass
+    lam_c = op.damping_bound()
+
+    def closed_form_upper(pair: Eigenpair, s: float, bound: float) -> float:
+        """The root of t^2 = U + (t - s) Lambda_C, U = ``bound`` >= lambda_max(A(s))."""
+        return float(damped_sigma(max(bound - s * lam_c, 0.0), lam_c))
+
     q = top.vector
     sigma = float(damped_sigma(*op.rayleigh_terms(q)))
+    solve_tol = max(loose_tol, tol)
+    margin = CERTIFY_MARGIN
     iterations = 0
-    while iterations < max_iter:
+    while True:
         iterations += 1
-        top = op.top(sigma, v0=q, dense_limit=dense_limit)
+        if iterations > max_iter:  # pragma: no cover - the iteration converges for PSD K, C
+            raise RuntimeError("exact damped step: could not certify sigma_max")
+        if solve_tol > tol:
+            # an intermediate step of the safeguarded iteration: a loose solve at sigma
+            top = op.top(sigma, v0=q, dense_limit=dense_limit, tol=solve_tol,
+                         solver=solver, mix=CHAIN_MIX)
+            matvecs += top.matvecs
+            q = top.vector
+            new = float(damped_sigma(*op.rayleigh_terms(q)))
+            if new - sigma <= TIGHT_SWITCH * sigma:
+                solve_tol = tol
+            sigma = max(sigma, new)
+            continue
+        # a certifying step: a tight solve at the candidate t just above the iterate.
+        # t is an upper bound on sigma_max when t^2 >= the residual bound of
+        # lambda_max(A(t)) (then t^2 I - A(t) is positive semi-definite); else the closed
+        # form from the same solve may still bound it: for s >= t, lambda_max(A(s)) <=
+        # U + (s - t) Lambda_C with U that residual bound and Lambda_C >= lambda_max(C^)
+        # from the (rigorous) element bounds of K and C_d, so the root of
+        # s^2 = U + (s - t) Lambda_C is one.
+        t = sigma * (1.0 + margin)
+        top = op.top(t, v0=q, dense_limit=dense_limit, tol=tol, solver=solver,
+                     mix=CERTIFY_MIX)
+        matvecs += top.matvecs
         q = top.vector
         new = float(damped_sigma(*op.rayleigh_terms(q)))
-        converged = new <= sigma * (1.0 + rtol)
-        sigma = max(sigma, new)
-        if converged:
+        bound = top.upper + a1 * t
+        lower = max(sigma, new)
+        up = t if t * t >= bound else closed_form_upper(top, t, bound)
+        if up <= lower * (1.0 + CLOSED_FORM_RTOL):
+            sigma = lower
             break
-    # certify from above. First in closed form: for s >= sigma, lambda_max(A(s)) <=
-    # U + (s - sigma) Lambda_C with U the residual bound at sigma and Lambda_C >=
-    # lambda_max(C^) from the (rigorous) element bounds of K and C_d; sigma_up is the
-    # root of s^2 = U + (s - sigma) Lambda_C. When that bound is loose, check candidates
-    # with the solver: sigma_up^2 >= upper bound of lambda_max(A(sigma_up)).
-    upper = top.upper + a1 * sigma
-    lam_c = op.damping_bound()
-    up = float(damped_sigma(max(upper - sigma * lam_c, 0.0), lam_c))
-    if not up <= sigma * (1.0 + 1e-6):
-        margin = CERTIFY_MARGIN
-        for _ in range(60):
-            up = sigma * (1.0 + margin)
-            check = op.top(up, v0=q, dense_limit=dense_limit)
-            if up * up >= check.upper + a1 * up:
-                break
+        if new > t * (1.0 + rtol):
+            sigma = new  # t was below sigma_max: the iteration goes on from new
+        else:
             margin *= 4.0
-        else:  # pragma: no cover - the iteration always converges for PSD K, C
-            raise RuntimeError("exact damped step: could not certify sigma_max")
-    return ExactStep(float(2.0 / up), float(dt_undamped), sigma, lam, q, iterations, True, op)
+    return ExactStep(float(2.0 / up), float(dt_undamped), sigma, lam, q, iterations, True, op,
+                     matvecs)
