@@ -305,43 +305,81 @@ def contact_quadratic_forms(contacts, rotation: bool, x, chunks=None, parallel: 
 # --- Lanczos vector operations (compiled: no BLAS thread pool on long vectors) -------
 
 @njit
-def _row_dots(V, rows, w, out):
-    """out[a] = V[rows[a]] . w (4 partial sums per row: no reassociation needed)."""
+def _dot(v, w):
+    """v . w with 4 partial sums (no reassociation needed to pipeline)."""
     n = w.shape[0]
-    for a in range(rows.shape[0]):
-        v = V[rows[a]]
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        s3 = 0.0
-        m = n - n % 4
-        for p in range(0, m, 4):
-            s0 += v[p] * w[p]
-            s1 += v[p + 1] * w[p + 1]
-            s2 += v[p + 2] * w[p + 2]
-            s3 += v[p + 3] * w[p + 3]
-        for p in range(m, n):
-            s0 += v[p] * w[p]
-        out[a] = (s0 + s1) + (s2 + s3)
+    m = n - n % 4
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    for p in range(0, m, 4):
+        s0 += v[p] * w[p]
+        s1 += v[p + 1] * w[p + 1]
+        s2 += v[p + 2] * w[p + 2]
+        s3 += v[p + 3] * w[p + 3]
+    for p in range(m, n):
+        s0 += v[p] * w[p]
+    return (s0 + s1) + (s2 + s3)
+
+
+@njit
+def _norm2(w):
+    return _dot(w, w)
+
+
+@njit
+def _dot2(v0, v1, w):
+    """(v0 . w, v1 . w) in one pass over w (2 partial sums each)."""
+    n = w.shape[0]
+    m = n - n % 2
+    a0 = 0.0
+    a1 = 0.0
+    b0 = 0.0
+    b1 = 0.0
+    for p in range(0, m, 2):
+        a0 += v0[p] * w[p]
+        a1 += v0[p + 1] * w[p + 1]
+        b0 += v1[p] * w[p]
+        b1 += v1[p + 1] * w[p + 1]
+    for p in range(m, n):
+        a0 += v0[p] * w[p]
+        b0 += v1[p] * w[p]
+    return a0 + a1, b0 + b1
+
+
+@njit
+def _row_dots(V, rows, w, out):
+    """out[a] = V[rows[a]] . w (two rows per pass over w)."""
+    nr = rows.shape[0]
+    a = 0
+    while a + 1 < nr:
+        out[a], out[a + 1] = _dot2(V[rows[a]], V[rows[a + 1]], w)
+        a += 2
+    if a < nr:
+        out[a] = _dot(V[rows[a]], w)
 
 
 @njit
 def _subtract_rows(V, rows, h, w):
-    """w -= sum_a h[a] V[rows[a]]; returns |w|^2 after."""
+    """w -= sum_a h[a] V[rows[a]] (two rows per pass over w); returns |w|^2 after."""
     n = w.shape[0]
     nr = rows.shape[0]
-    s0 = 0.0
-    s1 = 0.0
-    for p in range(n):
-        t = w[p]
-        for a in range(nr):
-            t -= h[a] * V[rows[a], p]
-        w[p] = t
-        if p % 2 == 0:
-            s0 += t * t
-        else:
-            s1 += t * t
-    return s0 + s1
+    a = 0
+    while a + 1 < nr:
+        v0 = V[rows[a]]
+        v1 = V[rows[a + 1]]
+        h0 = h[a]
+        h1 = h[a + 1]
+        for p in range(n):
+            w[p] -= h0 * v0[p] + h1 * v1[p]
+        a += 2
+    if a < nr:
+        v0 = V[rows[a]]
+        h0 = h[a]
+        for p in range(n):
+            w[p] -= h0 * v0[p]
+    return _norm2(w)
 
 
 @njit
@@ -358,54 +396,46 @@ def _combine_rows(V, m, S, out):
     block by block, each block read completely before it is written)."""
     n = V.shape[1]
     k = S.shape[1]
-    block = 512
+    block = 1024
     acc = np.empty((k, block))
     for start in range(0, n, block):
         stop = min(start + block, n)
-        acc[:, :stop - start] = 0.0
-        for i in range(m):
-            for c in range(k):
-                s = S[i, c]
-                for p in range(start, stop):
-                    acc[c, p - start] += s * V[i, p]
+        size = stop - start
         for c in range(k):
-            for p in range(start, stop):
-                out[c, p] = acc[c, p - start]
+            a = acc[c]
+            v = V[0, start:stop]
+            s = S[0, c]
+            for p in range(size):
+                a[p] = s * v[p]
+            for i in range(1, m):
+                v = V[i, start:stop]
+                s = S[i, c]
+                for p in range(size):
+                    a[p] += s * v[p]
+        for c in range(k):
+            o = out[c, start:stop]
+            a = acc[c]
+            for p in range(size):
+                o[p] = a[p]
 
 
 @njit
 def _rayleigh_residual(y, Ay):
     """(theta, |Ay - theta y|) for a unit vector y."""
+    theta = _dot(y, Ay)
     n = y.shape[0]
-    s0 = 0.0
-    s1 = 0.0
-    for p in range(n):
-        if p % 2 == 0:
-            s0 += y[p] * Ay[p]
-        else:
-            s1 += y[p] * Ay[p]
-    theta = s0 + s1
     r0 = 0.0
     r1 = 0.0
-    for p in range(n):
-        t = Ay[p] - theta * y[p]
-        if p % 2 == 0:
-            r0 += t * t
-        else:
-            r1 += t * t
+    m = n - n % 2
+    for p in range(0, m, 2):
+        t0 = Ay[p] - theta * y[p]
+        t1 = Ay[p + 1] - theta * y[p + 1]
+        r0 += t0 * t0
+        r1 += t1 * t1
+    for p in range(m, n):
+        t0 = Ay[p] - theta * y[p]
+        r0 += t0 * t0
     return theta, np.sqrt(r0 + r1)
-
-
-@njit
-def _norm2(w):
-    s0 = 0.0
-    s1 = 0.0
-    for p in range(w.shape[0]):
-        if p % 2 == 0:
-            s0 += w[p] * w[p]
-        else:
-            s1 += w[p] * w[p]
-    return s0 + s1
 
 
 @njit

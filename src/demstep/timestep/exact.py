@@ -45,21 +45,29 @@ from demstep.timestep.stability import damped_sigma
 
 #: relative convergence of the safeguarded iteration
 SIGMA_RTOL = 1e-10
-#: first relative margin tried when certifying sigma_max from above
-CERTIFY_MARGIN = 1e-9
+#: relative margin of the first candidate upper bound t = sigma (1 + margin) on the
+#: Lanczos path (the certifying solve needs a residual of about margin / 4: the
+#: certified step is at most ~4e-9 below the exact one); on the dense path
+CERTIFY_MARGIN = 4e-9
+DENSE_CERTIFY_MARGIN = 1e-11
 #: the closed-form upper bound is accepted within this of the iterate
 CLOSED_FORM_RTOL = 1e-6
-#: eigen-tolerance of the intermediate solves of the safeguarded iteration: each only
+#: eigen-tolerances of the intermediate solves of the safeguarded iteration: each only
 #: needs a vector good enough for a Rayleigh-functional value, whose error is quadratic
-#: in the vector's (measured: benchmarks/RESULTS.md, "Exact damped step: solver choices")
+#: in the vector's (measured: benchmarks/RESULTS.md, "Exact damped step: solver
+#: choices"). The first (the damped mode is new: its vector is only a start for the
+#: next) at FIRST_TOL, the next ones at LOOSE_TOL.
+FIRST_TOL = 1e-3
 LOOSE_TOL = 1e-6
-#: the solves turn tight (``tol``) once the iterate moves by less than this
-TIGHT_SWITCH = 1e-6
-#: random share mixed into the warm starts of the intermediate solves (the previous
-#: iterate's vector); the certifying solves mix in CERTIFY_MIX, the first solve (from
-#: the caller's ``v0``) eigen.WARM_START_MIX
+#: the certifying solve starts once a LOOSE_TOL solve moved the iterate by less than
+#: this (relative); the iterate is then within ~TIGHT_SWITCH^2 of sigma_max
+TIGHT_SWITCH = 1e-4
+#: random share mixed into the warm starts of the damped solves (the previous iterate's
+#: vector, itself from a start with a random share); the first solve (from the
+#: caller's ``v0``) mixes in eigen.WARM_START_MIX. A certifying solve must bring the
+#: residual from about CHAIN_MIX down to its tolerance, so it explores the spectrum
+#: beyond the warm start as the 1 % mix did
 CHAIN_MIX = 1e-4
-CERTIFY_MIX = WARM_START_MIX
 #: contacts from which the products run on several threads (when numba has them)
 PARALLEL_MIN_CONTACTS = 20_000
 
@@ -132,10 +140,12 @@ class ScaledContactOperator:
 
     def top(self, sigma: float, v0=None, dense_limit: int = DENSE_LIMIT,
             tol: float = EIGSH_TOL, solver: str = "lanczos",
-            mix: float = WARM_START_MIX) -> Eigenpair:
+            mix: float = WARM_START_MIX, stop_above: float = np.inf,
+            stop_tol: float = 0.0) -> Eigenpair:
         """Top eigenpair of the pencil at ``sigma`` (without the a1 shift)."""
         return top_eigenpair(self.pencil(sigma), v0=v0, dense_limit=dense_limit, tol=tol,
-                             dense=lambda: self.dense_pencil(sigma), solver=solver, mix=mix)
+                             dense=lambda: self.dense_pencil(sigma), solver=solver, mix=mix,
+                             stop_above=stop_above, stop_tol=stop_tol)
 
     def rayleigh_terms(self, q: np.ndarray):
         """(k_q, c_q): q.K^ q and q.C^ q for a unit vector q (C^ with a1 and a2), summed
@@ -263,8 +273,10 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
 
     q = top.vector
     sigma = float(damped_sigma(*op.rayleigh_terms(q)))
-    solve_tol = max(loose_tol, tol)
-    margin = CERTIFY_MARGIN
+    dense_path = op.size <= dense_limit
+    margin = DENSE_CERTIFY_MARGIN if dense_path else max(CERTIFY_MARGIN, 4.0 * tol)
+    certify_tol = margin / 4.0
+    solve_tol = max(FIRST_TOL, loose_tol) if loose_tol > tol and not dense_path else tol
     iterations = 0
     while True:
         iterations += 1
@@ -277,32 +289,35 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
             matvecs += top.matvecs
             q = top.vector
             new = float(damped_sigma(*op.rayleigh_terms(q)))
-            if new - sigma <= TIGHT_SWITCH * sigma:
-                solve_tol = tol
+            step = (new - sigma) / sigma
+            solve_tol = tol if step <= TIGHT_SWITCH and solve_tol <= loose_tol else loose_tol
             sigma = max(sigma, new)
             continue
         # a certifying step: a tight solve at the candidate t just above the iterate.
         # t is an upper bound on sigma_max when t^2 >= the residual bound of
-        # lambda_max(A(t)) (then t^2 I - A(t) is positive semi-definite); else the closed
-        # form from the same solve may still bound it: for s >= t, lambda_max(A(s)) <=
-        # U + (s - t) Lambda_C with U that residual bound and Lambda_C >= lambda_max(C^)
-        # from the (rigorous) element bounds of K and C_d, so the root of
-        # s^2 = U + (s - t) Lambda_C is one.
+        # lambda_max(A(t)) (then t^2 I - A(t) is positive semi-definite; below sigma_max
+        # it is not). Else the closed form from the same solve may still bound it: for
+        # s >= t, lambda_max(A(s)) <= U + (s - t) Lambda_C with U that residual bound and
+        # Lambda_C >= lambda_max(C^) from the (rigorous) element bounds of K and C_d, so
+        # the root of s^2 = U + (s - t) Lambda_C is one. Lanczos stops early once its
+        # Ritz value (a lower bound) shows that t is below sigma_max, with a vector as
+        # good as an intermediate solve's: then it was a step of the iteration.
         t = sigma * (1.0 + margin)
-        top = op.top(t, v0=q, dense_limit=dense_limit, tol=tol, solver=solver,
-                     mix=CERTIFY_MIX)
+        top = op.top(t, v0=q, dense_limit=dense_limit, tol=certify_tol, solver=solver,
+                     mix=CHAIN_MIX, stop_above=t * t - a1 * t, stop_tol=loose_tol)
         matvecs += top.matvecs
         q = top.vector
         new = float(damped_sigma(*op.rayleigh_terms(q)))
         bound = top.upper + a1 * t
-        lower = max(sigma, new)
         up = t if t * t >= bound else closed_form_upper(top, t, bound)
+        lower = max(sigma, new)
         if up <= lower * (1.0 + CLOSED_FORM_RTOL):
             sigma = lower
             break
-        if new > t * (1.0 + rtol):
-            sigma = new  # t was below sigma_max: the iteration goes on from new
+        if new > sigma * (1.0 + rtol):
+            sigma = new  # t was (nearly) below sigma_max: the iteration goes on from new
         else:
-            margin *= 4.0
+            margin *= 4.0  # the residual was too large for this margin
+            certify_tol = margin / 4.0
     return ExactStep(float(2.0 / up), float(dt_undamped), sigma, lam, q, iterations, True, op,
                      matvecs)
