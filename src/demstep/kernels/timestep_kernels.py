@@ -302,6 +302,65 @@ def contact_quadratic_forms(contacts, rotation: bool, x, chunks=None, parallel: 
     return total_k, total_c
 
 
+def _contact_gram(i, j, normal, arm_i, arm_j, k_n, k_t, c_n, c_t, rotation, X, chunks,
+                  k_sums, c_sums):
+    """Upper triangles of X_a.K X_b and X_a.C X_b (a <= b) over the contacts of each
+    run r into k_sums[r], c_sums[r] (k, k); X (k, n, nd) already scaled."""
+    dim = normal.shape[1]
+    nd = X.shape[2]
+    nv = X.shape[0]
+    for r in prange(chunks.shape[0] - 1):
+        d = np.empty((nv, 4))
+        ks = k_sums[r]
+        cs = c_sums[r]
+        for c in range(chunks[r], chunks[r + 1]):
+            n0 = 0.0
+            n1 = 0.0
+            n2 = 0.0
+            for a in range(nv):
+                d0, d1, d2, n0, n1, n2 = _contact_slip(c, i, j, normal, arm_i, arm_j, X[a],
+                                                       dim, nd, rotation)
+                d[a, 0] = d0
+                d[a, 1] = d1
+                d[a, 2] = d2
+                d[a, 3] = d0 * n0 + d1 * n1 + d2 * n2
+            kn = k_n[c]
+            kt = k_t[c]
+            cn = c_n[c]
+            ct = c_t[c]
+            for a in range(nv):
+                for b in range(a, nv):
+                    nn = d[a, 3] * d[b, 3]
+                    tt = d[a, 0] * d[b, 0] + d[a, 1] * d[b, 1] + d[a, 2] * d[b, 2] - nn
+                    ks[a, b] += kn * nn + kt * tt
+                    cs[a, b] += cn * nn + ct * tt
+
+
+_gram_parallel, _gram_serial = compile_parallel_and_serial(_contact_gram)
+
+
+def contact_gram(contacts, rotation: bool, X, chunks=None, parallel: bool = False):
+    """(X K X^T, X C_d X^T) (k, k) for k DOF sets X (k, n, nd) in one pass over the
+    contacts (K with ``k_n``, ``k_s``; C_d with ``c_n``, ``c_t``); runs summed in order."""
+    if chunks is None:
+        chunks = np.array([0, contacts.n], dtype=np.int64)
+    nv = X.shape[0]
+    k_sums = np.zeros((len(chunks) - 1, nv, nv))
+    c_sums = np.zeros((len(chunks) - 1, nv, nv))
+    kernel = _gram_parallel if parallel else _gram_serial
+    kernel(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j,
+           contacts.k_n, contacts.k_s, contacts.c_n, contacts.c_t, bool(rotation),
+           np.ascontiguousarray(X, dtype=np.float64), chunks, k_sums, c_sums)
+    out = []
+    for sums in (k_sums, c_sums):
+        total = sums[0].copy()
+        for r in range(1, len(sums)):
+            total += sums[r]
+        upper = np.triu(total)
+        out.append(upper + np.triu(total, 1).T)
+    return out[0], out[1]
+
+
 # --- Lanczos vector operations (compiled: no BLAS thread pool on long vectors) -------
 
 @njit
