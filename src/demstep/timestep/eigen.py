@@ -109,9 +109,9 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
     it the loss of orthogonality made the estimate claim convergence at a true
     residual of 8 % (measured, dense packing); against the top 4 of the 8 kept only,
     the FCC block (1e5 spheres, a cluster of converging Ritz values) gave a Ritz value
-    30x the largest eigenvalue. The projected matrix holds
-    every computed coefficient and is solved densely. The caller checks the result
-    with an explicit residual (:func:`top_eigenpair`).
+    30x the largest eigenvalue. The projected matrix holds every computed coefficient
+    and is solved densely. The caller checks the result with an explicit residual
+    (:func:`top_eigenpair`).
     """
     from demstep.kernels import timestep_kernels as tk
 
@@ -182,11 +182,11 @@ def top_eigenpair(A, v0: np.ndarray | None = None, dense_limit: int = DENSE_LIMI
     ``eigsh`` (``"arpack"``) runs on A from the start :func:`start_vector` (a warm start
     ``v0`` with ``mix`` of the random vector; Lanczos stops early once its Ritz value
     exceeds ``stop_above`` with a relative residual estimate <= ``stop_tol``; ``block``
-    > 0 also returns that many top Ritz vectors, :attr:`Eigenpair.block`). An
-    operator with a method
-    ``matvec_into(x, out)`` is applied through it (no new array per product). The
-    returned value and residual are recomputed from the returned vector (one more
-    product), so the bound ``upper`` does not rely on the solver's own estimates."""
+    > 0 also returns that many top Ritz vectors, :attr:`Eigenpair.block`). An operator
+    with a method ``matvec_into(x, out)`` is applied through it (no new array per
+    product). The returned value and residual are recomputed from the returned vector
+    (one more product), so the bound ``upper`` does not rely on the solver's own
+    estimates; when Lanczos' estimate was 10x too optimistic, it goes on from there."""
     n = A.shape[0]
     if n == 0:
         return Eigenpair(0.0, np.zeros(0), 0.0)

@@ -82,8 +82,12 @@ CHAIN_MIX = 1e-6
 CERTIFY_MIX = 1e-4
 #: top Ritz vectors of the undamped solve searched for the damped iteration's start
 START_BLOCK = 4
-#: contacts from which the products run on several threads (when numba has them)
-PARALLEL_MIN_CONTACTS = 20_000
+#: contacts from which the products run on several threads (when numba has them). Each
+#: product is three parallel regions; on a 2-core machine shared with other work a
+#: region can wait for a descheduled thread, which cost 20x at 3e4 contacts (0.07 s ->
+#: 1.4 s, loose 1e4), while an idle machine runs a product 1.6-1.8x faster on 2 threads
+#: at 3e5 contacts (benchmarks/RESULTS.md)
+PARALLEL_MIN_CONTACTS = 100_000
 
 
 class ScaledContactOperator:
