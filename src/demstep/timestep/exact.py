@@ -320,10 +320,14 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
 
     q = top.vector
     sigma = float(damped_sigma(*op.rayleigh_terms(q)))
+    candidates = []
     if top.block is not None and len(top.block) > 1:
-        # a better start: the best vector for the damped problem among the undamped
-        # solve's top Ritz vectors (a lower bound on sigma_max like any other)
-        z = op.subspace_start(top.block)
+        # the best vector for the damped problem among the undamped solve's top Ritz
+        # vectors (a lower bound on sigma_max like any other)
+        candidates.append(op.subspace_start(top.block))
+    if v0 is not None and v0.shape == (op.size,) and np.all(np.isfinite(v0)) and v0.any():
+        candidates.append(v0 / np.linalg.norm(v0))  # a previous (damped) critical mode
+    for z in candidates:
         sigma_z = float(damped_sigma(*op.rayleigh_terms(z)))
         if sigma_z > sigma:
             q, sigma = z, sigma_z
