@@ -163,10 +163,11 @@ def main():
                             extra += f"  products {res['matvecs']}"
                         print(f"{label:8s} {res['threads']}t {packing:6s} {what:13s} "
                               f"N={res['n']:>8d} contacts/sphere "
-                              f"{res['contacts_per_sphere']:5.2f} analysis {res['t_median']:8.3f} s "
-                              f"(min {res['t_min']:.3f}, max {res['t_max']:.3f})  contact detection "
-                              f"{res['t_contacts']:6.2f} s  peak RSS {res['rss_mb']:7.0f} MB{extra}",
-                              flush=True)
+                              f"{res['contacts_per_sphere']:5.2f} "
+                              f"analysis {res['t_median']:8.3f} s "
+                              f"(min {res['t_min']:.3f}, max {res['t_max']:.3f})  "
+                              f"contact detection {res['t_contacts']:6.2f} s  "
+                              f"peak RSS {res['rss_mb']:7.0f} MB{extra}", flush=True)
     if args.cli:
         res = run_cli(args.cli)
         results.append(res)
