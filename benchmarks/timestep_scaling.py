@@ -18,6 +18,12 @@ the analysis alone; contact detection (scipy cKDTree) is timed separately.
 
     python benchmarks/timestep_scaling.py [--json] [--sizes 1000,10000,100000]
         [--packings loose,dense,fcc] [--cases element,exact,exact-damped] [--cli 1000000]
+        [--compare OLD_SRC] [--threads 2,1]
+
+``--compare OLD_SRC`` runs every case also with the package sources in OLD_SRC (a
+``src`` folder of another version, e.g. from ``git archive``), interleaved with the
+current ones case by case (the machine's load drifts); ``--threads`` runs the current
+version once per numba thread count listed (default: numba's own).
 """
 
 from __future__ import annotations
@@ -65,7 +71,10 @@ for _ in range(repeat):
     t = time.perf_counter(); res = fn(); times.append(time.perf_counter() - t)
 extra = {}
 if what.startswith("exact"):
-    extra = {"dt": res.dt, "dt_undamped": res.dt_undamped, "iterations": res.iterations}
+    extra = {"dt": res.dt, "dt_undamped": res.dt_undamped, "iterations": res.iterations,
+             "matvecs": getattr(res, "matvecs", None)}
+import numba
+extra["threads"] = numba.get_num_threads()
 print(json.dumps({"what": what, "packing": packing, "n": p.n, "contacts": c.n,
                   "contacts_per_sphere": 2 * c.n / p.n, "t_contacts": t_contacts,
                   "t_median": statistics.median(times), "t_min": min(times), "t_max": max(times),
@@ -85,9 +94,16 @@ write_liggghts_dump(path, x + 0.5, r, m=m, box=[(0.0, float(side))] * 3, periodi
 """
 
 
-def run_case(n, packing, what, repeat):
+def run_case(n, packing, what, repeat, src=None, threads=None):
+    """One case in a fresh process; ``src``: PYTHONPATH of another version's sources,
+    ``threads``: NUMBA_NUM_THREADS."""
+    env = dict(os.environ)
+    if src:
+        env["PYTHONPATH"] = src
+    if threads:
+        env["NUMBA_NUM_THREADS"] = str(threads)
     out = subprocess.run([sys.executable, "-c", CASE, str(n), packing, what, str(repeat)],
-                         capture_output=True, text=True, check=True)
+                         capture_output=True, text=True, check=True, env=env)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -123,21 +139,35 @@ def main():
     ap.add_argument("--packings", default="loose,dense,fcc")
     ap.add_argument("--cases", default="element,exact,exact-damped")
     ap.add_argument("--cli", type=int, default=0, help="also time `demstep dt` on an N-sphere dump")
+    ap.add_argument("--compare", default="", help="sources (a src folder) of a version to "
+                    "run interleaved with this one")
+    ap.add_argument("--threads", default="", help="numba thread counts for this version")
     args = ap.parse_args()
     sizes = [int(s) for s in args.sizes.split(",") if s]
+    threads = [int(t) for t in args.threads.split(",") if t] or [None]
+    variants = [("current", None, t) for t in threads]
+    if args.compare:
+        variants.append(("compare", str(Path(args.compare).resolve()), None))
     results = []
     for packing in args.packings.split(","):
         for n in sizes:
             for what in args.cases.split(","):
-                res = run_case(n, packing, what, args.repeat if n < 1_000_000 else 1)
-                results.append(res)
-                if not args.json:
-                    extra = f"  dt {res['dt']:.6g}" if "dt" in res else ""
-                    print(f"{packing:6s} {what:13s} N={res['n']:>8d} contacts/sphere "
-                          f"{res['contacts_per_sphere']:5.2f} analysis {res['t_median']:8.3f} s "
-                          f"(min {res['t_min']:.3f}, max {res['t_max']:.3f})  contact detection "
-                          f"{res['t_contacts']:6.2f} s  peak RSS {res['rss_mb']:7.0f} MB{extra}",
-                          flush=True)
+                for label, src, n_threads in variants:
+                    res = run_case(n, packing, what, args.repeat if n < 1_000_000 else 1, src,
+                                   n_threads)
+                    res["version"] = label
+                    results.append(res)
+                    if not args.json:
+                        extra = f"  dt {res['dt']:.10g}" if "dt" in res else ""
+                        if res.get("matvecs"):
+                            extra += f"  products {res['matvecs']}"
+                        print(f"{label:8s} {res['threads']}t {packing:6s} {what:13s} "
+                              f"N={res['n']:>8d} contacts/sphere "
+                              f"{res['contacts_per_sphere']:5.2f} "
+                              f"analysis {res['t_median']:8.3f} s "
+                              f"(min {res['t_min']:.3f}, max {res['t_max']:.3f})  "
+                              f"contact detection {res['t_contacts']:6.2f} s  "
+                              f"peak RSS {res['rss_mb']:7.0f} MB{extra}", flush=True)
     if args.cli:
         res = run_cli(args.cli)
         results.append(res)

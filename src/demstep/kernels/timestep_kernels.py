@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from demstep._numba import njit
+from demstep._numba import compile_parallel_and_serial, njit, prange
 
 
 @njit
@@ -77,9 +77,15 @@ def _contact_slip(c, i, j, normal, arm_i, arm_j, x, dim, nd, rotation):
 def _contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, x, y):
     """y += K x for the coupled contact stiffness K = sum B^T D B (springs ``k_n``,
     ``k_t`` per contact) without assembling it; x, y (n, nd)."""
+    _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, x, y, 0, i.shape[0])
+
+
+@njit
+def _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, x, y, start, stop):
+    """y += K_c x summed over the contacts c = ``start`` ... ``stop`` - 1 (in order)."""
     dim = normal.shape[1]
     nd = x.shape[1]
-    for c in range(i.shape[0]):
+    for c in range(start, stop):
         d0, d1, d2, n0, n1, n2 = _contact_slip(c, i, j, normal, arm_i, arm_j, x, dim, nd,
                                                rotation)
         dn = d0 * n0 + d1 * n1 + d2 * n2
@@ -148,11 +154,12 @@ def _scaled_contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, scale
             out[p, a] *= scale[p, a]
 
 
-def scaled_contact_matvec(contacts, k_n, k_t, rotation: bool, scale, x, work=None):
-    """S K S x for flat x (n nd,), S = diag(scale) with scale (n, nd) = M^-1/2."""
+def scaled_contact_matvec(contacts, k_n, k_t, rotation: bool, scale, x, work=None, out=None):
+    """S K S x for flat x (n nd,), S = diag(scale) with scale (n, nd) = M^-1/2 (into
+    ``out`` when given)."""
     if work is None:
         work = np.empty_like(scale)
-    y = np.empty(x.shape[0])
+    y = np.empty(x.shape[0]) if out is None else out
     _scaled_contact_matvec(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
                            contacts.arm_j, k_n, k_t, bool(rotation), scale,
                            np.ascontiguousarray(x, dtype=np.float64), work, y)
@@ -181,3 +188,316 @@ def damping_diagonal_kernel(contacts, n_particles: int, nd: int, rotation: bool)
     return _stiffness_diagonal(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
                                contacts.arm_j, contacts.c_n, contacts.c_t, int(n_particles),
                                int(nd), bool(rotation))
+
+
+# --- threaded matrix-free products -------------------------------------------------
+
+def contact_chunks(contacts, n_particles: int, n_chunks: int):
+    """Cut the contact list into ``n_chunks`` runs of equal length (boundaries
+    (n_chunks + 1,)) and give the particle range [lo, hi) that each run touches
+    (spans (n_chunks, 2)): its output buffer is written there only. Any contact order
+    works; sorted by ``i`` (as the contact search gives them), the spans barely overlap."""
+    n_c = contacts.n
+    chunks = np.linspace(0, n_c, n_chunks + 1).astype(np.int64)
+    spans = np.zeros((n_chunks, 2), dtype=np.int64)
+    for c in range(n_chunks):
+        a, b = chunks[c], chunks[c + 1]
+        if a == b:
+            continue
+        jj = contacts.j[a:b]
+        jj = jj[jj >= 0]
+        lo = int(contacts.i[a:b].min())
+        hi = int(contacts.i[a:b].max())
+        if len(jj):
+            lo, hi = min(lo, int(jj.min())), max(hi, int(jj.max()))
+        spans[c] = lo, min(hi + 1, n_particles)
+    return chunks, spans
+
+
+def _chunked_scaled_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, scale, x, work,
+                           chunks, spans, buf, y):
+    """y = S K S x like :func:`_scaled_contact_matvec`, the contacts cut into runs
+    (``chunks``), one per thread, each summed into its own buffer ``buf[c]`` (n, nd) over
+    its particle range ``spans[c]``; the buffers are then added in run order (fixed: the
+    result does not depend on the scheduling). With one run it is bit-identical to the
+    serial product."""
+    n, nd = work.shape
+    n_chunks = chunks.shape[0] - 1
+    for p in prange(n):
+        for a in range(nd):
+            work[p, a] = scale[p, a] * x[p * nd + a]
+    for c in prange(n_chunks):
+        out = buf[c]
+        for p in range(spans[c, 0], spans[c, 1]):
+            for a in range(nd):
+                out[p, a] = 0.0
+        _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, work, out,
+                              chunks[c], chunks[c + 1])
+    for p in prange(n):
+        for a in range(nd):
+            s = 0.0
+            for c in range(n_chunks):
+                if spans[c, 0] <= p and p < spans[c, 1]:
+                    s += buf[c, p, a]
+            y[p * nd + a] = s * scale[p, a]
+
+
+_chunked_scaled_matvec_parallel, _chunked_scaled_matvec_serial = \
+    compile_parallel_and_serial(_chunked_scaled_matvec)
+
+
+def chunked_scaled_contact_matvec(contacts, k_n, k_t, rotation: bool, scale, x, work, chunks,
+                                  spans, buf, out=None, parallel: bool = True):
+    """S K S x for flat x like :func:`scaled_contact_matvec`, the contact runs
+    (:func:`contact_chunks`) summed in parallel into ``buf`` (n_chunks, n, nd)."""
+    y = np.empty(x.shape[0]) if out is None else out
+    kernel = _chunked_scaled_matvec_parallel if parallel else _chunked_scaled_matvec_serial
+    kernel(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j, k_n, k_t,
+           bool(rotation), scale, np.ascontiguousarray(x, dtype=np.float64), work, chunks,
+           spans, buf, y)
+    return y
+
+
+def _contact_quadratic_forms(i, j, normal, arm_i, arm_j, k_n, k_t, c_n, c_t, rotation, x,
+                             chunks, sums):
+    """sums[c] = (x.K x, x.C x) over the contacts of run c, K with springs ``k_n``,
+    ``k_t`` and C with ``c_n``, ``c_t`` (each the sum over contacts of
+    Delta.D Delta); x (n, nd) already scaled."""
+    dim = normal.shape[1]
+    nd = x.shape[1]
+    for r in prange(chunks.shape[0] - 1):
+        sk = 0.0
+        sc = 0.0
+        for c in range(chunks[r], chunks[r + 1]):
+            d0, d1, d2, n0, n1, n2 = _contact_slip(c, i, j, normal, arm_i, arm_j, x, dim, nd,
+                                                   rotation)
+            dn = d0 * n0 + d1 * n1 + d2 * n2
+            dt2 = max(d0 * d0 + d1 * d1 + d2 * d2 - dn * dn, 0.0)
+            sk += k_n[c] * dn * dn + k_t[c] * dt2
+            sc += c_n[c] * dn * dn + c_t[c] * dt2
+        sums[r, 0] = sk
+        sums[r, 1] = sc
+
+
+_quadratic_forms_parallel, _quadratic_forms_serial = \
+    compile_parallel_and_serial(_contact_quadratic_forms)
+
+
+def contact_quadratic_forms(contacts, rotation: bool, x, chunks=None, parallel: bool = False):
+    """(x.K x, x.C_d x) for DOFs x (n, nd) in one pass over the contacts: K with the
+    springs ``k_n``, ``k_s``, C_d with the dashpots ``c_n``, ``c_t`` [same units as
+    the springs times T]. The runs ``chunks`` are summed in order (deterministic)."""
+    if chunks is None:
+        chunks = np.array([0, contacts.n], dtype=np.int64)
+    sums = np.zeros((len(chunks) - 1, 2))
+    kernel = _quadratic_forms_parallel if parallel else _quadratic_forms_serial
+    kernel(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j,
+           contacts.k_n, contacts.k_s, contacts.c_n, contacts.c_t, bool(rotation),
+           np.ascontiguousarray(x, dtype=np.float64), chunks, sums)
+    total_k = 0.0
+    total_c = 0.0
+    for r in range(len(sums)):
+        total_k += sums[r, 0]
+        total_c += sums[r, 1]
+    return total_k, total_c
+
+
+def _contact_gram(i, j, normal, arm_i, arm_j, k_n, k_t, c_n, c_t, rotation, X, chunks,
+                  k_sums, c_sums):
+    """Upper triangles of X_a.K X_b and X_a.C X_b (a <= b) over the contacts of each
+    run r into k_sums[r], c_sums[r] (k, k); X (k, n, nd) already scaled."""
+    dim = normal.shape[1]
+    nd = X.shape[2]
+    nv = X.shape[0]
+    for r in prange(chunks.shape[0] - 1):
+        d = np.empty((nv, 4))
+        ks = k_sums[r]
+        cs = c_sums[r]
+        for c in range(chunks[r], chunks[r + 1]):
+            n0 = 0.0
+            n1 = 0.0
+            n2 = 0.0
+            for a in range(nv):
+                d0, d1, d2, n0, n1, n2 = _contact_slip(c, i, j, normal, arm_i, arm_j, X[a],
+                                                       dim, nd, rotation)
+                d[a, 0] = d0
+                d[a, 1] = d1
+                d[a, 2] = d2
+                d[a, 3] = d0 * n0 + d1 * n1 + d2 * n2
+            kn = k_n[c]
+            kt = k_t[c]
+            cn = c_n[c]
+            ct = c_t[c]
+            for a in range(nv):
+                for b in range(a, nv):
+                    nn = d[a, 3] * d[b, 3]
+                    tt = d[a, 0] * d[b, 0] + d[a, 1] * d[b, 1] + d[a, 2] * d[b, 2] - nn
+                    ks[a, b] += kn * nn + kt * tt
+                    cs[a, b] += cn * nn + ct * tt
+
+
+_gram_parallel, _gram_serial = compile_parallel_and_serial(_contact_gram)
+
+
+def contact_gram(contacts, rotation: bool, X, chunks=None, parallel: bool = False):
+    """(X K X^T, X C_d X^T) (k, k) for k DOF sets X (k, n, nd) in one pass over the
+    contacts (K with ``k_n``, ``k_s``; C_d with ``c_n``, ``c_t``); runs summed in order."""
+    if chunks is None:
+        chunks = np.array([0, contacts.n], dtype=np.int64)
+    nv = X.shape[0]
+    k_sums = np.zeros((len(chunks) - 1, nv, nv))
+    c_sums = np.zeros((len(chunks) - 1, nv, nv))
+    kernel = _gram_parallel if parallel else _gram_serial
+    kernel(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j,
+           contacts.k_n, contacts.k_s, contacts.c_n, contacts.c_t, bool(rotation),
+           np.ascontiguousarray(X, dtype=np.float64), chunks, k_sums, c_sums)
+    out = []
+    for sums in (k_sums, c_sums):
+        total = sums[0].copy()
+        for r in range(1, len(sums)):
+            total += sums[r]
+        upper = np.triu(total)
+        out.append(upper + np.triu(total, 1).T)
+    return out[0], out[1]
+
+
+# --- Lanczos vector operations (compiled: no BLAS thread pool on long vectors) -------
+
+@njit
+def _dot(v, w):
+    """v . w with 4 partial sums (no reassociation needed to pipeline)."""
+    n = w.shape[0]
+    m = n - n % 4
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    for p in range(0, m, 4):
+        s0 += v[p] * w[p]
+        s1 += v[p + 1] * w[p + 1]
+        s2 += v[p + 2] * w[p + 2]
+        s3 += v[p + 3] * w[p + 3]
+    for p in range(m, n):
+        s0 += v[p] * w[p]
+    return (s0 + s1) + (s2 + s3)
+
+
+@njit
+def _norm2(w):
+    return _dot(w, w)
+
+
+@njit
+def _dot2(v0, v1, w):
+    """(v0 . w, v1 . w) in one pass over w (2 partial sums each)."""
+    n = w.shape[0]
+    m = n - n % 2
+    a0 = 0.0
+    a1 = 0.0
+    b0 = 0.0
+    b1 = 0.0
+    for p in range(0, m, 2):
+        a0 += v0[p] * w[p]
+        a1 += v0[p + 1] * w[p + 1]
+        b0 += v1[p] * w[p]
+        b1 += v1[p + 1] * w[p + 1]
+    for p in range(m, n):
+        a0 += v0[p] * w[p]
+        b0 += v1[p] * w[p]
+    return a0 + a1, b0 + b1
+
+
+@njit
+def _row_dots(V, rows, w, out):
+    """out[a] = V[rows[a]] . w (two rows per pass over w)."""
+    nr = rows.shape[0]
+    a = 0
+    while a + 1 < nr:
+        out[a], out[a + 1] = _dot2(V[rows[a]], V[rows[a + 1]], w)
+        a += 2
+    if a < nr:
+        out[a] = _dot(V[rows[a]], w)
+
+
+@njit
+def _subtract_rows(V, rows, h, w):
+    """w -= sum_a h[a] V[rows[a]] (two rows per pass over w); returns |w|^2 after."""
+    n = w.shape[0]
+    nr = rows.shape[0]
+    a = 0
+    while a + 1 < nr:
+        v0 = V[rows[a]]
+        v1 = V[rows[a + 1]]
+        h0 = h[a]
+        h1 = h[a + 1]
+        for p in range(n):
+            w[p] -= h0 * v0[p] + h1 * v1[p]
+        a += 2
+    if a < nr:
+        v0 = V[rows[a]]
+        h0 = h[a]
+        for p in range(n):
+            w[p] -= h0 * v0[p]
+    return _norm2(w)
+
+
+@njit
+def _orthogonalize(V, rows, w, h):
+    """One classical Gram-Schmidt pass of w against the rows ``rows`` of V:
+    h = V[rows] w, w -= V[rows]^T h; returns |w|^2."""
+    _row_dots(V, rows, w, h)
+    return _subtract_rows(V, rows, h, w)
+
+
+@njit
+def _combine_rows(V, m, S, out):
+    """out[c] = sum_{i < m} S[i, c] V[i] (out (k, n) may be V[:k]: the rows are combined
+    block by block, each block read completely before it is written)."""
+    n = V.shape[1]
+    k = S.shape[1]
+    block = 1024
+    acc = np.empty((k, block))
+    for start in range(0, n, block):
+        stop = min(start + block, n)
+        size = stop - start
+        for c in range(k):
+            a = acc[c]
+            v = V[0, start:stop]
+            s = S[0, c]
+            for p in range(size):
+                a[p] = s * v[p]
+            for i in range(1, m):
+                v = V[i, start:stop]
+                s = S[i, c]
+                for p in range(size):
+                    a[p] += s * v[p]
+        for c in range(k):
+            o = out[c, start:stop]
+            a = acc[c]
+            for p in range(size):
+                o[p] = a[p]
+
+
+@njit
+def _rayleigh_residual(y, Ay):
+    """(theta, |Ay - theta y|) for a unit vector y."""
+    theta = _dot(y, Ay)
+    n = y.shape[0]
+    r0 = 0.0
+    r1 = 0.0
+    m = n - n % 2
+    for p in range(0, m, 2):
+        t0 = Ay[p] - theta * y[p]
+        t1 = Ay[p + 1] - theta * y[p + 1]
+        r0 += t0 * t0
+        r1 += t1 * t1
+    for p in range(m, n):
+        t0 = Ay[p] - theta * y[p]
+        r0 += t0 * t0
+    return theta, np.sqrt(r0 + r1)
+
+
+@njit
+def _scale_into(w, factor, out):
+    for p in range(w.shape[0]):
+        out[p] = w[p] * factor

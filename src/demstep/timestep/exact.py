@@ -10,13 +10,23 @@ top eigenvector of the symmetric matrix A(sigma_k) = sigma_k C^ + K^,
 
     sigma_{k+1} = (c_k + sqrt(c_k^2 + 4 k_k)) / 2,  c_k = q_k.C^ q_k,  k_k = q_k.K^ q_k,
 
-starting from sigma_0 = 0 (q_0 the top undamped mode). Every iterate is a value of the
-Rayleigh functional, so sigma_k increases to sigma_max (quadratically at the end), and
-each Lanczos solve is warm-started from the previous vector. The result is then
-certified: sigma_up = sigma (1 + margin) is accepted as an upper bound on sigma_max
-only when sigma_up^2 >= the residual-based upper bound on lambda_max(A(sigma_up))
-(that makes sigma_up^2 I - A(sigma_up) positive semi-definite, and sigma_max is the only
-root), else the margin grows. The certified step is 2 / sigma_up.
+starting from the best of the undamped solve's top Ritz vectors (q_0 the top undamped
+mode among them; :meth:`ScaledContactOperator.subspace_start`). Every iterate is a value
+of the Rayleigh functional, a lower bound on sigma_max; the iteration is Newton's method
+on lambda_max(A(sigma)) = sigma^2 (quadratic at the end). Only the vector's direction
+matters for the next iterate and its error enters quadratically, so the intermediate
+solves are loose (FIRST_TOL, then LOOSE_TOL; warm-started from the previous vector).
+
+The result is certified from above by one tight solve at a candidate
+t = sigma (1 + margin) just above the iterate: t is an upper bound on sigma_max when
+t^2 >= the residual-based upper bound on lambda_max(A(t)) (then t^2 I - A(t) is positive
+semi-definite, which it is not below sigma_max). When the residual is a little too
+large, the closed form from :meth:`ScaledContactOperator.damping_bound` (lambda_max(A)
+grows at most with slope lambda_max(C^) beyond t) may still give a bound within 1e-6;
+else the margin grows. When the certifying solve finds a larger eigenvalue than the
+loose ones did (its start holds a random share that it must reduce by 5 decades, so it
+explores the spectrum), t was below sigma_max and the iteration goes on. The certified
+step is 2 / sigma_up, at most about the margin (4e-9) below the exact one.
 
 Every product with K^ or C^ is computed from the contact list by a compiled kernel
 (no matrix is assembled: memory O(contacts)); systems up to
@@ -32,18 +42,52 @@ import scipy.sparse.linalg as spla
 
 from demstep.contacts import ContactSet
 from demstep.errors import InputError
-from demstep.kernels.timestep_kernels import contact_energies, contact_matvec, scaled_contact_matvec
+from demstep.kernels.timestep_kernels import (chunked_scaled_contact_matvec, contact_chunks,
+                                              contact_energies, contact_gram, contact_matvec,
+                                              contact_quadratic_forms, scaled_contact_matvec)
 from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
 from demstep.timestep.damping import GlobalDamping
-from demstep.timestep.eigen import DENSE_LIMIT, EIGSH_TOL, Eigenpair, top_eigenpair
+from demstep.timestep.eigen import (DENSE_LIMIT, EIGSH_TOL, WARM_START_MIX, Eigenpair,
+                                    top_eigenpair)
 from demstep.timestep.elements import dofs_per_particle
 from demstep.timestep.stability import damped_sigma
 
 #: relative convergence of the safeguarded iteration
 SIGMA_RTOL = 1e-10
-#: first relative margin tried when certifying sigma_max from above
-CERTIFY_MARGIN = 1e-9
+#: relative margin of the first candidate upper bound t = sigma (1 + margin) on the
+#: Lanczos path (the certifying solve needs a residual of about margin / 4: the
+#: certified step is at most ~4e-9 below the exact one); on the dense path
+CERTIFY_MARGIN = 4e-9
+DENSE_CERTIFY_MARGIN = 1e-11
+#: the closed-form upper bound is accepted within this of the iterate
+CLOSED_FORM_RTOL = 1e-8
+#: eigen-tolerances of the intermediate solves of the safeguarded iteration: each only
+#: needs a vector good enough for a Rayleigh-functional value, whose error is quadratic
+#: in the vector's (measured: benchmarks/RESULTS.md, "Exact damped step: solver
+#: choices"). The first (the damped mode is new: its vector is only a start for the
+#: next) at FIRST_TOL, the next ones at LOOSE_TOL.
+FIRST_TOL = 1e-3
+LOOSE_TOL = 1e-6
+#: the certifying solve starts once a LOOSE_TOL solve moved the iterate by less than
+#: this (relative); the iterate is then within ~TIGHT_SWITCH^2 of sigma_max
+TIGHT_SWITCH = 1e-4
+#: random share mixed into the warm starts (the previous iterate's vector) of the
+#: intermediate solves and of the certifying solves; the first solve (from the
+#: caller's ``v0``) mixes in eigen.WARM_START_MIX. A certifying solve must bring the
+#: residual from about CERTIFY_MIX down to its tolerance (5 decades), so it explores
+#: the spectrum beyond the warm start, as the 1 % mix of every solve did before; the
+#: intermediate solves certify nothing
+CHAIN_MIX = 1e-6
+CERTIFY_MIX = 1e-4
+#: top Ritz vectors of the undamped solve searched for the damped iteration's start
+START_BLOCK = 4
+#: contacts from which the products run on several threads (when numba has them). Each
+#: product is three parallel regions; on a 2-core machine shared with other work a
+#: region can wait for a descheduled thread, which cost 20x at 3e4 contacts (0.07 s ->
+#: 1.4 s, loose 1e4), while an idle machine runs a product 1.6-1.8x faster on 2 threads
+#: at 3e5 contacts (benchmarks/RESULTS.md)
+PARALLEL_MIN_CONTACTS = 100_000
 
 
 class ScaledContactOperator:
@@ -55,7 +99,8 @@ class ScaledContactOperator:
     A(sigma) = sigma C^ + K^ is a shift added by the caller."""
 
     def __init__(self, particles: Particles, contacts: ContactSet, rotation: bool,
-                 damping: GlobalDamping | None = None, bodies=None):
+                 damping: GlobalDamping | None = None, bodies=None,
+                 threads: int | None = None):
         if contacts.n and contacts.dim != particles.dim:
             raise InputError(f"contacts: dimension {contacts.dim} does not match the "
                              f"particles' {particles.dim}")
@@ -75,6 +120,15 @@ class ScaledContactOperator:
             check_bodies(particles, self.bodies)
             self.owner_map = OwnerMap(self.scale, self.bodies, particles.dim, self.rotation)
             self.size = self.owner_map.n_owners * self.nd
+        if threads is None:
+            import numba
+
+            threads = numba.get_num_threads() if contacts.n >= PARALLEL_MIN_CONTACTS else 1
+        #: number of contact runs summed in parallel (1: the serial product)
+        self.threads = max(1, min(int(threads), max(contacts.n, 1)))
+        self._chunks, self._spans = contact_chunks(contacts, particles.n, self.threads)
+        self._buf = (np.empty((self.threads, particles.n, self.nd)) if self.threads > 1
+                     else None)
 
     def springs(self, sigma: float):
         """(k_n, k_t) per contact of the pencil at ``sigma``."""
@@ -85,16 +139,24 @@ class ScaledContactOperator:
         return ((1.0 + sigma * a2) * c.k_n + sigma * c.c_n,
                 (1.0 + sigma * a2) * c.k_s + sigma * c.c_t)
 
-    def apply(self, x: np.ndarray, k_n, k_t) -> np.ndarray:
-        """S K(k_n, k_t) S x for flat x (size,) (with bodies: G^T K G through the owner
-        map, :mod:`demstep.timestep.bodies`)."""
-        if self.owner_map is None:
-            return scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation, self.scale,
-                                         x, self._work)
-        om = self.owner_map
-        u = om.expand(np.asarray(x).reshape(om.n_owners, self.nd), self.particles.n)
-        y = contact_matvec(self.contacts, k_n, k_t, self.rotation, u)
-        return om.reduce(y).reshape(-1)
+    def apply(self, x: np.ndarray, k_n, k_t, out: np.ndarray | None = None) -> np.ndarray:
+        """S K(k_n, k_t) S x for flat x (size,) (into ``out`` when given); on
+        ``threads`` > 1 the contact runs are summed in parallel; with bodies, G^T K G
+        through the owner map (:mod:`demstep.timestep.bodies`)."""
+        if self.owner_map is not None:
+            om = self.owner_map
+            u = om.expand(np.asarray(x).reshape(om.n_owners, self.nd), self.particles.n)
+            y = om.reduce(contact_matvec(self.contacts, k_n, k_t, self.rotation, u)).reshape(-1)
+            if out is None:
+                return y
+            out[:] = y
+            return out
+        if self.threads > 1:
+            return chunked_scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation,
+                                                 self.scale, x, self._work, self._chunks,
+                                                 self._spans, self._buf, out)
+        return scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation, self.scale,
+                                     x, self._work, out)
 
     def stiffness(self, x):
         return self.apply(x, self.contacts.k_n, self.contacts.k_s)
@@ -104,8 +166,7 @@ class ScaledContactOperator:
 
     def pencil(self, sigma: float) -> spla.LinearOperator:
         k_n, k_t = self.springs(sigma)
-        return spla.LinearOperator((self.size, self.size), dtype=np.float64,
-                                   matvec=lambda x: self.apply(np.ravel(x), k_n, k_t))
+        return _Pencil(self, k_n, k_t)
 
     def dense_pencil(self, sigma: float) -> np.ndarray:
         k_n, k_t = self.springs(sigma)
@@ -116,16 +177,54 @@ class ScaledContactOperator:
                                   scale=self.scale.reshape(-1)).toarray()
 
     def top(self, sigma: float, v0=None, dense_limit: int = DENSE_LIMIT,
-            tol: float = EIGSH_TOL) -> Eigenpair:
+            tol: float = EIGSH_TOL, solver: str = "lanczos",
+            mix: float = WARM_START_MIX, stop_above: float = np.inf,
+            stop_tol: float = 0.0, block: int = 0) -> Eigenpair:
         """Top eigenpair of the pencil at ``sigma`` (without the a1 shift)."""
         return top_eigenpair(self.pencil(sigma), v0=v0, dense_limit=dense_limit, tol=tol,
-                             dense=lambda: self.dense_pencil(sigma))
+                             dense=lambda: self.dense_pencil(sigma), solver=solver, mix=mix,
+                             stop_above=stop_above, stop_tol=stop_tol, block=block)
 
     def rayleigh_terms(self, q: np.ndarray):
-        """(k_q, c_q): q.K^ q and q.C^ q for a unit vector q (C^ with a1 and a2)."""
-        kq = float(q @ self.stiffness(q))
-        cq = float(q @ self.dashpots(q)) if self.contacts.damped else 0.0
+        """(k_q, c_q): q.K^ q and q.C^ q for a unit vector q (C^ with a1 and a2), summed
+        over the contacts in one pass (Delta.D Delta per contact)."""
+        kq, cq = contact_quadratic_forms(self.contacts, self.rotation, self.displacement(q),
+                                         self._chunks, parallel=self.threads > 1)
         return kq, cq + self.damping.mass + self.damping.stiffness * kq
+
+    def subspace_start(self, Y: np.ndarray):
+        """Rayleigh-Ritz of the damped problem on span(Y) (Y (k, size) orthonormal, e.g.
+        the top Ritz vectors of the undamped solve): the largest root of the projected
+        det(s^2 I - s C_p - K_p) = 0, by the safeguarded iteration on k x k matrices
+        (both projections from one pass over the contacts), and its vector in span(Y)
+        (unit). A start for the damped iteration: the critical mode is often one of the
+        undamped top modes, not the top one (measured: dense packing, overlap 0.98 with
+        the 2nd-8th)."""
+        import scipy.linalg
+
+        k = Y.shape[0]
+        if self.owner_map is not None:
+            X = np.stack([self.displacement(y) for y in Y])
+        else:
+            X = self.scale[None] * Y.reshape(k, *self.scale.shape)
+        K_p, C_p = contact_gram(self.contacts, self.rotation, X, self._chunks,
+                                parallel=self.threads > 1)
+        d = self.damping
+        C_p = C_p + d.stiffness * K_p + d.mass * np.eye(k)
+        s = 0.0
+        u = np.eye(k)[0]
+        for _ in range(100):
+            _, U = scipy.linalg.eigh(s * C_p + K_p)
+            u = U[:, -1]
+            new = float(damped_sigma(float(u @ K_p @ u), float(u @ C_p @ u)))
+            if new <= s * (1.0 + 1e-14):
+                break
+            s = new
+        from demstep.kernels.timestep_kernels import _combine_rows
+
+        z = np.empty((1, Y.shape[1]))
+        _combine_rows(Y, k, np.ascontiguousarray(u[:, None]), z)
+        return z[0] / np.linalg.norm(z[0])
 
     def damping_bound(self) -> float:
         """An upper bound on lambda_max(C^) [1/T] (C^ with a1, a2 and the dashpots) from
@@ -180,6 +279,24 @@ class ScaledContactOperator:
         return self.scale * q.reshape(self.scale.shape)
 
 
+class _Pencil(spla.LinearOperator):
+    """The pencil K(k_n, k_t) of a :class:`ScaledContactOperator` as a LinearOperator
+    with ``matvec_into(x, out)`` for the Lanczos iteration."""
+
+    def __init__(self, op: ScaledContactOperator, k_n, k_t):
+        super().__init__(np.float64, (op.size, op.size))
+        self.op, self.k_n, self.k_t = op, k_n, k_t
+
+    def _matvec(self, x):
+        return self.op.apply(np.ravel(x), self.k_n, self.k_t)
+
+    def _rmatvec(self, x):
+        return self._matvec(x)
+
+    def matvec_into(self, x, out):
+        self.op.apply(x, self.k_n, self.k_t, out)
+
+
 @dataclass
 class ExactStep:
     """The exact critical step of an assembly.
@@ -190,7 +307,7 @@ class ExactStep:
     ``lambda_undamped`` [1/T^2]: the Ritz value of lambda_max(M^-1 K);
     ``mode`` (size,): the critical mode, unit and mass-scaled (q = M^1/2 u);
     ``iterations``: safeguarded iterations (0 undamped); ``damped``: whether damping
-    entered."""
+    entered; ``matvecs``: products with the operator (0 on the dense path)."""
 
     dt: float
     dt_undamped: float
@@ -200,54 +317,105 @@ class ExactStep:
     iterations: int
     damped: bool
     operator: ScaledContactOperator
+    matvecs: int = 0
 
 
 def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bool,
                         damping: GlobalDamping | None = None, v0: np.ndarray | None = None,
                         dense_limit: int = DENSE_LIMIT, rtol: float = SIGMA_RTOL,
-                        max_iter: int = 100, bodies=None) -> ExactStep:
+                        max_iter: int = 100, tol: float = EIGSH_TOL,
+                        loose_tol: float = LOOSE_TOL, threads: int | None = None,
+                        solver: str = "lanczos", bodies=None) -> ExactStep:
     """Exact (and certified) critical step, with contact dashpots and global damping when
-    present; ``v0`` warm-starts the eigensolver (a previous ``mode``); ``bodies``
+    present; ``v0`` warm-starts the eigensolver (a previous ``mode``).
+
+    ``tol``: relative residual of the undamped solve (the certifying damped solves use
+    max(tol, CERTIFY_MARGIN / 4)); ``loose_tol``: that of the intermediate solves of
+    the safeguarded iteration (with ``loose_tol <= tol`` every step is a certifying
+    one); ``rtol``: the smallest increase of the iterate that counts as progress;
+    ``threads``: contact runs summed in parallel in each product (None: numba's threads
+    from :data:`PARALLEL_MIN_CONTACTS` contacts on); ``solver``: "lanczos" or "arpack"
+    (scipy's eigsh, the earlier solver, for comparison); ``bodies``
     (:class:`demstep.timestep.bodies.RigidBodies`): clumps, six DOFs each."""
-    op = ScaledContactOperator(particles, contacts, rotation, damping, bodies)
+    op = ScaledContactOperator(particles, contacts, rotation, damping, bodies, threads=threads)
     if contacts.n == 0 and not op.damping.mass:
         raise InputError("contacts: the assembly has no contacts")
-    top = op.top(0.0, v0=v0, dense_limit=dense_limit)
+    damped = contacts.damped or op.damping.active
+    top = op.top(0.0, v0=v0, dense_limit=dense_limit, tol=tol, solver=solver,
+                 block=START_BLOCK if damped else 0)
+    matvecs = top.matvecs
     lam = top.value
     dt_undamped = 2.0 / np.sqrt(top.upper) if top.upper > 0 else np.inf
-    damped = contacts.damped or op.damping.active
     if not damped:
         return ExactStep(float(dt_undamped), float(dt_undamped), float(np.sqrt(lam)), lam,
-                         top.vector, 0, False, op)
+                         top.vector, 0, False, op, matvecs)
     a1 = op.damping.mass
+    lam_c = op.damping_bound()
+
+    def closed_form_upper(pair: Eigenpair, s: float, bound: float) -> float:
+        """The root of t^2 = U + (t - s) Lambda_C, U = ``bound`` >= lambda_max(A(s))."""
+        return float(damped_sigma(max(bound - s * lam_c, 0.0), lam_c))
+
     q = top.vector
     sigma = float(damped_sigma(*op.rayleigh_terms(q)))
+    candidates = []
+    if top.block is not None and len(top.block) > 1:
+        # the best vector for the damped problem among the undamped solve's top Ritz
+        # vectors (a lower bound on sigma_max like any other)
+        candidates.append(op.subspace_start(top.block))
+    if v0 is not None and v0.shape == (op.size,) and np.all(np.isfinite(v0)) and v0.any():
+        candidates.append(v0 / np.linalg.norm(v0))  # a previous (damped) critical mode
+    for z in candidates:
+        sigma_z = float(damped_sigma(*op.rayleigh_terms(z)))
+        if sigma_z > sigma:
+            q, sigma = z, sigma_z
+    dense_path = op.size <= dense_limit
+    margin = DENSE_CERTIFY_MARGIN if dense_path else max(CERTIFY_MARGIN, 4.0 * tol)
+    certify_tol = margin / 4.0
+    solve_tol = max(FIRST_TOL, loose_tol) if loose_tol > tol and not dense_path else tol
     iterations = 0
-    while iterations < max_iter:
+    while True:
         iterations += 1
-        top = op.top(sigma, v0=q, dense_limit=dense_limit)
+        if iterations > max_iter:  # pragma: no cover - the iteration converges for PSD K, C
+            raise RuntimeError("exact damped step: could not certify sigma_max")
+        if solve_tol > tol:
+            # an intermediate step of the safeguarded iteration: a loose solve at sigma
+            top = op.top(sigma, v0=q, dense_limit=dense_limit, tol=solve_tol,
+                         solver=solver, mix=CHAIN_MIX)
+            matvecs += top.matvecs
+            q = top.vector
+            new = float(damped_sigma(*op.rayleigh_terms(q)))
+            step = (new - sigma) / sigma
+            solve_tol = tol if step <= TIGHT_SWITCH and solve_tol <= loose_tol else loose_tol
+            sigma = max(sigma, new)
+            continue
+        # a certifying step: a tight solve at the candidate t just above the iterate.
+        # t is an upper bound on sigma_max when t^2 >= the residual bound of
+        # lambda_max(A(t)) (then t^2 I - A(t) is positive semi-definite; below sigma_max
+        # it is not). Else the closed form from the same solve may still bound it: for
+        # s >= t, lambda_max(A(s)) <= U + (s - t) Lambda_C with U that residual bound and
+        # Lambda_C >= lambda_max(C^) from the (rigorous) element bounds of K and C_d, so
+        # the root of s^2 = U + (s - t) Lambda_C is one. Lanczos stops early once its
+        # Ritz value (a lower bound) shows that t is below sigma_max, with a vector as
+        # good as an intermediate solve's: then it was a step of the iteration.
+        t = sigma * (1.0 + margin)
+        top = op.top(t, v0=q, dense_limit=dense_limit, tol=certify_tol, solver=solver,
+                     mix=CERTIFY_MIX, stop_above=t * t - a1 * t, stop_tol=loose_tol)
+        matvecs += top.matvecs
         q = top.vector
         new = float(damped_sigma(*op.rayleigh_terms(q)))
-        converged = new <= sigma * (1.0 + rtol)
-        sigma = max(sigma, new)
-        if converged:
+        bound = top.upper + a1 * t
+        up = t if t * t >= bound else closed_form_upper(top, t, bound)
+        lower = max(sigma, new)
+        if up <= lower * (1.0 + CLOSED_FORM_RTOL):
+            sigma = lower
             break
-    # certify from above. First in closed form: for s >= sigma, lambda_max(A(s)) <=
-    # U + (s - sigma) Lambda_C with U the residual bound at sigma and Lambda_C >=
-    # lambda_max(C^) from the (rigorous) element bounds of K and C_d; sigma_up is the
-    # root of s^2 = U + (s - sigma) Lambda_C. When that bound is loose, check candidates
-    # with the solver: sigma_up^2 >= upper bound of lambda_max(A(sigma_up)).
-    upper = top.upper + a1 * sigma
-    lam_c = op.damping_bound()
-    up = float(damped_sigma(max(upper - sigma * lam_c, 0.0), lam_c))
-    if not up <= sigma * (1.0 + 1e-6):
-        margin = CERTIFY_MARGIN
-        for _ in range(60):
-            up = sigma * (1.0 + margin)
-            check = op.top(up, v0=q, dense_limit=dense_limit)
-            if up * up >= check.upper + a1 * up:
-                break
-            margin *= 4.0
-        else:  # pragma: no cover - the iteration always converges for PSD K, C
-            raise RuntimeError("exact damped step: could not certify sigma_max")
-    return ExactStep(float(2.0 / up), float(dt_undamped), sigma, lam, q, iterations, True, op)
+        if new > sigma * (1.0 + rtol):
+            # t was below sigma_max: the iteration goes on from new (the exploration of
+            # the certifying solve found a larger eigenvalue than the loose solves)
+            sigma = new
+        else:
+            margin *= 4.0  # the residual was too large for this margin
+            certify_tol = margin / 4.0
+    return ExactStep(float(2.0 / up), float(dt_undamped), sigma, lam, q, iterations, True, op,
+                     matvecs)

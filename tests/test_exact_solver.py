@@ -1,0 +1,166 @@
+"""The matrix-free eigensolver of the exact step: threaded products against the serial
+ones and the assembled matrices, the one-pass Rayleigh terms and projections, the
+thick-restart Lanczos iteration against dense eigh, and the damped iteration with loose
+intermediate solves against all-tight ones, ARPACK and the dense path."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from conftest import random_polydisperse
+from demstep.kernels.timestep_kernels import (_chunked_scaled_matvec_parallel,
+                                              _chunked_scaled_matvec_serial, contact_chunks,
+                                              contact_gram, contact_quadratic_forms)
+from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
+from demstep.timestep.damping import GlobalDamping
+from demstep.timestep.eigen import lanczos_top, top_eigenpair
+from demstep.timestep.exact import ScaledContactOperator, exact_critical_step
+
+
+def damped_assembly(seed, dim, n=64, walls=True, fixed=True):
+    p, c = random_polydisperse(seed, dim, n=n, walls=walls, fixed=fixed)
+    rng = np.random.default_rng(seed)
+    return p, replace(c, c_n=rng.uniform(0.0, 0.5, c.n), c_t=rng.uniform(0.0, 0.5, c.n))
+
+
+def assembled(p, c, rotation, k_n, k_t):
+    s = inverse_sqrt_mass(p, rotation)
+    return assemble_stiffness(p, replace(c, k_n=k_n, k_s=k_t), rotation, scale=s).toarray()
+
+
+@pytest.mark.parametrize("dim,rotation", [(2, True), (3, True), (3, False)])
+@pytest.mark.parametrize("shuffle", [False, True])
+def test_threaded_product_equals_serial_and_assembled(dim, rotation, shuffle):
+    """Contact runs summed into per-run buffers: one run is bit-identical to the serial
+    product, several agree to rounding, parallel and serial compilations of the same runs
+    are bit-identical (fixed order), and all equal the assembled S K S x; in any contact
+    order (shuffled: the runs' particle ranges overlap)."""
+    p, c = damped_assembly(7 + dim, dim)
+    if shuffle:
+        c = c.subset(np.random.default_rng(1).permutation(c.n))
+    x = np.random.default_rng(2).standard_normal(
+        p.n * (dim + (dim * (dim - 1) // 2 if rotation else 0)))
+    serial = ScaledContactOperator(p, c, rotation, threads=1)
+    ref = assembled(p, c, rotation, c.k_n, c.k_s) @ x
+    y_serial = serial.stiffness(x)
+    np.testing.assert_allclose(y_serial, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+    for runs in (1, 3, 7):
+        chunks, spans = contact_chunks(c, p.n, runs)
+        buf = np.empty((runs, p.n, serial.nd))
+        out = {}
+        for name, kernel in (("parallel", _chunked_scaled_matvec_parallel),
+                             ("serial", _chunked_scaled_matvec_serial)):
+            y = np.empty_like(x)
+            kernel(c.i, c.j, c.normal, c.arm_i, c.arm_j, c.k_n, c.k_s, rotation,
+                   serial.scale, x, np.empty_like(serial.scale), chunks, spans, buf, y)
+            out[name] = y
+        np.testing.assert_array_equal(out["parallel"], out["serial"])
+        if runs == 1:
+            np.testing.assert_array_equal(out["serial"], y_serial)
+        np.testing.assert_allclose(out["serial"], ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+    threaded = ScaledContactOperator(p, c, rotation, threads=3)
+    assert threaded.threads == 3
+    np.testing.assert_allclose(threaded.dashpots(x), assembled(p, c, rotation, c.c_n, c.c_t) @ x,
+                               rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_rayleigh_terms_and_projections_match_assembled(dim):
+    p, c = damped_assembly(3 + dim, dim)
+    d = GlobalDamping(0.2, 0.05)
+    K = assembled(p, c, True, c.k_n, c.k_s)
+    Cd = assembled(p, c, True, c.c_n, c.c_t)
+    rng = np.random.default_rng(dim)
+    for threads in (1, 4):
+        op = ScaledContactOperator(p, c, True, d, threads=threads)
+        q = rng.standard_normal(op.size)
+        q /= np.linalg.norm(q)
+        kq, cq = op.rayleigh_terms(q)
+        assert kq == pytest.approx(q @ K @ q, rel=1e-12)
+        assert cq == pytest.approx(q @ Cd @ q + 0.2 + 0.05 * (q @ K @ q), rel=1e-12)
+        Y = rng.standard_normal((5, op.size))
+        X = op.scale[None] * Y.reshape(5, *op.scale.shape)
+        K_p, C_p = contact_gram(c, True, X, op._chunks, parallel=threads > 1)
+        np.testing.assert_allclose(K_p, Y @ K @ Y.T, rtol=1e-11, atol=1e-11 * np.abs(K_p).max())
+        np.testing.assert_allclose(C_p, Y @ Cd @ Y.T, rtol=1e-11, atol=1e-11 * np.abs(C_p).max())
+        x = op.displacement(q)
+        assert contact_quadratic_forms(c, True, x, op._chunks, parallel=True) == \
+            contact_quadratic_forms(c, True, x, op._chunks, parallel=False)
+
+
+def spectrum_matrix(n, top, seed):
+    """A symmetric PSD matrix with the given top eigenvalues above a random spectrum."""
+    rng = np.random.default_rng(seed)
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    w = np.sort(rng.uniform(0.0, 0.9, n))
+    w[n - len(top):] = np.sort(top)
+    return (Q * w) @ Q.T, w
+
+
+@pytest.mark.parametrize("top", [[1.0], [1.0, 1.0], [1.0, 1.0 - 1e-7, 0.999], [1.0, 0.95]])
+@pytest.mark.parametrize("basis,keep", [(40, 8), (8, 2)])
+def test_lanczos_finds_the_top_eigenpair(top, basis, keep):
+    """Against dense eigh: well separated, exactly double, nearly double (1e-7) and
+    clustered tops, with a basis large and small enough to restart many times."""
+    A, w = spectrum_matrix(400, top, 5)
+    start = np.random.default_rng(0).standard_normal(400)
+    theta, y, matvecs, _ = lanczos_top(lambda x, out: np.matmul(A, x, out=out), start,
+                                       tol=1e-10, basis=basis, keep=keep)
+    assert 0 < matvecs < 2000
+    assert theta == pytest.approx(w[-1], rel=1e-9)
+    assert theta <= w[-1] * (1 + 1e-12)
+    r = np.linalg.norm(A @ y - (y @ A @ y) * y)
+    assert r <= 1e-9 * w[-1]
+    pair = top_eigenpair(A, v0=y, dense_limit=0, tol=1e-10)
+    assert pair.value <= w[-1] * (1 + 1e-12) <= pair.upper * (1 + 1e-12)
+
+
+def test_lanczos_stops_once_above_a_threshold():
+    A, w = spectrum_matrix(300, [1.0, 0.99], 2)
+    start = np.random.default_rng(1).standard_normal(300)
+    full = lanczos_top(lambda x, out: np.matmul(A, x, out=out), start, tol=1e-12)
+    early = lanczos_top(lambda x, out: np.matmul(A, x, out=out), start, tol=1e-12,
+                        stop_above=0.98, stop_tol=1e-2)
+    assert early[0] > 0.98 and early[2] < full[2]
+
+
+def test_lanczos_returns_the_top_ritz_block():
+    A, w = spectrum_matrix(300, [1.0, 0.99, 0.98, 0.97], 3)
+    start = np.random.default_rng(2).standard_normal(300)
+    theta, y, _, Y = lanczos_top(lambda x, out: np.matmul(A, x, out=out), start, tol=1e-12,
+                                 block=3)
+    assert Y.shape == (3, 300)
+    np.testing.assert_allclose(Y @ Y.T, np.eye(3), atol=1e-10)
+    np.testing.assert_allclose(np.diag(Y @ A @ Y.T), w[::-1][:3], rtol=1e-8)
+    assert abs(Y[0] @ y) == pytest.approx(1.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("dim,seed", [(2, 1), (3, 2), (3, 3)])
+def test_loose_intermediate_solves_give_the_tight_result(dim, seed):
+    """Sparse path (dense_limit=0) on small damped assemblies: loose intermediate solves
+    (default), every solve tight, ARPACK, and the dense path agree within 1e-8, and the
+    certified step is never above the dense one's exact root."""
+    p, c = damped_assembly(seed, dim, n=40)
+    d = GlobalDamping(0.1, 0.01)
+    dense = exact_critical_step(p, c, True, d, dense_limit=10**6)
+    loose = exact_critical_step(p, c, True, d, dense_limit=0)
+    tight = exact_critical_step(p, c, True, d, dense_limit=0, loose_tol=1e-10)
+    arpack = exact_critical_step(p, c, True, d, dense_limit=0, solver="arpack")
+    threaded = exact_critical_step(p, c, True, d, dense_limit=0, threads=3)
+    for r in (loose, tight, arpack, threaded):
+        assert r.dt == pytest.approx(dense.dt, rel=1e-8)
+        assert r.dt <= 2.0 / dense.sigma * (1 + 1e-12)
+        assert r.dt_undamped == pytest.approx(dense.dt_undamped, rel=1e-8)
+    assert loose.matvecs > 0 and loose.iterations >= 2
+
+
+def test_undamped_sparse_step_matches_dense_eigh():
+    p, c = random_polydisperse(4, 3, n=64, walls=True)
+    op = ScaledContactOperator(p, c, True)
+    lam = scipy.linalg.eigh(op.dense_pencil(0.0), eigvals_only=True)[-1]
+    r = exact_critical_step(p, c, True, dense_limit=0)
+    assert r.lambda_undamped == pytest.approx(lam, rel=1e-10)
+    assert r.dt <= 2.0 / np.sqrt(lam) * (1 + 1e-12)
+    assert r.dt == pytest.approx(2.0 / np.sqrt(lam), rel=1e-9)
