@@ -369,6 +369,29 @@ def test_pair_list_with_far_particles_equals_brute_force():
         assert set(zip(pi.tolist(), pj.tolist())) == reference.brute_force_pairs(y[:-2], r[:-2], 0.1)
 
 
+def test_piled_particles_are_refused_before_the_pair_search_allocates():
+    """A lattice scaled into a periodic box a thousand times too small (found by the case
+    fuzzer) made the pair list grow as N^2 until 12 GB: the search refuses with the cell
+    it found; a dense packing with a size ratio of 10 still passes."""
+    from demstep.errors import InputError
+
+    rng = np.random.default_rng(5)
+    n = 4000
+    r = np.full(n, 0.5)
+    x = rng.uniform(0, 3.5, (n, 3))  # 4000 spheres of 0.52 each in a box of 43
+    with pytest.raises(InputError, match="within one neighbour cell"):
+        build_pair_list(x, r, 0.1, np.full(3, 3.5))
+    # bidisperse, size ratio 10: 4 large spheres and 3000 small ones in the gaps
+    big = np.array([[2.5, 2.5, 2.5], [7.5, 2.5, 2.5], [2.5, 7.5, 2.5], [7.5, 7.5, 7.5]])
+    small = rng.uniform(0, 10, (20000, 3))
+    gap = np.min(np.linalg.norm(small[:, None, :] - big[None], axis=2), axis=1) > 2.6
+    small = small[gap][:3000]
+    y = np.vstack([big, small])
+    s = np.concatenate([np.full(4, 2.5), np.full(len(small), 0.25)])
+    pi, pj = build_pair_list(y, s, 0.05, np.zeros(3))
+    assert set(zip(pi.tolist(), pj.tolist())) == reference.brute_force_pairs(y, s, 0.05)
+
+
 def test_far_particle_runs_and_an_absurd_one_is_refused(tmp_path, capsys):
     case = pair_case(tmp_path, ["0,0,0,0.4", "1e7,1e7,1e7,0.4"])
     code, _, err = cli(["run", case, "--out", tmp_path / "out"], capsys)

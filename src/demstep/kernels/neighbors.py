@@ -241,6 +241,7 @@ def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None 
         ncell[k] = max(1, ncell[k] // 2)
         cell[k] = (periodic_len[k] if periodic_len[k] > 0 else hi[k] - lo[k]) / ncell[k]
         cell[k] = max(cell[k], reach)
+    _check_crowding(x, r, lo, cell, ncell)
     n_threads = numba.get_num_threads()
     expected = 4 * len(r) if expected_pairs is None else int(expected_pairs)
     capacity = int(1.5 * expected / n_threads) + 1024
@@ -249,6 +250,34 @@ def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None 
     if needed:  # a thread's buffer was too small: once more with the size it needed
         pi, pj, needed = _build_pairs(*args, int(needed))
     return pi, pj
+
+
+#: the most solid volume one cell of the neighbour grid (a side of 2 r_max + skin) may
+#: hold, as a multiple of the cell's volume, before the search refuses: a packing fills
+#: at most about 0.74 of it (disks counted as spheres, less); several times the cell
+#: means particles piled on one another, and the pair list would grow as the square of
+#: their number (a periodic box far smaller than the particles' extent, say)
+MAX_CELL_FILL = 8.0
+
+
+def _check_crowding(x, r, lo, cell, ncell):
+    """InputError when the spheres in one cell of the grid have more than
+    :data:`MAX_CELL_FILL` times its volume (checked before the pair search allocates
+    anything; a size ratio of 100 in a dense packing stays far below)."""
+    if len(x) <= 64:
+        return
+    idx = np.floor((x - lo) / cell).astype(np.int64)
+    idx = np.clip(idx, 0, ncell - 1)
+    flat = (idx[:, 0] * ncell[1] + idx[:, 1]) * ncell[2] + idx[:, 2]
+    solid = np.bincount(flat, weights=(4.0 / 3.0 * np.pi) * r ** 3)
+    fill = float(solid.max()) / float(np.prod(cell))
+    if fill > MAX_CELL_FILL:
+        worst = int(np.argmax(solid))
+        count = int(np.count_nonzero(flat == worst))
+        raise InputError(f"particles: {count} particles lie within one neighbour cell (a side of "
+                         f"{float(cell.min()):.3g}) with {fill:.3g} times its volume: they "
+                         f"overlap heavily (a periodic box much smaller than the particles' "
+                         f"extent, or overlapping input positions)")
 
 
 @njit(parallel=True)
