@@ -47,12 +47,22 @@ def _bin(x, lo, inv_cell, ncell):
     return start, members
 
 
+#: the most solid volume one cell of the neighbour grid (a side of 2 r_max + skin) may
+#: hold, as a multiple of the cell's volume, before the search refuses: a packing fills
+#: at most about 0.74 of it (disks counted as spheres, less); several times the cell
+#: means particles piled on one another, and the pair list would grow as the square of
+#: their number (a periodic box far smaller than the particles' extent, say)
+MAX_CELL_FILL = 8.0
+
+
 @njit(parallel=True)
 def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capacity):
     """One sweep of a half stencil (each cell against itself and its 13 forward
     neighbours: z + 1 and the columns (x, y + 1), (x + 1, y - 1 .. y + 1)), each of ``n_threads`` chunks over its own run of cells, pairs written
     to per-chunk buffers of ``capacity``; then a counting sort into rows i < j, each row sorted.
-    Returns (pi, pj, needed): ``needed`` > 0 (pi, pj empty) when a buffer overflowed."""
+    Returns (pi, pj, needed): ``needed`` > 0 (pi, pj empty) when a buffer overflowed,
+    -1 when a cell holds more than :data:`MAX_CELL_FILL` times its volume in spheres
+    (found before the buffers are allocated)."""
     n = x.shape[0]
     len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
     n0, n1, n2 = ncell[0], ncell[1], ncell[2]
@@ -65,6 +75,13 @@ def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capac
         q = members[m]
         xs[m, 0], xs[m, 1], xs[m, 2] = x[q, 0], x[q, 1], x[q, 2]
         rs[m] = r[q]
+    limit = MAX_CELL_FILL / (inv_cell[0] * inv_cell[1] * inv_cell[2] * (4.0 / 3.0 * np.pi))
+    for c in range(ncells):
+        solid = 0.0
+        for m in range(start[c], start[c + 1]):
+            solid += rs[m] ** 3
+        if solid > limit:
+            return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64), -1
     # runs of cells holding about equal numbers of particles
     bounds = np.empty(n_threads + 1, dtype=np.int64)
     bounds[0] = 0
@@ -241,43 +258,33 @@ def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None 
         ncell[k] = max(1, ncell[k] // 2)
         cell[k] = (periodic_len[k] if periodic_len[k] > 0 else hi[k] - lo[k]) / ncell[k]
         cell[k] = max(cell[k], reach)
-    _check_crowding(x, r, lo, cell, ncell)
     n_threads = numba.get_num_threads()
     expected = 4 * len(r) if expected_pairs is None else int(expected_pairs)
     capacity = int(1.5 * expected / n_threads) + 1024
     args = (x, r, lo, 1.0 / cell, ncell, periodic_len, float(skin), n_threads)
     pi, pj, needed = _build_pairs(*args, capacity)
+    if needed < 0:
+        raise _crowding_error(x, r, lo, cell, ncell)
     if needed:  # a thread's buffer was too small: once more with the size it needed
         pi, pj, needed = _build_pairs(*args, int(needed))
     return pi, pj
 
 
-#: the most solid volume one cell of the neighbour grid (a side of 2 r_max + skin) may
-#: hold, as a multiple of the cell's volume, before the search refuses: a packing fills
-#: at most about 0.74 of it (disks counted as spheres, less); several times the cell
-#: means particles piled on one another, and the pair list would grow as the square of
-#: their number (a periodic box far smaller than the particles' extent, say)
-MAX_CELL_FILL = 8.0
 
 
-def _check_crowding(x, r, lo, cell, ncell):
-    """InputError when the spheres in one cell of the grid have more than
-    :data:`MAX_CELL_FILL` times its volume (checked before the pair search allocates
-    anything; a size ratio of 100 in a dense packing stays far below)."""
-    if len(x) <= 64:
-        return
-    idx = np.floor((x - lo) / cell).astype(np.int64)
-    idx = np.clip(idx, 0, ncell - 1)
+def _crowding_error(x, r, lo, cell, ncell) -> InputError:
+    """The error for a cell of the grid holding more than :data:`MAX_CELL_FILL` times its
+    volume in spheres (the pair search found one; this names it)."""
+    idx = np.clip(np.floor((x - lo) / cell).astype(np.int64), 0, ncell - 1)
     flat = (idx[:, 0] * ncell[1] + idx[:, 1]) * ncell[2] + idx[:, 2]
     solid = np.bincount(flat, weights=(4.0 / 3.0 * np.pi) * r ** 3)
-    fill = float(solid.max()) / float(np.prod(cell))
-    if fill > MAX_CELL_FILL:
-        worst = int(np.argmax(solid))
-        count = int(np.count_nonzero(flat == worst))
-        raise InputError(f"particles: {count} particles lie within one neighbour cell (a side of "
-                         f"{float(cell.min()):.3g}) with {fill:.3g} times its volume: they "
-                         f"overlap heavily (a periodic box much smaller than the particles' "
-                         f"extent, or overlapping input positions)")
+    worst = int(np.argmax(solid))
+    fill = float(solid[worst]) / float(np.prod(cell))
+    count = int(np.count_nonzero(flat == worst))
+    return InputError(f"particles: {count} particles lie within one neighbour cell (a side of "
+                      f"{float(cell.min()):.3g}) with {fill:.3g} times its volume: they "
+                      f"overlap heavily (a periodic box much smaller than the particles' "
+                      f"extent, or overlapping input positions)")
 
 
 @njit(parallel=True)
