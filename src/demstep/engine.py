@@ -22,9 +22,12 @@ between its calls)::
        energy); the neighbour lists expire after skin / 2 of motion: return
     9. (Python) rebuild expired lists, carrying the contact history over
    10. (Python) energy balance monitor; writers and callbacks on their triggers
-   11. (Python) 'auto' time step: a new estimate when scheduled (every N steps) or
-       when a contact closed that the last estimate did not cover (checked at least
-       every AUTO_CHECK_EVERY steps)
+   11. (Python) 'auto' time step: a new estimate when scheduled (every N steps; the
+       last certificate is kept instead when it is still as good) or when a contact
+       closed that the last estimate did not cover and its certificate cannot absorb
+       (checked after every rebuild and every AUTO_CHECK_EVERY steps), or when the
+       covered contacts turned too far (checked every AUTO_CHECK_EVERY steps;
+       :mod:`demstep.timestep.certificate`)
 
 The half-step velocity is initialised at the first step by a half backward kick,
 v(-dt/2) = v(0) - dt/2 F(0)/m, so the given initial velocities are those at t = 0.
@@ -37,7 +40,7 @@ import logging
 import math
 import os
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -80,10 +83,15 @@ class TimeStep:
     * ``mode='fixed'``: ``dt`` [T].
     * ``mode='alpha'``: dt = ``alpha`` sqrt(m_min / K_max) (the paper's multiplier; for
       Hertz K_max is the tangent stiffness at relative overlap ``overlap``).
-    * ``mode='auto'``: dt = ``safety`` x the current critical step by ``method``
-      (``exact`` or ``element-coupled``), re-evaluated every ``every`` steps; growth is
-      capped at ``growth`` per update, decreases are immediate. Before contacts form,
-      the coupled element bound of the densest packing (hex/FCC) is used.
+    * ``mode='auto'``: dt = ``safety`` x the certified critical step by ``method``
+      (``exact`` or ``element-coupled``) of every contact that can close before the
+      next estimate, re-evaluated every ``every`` steps; growth is capped at ``growth``
+      per update, decreases are immediate. Before contacts form, the coupled element
+      bound of the densest packing (hex/FCC) is used. Between estimates the
+      certificate follows contacts that close outside it and the turning of the
+      normals (:mod:`demstep.timestep.certificate`); a scheduled 'exact' estimate keeps
+      it, without a new solve, while it is within ``Simulation.AUTO_REFRESH_RTOL``
+      (1 %) of the last critical mode's Rayleigh quotient.
     """
 
     mode: str = "alpha"
@@ -352,6 +360,7 @@ class Simulation:
         self.bodies.L[:] *= factor
         self._update_masses()
         self.dt = None
+        self._dt_cert = None  # certified for the old masses
 
     # ---------------------------------------------------------- neighbour lists
     def _rebuild(self):
@@ -554,15 +563,23 @@ class Simulation:
                 from demstep.timestep.exact import ScaledContactOperator
 
                 op = ScaledContactOperator(p, contacts, rotation, damping, bodies)
-                self._dt_cert = (2.0 / dt, op.damping_bound())
+                self._record_certificate(2.0 / dt, op.damping_bound(), contacts, bodies)
             return dt
         mode = getattr(self, "_dt_mode", None)
         result = exact_critical_step(p, contacts, rotation, damping, v0=mode, bodies=bodies)
         if _record:
             self._dt_mode = result.mode
             self.dt_exact_undamped = result.dt_undamped
-            self._dt_cert = (2.0 / result.dt, result.operator.damping_bound())
+            self._record_certificate(2.0 / result.dt, result.operator.damping_bound(),
+                                     contacts, bodies)
         return result.dt
+
+    def _record_certificate(self, sigma, lam_c, contacts, bodies):
+        from demstep.timestep.certificate import StepCertificate
+
+        inv_I = self.inv_I if self.rotation else np.zeros_like(self.inv_I)
+        self._dt_cert = StepCertificate.from_estimate(sigma, lam_c, contacts, self.inv_m, inv_I,
+                                                      bounded=bodies is None)
 
     def rigid_bodies(self):
         """The clumps in the form the time-step analysis takes
@@ -623,8 +640,11 @@ class Simulation:
             fallback = self._densest_packing_dt()
             horizon = int(ts.every) * (self.dt if self.dt is not None else ts.safety * fallback)
             self.dt_horizon = horizon
-            estimate = (self.critical_dt(ts.method, horizon=horizon, _record=True)
-                        if self._pairs_built else None)
+            estimate = None
+            if scheduled and self.dt is not None:
+                estimate = self._refreshed_estimate(horizon)
+            if estimate is None and self._pairs_built:
+                estimate = self.critical_dt(ts.method, horizon=horizon, _record=True)
             if estimate is None:
                 estimate = fallback
             self.dt_estimate = estimate
@@ -636,6 +656,41 @@ class Simulation:
                 self.dt = min(target, self.dt * (1.0 + ts.growth))
             if scheduled:
                 self._next_dt_update = self.step + int(ts.every)
+
+    #: 'auto': a scheduled estimate keeps the last certificate (with the drift of its
+    #: normals and the contacts added since) instead of a new solve when the step it
+    #: certifies is within this of the last critical mode's Rayleigh quotient now, a
+    #: lower bound on the root (so dt is at most this far below a new solve's)
+    AUTO_REFRESH_RTOL = 1e-2
+
+    def _refreshed_estimate(self, horizon: float) -> float | None:
+        """The critical step [T] the last certificate still gives, when it is within
+        :data:`AUTO_REFRESH_RTOL` of the best a new estimate could give (every closed
+        contact covered, the drift followed, the exact method); else None."""
+        cert = getattr(self, "_dt_cert", None)
+        mode = getattr(self, "_dt_mode", None)
+        if (cert is None or not cert.bounded or mode is None or self.timestep.method != "exact"
+                or not self._pairs_built):
+            return None
+        masks = self._uncovered()
+        if masks is None or masks[0].any() or masks[1].any():
+            return None
+        sigma_up = cert.smallest_sigma(cert.drift(self.x, self.periodic_len))
+        contacts = self.contact_set(horizon)
+        if contacts.n == 0:
+            return None
+        from demstep.timestep.exact import ScaledContactOperator
+        from demstep.timestep.stability import damped_sigma
+
+        op = ScaledContactOperator(self.particles_now(), contacts, self.rotation,
+                                   self._global_damping(), None)
+        if op.size != mode.size:
+            return None
+        sigma_lo = float(damped_sigma(*op.rayleigh_terms(mode / np.linalg.norm(mode))))
+        if sigma_up > sigma_lo * (1.0 + self.AUTO_REFRESH_RTOL):
+            return None
+        self.n_dt_refreshes = getattr(self, "n_dt_refreshes", 0) + 1
+        return 2.0 / sigma_up
 
     # ---------------------------------------------------------------- state
     #: the bundles whose STATE fields make the dynamic state (:meth:`state_dict`)
@@ -725,7 +780,7 @@ class Simulation:
             out["ts_mode"] = mode
         cert = getattr(self, "_dt_cert", None)
         if cert is not None:
-            out["ts_cert"] = np.array(cert, dtype=np.float64)
+            out.update(cert.state())
         for name, (keys, assumed) in (getattr(self, "_dt_cover", None) or {}).items():
             out[f"ts_cover_{name}_keys"] = keys
             out[f"ts_cover_{name}_overlap"] = assumed
@@ -734,7 +789,9 @@ class Simulation:
     def restore_timestep_state(self, data: dict):
         """Inverse of :meth:`timestep_state`."""
         self._dt_mode = np.array(data["ts_mode"]) if "ts_mode" in data else None
-        self._dt_cert = tuple(float(v) for v in data["ts_cert"]) if "ts_cert" in data else None
+        from demstep.timestep.certificate import StepCertificate
+
+        self._dt_cert = StepCertificate.from_state(data) if "ts_cert" in data else None
         cover = {}
         for name in ("pairs", "walls"):
             if f"ts_cover_{name}_keys" in data:
@@ -749,31 +806,48 @@ class Simulation:
         cover = getattr(self, "_dt_cover", None)
         if cover is None:
             return None
-        masks = []
-        for name, n_list in (("pairs", len(self.pi)), ("walls", len(self.wp))):
-            mask = np.zeros(n_list, dtype=bool)
-            if n_list:
-                if name == "pairs":
-                    delta = pair_geometry_arrays(self.x, self.r, self.pi, self.pj,
-                                                 self.periodic_len)[2]
-                    keys = self.pi * len(self.r) + self.pj
+        from demstep.timestep.certificate import uncovered_pairs
+
+        nonlinear = self.law.law_id != 0  # a non-linear law stiffer than assumed
+        known, assumed = cover.get("pairs", (np.zeros(0, dtype=np.int64), np.zeros(0)))
+        pair_mask = uncovered_pairs(self.x, self.r, self.pi, self.pj, self.periodic_len,
+                                    known, assumed, nonlinear)
+        wall_mask = np.zeros(len(self.wp), dtype=bool)
+        if len(self.wp):
+            delta = wall_geometry_arrays(self.x, self.r, self.wp, self.ww,
+                                         self.wall_point, self.wall_normal)[2]
+            on = np.flatnonzero(delta > 0)
+            if len(on):
+                if "walls" not in cover or len(cover["walls"][0]) == 0:
+                    wall_mask[on] = True
                 else:
-                    delta = wall_geometry_arrays(self.x, self.r, self.wp, self.ww,
-                                                 self.wall_point, self.wall_normal)[2]
                     keys = self.wp * max(1, len(self.walls)) + self.ww
-                on = np.flatnonzero(delta > 0)
-                if len(on):
-                    if name not in cover or len(cover[name][0]) == 0:
-                        mask[on] = True
-                    else:
-                        known, assumed = cover[name]
-                        pos = np.minimum(np.searchsorted(known, keys[on]), len(known) - 1)
-                        missing = known[pos] != keys[on]
-                        if self.law.law_id != 0:  # a non-linear law stiffer than assumed
-                            missing |= delta[on] > assumed[pos]
-                        mask[on[missing]] = True
-            masks.append(mask)
-        return masks[0], masks[1]
+                    known, assumed = cover["walls"]
+                    pos = np.minimum(np.searchsorted(known, keys[on]), len(known) - 1)
+                    missing = known[pos] != keys[on]
+                    if nonlinear:
+                        missing |= delta[on] > assumed[pos]
+                    wall_mask[on[missing]] = True
+        return pair_mask, wall_mask
+
+    def _still_certified(self) -> bool:
+        """The check of the 'auto' control between estimates: False when there was no
+        estimate, or when a contact closed that the last one did not cover and
+        :meth:`_certify_added` cannot add it, or when the covered contacts' normals
+        turned so far that the certificate no longer holds at dt
+        (:mod:`demstep.timestep.certificate`; checked at every multiple of
+        AUTO_CHECK_EVERY steps: the certificate has the slack of the safety factor)."""
+        masks = self._uncovered()
+        if masks is None:
+            return False
+        if masks[0].any() or masks[1].any():
+            return self._certify_added(*masks)
+        cert = getattr(self, "_dt_cert", None)
+        if (cert is None or not cert.bounded or self.dt is None
+                or self.step % self.AUTO_CHECK_EVERY):
+            return True
+        sigma = 2.0 / self.dt
+        return cert.certifies(sigma, cert.drift(self.x, self.periodic_len))
 
     def _contacts_covered(self) -> bool:
         """Whether every contact closed now was part of the last 'auto' estimate, at no
@@ -783,22 +857,22 @@ class Simulation:
 
     def _certify_added(self, pair_mask, wall_mask) -> bool:
         """Whether dt stays certified with the uncovered contacts added, without a new
-        estimate: with sigma = 2 / dt, sigma_c the certified root of the last estimate
-        (lambda_max(sigma_c C^ + K^) <= sigma_c^2) and Lambda_C >= lambda_max(C^), the old
-        contacts give lambda_max(sigma C^ + K^) <= sigma_c^2 + (sigma - sigma_c) Lambda_C
-        (the left side is convex in sigma with slope <= Lambda_C); the added ones, by
-        Weyl's inequality, at most the largest of their elements with each particle's
-        whole mass (Rayleigh's theorem on them alone). If the sum stays below sigma^2 the
-        step is certified for the enlarged set; the cover and the certificate are then
-        extended to it (True). Else False: a full estimate is due."""
+        estimate (:mod:`demstep.timestep.certificate`): the added contacts count by the
+        largest of their elements with each particle's whole mass, k + sigma c
+        (Rayleigh's theorem on them alone, Weyl's inequality for the sum), on top of the
+        last estimate's certificate and the drift of its normals. If dt stays certified
+        the cover and the certificate are extended to them (True). Else False: a full
+        estimate is due."""
         cert = getattr(self, "_dt_cert", None)
         if cert is None or self.dt is None:
             return False
-        sigma_c, lam_c = cert
         sigma = 2.0 / self.dt
         added = self._contacts_of(pair_mask, wall_mask)
         if added.n == 0:
             return True
+        # the longest arms the contacts can have (they lengthen as a contact opens)
+        added = replace(added, arm_i=self.r[added.i].copy(),
+                        arm_j=np.where(added.j >= 0, self.r[np.maximum(added.j, 0)], 0.0))
         bodies = self.rigid_bodies()
         rotation = self.rotation
         p = self.particles_now()
@@ -808,21 +882,21 @@ class Simulation:
             mass = element_mass(p, added)
             c_m = mass.inv_m_i + mass.inv_m_j
             c_r = (added.arm_i**2 * mass.inv_I_i + added.arm_j**2 * mass.inv_I_j) if rotation else 0.0
-            lam_add = float(np.max(np.maximum((sigma * added.c_n + added.k_n) * c_m,
-                                              (sigma * added.c_t + added.k_s) * (c_m + c_r))))
-            lam_c_add = float(np.max(np.maximum(added.c_n * c_m, added.c_t * (c_m + c_r))))
+            add_k = float(np.max(np.maximum(added.k_n * c_m, added.k_s * (c_m + c_r))))
+            add_c = float(np.max(np.maximum(added.c_n * c_m, added.c_t * (c_m + c_r))))
         else:
             from demstep.timestep.bodies import body_element_matrices
 
             W, D, G = body_element_matrices(p, added, bodies, rotation)
             w, V = np.linalg.eigh(W)
             Wh = np.einsum("cij,cj,ckj->cik", V, np.sqrt(np.clip(w, 0.0, None)), V)
-            lam_add = float(np.linalg.eigvalsh(Wh @ (sigma * G + D) @ Wh)[:, -1].max())
-            lam_c_add = float(np.linalg.eigvalsh(Wh @ G @ Wh)[:, -1].max())
-        if sigma * sigma < sigma_c * sigma_c + (sigma - sigma_c) * lam_c + lam_add:
+            add_k = float(np.linalg.eigvalsh(Wh @ D @ Wh)[:, -1].max())
+            add_c = float(np.linalg.eigvalsh(Wh @ G @ Wh)[:, -1].max())
+        drift = cert.drift(self.x, self.periodic_len)
+        if sigma * sigma < cert.bound(sigma, drift) + add_k + sigma * add_c:
             return False
-        # certified at sigma for the enlarged set: extend the record
-        self._dt_cert = (sigma, lam_c + lam_c_add)
+        cert.add(add_k, add_c)
+        # certified at sigma for the enlarged set: extend the cover
         cover = self._dt_cover
         for name, mask, keys_of in (
                 ("pairs", pair_mask, lambda: self.pi * len(self.r) + self.pj),
@@ -941,7 +1015,7 @@ class Simulation:
                 chunk = min(chunk, next_check - self.step)
             if self.timestep.mode == "auto":
                 chunk = min(chunk, max(1, self._next_dt_update - self.step),
-                            self.AUTO_CHECK_EVERY)
+                            self.AUTO_CHECK_EVERY - self.step % self.AUTO_CHECK_EVERY)
             chunk = max(1, chunk)
             controls = Controls(
                 float(self.dt), float(self.dt_prev), bool(self._first), float(self.skin),
@@ -985,11 +1059,8 @@ class Simulation:
             if self.timestep.mode == "auto":
                 if self.step >= self._next_dt_update:
                     self._choose_dt(force=True)
-                else:
-                    masks = self._uncovered()
-                    if masks is None or ((masks[0].any() or masks[1].any())
-                                         and not self._certify_added(*masks)):
-                        self._choose_dt(force=True, scheduled=False)
+                elif not self._still_certified():
+                    self._choose_dt(force=True, scheduled=False)
             if until is not None and self.step >= next_check:
                 next_check = self.step + check_every
                 if until(self):
@@ -997,6 +1068,7 @@ class Simulation:
         return done
 
     #: 'auto': steps between checks that every closed contact was in the last estimate
+    #: (also after every rebuild of the lists) and that the certificate still holds
     AUTO_CHECK_EVERY = 50
 
     #: below this many particles the serial kernels are faster than threaded ones

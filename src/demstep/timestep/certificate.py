@@ -1,0 +1,215 @@
+"""The certificate that keeps an 'auto' time step stable between two estimates.
+
+An estimate of the 'auto' control certifies the damped critical root sigma_c [1/T] of
+the contacts it covered (every Verlet pair at the overlap it can reach, see
+:meth:`demstep.engine.Simulation.contact_set`), at the geometry of that moment:
+lambda_max(sigma_c C^ + K^) <= sigma_c^2, with C^ = M^-1/2 C M^-1/2 and K^ likewise,
+and Lambda_C >= lambda_max(C^). Between estimates the assembly moves on: contacts the
+estimate did not cover close, and the normals of the covered ones turn. The step
+sigma = 2 / dt stays certified as long as
+
+    lambda_max(sigma C^ + K^)(now) <= sigma_c^2 + max(sigma - sigma_c, 0) Lambda_C
+                                      + sigma A_C + A_K + D(sigma) <= sigma^2,
+
+where
+
+* the first two terms bound the covered contacts at the estimate's geometry (the
+  left side is convex in sigma with slope at most Lambda_C, and does not decrease);
+* A_K + sigma A_C bounds the contacts added since (:meth:`StepCertificate.add`; each
+  group by the largest of its elements with each particle's whole mass, Rayleigh's
+  theorem on the group alone, and Weyl's inequality for the sum);
+* D(sigma) bounds how far the covered contacts' normals have turned (Weyl's inequality
+  again): a contact's mass-scaled element matrix is E(n) = L(n)^T B(n) L(n) with
+  B = b_n n n^T + b_t (I - n n^T) (b = sigma c + k) and L the map from the two
+  particles' scaled motions to the relative displacement at the contact, whose
+  rotational blocks are r [n]x / sqrt(I). With l^2 = 1/m_i + 1/m_j + r_i^2/I_i +
+  r_j^2/I_j >= |L|^2, rho^2 = r_i^2/I_i + r_j^2/I_j >= |L(n') - L(n)|^2 / |n' - n|^2 and
+  |B(n') - B(n)| <= |b_n - b_t| |n' - n|,
+
+      |E(n') - E(n)| <= |n' - n| l (2 rho max(b_n, b_t) + l |b_n - b_t|),
+
+  and a sum of two-particle element matrices has its norm below the largest sum over
+  the elements of one particle (x.E x <= |E| (|x_i|^2 + |x_j|^2) per element). Walls
+  keep their normals (arms are the radii for every covered contact), so only pairs
+  turn.
+
+Removed contacts only lower lambda_max (each element is positive semi-definite).
+With clumps the members' arms turn with their bodies, which this bound does not
+follow: their certificate has no drift term (``bounded`` False).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from demstep._numba import njit
+from demstep.contact.geometry import image_count, pair_geometry
+
+
+@njit(cache=True)
+def _drift_sums(x, i, j, normal_ref, f_k, f_c, periodic_len, n_particles):
+    """Per particle, the sums over its covered pairs of |n - n_ref| f_k and |n - n_ref| f_c
+    (n the pair's current unit normal, minimum image along periodic axes); returns
+    their largest values."""
+    dim = normal_ref.shape[1]
+    sum_k = np.zeros(n_particles)
+    sum_c = np.zeros(n_particles)
+    for c in range(i.shape[0]):
+        a, b = i[c], j[c]
+        d0 = x[b, 0] - x[a, 0]
+        d1 = x[b, 1] - x[a, 1]
+        d2 = x[b, 2] - x[a, 2]
+        d0 -= periodic_len[0] * image_count(d0, periodic_len[0])
+        d1 -= periodic_len[1] * image_count(d1, periodic_len[1])
+        d2 -= periodic_len[2] * image_count(d2, periodic_len[2])
+        dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if dist > 0.0:
+            t0 = d0 / dist - normal_ref[c, 0]
+            t1 = d1 / dist - normal_ref[c, 1]
+            t2 = (d2 / dist - normal_ref[c, 2]) if dim == 3 else 0.0
+            turn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+        else:  # coincident centres: any normal, at most a half turn
+            turn = 2.0
+        sum_k[a] += turn * f_k[c]
+        sum_k[b] += turn * f_k[c]
+        sum_c[a] += turn * f_c[c]
+        sum_c[b] += turn * f_c[c]
+    return sum_k.max() if n_particles else 0.0, sum_c.max() if n_particles else 0.0
+
+
+@njit(cache=True)
+def uncovered_pairs(x, r, pi, pj, periodic_len, known, assumed, check_overlap):
+    """Mask over the pair list (pi, pj), sorted by (i, j), of the closed pairs whose key
+    i N + j is not among ``known`` (sorted) or, with ``check_overlap``, whose overlap
+    exceeds the one its coefficients ``assumed``: one pass merging the two sorted
+    lists."""
+    n = r.shape[0]
+    mask = np.zeros(pi.shape[0], dtype=np.bool_)
+    pos = 0
+    for c in range(pi.shape[0]):
+        p, q = pi[c], pj[c]
+        delta = pair_geometry(x[p, 0], x[p, 1], x[p, 2], x[q, 0], x[q, 1], x[q, 2], r[p], r[q],
+                              periodic_len[0], periodic_len[1], periodic_len[2])[4]
+        if delta <= 0.0:
+            continue
+        key = p * n + q
+        while pos < known.shape[0] and known[pos] < key:
+            pos += 1
+        if pos == known.shape[0] or known[pos] != key:
+            mask[c] = True
+        elif check_overlap and delta > assumed[pos]:
+            mask[c] = True
+    return mask
+
+
+def _turn_factor(l, rho, b_n, b_t):
+    """l (2 rho max(b_n, b_t) + l |b_n - b_t|): |E(n') - E(n)| / |n' - n| (module doc)."""
+    return l * (2.0 * rho * np.maximum(b_n, b_t) + l * np.abs(b_n - b_t))
+
+
+@dataclass
+class StepCertificate:
+    """What an 'auto' estimate certified (module doc): ``sigma`` = sigma_c [1/T],
+    ``lam_c`` = Lambda_C [1/T], ``add_k`` [1/T^2] and ``add_c`` [1/T] from contacts
+    added since; the covered pairs' reference normals (``pair_i``, ``pair_j``,
+    ``normal``) and their turn factors ``f_k`` [1/T^2], ``f_c`` [1/T] for the drift term;
+    ``bounded`` False when the drift is not followed (clumps)."""
+
+    sigma: float
+    lam_c: float
+    add_k: float = 0.0
+    add_c: float = 0.0
+    pair_i: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    pair_j: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    normal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    f_k: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    f_c: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    bounded: bool = True
+
+    @classmethod
+    def from_estimate(cls, sigma: float, lam_c: float, contacts, inv_m, inv_I,
+                      bounded: bool = True) -> "StepCertificate":
+        """The certificate of an estimate: its certified root ``sigma``, ``lam_c`` and the
+        covered ``contacts`` (a ContactSet at the estimate's geometry; pairs have
+        ``j`` >= 0) with the particles' inverse masses and inverse moments of inertia
+        (zero for fixed particles, and for rotations when rotation is off)."""
+        cert = cls(float(sigma), float(lam_c), bounded=bounded)
+        if not bounded or contacts.n == 0:
+            return cert
+        pair = contacts.j >= 0
+        i = np.ascontiguousarray(contacts.i[pair], dtype=np.int64)
+        j = np.ascontiguousarray(contacts.j[pair], dtype=np.int64)
+        rot = contacts.arm_i[pair] ** 2 * inv_I[i] + contacts.arm_j[pair] ** 2 * inv_I[j]
+        l = np.sqrt(inv_m[i] + inv_m[j] + rot)
+        rho = np.sqrt(rot)
+        zeros = np.zeros(len(i))
+        c_n = zeros if contacts.c_n is None else contacts.c_n[pair]
+        c_t = zeros if contacts.c_t is None else contacts.c_t[pair]
+        cert.pair_i, cert.pair_j = i, j
+        cert.normal = np.ascontiguousarray(contacts.normal[pair], dtype=np.float64)
+        cert.f_k = np.ascontiguousarray(_turn_factor(l, rho, contacts.k_n[pair], contacts.k_s[pair]))
+        cert.f_c = np.ascontiguousarray(_turn_factor(l, rho, c_n, c_t))
+        return cert
+
+    def drift(self, x, periodic_len) -> tuple[float, float]:
+        """(D_K [1/T^2], D_C [1/T]): D(sigma) <= D_K + sigma D_C for the positions ``x``
+        (N, 3) now (zero when not ``bounded``)."""
+        if not self.bounded or len(self.pair_i) == 0:
+            return 0.0, 0.0
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        dk, dc = _drift_sums(x, self.pair_i, self.pair_j, self.normal, self.f_k, self.f_c,
+                             np.asarray(periodic_len, dtype=np.float64), x.shape[0])
+        return float(dk), float(dc)
+
+    def bound(self, sigma: float, drift=(0.0, 0.0)) -> float:
+        """Upper bound on lambda_max(sigma C^ + K^) [1/T^2] of the covered and added
+        contacts now, for the drift (D_K, D_C) of :meth:`drift`."""
+        d_k, d_c = drift
+        return (self.sigma ** 2 + max(sigma - self.sigma, 0.0) * self.lam_c
+                + sigma * (self.add_c + d_c) + self.add_k + d_k)
+
+    def certifies(self, sigma: float, drift=(0.0, 0.0)) -> bool:
+        """Whether the step 2 / ``sigma`` is certified (its square bounds the bound)."""
+        return sigma * sigma >= self.bound(sigma, drift)
+
+    def smallest_sigma(self, drift=(0.0, 0.0)) -> float:
+        """The smallest sigma [1/T] that :meth:`certifies`: the larger root of
+        sigma^2 = :meth:`bound` (at least sigma_c, below which the bound exceeds
+        sigma^2), nudged up past rounding."""
+        d_k, d_c = drift
+        slope = self.lam_c + self.add_c + d_c
+        const = self.sigma ** 2 - self.sigma * self.lam_c + self.add_k + d_k
+        s = max(0.5 * (slope + math.sqrt(max(slope * slope + 4.0 * const, 0.0))), self.sigma)
+        while not self.certifies(s, drift):
+            s = math.nextafter(s, math.inf)
+        return s
+
+    def add(self, k: float, c: float):
+        """Contacts added since the estimate: their group bound k + sigma c."""
+        self.add_k += float(k)
+        self.add_c += float(c)
+
+    # ---------------------------------------------------------------- checkpoints
+    def state(self) -> dict:
+        return {"ts_cert": np.array([self.sigma, self.lam_c, self.add_k, self.add_c,
+                                     float(self.bounded)]),
+                "ts_cert_pairs": np.stack([self.pair_i, self.pair_j]),
+                "ts_cert_normal": self.normal,
+                "ts_cert_factors": np.stack([self.f_k, self.f_c])}
+
+    @classmethod
+    def from_state(cls, data: dict) -> "StepCertificate":
+        values = [float(v) for v in np.asarray(data["ts_cert"]).reshape(-1)]
+        if len(values) < 5 or "ts_cert_pairs" not in data:
+            # a checkpoint from before the drift term: no reference normals to follow
+            return cls(values[0], values[1], bounded=False)
+        pairs = np.asarray(data["ts_cert_pairs"], dtype=np.int64)
+        factors = np.asarray(data["ts_cert_factors"], dtype=np.float64)
+        return cls(values[0], values[1], values[2], values[3],
+                   np.ascontiguousarray(pairs[0]), np.ascontiguousarray(pairs[1]),
+                   np.ascontiguousarray(data["ts_cert_normal"], dtype=np.float64),
+                   np.ascontiguousarray(factors[0]), np.ascontiguousarray(factors[1]),
+                   bool(values[4]))
