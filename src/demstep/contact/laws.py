@@ -11,6 +11,20 @@ overlap. Forces are those acting on j (the wall); i receives the opposite.
   micro-slip), 1/E* = 2 (1 - nu^2)/E and 1/G* = 2 (2 - nu)/G for one material;
   walls are rigid-flat of the same material (R* = r_i).
 
+Rolling and twisting resistance (Ai et al. 2011, "type C": elastic-plastic spring with
+an optional viscous part), acting on the relative rotation of j w.r.t. i (the rolling
+part perpendicular to n, the twisting part along n): incremental moments
+dM_r = -k_r dphi_r, dM_w = -k_w dphi_w, limited to mu_r R* F_n and mu_w R* F_n (F_n
+the elastic normal force), with viscous moments -c_r omega_r, -c_w omega_w while the
+spring sticks (a coefficient mu_r or mu_w of 0 with a stiffness: no limit, an elastic
+spring). Stiffness conventions: ``beta`` (default), k_r = beta_r k_t R*^2 and
+k_w = beta_w k_t R*^2 (k_t the tangent tangential stiffness; YADE's CohFrictMat uses
+alphaKr ks r1 r2); ``epsd``, k_r = 2.25 k_n mu_r^2 R*^2 (Iwashita & Oda 1998 as used by
+LIGGGHTS' epsd2 and Ai et al.), k_w = 2.25 k_n mu_w^2 R*^2. Viscous coefficients
+c = 2 eta sqrt(I_r k) with I_r = 1/(1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2)) (a
+wall's term is zero), eta the ``rolling_damping`` ratio. Disks roll about z and do not
+twist.
+
 Dashpots: F = -c v_rel on the normal and tangential relative velocity, with c given
 directly [M/T] or from a coefficient of restitution e through the damping ratio
 beta = -ln e / sqrt(pi^2 + ln^2 e): c = 2 beta sqrt(m* k) (linear) and
@@ -31,12 +45,21 @@ from demstep.errors import InputError
 LAW_LINEAR = 0
 LAW_HERTZ = 1
 
+# rolling-resistance stiffness conventions (LawParams.roll_mode)
+ROLL_NONE = 0
+ROLL_BETA = 1
+ROLL_EPSD = 2
+ROLL_CONVENTIONS = {"beta": ROLL_BETA, "epsd": ROLL_EPSD}
+
 class LawParams(NamedTuple):
     """A law's parameters as the kernels read them, by name (float64 each): ``law``
     (LAW_LINEAR or LAW_HERTZ), springs ``k_n``, ``k_s`` [M/T^2], friction ``mu``,
     Hertz moduli ``e_star``, ``g_star`` [M/(L T^2)], absolute dashpots ``c_n``, ``c_t``
-    [M/T], dashpot damping ratios ``beta_n``, ``beta_t`` (from restitution) and the
-    wall friction ``mu_wall``. A tuple of scalars: loop invariants the compiler hoists
+    [M/T], dashpot damping ratios ``beta_n``, ``beta_t`` (from restitution), the
+    wall friction ``mu_wall``; rolling and twisting resistance: ``roll_mode``
+    (ROLL_NONE, ROLL_BETA, ROLL_EPSD), stiffness factors ``beta_r``, ``beta_w``,
+    friction coefficients ``mu_r``, ``mu_w`` (moment limits mu R* F_n) and the viscous
+    damping ratio ``eta_r`` (rolling and twisting). A tuple of scalars: loop invariants the compiler hoists
     (an array might alias the arrays the loops write; measured 10x slower)."""
 
     law: float = 0.0
@@ -50,6 +73,16 @@ class LawParams(NamedTuple):
     beta_n: float = 0.0
     beta_t: float = 0.0
     mu_wall: float = 0.0
+    roll_mode: float = 0.0
+    beta_r: float = 0.0
+    beta_w: float = 0.0
+    mu_r: float = 0.0
+    mu_w: float = 0.0
+    eta_r: float = 0.0
+
+    @property
+    def has_rolling(self) -> bool:
+        return self.roll_mode != ROLL_NONE
 
     @property
     def has_dashpots(self) -> bool:
@@ -61,7 +94,8 @@ class LawParams(NamedTuple):
 
 
 # positions in LawParams (checkpoints store it as an array)
-P_LAW, P_KN, P_KS, P_MU, P_ESTAR, P_GSTAR, P_CN, P_CT, P_BETA_N, P_BETA_T, P_MU_WALL = range(11)
+(P_LAW, P_KN, P_KS, P_MU, P_ESTAR, P_GSTAR, P_CN, P_CT, P_BETA_N, P_BETA_T, P_MU_WALL,
+ P_ROLL_MODE, P_BETA_R, P_BETA_W, P_MU_R, P_MU_W, P_ETA_R) = range(17)
 N_PARAMS = len(LawParams._fields)
 
 
@@ -97,6 +131,39 @@ def dashpot_coefficients(law, params, m_star, k_n, k_t):
     if params.beta_t > 0.0:
         c_t += factor * params.beta_t * math.sqrt(m_star * k_t)
     return c_n, c_t
+
+
+@njit(inline="always")
+def rolling_coefficients(params, k_n, k_t, r_star, i_star):
+    """Rolling and twisting spring stiffnesses k_r, k_w [M L^2/T^2 per rad] and
+    viscous coefficients c_r, c_w [M L^2/T] of a contact with tangent stiffnesses k_n,
+    k_t [M/T^2], effective radius r_star [L] and equivalent rotational inertia i_star
+    [M L^2] (see the module docstring; zeros when the law has no rolling resistance)."""
+    mode = params.roll_mode
+    r2 = r_star * r_star
+    if mode == ROLL_BETA:
+        k_r = params.beta_r * k_t * r2
+        k_w = params.beta_w * k_t * r2
+    elif mode == ROLL_EPSD:
+        k_r = 2.25 * k_n * params.mu_r * params.mu_r * r2
+        k_w = 2.25 * k_n * params.mu_w * params.mu_w * r2
+    else:
+        return 0.0, 0.0, 0.0, 0.0
+    c_r = 0.0
+    c_w = 0.0
+    if params.eta_r > 0.0:
+        c_r = 2.0 * params.eta_r * math.sqrt(i_star * k_r)
+        c_w = 2.0 * params.eta_r * math.sqrt(i_star * k_w)
+    return k_r, k_w, c_r, c_w
+
+
+def rolling_inertia(inertia_i, m_i, r_i, inertia_j=None, m_j=None, r_j=None):
+    """Equivalent rotational inertia of a rolling contact [M L^2] (arrays or scalars):
+    1 / (1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2)); a wall (j None) adds nothing."""
+    inv = 1.0 / (np.asarray(inertia_i, dtype=float) + np.asarray(m_i) * np.asarray(r_i) ** 2)
+    if inertia_j is not None:
+        inv = inv + 1.0 / (np.asarray(inertia_j, dtype=float) + np.asarray(m_j) * np.asarray(r_j) ** 2)
+    return 1.0 / inv
 
 
 @njit
@@ -147,7 +214,11 @@ class ContactLaw:
     """Common contact parameters: friction ``mu`` (particle-particle), ``mu_wall``
     (None: same as mu), dashpots by coefficient (``damping_normal``,
     ``damping_tangential`` [M/T]) or by ``restitution`` (normal) and
-    ``restitution_tangential``."""
+    ``restitution_tangential``. Rolling and twisting resistance (module docstring):
+    ``rolling_convention`` "beta" (stiffness factors ``rolling_stiffness`` beta_r and
+    ``twisting_stiffness`` beta_w: k = beta k_t R*^2) or "epsd" (k = 2.25 k_n mu^2
+    R*^2), moment limits by ``rolling_friction`` mu_r and ``twisting_friction`` mu_w
+    (mu R* F_n), viscous damping ratio ``rolling_damping``."""
 
     mu: float = 0.0
     mu_wall: float | None = None
@@ -155,6 +226,12 @@ class ContactLaw:
     damping_tangential: float = 0.0
     restitution: float | None = None
     restitution_tangential: float | None = None
+    rolling_convention: str | None = None
+    rolling_stiffness: float = 0.0
+    twisting_stiffness: float = 0.0
+    rolling_friction: float = 0.0
+    twisting_friction: float = 0.0
+    rolling_damping: float = 0.0
 
     law_id = -1
 
@@ -168,6 +245,26 @@ class ContactLaw:
             v = getattr(self, name)
             if v is not None:
                 damping_ratio_from_restitution(_check(name, v, 0.0, strict=True))
+        for name in ("rolling_stiffness", "twisting_stiffness", "rolling_friction",
+                     "twisting_friction", "rolling_damping"):
+            _check(name, getattr(self, name))
+        conv = self.rolling_convention
+        if conv is None:
+            for name in ("rolling_stiffness", "twisting_stiffness", "rolling_friction",
+                         "twisting_friction", "rolling_damping"):
+                if getattr(self, name) > 0:
+                    raise InputError(f"{name}: given without rolling_convention (\"beta\": "
+                                     f"k_r = beta_r k_t R*^2, or \"epsd\": 2.25 k_n mu_r^2 R*^2), "
+                                     f"got {name} = {getattr(self, name)!r}")
+        elif conv not in ROLL_CONVENTIONS:
+            raise InputError(f"rolling_convention: expected one of {sorted(ROLL_CONVENTIONS)}, "
+                             f"got {conv!r}")
+        elif conv == "beta" and self.rolling_stiffness <= 0 and self.twisting_stiffness <= 0:
+            raise InputError("rolling_stiffness: rolling_convention \"beta\" needs a stiffness "
+                             f"factor > 0, got {self.rolling_stiffness!r}")
+        elif conv == "epsd" and self.rolling_friction <= 0:
+            raise InputError("rolling_friction: rolling_convention \"epsd\" needs mu_r > 0 "
+                             f"(k_r = 2.25 k_n mu_r^2 R*^2), got {self.rolling_friction!r}")
 
     def params(self) -> LawParams:
         self.validate()
@@ -178,7 +275,11 @@ class ContactLaw:
             beta_n=(0.0 if self.restitution is None
                     else damping_ratio_from_restitution(self.restitution)),
             beta_t=(0.0 if self.restitution_tangential is None
-                    else damping_ratio_from_restitution(self.restitution_tangential)))
+                    else damping_ratio_from_restitution(self.restitution_tangential)),
+            roll_mode=float(ROLL_CONVENTIONS.get(self.rolling_convention, ROLL_NONE)),
+            beta_r=float(self.rolling_stiffness), beta_w=float(self.twisting_stiffness),
+            mu_r=float(self.rolling_friction), mu_w=float(self.twisting_friction),
+            eta_r=float(self.rolling_damping))
 
 
 @dataclass
