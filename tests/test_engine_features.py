@@ -8,7 +8,7 @@ import pytest
 
 from demstep.contact.laws import HertzMindlin, LinearSpring
 from demstep.engine import Damping, Simulation, TimeStep
-from demstep.energy import EnergyMonitor
+from demstep.energy import E_STRAIN_R, EnergyMonitor
 from demstep.experiments.stability import build_specimen, is_unstable, specimen_estimates
 from demstep.particles import Particles
 from demstep.walls import box_walls
@@ -138,9 +138,11 @@ def test_hertz_energy_balance_second_order():
     assert errs[0] / errs[1] > 2.5  # second order (4) with some noise from collisions
 
 
-def test_threaded_kernels_follow_the_serial_ones():
-    """The threaded step (pair chunks with their reduction, wall list, wall contacts) and
-    the serial one give the same trajectory, wall forces and ledger up to rounding."""
+@pytest.mark.parametrize("rolling", [False, True])
+def test_threaded_kernels_follow_the_serial_ones(rolling):
+    """The threaded step (pair chunks with their reduction, wall list, wall contacts;
+    with rolling and twisting resistance, its pair and wall loops) and the serial one
+    give the same trajectory, wall forces and ledger up to rounding."""
     import numba
 
     threads = numba.get_num_threads()
@@ -148,7 +150,11 @@ def test_threaded_kernels_follow_the_serial_ones():
     try:
         runs = []
         for parallel in (False, True):
-            sim = dense_box(k=1e5, radii=(0.93, 0.97), law=LinearSpring(k_n=1e5, mu=0.3, restitution=0.6),
+            extra = dict(rolling_convention="beta", rolling_stiffness=0.3, twisting_stiffness=0.2,
+                         rolling_friction=0.05, twisting_friction=0.05, rolling_damping=0.2) \
+                if rolling else {}
+            law = LinearSpring(k_n=1e5, mu=0.3, restitution=0.6, **extra)
+            sim = dense_box(k=1e5, radii=(0.93, 0.97), law=law,
                             timestep=TimeStep.from_alpha(0.1), gravity=[0.0, 0.0, -50.0],
                             parallel=parallel)
             top = next(i for i, w in enumerate(sim.walls) if w.name == "z+")
@@ -165,3 +171,7 @@ def test_threaded_kernels_follow_the_serial_ones():
     assert np.allclose(threaded.wall_force, serial.wall_force, rtol=1e-7)
     assert np.array_equal(threaded.wall_contacts, serial.wall_contacts)
     assert np.allclose(threaded.ledger.acc, serial.ledger.acc, rtol=1e-7, atol=1e-12)
+    if rolling:
+        assert serial.ledger.rolling > 0 and threaded.ledger.energy[E_STRAIN_R] > 0
+        assert np.allclose(threaded.torque, serial.torque, rtol=1e-7,
+                           atol=1e-9 * np.abs(serial.torque).max())

@@ -2,9 +2,11 @@
 
 State terms are recomputed every step: kinetic energy (translation and rotation, from
 the mean of the two half-step velocities around t) and strain energy (normal and
-tangential springs at t). Accumulated terms are summed step by step by the trapezoidal
-rule: work of body forces, applied forces, walls and a deforming periodic box (external), and dissipation by
-friction, contact dashpots, local (Cundall) and global viscous damping. The energy the
+tangential springs at t, and rolling and twisting springs). Accumulated terms are
+summed step by step by the trapezoidal rule: work of body forces, applied forces, walls
+and a deforming periodic box (external), and dissipation by friction, contact
+dashpots, rolling and twisting resistance (plastic and viscous), local (Cundall) and
+global viscous damping. The energy the
 system holds when the ledger starts (or is reset) counts as external input.
 
     W_kin + W_int = W_ext,  W_int = W_strain + W_friction + W_damping,
@@ -30,13 +32,15 @@ from demstep.errors import InputError
 # The ledger's layout, shared with the compiled kernels (which import it from here).
 #: accumulated terms (array ``EnergyLedger.acc``): work of body forces, applied forces,
 #: walls; dissipation by friction, contact dashpots, local and global damping; the
-#: energy held when the ledger started; work of a deforming periodic box
-A_BODY, A_APPLIED, A_WALLS, A_FRICTION, A_DASHPOT, A_LOCAL, A_GLOBAL, A_INITIAL, A_BOX = range(9)
-N_ACC = 9
+#: energy held when the ledger started; work of a deforming periodic box; dissipation
+#: by rolling and twisting resistance (plastic limit, viscous part)
+(A_BODY, A_APPLIED, A_WALLS, A_FRICTION, A_DASHPOT, A_LOCAL, A_GLOBAL, A_INITIAL, A_BOX,
+ A_ROLLING, A_ROLLING_VISCOUS) = range(11)
+N_ACC = 11
 #: state terms (array ``EnergyLedger.energy``): kinetic translation / rotation, strain
-#: normal / tangential
-E_KIN_T, E_KIN_R, E_STRAIN_N, E_STRAIN_T = range(4)
-N_ENERGY = 4
+#: normal / tangential / rolling and twisting springs
+E_KIN_T, E_KIN_R, E_STRAIN_N, E_STRAIN_T, E_STRAIN_R = range(5)
+N_ENERGY = 5
 
 log = logging.getLogger("demstep")
 
@@ -73,7 +77,7 @@ class EnergyLedger:
 
     @property
     def strain(self) -> float:
-        return float(self.energy[E_STRAIN_N] + self.energy[E_STRAIN_T])
+        return float(self.energy[E_STRAIN_N] + self.energy[E_STRAIN_T] + self.energy[E_STRAIN_R])
 
     # accumulated terms
     @property
@@ -85,8 +89,13 @@ class EnergyLedger:
         return float(self.acc[A_DASHPOT] + self.acc[A_LOCAL] + self.acc[A_GLOBAL])
 
     @property
+    def rolling(self) -> float:
+        """Dissipated by rolling and twisting resistance (plastic and viscous)."""
+        return float(self.acc[A_ROLLING] + self.acc[A_ROLLING_VISCOUS])
+
+    @property
     def internal(self) -> float:
-        return self.strain + self.friction + self.damping
+        return self.strain + self.friction + self.damping + self.rolling
 
     @property
     def external(self) -> float:
@@ -111,7 +120,10 @@ class EnergyLedger:
             "kinetic_rotational": self.kinetic_rotational,
             "strain_normal": float(self.energy[E_STRAIN_N]),
             "strain_tangential": float(self.energy[E_STRAIN_T]),
+            "strain_rolling": float(self.energy[E_STRAIN_R]),
             "friction": self.friction,
+            "rolling_plastic": float(self.acc[A_ROLLING]),
+            "rolling_viscous": float(self.acc[A_ROLLING_VISCOUS]),
             "damping_dashpot": float(self.acc[A_DASHPOT]),
             "damping_local": float(self.acc[A_LOCAL]),
             "damping_global": float(self.acc[A_GLOBAL]),

@@ -6,8 +6,11 @@ between its calls)::
 
     1. contact forces of the Verlet pairs at x(t), their tangential slip from the
        lagged half-step velocities (du = dt v(t - dt/2) at the contact point), summed
-       per particle (one buffer per thread, then reduced)
-    2. particle-wall contact forces, the force on each wall
+       per particle (one buffer per thread, then reduced); with rolling resistance,
+       the pairs' rolling and twisting moments (same lagged angular velocities) into
+       the same buffers before the reduction
+    2. particle-wall contact forces, the force on each wall; then their rolling and
+       twisting moments
     3. boundary work over the last step (walls, a deforming periodic box; trapezoid)
     4. servo walls set their velocity from the stress error; periodic lengths their
        rate (prescribed, or servo on the Love stress)
@@ -50,11 +53,11 @@ from demstep.backend import get_backend
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
 from demstep.contact.laws import ContactLaw, LinearSpring
 from demstep.contacts import ContactSet
-from demstep.energy import EnergyBalanceError, EnergyLedger, EnergyMonitor
+from demstep.energy import A_ROLLING, E_STRAIN_R, EnergyBalanceError, EnergyLedger, EnergyMonitor
 from demstep.errors import InputError, SimulationDiverged
 from demstep.kernels import dem
 from demstep.particles import Particles
-from demstep.state import Bodies, Box, Controls, Ledger, Pairs, Spheres, Walls
+from demstep.state import ROLL_WIDTH, Bodies, Box, Controls, Ledger, Pairs, Spheres, Walls
 from demstep.walls import Wall
 
 log = logging.getLogger("demstep")
@@ -331,7 +334,7 @@ class Simulation:
                                 z3.copy(), z3.copy(), point.copy(), np.zeros(nw),
                                 np.zeros(nw, dtype=np.int64), np.zeros(nw), box_lo, box_hi,
                                 np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
-                                z0, z0.copy(), np.zeros(0))
+                                z0, z0.copy(), np.zeros(0), np.zeros((0, ROLL_WIDTH)))
         if nw:
             dist = np.einsum("pwk,wk->pw", self.x[:, None, :] - point[None], normal)
             deep = dist < 0.5 * self.r[:, None]
@@ -406,14 +409,21 @@ class Simulation:
         else:  # no dashpot forces to carry: zeros the kernels never touch
             shear, energy = be.transfer_history(old.i, old.j, pi, pj, old.shear, old.shear_energy)
             dashpot = np.zeros((len(pi), 3))
-        self.pairs = old._replace(i=pi, j=pj, shear=shear, dashpot=dashpot, shear_energy=energy)
+        roll = old.roll
+        if len(roll):
+            roll, = be.transfer_history(old.i, old.j, pi, pj, roll)
+        self.pairs = old._replace(i=pi, j=pj, shear=shear, dashpot=dashpot, shear_energy=energy,
+                                  roll=roll)
         self._chunks_for = None
         wp, ww = be.build_wall_list(self.x, self.r, ws.point, ws.normal, self.skin,
                                     expected_pairs=len(ws.p) if built else None)
         wshear, wdash, wenergy = be.transfer_history(ws.p, ws.wall, wp, ww, ws.shear,
                                                      ws.dashpot, ws.shear_energy)
+        wroll = ws.roll
+        if len(wroll):
+            wroll, = be.transfer_history(ws.p, ws.wall, wp, ww, wroll)
         self.wall_state = ws._replace(p=wp, wall=ww, shear=wshear, dashpot=wdash,
-                                      shear_energy=wenergy)
+                                      shear_energy=wenergy, roll=wroll)
         self.x_ref[:] = self.x
         self.wall_state.ref[:] = self.wall_state.point
         self.box.ref[:] = self.box.length
@@ -456,6 +466,7 @@ class Simulation:
         dim = self.dim
         params = self.law.params()
         law_id = int(params.law)
+        self._size_rolling_history(params.has_rolling)
         if horizon is not None:
             speed = self._reach_speed(horizon)
         parts = []
@@ -692,6 +703,20 @@ class Simulation:
         self.n_dt_refreshes = getattr(self, "n_dt_refreshes", 0) + 1
         return 2.0 / sigma_up
 
+    def _size_rolling_history(self, rolling: bool):
+        """Rolling-resistance history rows for every pair and wall pair while the law
+        has rolling resistance (zeros for new ones), none otherwise: switching it off
+        releases the stored energy into the ledger's rolling dissipation."""
+        for name in ("pairs", "wall_state"):
+            bundle = getattr(self, name)
+            n = len(bundle.i) if name == "pairs" else len(bundle.p)
+            if rolling and len(bundle.roll) != n:
+                setattr(self, name, bundle._replace(roll=np.zeros((n, ROLL_WIDTH))))
+            elif not rolling and len(bundle.roll):
+                self.ledger.acc[A_ROLLING] += float(bundle.roll[:, dem.ROLL_ENERGY].sum())
+                self.ledger.energy[E_STRAIN_R] = 0.0
+                setattr(self, name, bundle._replace(roll=np.zeros((0, ROLL_WIDTH))))
+
     # ---------------------------------------------------------------- state
     #: the bundles whose STATE fields make the dynamic state (:meth:`state_dict`)
     BUNDLES = ("spheres", "bodies", "pairs", "wall_state", "box")
@@ -726,6 +751,9 @@ class Simulation:
         the same particles and walls, else InputError naming ``source``)."""
         needed = [f"{n}.{f}" for n in self.BUNDLES for f in getattr(self, n).STATE]
         needed += ["ledger.acc", "ledger.energy", "ledger.counters", "gravity", "r", "scalars"]
+        data = dict(data)
+        for name in ("pairs", "wall_state"):  # checkpoints from before rolling resistance
+            data.setdefault(f"{name}.roll", np.zeros((0, ROLL_WIDTH)))
         missing = [k for k in needed if k not in data]
         if missing:
             raise InputError(f"{source}: a damaged checkpoint (array {missing[0]!r} missing)")
@@ -742,8 +770,10 @@ class Simulation:
             bundle = getattr(self, name)
             setattr(self, name, bundle._replace(**{
                 f: np.ascontiguousarray(data[f"{name}.{f}"]) for f in bundle.STATE}))
-        self.ledger.acc[:] = data["ledger.acc"]
-        self.ledger.energy[:] = data["ledger.energy"]
+        self.ledger.acc[:] = 0.0  # older checkpoints: fewer terms (a prefix of the layout)
+        self.ledger.energy[:] = 0.0
+        self.ledger.acc[:len(data["ledger.acc"])] = data["ledger.acc"]
+        self.ledger.energy[:len(data["ledger.energy"])] = data["ledger.energy"]
         self.counters[:] = data["ledger.counters"]
         self.gravity = np.ascontiguousarray(data["gravity"], dtype=np.float64)
         if "monitor" in data:
@@ -923,6 +953,7 @@ class Simulation:
         dim = self.dim
         params = self.law.params()
         law_id = int(params.law)
+        self._size_rolling_history(params.has_rolling)
         parts = []
         if pair_mask.any():
             i, j = self.pi[pair_mask], self.pj[pair_mask]
@@ -1000,6 +1031,7 @@ class Simulation:
             raise InputError(f"run: steps must be >= 0, got {budget}")
         params = self.law.params()
         law_id = int(params.law)
+        self._size_rolling_history(params.has_rolling)
         self.wall_mu[:] = [params.mu_wall if w.friction is None else w.friction for w in self.walls]
         done = 0
         parallel = self._parallel()

@@ -28,6 +28,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+#: columns of a rolling-resistance history row (:func:`demstep.kernels.dem.rolling_response`)
+ROLL_WIDTH = 8
+
 
 class Spheres(NamedTuple):
     """Member spheres, N of them: centres ``x`` [L], half-step velocities ``v`` [L/T]
@@ -112,7 +115,9 @@ class Pairs(NamedTuple):
     ``dashpot`` (P, 3), stored tangential energy ``shear_energy`` (P,) [M L^2/T^2].
     Work space: pair ``chunks`` (one per thread) and the particle ``spans`` of their
     force buffers ``force_buf``/``torque_buf`` (chunks, N, 3), and ``geo`` (P, 4), the
-    unit normals and distances of the first pass of the pair loop."""
+    unit normals and distances of the first pass of the pair loop. ``roll`` (P, 8): the
+    rolling and twisting resistance history (columns: :data:`demstep.kernels.dem.ROLL_M`
+    ...), (0, 8) when the law has none."""
 
     i: np.ndarray
     j: np.ndarray
@@ -124,15 +129,17 @@ class Pairs(NamedTuple):
     force_buf: np.ndarray
     torque_buf: np.ndarray
     geo: np.ndarray
+    roll: np.ndarray
 
-    STATE = ("i", "j", "shear", "dashpot", "shear_energy")
+    STATE = ("i", "j", "shear", "dashpot", "shear_energy", "roll")
 
     @classmethod
     def empty(cls, n: int) -> "Pairs":
         z3 = np.zeros((0, 3))
         return cls(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), z3, z3.copy(),
                    np.zeros(0), np.zeros(2, dtype=np.int64), np.array([[0, n]], dtype=np.int64),
-                   np.zeros((1, n, 3)), np.zeros((1, n, 3)), np.empty((0, 4)))
+                   np.zeros((1, n, 3)), np.zeros((1, n, 3)), np.empty((0, 4)),
+                   np.zeros((0, ROLL_WIDTH)))
 
 
 class Walls(NamedTuple):
@@ -144,7 +151,7 @@ class Walls(NamedTuple):
     loaded ``areas`` [L^2], touching ``contacts`` and their summed ``k_sum`` [M/T^2];
     ``box_lo``/``box_hi`` (3,): the axis-aligned walls bounding the specimen (-1: none).
     The particle-wall list: particle ``p``, wall ``wall`` and each pair's history
-    ``shear``, ``dashpot``, ``shear_energy`` (as :class:`Pairs`)."""
+    ``shear``, ``dashpot``, ``shear_energy``, ``roll`` (as :class:`Pairs`)."""
 
     point: np.ndarray
     normal: np.ndarray
@@ -166,9 +173,10 @@ class Walls(NamedTuple):
     shear: np.ndarray
     dashpot: np.ndarray
     shear_energy: np.ndarray
+    roll: np.ndarray
 
     STATE = ("point", "vel", "motion", "servo", "force", "force_prev", "disp_prev", "ref",
-             "k_sum", "p", "wall", "shear", "dashpot", "shear_energy")
+             "k_sum", "p", "wall", "shear", "dashpot", "shear_energy", "roll")
 
 
 class Box(NamedTuple):

@@ -51,7 +51,12 @@ must touch or overlap one another (one rigid body), radii > 0.
 "hertz" (``youngs_modulus`` [M/(L T^2)], ``poisson_ratio``); for both ``mu``
 (particle-particle friction), ``mu_wall`` (default mu), dashpots by ``restitution``
 (normal, in (0, 1]) and ``restitution_tangential`` or by coefficients
-``damping_normal``/``damping_tangential`` [M/T].
+``damping_normal``/``damping_tangential`` [M/T]; rolling and twisting resistance
+(:mod:`demstep.contact.laws`, Ai et al. 2011 type C): ``rolling_convention`` "beta"
+(k_r = ``rolling_stiffness`` k_t R*^2, k_w = ``twisting_stiffness`` k_t R*^2) or
+"epsd" (k = 2.25 k_n mu^2 R*^2), limits ``rolling_friction`` mu_r and
+``twisting_friction`` mu_w (moments up to mu R* F_n; 0 with a stiffness: no limit),
+viscous damping ratio ``rolling_damping``.
 
 ``[[walls]]``: ``name``, ``point`` [L], ``normal`` (into the domain), ``motion``
 (fixed, velocity, servo), ``velocity`` [L/T], ``target_stress`` [M/(L T^2)] (2D:
@@ -258,6 +263,12 @@ class _ContactBase(_Section):
     restitution_tangential: Annotated[float, Field(gt=0, le=1)] | None = None
     damping_normal: NonNegative = 0.0
     damping_tangential: NonNegative = 0.0
+    rolling_convention: Literal["beta", "epsd"] | None = None
+    rolling_stiffness: NonNegative = 0.0
+    twisting_stiffness: NonNegative = 0.0
+    rolling_friction: NonNegative = 0.0
+    twisting_friction: NonNegative = 0.0
+    rolling_damping: NonNegative = 0.0
 
 
 class LinearContact(_ContactBase):

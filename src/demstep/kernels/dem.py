@@ -21,14 +21,21 @@ import numpy as np
 
 from demstep._numba import compile_parallel_and_serial, njit, prange
 from demstep.contact.geometry import contact_arms, image_count, pair_geometry, wall_geometry
-from demstep.contact.laws import dashpot_coefficients, normal_force, tangential_stiffness
+from demstep.contact.laws import (
+    dashpot_coefficients, normal_force, rolling_coefficients, tangential_stiffness,
+)
 from demstep.kernels.bodies import body_step, body_step_serial
 from demstep.kernels.integration import moved_since_build, store_step_terms
 
 from demstep.energy import (  # the ledger's layout is the energy module's
-    A_APPLIED, A_BODY, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL, A_WALLS, E_KIN_R,
-    E_KIN_T, E_STRAIN_N, E_STRAIN_T,
+    A_APPLIED, A_BODY, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL, A_ROLLING,
+    A_ROLLING_VISCOUS, A_WALLS, E_KIN_R, E_KIN_T, E_STRAIN_N, E_STRAIN_R, E_STRAIN_T,
 )
+
+#: columns of the rolling-resistance history (Pairs.roll, Walls.roll; state.ROLL_WIDTH
+#: of them): rolling spring moment on j (3), twisting spring moment on j along n,
+#: viscous moment on j (3), stored rolling and twisting energy
+ROLL_M, ROLL_TWIST, ROLL_VISCOUS, ROLL_ENERGY = 0, 3, 4, 7
 
 # stop reasons returned by advance()
 STOP_DONE, STOP_REBUILD, STOP_NONFINITE, STOP_RUNAWAY, STOP_JUMP = range(5)
@@ -106,6 +113,187 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
     f_total = f_el + f_nd
     return (f_total * nx + tx + tdx, f_total * ny + ty + tdy, f_total * nz + tz + tdz,
             e_n, e_t, d_fric, d_dash, k_n, k_t, tx, ty, tz, ndx, ndy, ndz, e_t)
+
+
+@njit(inline="always")
+def rolling_response(params, nx, ny, nz, delta, r_star, i_star, k_n, k_t, f_el, wx, wy, wz,
+                     dt, mrx, mry, mrz, mw, mdx, mdy, mdz, e_old):
+    """Rolling and twisting resistance of one contact (laws module docstring; Ai et al.
+    2011 type C) and its history update. Inputs: unit normal n (i -> j), overlap
+    ``delta`` [L], effective radius [L] and rotational inertia ``i_star`` [M L^2],
+    tangent stiffnesses k_n, k_t [M/T^2] and elastic normal force ``f_el`` [M L/T^2] of
+    the contact, relative angular velocity of j w.r.t. i (w_x, w_y, w_z) [1/T] at
+    t - dt/2, ``dt``, and the history: rolling spring moment on j (m_r), twisting moment
+    along n (m_w), viscous moment on j (m_d), stored energy. Returns the moment on j
+    (3), the stored energy, the plastic and viscous dissipation of the step, then the
+    new history (rolling moment 3, twisting, viscous 3, energy)."""
+    dpx, dpy, dpz = wx * dt, wy * dt, wz * dt
+    dpn = dpx * nx + dpy * ny + dpz * nz
+    drx, dry, drz = dpx - dpn * nx, dpy - dpn * ny, dpz - dpn * nz
+    # the old rolling moment, rotated into the current tangent plane (magnitude kept);
+    # the twisting moment is a component along n
+    mag_old = math.sqrt(mrx * mrx + mry * mry + mrz * mrz)
+    if mag_old > 0.0:
+        on = mrx * nx + mry * ny + mrz * nz
+        mrx, mry, mrz = mrx - on * nx, mry - on * ny, mrz - on * nz
+        mag = math.sqrt(mrx * mrx + mry * mry + mrz * mrz)
+        if mag > 0.0:
+            s = mag_old / mag
+            mrx, mry, mrz = mrx * s, mry * s, mrz * s
+    d_visc_old = -0.5 * (mdx * dpx + mdy * dpy + mdz * dpz)
+    if delta <= 0.0:
+        # separated: the stored energy is released (dissipated)
+        d_plastic = -0.5 * (mrx * drx + mry * dry + mrz * drz + mw * dpn) + e_old
+        return (0.0, 0.0, 0.0, 0.0, d_plastic, d_visc_old,
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    k_r, k_w, c_r, c_w = rolling_coefficients(params, k_n, k_t, r_star, i_star)
+    # rolling: trial increment, then the limit mu_r R* F_n (mu_r = 0: no limit)
+    tx, ty, tz = mrx - k_r * drx, mry - k_r * dry, mrz - k_r * drz
+    vx, vy, vz = 0.0, 0.0, 0.0
+    limit = params.mu_r * r_star * max(f_el, 0.0)
+    mag = math.sqrt(tx * tx + ty * ty + tz * tz)
+    if params.mu_r > 0.0 and mag > limit:
+        s = limit / mag
+        tx, ty, tz = tx * s, ty * s, tz * s
+    else:
+        wn = wx * nx + wy * ny + wz * nz
+        vx, vy, vz = -c_r * (wx - wn * nx), -c_r * (wy - wn * ny), -c_r * (wz - wn * nz)
+    # twisting, along n
+    tw = mw - k_w * dpn
+    limit_w = params.mu_w * r_star * max(f_el, 0.0)
+    if params.mu_w > 0.0 and abs(tw) > limit_w:
+        tw = limit_w if tw > 0.0 else -limit_w
+    else:
+        vw = -c_w * (wx * nx + wy * ny + wz * nz)
+        vx, vy, vz = vx + vw * nx, vy + vw * ny, vz + vw * nz
+    e_new = 0.0
+    if k_r > 0.0:
+        e_new += (tx * tx + ty * ty + tz * tz) / (2.0 * k_r)
+    if k_w > 0.0:
+        e_new += tw * tw / (2.0 * k_w)
+    w_in = -0.5 * ((mrx + tx) * drx + (mry + ty) * dry + (mrz + tz) * drz + (mw + tw) * dpn)
+    d_plastic = w_in - (e_new - e_old)
+    d_visc = d_visc_old - 0.5 * (vx * dpx + vy * dpy + vz * dpz)
+    return (tx + tw * nx + vx, ty + tw * ny + vy, tz + tw * nz + vz, e_new, d_plastic, d_visc,
+            tx, ty, tz, tw, vx, vy, vz, e_new)
+
+
+@njit(inline="always")
+def rolling_inertia_pair(inertia_i, m_i, r_i, inertia_j, m_j, r_j):
+    """1 / (1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2)) [M L^2]; a side with zero
+    inertia and mass (a wall: pass zeros) adds nothing."""
+    inv = 0.0
+    a = inertia_i + m_i * r_i * r_i
+    if a > 0.0:
+        inv += 1.0 / a
+    b = inertia_j + m_j * r_j * r_j
+    if b > 0.0:
+        inv += 1.0 / b
+    return 1.0 / inv if inv > 0.0 else 0.0
+
+
+def _rolling_loop(w, r, m, inertia, pi, pj, geo, law, params, dt, roll, chunks, torque_buf):
+    """Rolling and twisting resistance of all Verlet pairs (compiled twice), after the
+    pair loop of the same step: reads its unit normals and distances ``geo``, adds the
+    moments to the chunks' torque buffers (j +M, i -M; the chunks and spans of
+    :func:`_pair_loop`), updates the history ``roll`` (P, ROLL_WIDTH). Returns (stored
+    energy, plastic dissipation, viscous dissipation)."""
+    e_s = 0.0
+    d_p = 0.0
+    d_v = 0.0
+    for c in prange(chunks.shape[0] - 1):
+        tb = torque_buf[c]
+        for k in range(chunks[c], chunks[c + 1]):
+            i = pi[k]
+            j = pj[k]
+            delta = r[i] + r[j] - geo[k, 3]
+            h = roll[k]
+            if delta <= 0.0 and h[ROLL_ENERGY] == 0.0 and h[0] == 0.0 and h[1] == 0.0 \
+                    and h[2] == 0.0 and h[3] == 0.0 and h[4] == 0.0 and h[5] == 0.0 \
+                    and h[6] == 0.0:
+                continue
+            r_star = r[i] * r[j] / (r[i] + r[j])
+            k_n = 0.0
+            k_t = 0.0
+            f_el = 0.0
+            if delta > 0.0:
+                f_el, k_n, _ = normal_force(law, params, delta, r_star)
+                k_t = tangential_stiffness(law, params, delta, r_star)
+            i_star = rolling_inertia_pair(inertia[i], m[i], r[i], inertia[j], m[j], r[j])
+            (mx, my, mz, e_new, c_p, c_v, h0, h1, h2, h3, h4, h5, h6, h7) = rolling_response(
+                params, geo[k, 0], geo[k, 1], geo[k, 2], delta, r_star, i_star, k_n, k_t, f_el,
+                w[j, 0] - w[i, 0], w[j, 1] - w[i, 1], w[j, 2] - w[i, 2], dt,
+                h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7])
+            h[0] = h0
+            h[1] = h1
+            h[2] = h2
+            h[3] = h3
+            h[4] = h4
+            h[5] = h5
+            h[6] = h6
+            h[7] = h7
+            tb[j, 0] += mx
+            tb[j, 1] += my
+            tb[j, 2] += mz
+            tb[i, 0] -= mx
+            tb[i, 1] -= my
+            tb[i, 2] -= mz
+            e_s += e_new
+            d_p += c_p
+            d_v += c_v
+    return e_s, d_p, d_v
+
+
+def _wall_rolling_loop(x, w, r, m, inertia, wp, ww, wall_point, wall_normal, law, params, dt,
+                       roll, torque, n_chunks):
+    """Rolling and twisting resistance of the particle-wall contacts (compiled twice),
+    after the wall loop of the same step, in its runs of wall pairs cut between
+    particles; the wall is j (it does not rotate). Adds the moments to ``torque``,
+    updates ``roll`` (Q, ROLL_WIDTH); returns (stored energy, plastic and viscous
+    dissipation)."""
+    e_s = 0.0
+    d_p = 0.0
+    d_v = 0.0
+    n_pairs = wp.shape[0]
+    for c in prange(n_chunks):
+        for q in range(_particle_boundary(wp, (n_pairs * c) // n_chunks),
+                       _particle_boundary(wp, (n_pairs * (c + 1)) // n_chunks)):
+            p = wp[q]
+            wi = ww[q]
+            nx, ny, nz, dist, delta, a = wall_geometry(
+                x[p, 0], x[p, 1], x[p, 2], r[p], wall_point[wi, 0], wall_point[wi, 1],
+                wall_point[wi, 2], wall_normal[wi, 0], wall_normal[wi, 1], wall_normal[wi, 2])
+            h = roll[q]
+            if delta <= 0.0 and h[ROLL_ENERGY] == 0.0 and h[0] == 0.0 and h[1] == 0.0 \
+                    and h[2] == 0.0 and h[3] == 0.0 and h[4] == 0.0 and h[5] == 0.0 \
+                    and h[6] == 0.0:
+                continue
+            k_n = 0.0
+            k_t = 0.0
+            f_el = 0.0
+            if delta > 0.0:
+                f_el, k_n, _ = normal_force(law, params, delta, r[p])
+                k_t = tangential_stiffness(law, params, delta, r[p])
+            i_star = rolling_inertia_pair(inertia[p], m[p], r[p], 0.0, 0.0, 0.0)
+            (mx, my, mz, e_new, c_p, c_v, h0, h1, h2, h3, h4, h5, h6, h7) = rolling_response(
+                params, nx, ny, nz, delta, r[p], i_star, k_n, k_t, f_el,
+                -w[p, 0], -w[p, 1], -w[p, 2], dt,
+                h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7])
+            h[0] = h0
+            h[1] = h1
+            h[2] = h2
+            h[3] = h3
+            h[4] = h4
+            h[5] = h5
+            h[6] = h6
+            h[7] = h7
+            torque[p, 0] -= mx
+            torque[p, 1] -= my
+            torque[p, 2] -= mz
+            e_s += e_new
+            d_p += c_p
+            d_v += c_v
+    return e_s, d_p, d_v
 
 
 def pair_chunks(pi, pj, n_particles: int, n_chunks: int):
@@ -537,6 +725,8 @@ pair_forces, pair_forces_serial = compile_parallel_and_serial(_pair_loop)
 reduce_forces, reduce_forces_serial = compile_parallel_and_serial(_reduce_loop)
 integrate, integrate_serial = compile_parallel_and_serial(_integrate_loop)
 wall_forces, wall_forces_serial = compile_parallel_and_serial(_wall_loop)
+rolling_forces, rolling_forces_serial = compile_parallel_and_serial(_rolling_loop)
+wall_rolling, wall_rolling_serial = compile_parallel_and_serial(_wall_rolling_loop)
 
 
 @njit
@@ -585,6 +775,17 @@ def advance(n_steps, ctl, sph, bodies, pairs, walls, box, ledger, law, params):
                 x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, law, params,
                 dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
                 pairs.chunks, pairs.spans, pairs.force_buf, pairs.torque_buf, box_sums, pairs.geo)
+        # 1b. rolling and twisting resistance of the pairs (a law with it only)
+        er_s, er_p, er_v = 0.0, 0.0, 0.0
+        if pairs.roll.shape[0] > 0:
+            if parallel:
+                er_s, er_p, er_v = rolling_forces(
+                    w, r, m, sph.inertia, pairs.i, pairs.j, pairs.geo, law, params, dt_slip,
+                    pairs.roll, pairs.chunks, pairs.torque_buf)
+            else:
+                er_s, er_p, er_v = rolling_forces_serial(
+                    w, r, m, sph.inertia, pairs.i, pairs.j, pairs.geo, law, params, dt_slip,
+                    pairs.roll, pairs.chunks, pairs.torque_buf)
         if n_chunks == 1:
             force[:] = pairs.force_buf[0]
             torque[:] = pairs.torque_buf[0]
@@ -603,6 +804,18 @@ def advance(n_steps, ctl, sph, bodies, pairs, walls, box, ledger, law, params):
                 x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
                 law, params, dt_slip, walls.shear, walls.dashpot, walls.shear_energy, force,
                 torque, wall_force, walls.contacts, walls.k_sum, 1)
+        if walls.roll.shape[0] > 0:
+            if parallel:
+                wr_s, wr_p, wr_v = wall_rolling(
+                    x, w, r, m, sph.inertia, walls.p, walls.wall, wall_point, wall_normal, law,
+                    params, dt_slip, walls.roll, torque, n_chunks)
+            else:
+                wr_s, wr_p, wr_v = wall_rolling_serial(
+                    x, w, r, m, sph.inertia, walls.p, walls.wall, wall_point, wall_normal, law,
+                    params, dt_slip, walls.roll, torque, 1)
+            er_s += wr_s
+            er_p += wr_p
+            er_v += wr_v
         for row in range(4):
             for k in range(3):
                 box_state[row, k] = box_sums[row, k]
@@ -702,6 +915,9 @@ def advance(n_steps, ctl, sph, bodies, pairs, walls, box, ledger, law, params):
         energy[E_KIN_R] = out[5]
         energy[E_STRAIN_N] = e_n + we_n
         energy[E_STRAIN_T] = e_t + we_t
+        energy[E_STRAIN_R] = er_s
+        acc[A_ROLLING] += er_p
+        acc[A_ROLLING_VISCOUS] += er_v
         counters[0] = n_pp
         wc = 0
         for wi in range(nw):
@@ -710,12 +926,12 @@ def advance(n_steps, ctl, sph, bodies, pairs, walls, box, ledger, law, params):
         counters[2] = out[7]
         if first:
             # the energy held at t = 0 is the ledger's initial input
-            acc[A_INITIAL] = out[4] + out[5] + e_n + we_n + e_t + we_t
+            acc[A_INITIAL] = out[4] + out[5] + e_n + we_n + e_t + we_t + er_s
         dt_prev = dt
         first = False
         # 8. divergence checks, then the expiry of the neighbour lists
         ke = out[4] + out[5]
-        if not (math.isfinite(ke) and math.isfinite(e_n + we_n + e_t + we_t)):
+        if not (math.isfinite(ke) and math.isfinite(e_n + we_n + e_t + we_t + er_s)):
             return step + 1, STOP_NONFINITE
         if out[7] > ctl.jump_limit:
             return step + 1, STOP_JUMP
