@@ -210,7 +210,7 @@ def test_engine_threshold_matches_damped_exact_step(name, dashpots, rotation):
     from demstep.experiments.stability import specimen_estimates, stability_threshold
 
     result = stability_threshold(name, rtol=2e-3, lo=0.05, hi=1.0, rotation=rotation,
-                                 dashpots=dashpots)
+                                 law_options=dashpots)
     exact = result.estimates["exact"]
     assert exact <= result.bracket[1]
     assert result.alpha_empirical == pytest.approx(exact, rel=5e-3)

@@ -466,7 +466,6 @@ class Simulation:
         dim = self.dim
         params = self.law.params()
         law_id = int(params.law)
-        self._size_rolling_history(params.has_rolling)
         if horizon is not None:
             speed = self._reach_speed(horizon)
         parts = []
@@ -953,7 +952,6 @@ class Simulation:
         dim = self.dim
         params = self.law.params()
         law_id = int(params.law)
-        self._size_rolling_history(params.has_rolling)
         parts = []
         if pair_mask.any():
             i, j = self.pi[pair_mask], self.pj[pair_mask]

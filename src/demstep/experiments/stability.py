@@ -58,10 +58,11 @@ class StabilityResult:
 
 def build_specimen(name: str, alpha: float, k: float = 1.0e6, density: float = 1.0,
                    precompression: float = 1.0e-3, rotation: bool = True, seed: int = 1,
-                   dashpots: dict | None = None):
-    """A pre-compressed periodic specimen with a small random perturbation; ``dashpots``
-    are keyword arguments of :class:`LinearSpring` (``restitution``,
-    ``restitution_tangential``, ``damping_normal``, ``damping_tangential``)."""
+                   law_options: dict | None = None):
+    """A pre-compressed periodic specimen with a small random perturbation;
+    ``law_options`` are keyword arguments of :class:`LinearSpring`: dashpots
+    (``restitution``, ``restitution_tangential``, ``damping_normal``,
+    ``damping_tangential``) and rolling resistance (``rolling_convention``, ...)."""
     if name == SPECIMEN:
         from demstep.experiments.fcc_plane_strain import FCCConfig, fcc_specimen
 
@@ -84,7 +85,7 @@ def build_specimen(name: str, alpha: float, k: float = 1.0e6, density: float = 1
     amplitude = 1e-4 * precompression * radius * omega  # displacement ~1e-4 of the overlap
     v = rng.normal(0.0, amplitude, (len(x), dim))
     w = rng.normal(0.0, amplitude / radius, len(x) if dim == 2 else (len(x), 3))
-    law = LinearSpring(k_n=k, k_s=k, mu=0.5, **(dashpots or {}))
+    law = LinearSpring(k_n=k, k_s=k, mu=0.5, **(law_options or {}))
     sim = Simulation(p, law, periodic=box, velocities=v, angular_velocities=w if rotation else None,
                      timestep=TimeStep.from_alpha(alpha), rotation=rotation, runaway_factor=0,
                      jump_limit=np.inf, energy=EnergyMonitor(every=10**9))
@@ -92,9 +93,9 @@ def build_specimen(name: str, alpha: float, k: float = 1.0e6, density: float = 1
 
 
 def is_unstable(name: str, alpha: float, steps: int = 3000, growth: float = 1.0e3,
-                rotation: bool = True, dashpots: dict | None = None) -> bool:
+                rotation: bool = True, law_options: dict | None = None) -> bool:
     """The energy criterion of the module docstring."""
-    sim = build_specimen(name, alpha, rotation=rotation, dashpots=dashpots)
+    sim = build_specimen(name, alpha, rotation=rotation, law_options=law_options)
     sim.run(steps=1)
     ke0 = sim.ledger.kinetic
     flag = {"unstable": False}
@@ -111,10 +112,10 @@ def is_unstable(name: str, alpha: float, steps: int = 3000, growth: float = 1.0e
     return flag["unstable"]
 
 
-def specimen_estimates(name: str, rotation: bool = True, dashpots: dict | None = None) -> dict:
-    """alpha of every compared method on the specimen (its current contacts and their
-    dashpots: the damped estimates)."""
-    sim = build_specimen(name, 0.1, rotation=rotation, dashpots=dashpots)
+def specimen_estimates(name: str, rotation: bool = True, law_options: dict | None = None) -> dict:
+    """alpha of every compared method on the specimen (its current contacts with their
+    dashpots and rolling springs: the damped estimates)."""
+    sim = build_specimen(name, 0.1, rotation=rotation, law_options=law_options)
     sim.prepare()
     contacts = sim.contact_set()
     report = estimate_time_steps(sim.particles_now(), contacts, rotation=rotation,
@@ -124,10 +125,10 @@ def specimen_estimates(name: str, rotation: bool = True, dashpots: dict | None =
 
 def stability_threshold(name: str, rtol: float = 2e-3, lo: float = 0.05, hi: float = 2.0,
                         steps: int = 3000, rotation: bool = True,
-                        dashpots: dict | None = None) -> StabilityResult:
+                        law_options: dict | None = None) -> StabilityResult:
     """Bisection for the smallest unstable alpha, to relative tolerance ``rtol``."""
-    estimates = specimen_estimates(name, rotation, dashpots)
-    kw = dict(rotation=rotation, dashpots=dashpots)
+    estimates = specimen_estimates(name, rotation, law_options)
+    kw = dict(rotation=rotation, law_options=law_options)
     if is_unstable(name, lo, steps, **kw) or not is_unstable(name, hi, steps, **kw):
         raise RuntimeError(f"{name}: the bracket [{lo}, {hi}] does not contain the threshold")
     trials = 2
@@ -172,8 +173,8 @@ def damping_study(restitution: float, rtol: float = 2e-3, steps: int = 3000,
     dashpots = None if restitution >= 1.0 else dict(restitution=restitution,
                                                     restitution_tangential=restitution)
     result = stability_threshold(name, rtol=rtol, lo=0.02, hi=1.0, steps=steps,
-                                 dashpots=dashpots)
-    sim = build_specimen(name, 0.1, dashpots=dashpots)
+                                 law_options=dashpots)
+    sim = build_specimen(name, 0.1, law_options=dashpots)
     sim.prepare()
     report = estimate_time_steps(sim.particles_now(), sim.contact_set(), rotation=True,
                                  methods=("exact", "exact-undamped", "element-coupled",
