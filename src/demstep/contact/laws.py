@@ -158,12 +158,18 @@ def rolling_coefficients(params, k_n, k_t, r_star, i_star):
 
 
 def rolling_inertia(inertia_i, m_i, r_i, inertia_j=None, m_j=None, r_j=None):
-    """Equivalent rotational inertia of a rolling contact [M L^2] (arrays or scalars):
-    1 / (1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2)); a wall (j None) adds nothing."""
-    inv = 1.0 / (np.asarray(inertia_i, dtype=float) + np.asarray(m_i) * np.asarray(r_i) ** 2)
+    """Equivalent rotational inertia of rolling contacts [M L^2] (arrays or scalars):
+    1 / (1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2)); a side with zero inertia and mass
+    (a fixed particle: pass zeros) or a wall (j None) adds nothing."""
+    def inverse(inertia, m, r):
+        a = np.asarray(inertia, dtype=float) + np.asarray(m, dtype=float) * np.asarray(r) ** 2
+        return np.where(a > 0, 1.0 / np.where(a > 0, a, 1.0), 0.0)
+
+    inv = inverse(inertia_i, m_i, r_i)
     if inertia_j is not None:
-        inv = inv + 1.0 / (np.asarray(inertia_j, dtype=float) + np.asarray(m_j) * np.asarray(r_j) ** 2)
-    return 1.0 / inv
+        inv = inv + inverse(inertia_j, m_j, r_j)
+    return np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), 0.0)
+
 
 
 @njit

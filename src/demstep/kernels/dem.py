@@ -192,12 +192,14 @@ def rolling_inertia_pair(inertia_i, m_i, r_i, inertia_j, m_j, r_j):
     return 1.0 / inv if inv > 0.0 else 0.0
 
 
-def _rolling_loop(w, r, m, inertia, pi, pj, geo, law, params, dt, roll, chunks, torque_buf):
+def _rolling_loop(w, r, m, inertia, inv_m, pi, pj, geo, law, params, dt, roll, chunks,
+                  torque_buf):
     """Rolling and twisting resistance of all Verlet pairs (compiled twice), after the
     pair loop of the same step: reads its unit normals and distances ``geo``, adds the
     moments to the chunks' torque buffers (j +M, i -M; the chunks and spans of
-    :func:`_pair_loop`), updates the history ``roll`` (P, ROLL_WIDTH). Returns (stored
-    energy, plastic dissipation, viscous dissipation)."""
+    :func:`_pair_loop`), updates the history ``roll`` (P, ROLL_WIDTH). A fixed particle
+    (``inv_m`` 0) counts as a wall in the equivalent inertia. Returns (stored energy,
+    plastic dissipation, viscous dissipation)."""
     e_s = 0.0
     d_p = 0.0
     d_v = 0.0
@@ -219,7 +221,9 @@ def _rolling_loop(w, r, m, inertia, pi, pj, geo, law, params, dt, roll, chunks, 
             if delta > 0.0:
                 f_el, k_n, _ = normal_force(law, params, delta, r_star)
                 k_t = tangential_stiffness(law, params, delta, r_star)
-            i_star = rolling_inertia_pair(inertia[i], m[i], r[i], inertia[j], m[j], r[j])
+            i_star = rolling_inertia_pair(
+                inertia[i] if inv_m[i] > 0.0 else 0.0, m[i] if inv_m[i] > 0.0 else 0.0, r[i],
+                inertia[j] if inv_m[j] > 0.0 else 0.0, m[j] if inv_m[j] > 0.0 else 0.0, r[j])
             (mx, my, mz, e_new, c_p, c_v, h0, h1, h2, h3, h4, h5, h6, h7) = rolling_response(
                 params, geo[k, 0], geo[k, 1], geo[k, 2], delta, r_star, i_star, k_n, k_t, f_el,
                 w[j, 0] - w[i, 0], w[j, 1] - w[i, 1], w[j, 2] - w[i, 2], dt,
@@ -780,12 +784,12 @@ def advance(n_steps, ctl, sph, bodies, pairs, walls, box, ledger, law, params):
         if pairs.roll.shape[0] > 0:
             if parallel:
                 er_s, er_p, er_v = rolling_forces(
-                    w, r, m, sph.inertia, pairs.i, pairs.j, pairs.geo, law, params, dt_slip,
-                    pairs.roll, pairs.chunks, pairs.torque_buf)
+                    w, r, m, sph.inertia, inv_m, pairs.i, pairs.j, pairs.geo, law, params,
+                    dt_slip, pairs.roll, pairs.chunks, pairs.torque_buf)
             else:
                 er_s, er_p, er_v = rolling_forces_serial(
-                    w, r, m, sph.inertia, pairs.i, pairs.j, pairs.geo, law, params, dt_slip,
-                    pairs.roll, pairs.chunks, pairs.torque_buf)
+                    w, r, m, sph.inertia, inv_m, pairs.i, pairs.j, pairs.geo, law, params,
+                    dt_slip, pairs.roll, pairs.chunks, pairs.torque_buf)
         if n_chunks == 1:
             force[:] = pairs.force_buf[0]
             torque[:] = pairs.torque_buf[0]
