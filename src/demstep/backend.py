@@ -10,7 +10,7 @@ bundles of :mod:`demstep.state` without touching the engine. A backend offers:
     the particle-wall candidates within r + skin;
 ``transfer_history(old_i, old_j, new_i, new_j, *history)`` -> history on the new list;
 ``pair_chunks(i, j, n, n_chunks)`` -> (chunks, spans): the work split of the pair loop;
-``advance(n_steps, controls, spheres, pairs, walls, box, ledger, law, params)``
+``advance(n_steps, controls, spheres, bodies, pairs, bonds, walls, box, ledger, law, params)``
     -> (steps done, stop reason): whole steps in the documented order;
 ``pair_contact_forces(x, r, i, j, periodic_len, law, params, shear, dashpot, force, normal)``
     -> mask of touching pairs, filling their forces and normals (output only).

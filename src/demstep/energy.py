@@ -33,14 +33,15 @@ from demstep.errors import InputError
 #: accumulated terms (array ``EnergyLedger.acc``): work of body forces, applied forces,
 #: walls; dissipation by friction, contact dashpots, local and global damping; the
 #: energy held when the ledger started; work of a deforming periodic box; dissipation
-#: by rolling and twisting resistance (plastic limit, viscous part)
+#: by rolling and twisting resistance (plastic limit, viscous part); strain energy
+#: released by parallel bonds as they broke
 (A_BODY, A_APPLIED, A_WALLS, A_FRICTION, A_DASHPOT, A_LOCAL, A_GLOBAL, A_INITIAL, A_BOX,
- A_ROLLING, A_ROLLING_VISCOUS) = range(11)
-N_ACC = 11
+ A_ROLLING, A_ROLLING_VISCOUS, A_BOND_BROKEN) = range(12)
+N_ACC = 12
 #: state terms (array ``EnergyLedger.energy``): kinetic translation / rotation, strain
-#: normal / tangential / rolling and twisting springs
-E_KIN_T, E_KIN_R, E_STRAIN_N, E_STRAIN_T, E_STRAIN_R = range(5)
-N_ENERGY = 5
+#: normal / tangential / rolling and twisting springs / parallel bonds
+E_KIN_T, E_KIN_R, E_STRAIN_N, E_STRAIN_T, E_STRAIN_R, E_STRAIN_BOND = range(6)
+N_ENERGY = 6
 
 log = logging.getLogger("demstep")
 
@@ -77,7 +78,8 @@ class EnergyLedger:
 
     @property
     def strain(self) -> float:
-        return float(self.energy[E_STRAIN_N] + self.energy[E_STRAIN_T] + self.energy[E_STRAIN_R])
+        return float(self.energy[E_STRAIN_N] + self.energy[E_STRAIN_T] + self.energy[E_STRAIN_R]
+                     + self.energy[E_STRAIN_BOND])
 
     # accumulated terms
     @property
@@ -94,8 +96,13 @@ class EnergyLedger:
         return float(self.acc[A_ROLLING] + self.acc[A_ROLLING_VISCOUS])
 
     @property
+    def bond_broken(self) -> float:
+        """Strain energy released by bonds as they broke."""
+        return float(self.acc[A_BOND_BROKEN])
+
+    @property
     def internal(self) -> float:
-        return self.strain + self.friction + self.damping + self.rolling
+        return self.strain + self.friction + self.damping + self.rolling + self.bond_broken
 
     @property
     def external(self) -> float:
@@ -121,9 +128,11 @@ class EnergyLedger:
             "strain_normal": float(self.energy[E_STRAIN_N]),
             "strain_tangential": float(self.energy[E_STRAIN_T]),
             "strain_rolling": float(self.energy[E_STRAIN_R]),
+            "strain_bonds": float(self.energy[E_STRAIN_BOND]),
             "friction": self.friction,
             "rolling_plastic": float(self.acc[A_ROLLING]),
             "rolling_viscous": float(self.acc[A_ROLLING_VISCOUS]),
+            "bond_broken": self.bond_broken,
             "damping_dashpot": float(self.acc[A_DASHPOT]),
             "damping_local": float(self.acc[A_LOCAL]),
             "damping_global": float(self.acc[A_GLOBAL]),

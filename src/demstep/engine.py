@@ -57,7 +57,7 @@ from demstep.energy import A_ROLLING, E_STRAIN_R, EnergyBalanceError, EnergyLedg
 from demstep.errors import InputError, SimulationDiverged
 from demstep.kernels import dem
 from demstep.particles import Particles
-from demstep.state import ROLL_WIDTH, Bodies, Box, Controls, Ledger, Pairs, Spheres, Walls
+from demstep.state import ROLL_WIDTH, Bodies, Bonds, Box, Controls, Ledger, Pairs, Spheres, Walls
 from demstep.walls import Wall
 
 log = logging.getLogger("demstep")
@@ -281,6 +281,7 @@ class Simulation:
         self.ledger = EnergyLedger()
         self.counters = np.zeros(3)
         self.pairs = Pairs.empty(n)
+        self.bonds = Bonds.empty()
         self.step = 0
         self.time = 0.0
         self.dt = None
@@ -716,9 +717,54 @@ class Simulation:
                 self.ledger.energy[E_STRAIN_R] = 0.0
                 setattr(self, name, bundle._replace(roll=np.zeros((0, ROLL_WIDTH))))
 
+    def add_bonds(self, bonds, pairs=None) -> int:
+        """Bond particles with parallel bonds of parameters ``bonds``
+        (:class:`demstep.contact.bonds.ParallelBonds`): the given ``pairs`` (K, 2) of
+        particle indices, or every pair whose surfaces are at most ``bonds.gap`` apart
+        (touching and overlapping pairs included; minimum image across periodic axes;
+        never two spheres of one clump). Pairs already bonded by an intact bond are
+        skipped. Returns the number of bonds added."""
+        from demstep.contact.bonds import bond_candidates
+
+        bonds.validate()
+        n = len(self.r)
+        if pairs is None:
+            i, j = bond_candidates(self.x, self.r, bonds.gap, self.periodic_len, self.dim)
+        else:
+            pairs = np.asarray(pairs)
+            if pairs.ndim != 2 or pairs.shape[1] != 2 or not np.issubdtype(pairs.dtype, np.integer):
+                raise InputError(f"bonds: pairs must be an integer array (K, 2), got shape "
+                                 f"{pairs.shape} of {pairs.dtype}")
+            bad = (pairs < 0) | (pairs >= n)
+            if bad.any():
+                raise InputError(f"bonds: particle index {pairs[bad][0]} outside 0..{n - 1}")
+            if (pairs[:, 0] == pairs[:, 1]).any():
+                k = int(np.flatnonzero(pairs[:, 0] == pairs[:, 1])[0])
+                raise InputError(f"bonds: pair {k} bonds particle {pairs[k, 0]} to itself")
+            i, j = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
+            d, dist, delta, *_ = pair_geometry_arrays(self.x, self.r, i, j, self.periodic_len)
+            far = -delta > bonds.gap * (1 + 1e-12)
+            if far.any():
+                k = int(np.flatnonzero(far)[0])
+                raise InputError(f"bonds: pair ({i[k]}, {j[k]}) is {-delta[k]:.6g} apart, beyond "
+                                 f"the gap {bonds.gap:g}")
+        sb = self.bodies.sphere_body
+        keep = (sb[i] < 0) | (sb[i] != sb[j])
+        old = self.bonds
+        if old.n:
+            have = set(zip(old.i[old.intact == 1].tolist(), old.j[old.intact == 1].tolist()))
+            keep &= np.array([(a, b) not in have for a, b in zip(i.tolist(), j.tolist())], bool)
+        i, j = i[keep], j[keep]
+        radius = bonds.radius_multiplier * np.minimum(self.r[i], self.r[j])
+        new = Bonds.make(i, j, radius, bonds.normal_stiffness, bonds.k_s, bonds.tensile_strength,
+                         bonds.shear_strength)
+        self.bonds = Bonds(*(np.concatenate([getattr(old, f), getattr(new, f)])
+                             for f in Bonds._fields))
+        return len(i)
+
     # ---------------------------------------------------------------- state
     #: the bundles whose STATE fields make the dynamic state (:meth:`state_dict`)
-    BUNDLES = ("spheres", "bodies", "pairs", "wall_state", "box")
+    BUNDLES = ("spheres", "bodies", "pairs", "bonds", "wall_state", "box")
 
     def state_dict(self) -> dict:
         """The complete dynamic state as named arrays (what a checkpoint saves): the
@@ -753,6 +799,8 @@ class Simulation:
         data = dict(data)
         for name in ("pairs", "wall_state"):  # checkpoints from before rolling resistance
             data.setdefault(f"{name}.roll", np.zeros((0, ROLL_WIDTH)))
+        for f in Bonds.STATE:  # and from before bonds
+            data.setdefault(f"bonds.{f}", getattr(Bonds.empty(), f))
         missing = [k for k in needed if k not in data]
         if missing:
             raise InputError(f"{source}: a damaged checkpoint (array {missing[0]!r} missing)")
@@ -1055,7 +1103,8 @@ class Simulation:
                 float(self.runaway_factor), float(self.energy_floor), bool(parallel))
             self.pairs = self._work_space(parallel)
             n_done, reason = self.backend.advance(
-                chunk, controls, self.spheres, self.bodies, self.pairs, self.wall_state, self.box,
+                chunk, controls, self.spheres, self.bodies, self.pairs, self.bonds, self.wall_state,
+                self.box,
                 Ledger(self.ledger.acc, self.ledger.energy, self.counters), law_id, params)
             self._first = False
             # the damping forces of the last step are stored only while damping is on

@@ -15,6 +15,7 @@ from them.
 ``Bodies``   rigid bodies made of member spheres (clumps): pose, momenta, mass
              properties and the member map; empty when every body is one sphere
 ``Pairs``    the Verlet pair list with each pair's contact history
+``Bonds``    parallel bonds between particles (their own list, kept until they break)
 ``Walls``    rigid planes, their motion and servo state, and the particle-wall list
 ``Box``      the periodic box: lengths, their motion and the boundary sums
 ``Ledger``   the energy ledger's arrays (layout: :mod:`demstep.energy`) and counters
@@ -140,6 +141,49 @@ class Pairs(NamedTuple):
                    np.zeros(0), np.zeros(2, dtype=np.int64), np.array([[0, n]], dtype=np.int64),
                    np.zeros((1, n, 3)), np.zeros((1, n, 3)), np.empty((0, 4)),
                    np.zeros((0, ROLL_WIDTH)))
+
+
+class Bonds(NamedTuple):
+    """Parallel bonds (:mod:`demstep.contact.bonds`), B of them: particles ``i``, ``j``
+    (B,), bond ``radius`` [L], stiffnesses per unit area ``k_n``, ``k_s``
+    [M/(L^2 T^2)], strengths ``sigma_c``, ``tau_c`` [M/(L T^2)], ``intact`` (1, or 0
+    once broken), and the state: normal force on j along n ``normal`` [M L/T^2],
+    shear force on j ``shear`` (B, 3), twisting moment on j along n ``twist``
+    [M L^2/T^2], bending moment on j ``bend`` (B, 3), strain ``energy`` [M L^2/T^2]."""
+
+    i: np.ndarray
+    j: np.ndarray
+    radius: np.ndarray
+    k_n: np.ndarray
+    k_s: np.ndarray
+    sigma_c: np.ndarray
+    tau_c: np.ndarray
+    intact: np.ndarray
+    normal: np.ndarray
+    shear: np.ndarray
+    twist: np.ndarray
+    bend: np.ndarray
+    energy: np.ndarray
+
+    STATE = ("i", "j", "radius", "k_n", "k_s", "sigma_c", "tau_c", "intact", "normal", "shear",
+             "twist", "bend", "energy")
+
+    @classmethod
+    def make(cls, i, j, radius, k_n, k_s, sigma_c, tau_c) -> "Bonds":
+        b = len(i)
+        full = lambda v: np.broadcast_to(np.asarray(v, dtype=np.float64), (b,)).copy()  # noqa: E731
+        return cls(np.asarray(i, dtype=np.int64), np.asarray(j, dtype=np.int64), full(radius),
+                   full(k_n), full(k_s), full(sigma_c), full(tau_c), np.ones(b, dtype=np.int64),
+                   np.zeros(b), np.zeros((b, 3)), np.zeros(b), np.zeros((b, 3)), np.zeros(b))
+
+    @classmethod
+    def empty(cls) -> "Bonds":
+        z = np.zeros(0)
+        return cls.make(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), z, z, z, z, z)
+
+    @property
+    def n(self) -> int:
+        return len(self.i)
 
 
 class Walls(NamedTuple):

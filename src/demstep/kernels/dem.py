@@ -25,11 +25,13 @@ from demstep.contact.laws import (
     dashpot_coefficients, normal_force, rolling_coefficients, tangential_stiffness,
 )
 from demstep.kernels.bodies import body_step, body_step_serial
+from demstep.kernels.bonds import bond_forces
 from demstep.kernels.integration import moved_since_build, store_step_terms
 
 from demstep.energy import (  # the ledger's layout is the energy module's
-    A_APPLIED, A_BODY, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL, A_ROLLING,
-    A_ROLLING_VISCOUS, A_WALLS, E_KIN_R, E_KIN_T, E_STRAIN_N, E_STRAIN_R, E_STRAIN_T,
+    A_APPLIED, A_BODY, A_BOND_BROKEN, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL,
+    A_ROLLING, A_ROLLING_VISCOUS, A_WALLS, E_KIN_R, E_KIN_T, E_STRAIN_BOND, E_STRAIN_N, E_STRAIN_R,
+    E_STRAIN_T,
 )
 
 #: columns of the rolling-resistance history (Pairs.roll, Walls.roll; state.ROLL_WIDTH
@@ -734,11 +736,11 @@ wall_rolling, wall_rolling_serial = compile_parallel_and_serial(_wall_rolling_lo
 
 
 @njit
-def advance(n_steps, ctl, sph, bodies, pairs, walls, box, ledger, law, params):
+def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params):
     """Run up to ``n_steps`` steps of the documented order
     (:meth:`demstep.engine.Simulation.run`) on the bundles of :mod:`demstep.state`
-    (``ctl`` Controls, ``sph`` Spheres, ``bodies`` Bodies, ``pairs`` Pairs, ``walls`` Walls, ``box`` Box,
-    ``ledger`` Ledger) with the law ``law`` (its id) and ``params``
+    (``ctl`` Controls, ``sph`` Spheres, ``bodies`` Bodies, ``pairs`` Pairs, ``bonds`` Bonds,
+    ``walls`` Walls, ``box`` Box, ``ledger`` Ledger) with the law ``law`` (its id) and ``params``
     (:class:`~demstep.contact.laws.LawParams`); ``ctl.parallel``: threaded loops, else
     serial ones. Returns (steps done, stop reason).
 
@@ -820,6 +822,11 @@ def advance(n_steps, ctl, sph, bodies, pairs, walls, box, ledger, law, params):
             er_s += wr_s
             er_p += wr_p
             er_v += wr_v
+        # 2b. parallel bonds (serial: bonds share particles)
+        eb_s, eb_r = 0.0, 0.0
+        if bonds.i.shape[0] > 0:
+            eb_s, eb_r, _ = bond_forces(x, v, w, r, bonds, periodic_len, box_rate, dt_slip,
+                                        ctl.dim, force, torque, box_sums)
         for row in range(4):
             for k in range(3):
                 box_state[row, k] = box_sums[row, k]
@@ -920,6 +927,8 @@ def advance(n_steps, ctl, sph, bodies, pairs, walls, box, ledger, law, params):
         energy[E_STRAIN_N] = e_n + we_n
         energy[E_STRAIN_T] = e_t + we_t
         energy[E_STRAIN_R] = er_s
+        energy[E_STRAIN_BOND] = eb_s
+        acc[A_BOND_BROKEN] += eb_r
         acc[A_ROLLING] += er_p
         acc[A_ROLLING_VISCOUS] += er_v
         counters[0] = n_pp
@@ -930,12 +939,12 @@ def advance(n_steps, ctl, sph, bodies, pairs, walls, box, ledger, law, params):
         counters[2] = out[7]
         if first:
             # the energy held at t = 0 is the ledger's initial input
-            acc[A_INITIAL] = out[4] + out[5] + e_n + we_n + e_t + we_t + er_s
+            acc[A_INITIAL] = out[4] + out[5] + e_n + we_n + e_t + we_t + er_s + eb_s
         dt_prev = dt
         first = False
         # 8. divergence checks, then the expiry of the neighbour lists
         ke = out[4] + out[5]
-        if not (math.isfinite(ke) and math.isfinite(e_n + we_n + e_t + we_t + er_s)):
+        if not (math.isfinite(ke) and math.isfinite(e_n + we_n + e_t + we_t + er_s + eb_s)):
             return step + 1, STOP_NONFINITE
         if out[7] > ctl.jump_limit:
             return step + 1, STOP_JUMP

@@ -1,0 +1,187 @@
+"""Parallel bonds (Potyondy & Cundall 2004) against beam theory and exact discrete
+solutions: a bonded chain as a cantilever (Euler-Bernoulli, and the chain's exact
+deflection with its shear springs), its axial vibration against sqrt(E/rho), breakage
+at the stated strengths with the released energy in the ledger, restarts, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from demstep.contact.bonds import ParallelBonds, bond_candidates
+from demstep.contact.laws import LinearSpring
+from demstep.engine import Damping, Simulation, TimeStep
+from demstep.errors import InputError
+from demstep.particles import Particles
+
+R = 0.5
+RHO = 1000.0
+KN = 1.0e6
+
+
+def chain(n_bonds, dim=3, fixed_first=True, gap=0.0, **kw):
+    """n_bonds + 1 spheres (disks) along x, ``gap`` apart (touching: 0), the first one
+    fixed."""
+    x = np.zeros((n_bonds + 1, dim))
+    x[:, 0] = np.arange(n_bonds + 1) * (2 * R + gap)
+    fixed = np.zeros(n_bonds + 1, bool)
+    fixed[0] = fixed_first
+    p = Particles.from_density(x, np.full(n_bonds + 1, R), RHO, fixed=fixed)
+    return p, Simulation(p, LinearSpring(k_n=1e5, mu=0.5), **kw)
+
+
+@pytest.mark.parametrize("k_s_ratio", [1.0, 0.05])
+def test_bonded_cantilever_matches_beam_theory(k_s_ratio):
+    """Tip load F on a clamped chain of N bonds of length l = 2r, at rest (damped):
+    the bonds' rotations add up to the chain's exact deflection
+    F l^2 / (k_n I) (N^3/3 - N/12) + N F / (k_s A) (bending at the bond points plus the
+    shear springs), which tends to Euler-Bernoulli F L^3 / (3 E I) with E I = k_n I l
+    (within 2 % here even with soft shear springs: Timoshenko's term is the second)."""
+    n = 20
+    p, _ = chain(n)
+    m = p.m[1]
+    area, second = math.pi * R**2, math.pi * R**4 / 4
+    length, seg = n * 2 * R, 2 * R
+    w1 = 3.516 * math.sqrt(KN * second * seg / (m / seg * length**4))
+    _, sim = chain(n, damping=Damping(viscous=2 * w1),
+                   timestep=TimeStep.fixed(0.2 * math.sqrt(m / (KN * area))))
+    assert sim.add_bonds(ParallelBonds(normal_stiffness=KN, shear_stiffness=k_s_ratio * KN)) == n
+    force = 1e-2
+    sim.applied_force[n, 2] = -force
+    sim.run(duration=12 * 2 * math.pi / w1)
+    tip = -sim.x[n, 2]
+    euler = force * length**3 / (3 * KN * second * seg)
+    discrete = (force * seg**2 / (KN * second) * (n**3 / 3 - n / 12)
+                + n * force / (k_s_ratio * KN * area))
+    assert tip == pytest.approx(discrete, rel=1e-6)
+    assert tip == pytest.approx(euler, rel=2e-2)
+    timoshenko = euler + force * length / (k_s_ratio * KN * area * seg) * seg
+    assert tip == pytest.approx(timoshenko, rel=2e-3)
+    assert sim.ledger.balance_error() < 1e-5
+    assert sim.bonds.intact.all()
+
+
+def test_axial_vibration_of_a_bonded_chain_against_the_bar():
+    """A free chain of N + 1 spheres vibrating along its axis in its first mode: the
+    period of the discrete chain, 2 pi / (2 sqrt(k/m) sin(pi / (2 (N + 1)))), k = k_n A,
+    and within 1 % the free bar's 2 L / c with c = sqrt(E / rho), E = k_n l,
+    rho = m / (A l), L = (N + 1) l. The spheres are bonded across a small gap, so that
+    their contacts (stiff in compression only) stay open."""
+    n, gap = 24, 1e-3
+    p, _ = chain(n, fixed_first=False, gap=gap)
+    m, area, seg = p.m[0], math.pi * R**2, 2 * R + gap
+    k = KN * area
+    _, sim = chain(n, fixed_first=False, gap=gap, timestep=TimeStep.fixed(0.05 * math.sqrt(m / k)))
+    assert sim.add_bonds(ParallelBonds(normal_stiffness=KN, gap=2 * gap)) == n
+    count = n + 1
+    xs = np.arange(count) * seg
+    amplitude = 1e-4
+    sim.v[:, 0] = amplitude * np.cos(math.pi * (np.arange(count) + 0.5) / count)
+    period_chain = 2 * math.pi / (2 * math.sqrt(k / m) * math.sin(math.pi / (2 * count)))
+    c = math.sqrt(KN * seg / (m / (area * seg)))
+    period_bar = 2 * count * seg / c
+    times, vs = [], []
+    sim.every(1, lambda s: (times.append(s.time), vs.append(s.v[0, 0])))
+    sim.run(duration=2.3 * period_chain)
+    t, v = np.asarray(times), np.asarray(vs)
+    down = np.flatnonzero((v[:-1] > 0) & (v[1:] <= 0))
+    crossings = t[down] + v[down] / (v[down] - v[down + 1]) * (t[down + 1] - t[down])
+    measured = np.diff(crossings).mean()
+    assert measured == pytest.approx(period_chain, rel=2e-3)
+    assert measured == pytest.approx(period_bar, rel=1e-2)
+    assert abs(sim.x[:, 0] - xs).max() < 1e-3 * R  # small motion: linear
+
+
+@pytest.mark.parametrize("mode", ["tension", "shear"])
+def test_bond_breaks_at_its_strength_and_releases_its_energy(mode):
+    """Two bonded spheres pulled apart (or sheared) at a slow constant speed: the bond
+    breaks when its rim stress first reaches the strength (tension F/A = sigma_c; pure
+    shear F/A = tau_c, the bending stress it also carries left below sigma_c), its
+    stored energy F^2 / (2 k A) moves into the ledger's bond_broken term, and the
+    particles are free afterwards."""
+    sigma_c, tau_c = 50.0, 30.0
+    x = np.array([[0.0, 0.0, 0.0], [2 * R, 0.0, 0.0]])
+    p = Particles.from_density(x, np.full(2, R), RHO, fixed=[True, True])
+    area = math.pi * R**2
+    dt = 0.05 * math.sqrt(p.m[0] / (KN * area))
+    sim = Simulation(p, LinearSpring(k_n=1e5, mu=0.5), timestep=TimeStep.fixed(dt))
+    sim.add_bonds(ParallelBonds(normal_stiffness=KN, shear_stiffness=KN, tensile_strength=sigma_c,
+                                shear_strength=tau_c))
+    speed = 1e-6
+    sim.v[1, 0 if mode == "tension" else 2] = speed  # fixed particles move with their velocity
+    forces = []
+    sim.every(1, lambda s: forces.append((s.bonds.intact[0], s.bonds.normal[0],
+                                          np.linalg.norm(s.bonds.shear[0]), s.bonds.energy[0])))
+    sim.run(duration=2 * (sigma_c if mode == "tension" else 4 * tau_c) * area / (KN * area * speed))
+    states = np.asarray(forces)
+    broke = int(np.argmin(states[:, 0]))
+    assert states[-1, 0] == 0 and broke > 10
+    last = states[broke - 1]
+    step_force = KN * area * speed * dt
+    if mode == "tension":
+        assert -last[1] / area == pytest.approx(sigma_c, abs=step_force / area)
+        assert -last[1] / area < sigma_c
+    else:
+        assert last[2] / area == pytest.approx(tau_c, abs=step_force / area)
+    released = sim.ledger.bond_broken
+    assert released > 0
+    # the energy at the break is the last stored energy plus one step's increment
+    held = (last[1] ** 2 + last[2] ** 2) ** 0.5
+    assert released == pytest.approx(last[3], rel=2.5 * step_force / held)
+    assert released > last[3]
+    assert sim.bonds.energy[0] == 0 and sim.ledger.energy[5] == 0
+
+
+def test_bond_candidates_follow_the_gap_and_the_periodic_image():
+    x = np.array([[0.1, 0.0, 0.0], [1.15, 0.0, 0.0], [9.95, 0.0, 0.0], [5.0, 5.0, 0.0]])
+    r = np.full(4, 0.5)
+    i, j = bond_candidates(x, r, 0.1, np.array([10.0, 0.0, 0.0]), 3)
+    assert list(zip(i, j)) == [(0, 1), (0, 2)]  # 0-2 across the periodic boundary
+    i, j = bond_candidates(x, r, 0.01, np.zeros(3), 3)
+    assert len(i) == 0
+
+
+def test_restart_with_bonds_is_bit_identical():
+    n = 6
+    p, _ = chain(n)
+    m, area = p.m[1], math.pi * R**2
+
+    def make():
+        _, sim = chain(n, timestep=TimeStep.fixed(0.2 * math.sqrt(m / (KN * area))))
+        sim.add_bonds(ParallelBonds(normal_stiffness=KN, tensile_strength=1e3, shear_strength=1e3))
+        sim.applied_force[n, 2] = -1.0
+        return sim
+
+    whole = make()
+    whole.run(steps=900)
+    first = make()
+    first.run(steps=400)
+    state = {k: np.array(v, copy=True) for k, v in first.state_dict().items()}
+    second = make()
+    second.bonds = second.bonds._replace(normal=np.zeros(n))  # overwritten by the restore
+    second.load_state_dict(state)
+    second.run(steps=500)
+    assert np.array_equal(second.x, whole.x)
+    assert np.array_equal(second.bonds.shear, whole.bonds.shear)
+    assert np.array_equal(second.bonds.intact, whole.bonds.intact)
+    assert np.array_equal(second.ledger.acc, whole.ledger.acc)
+
+
+@pytest.mark.parametrize("kwargs, key", [
+    ({"normal_stiffness": -1.0}, "bonds.normal_stiffness"),
+    ({"normal_stiffness": 1.0, "tensile_strength": 0.0}, "bonds.tensile_strength"),
+    ({"normal_stiffness": 1.0, "shear_strength": float("nan")}, "bonds.shear_strength"),
+    ({"normal_stiffness": 1.0, "gap": -0.1}, "bonds.gap"),
+])
+def test_bad_bond_parameters_name_the_key(kwargs, key):
+    with pytest.raises(InputError) as err:
+        ParallelBonds(**kwargs).validate()
+    assert str(err.value).startswith(key)
+
+
+def test_bond_between_distant_particles_is_refused():
+    p, sim = chain(3)
+    with pytest.raises(InputError, match=r"bonds: pair \(0, 2\) is 1 apart, beyond the gap 0.1"):
+        sim.add_bonds(ParallelBonds(normal_stiffness=KN, gap=0.1), pairs=[[0, 2]])
