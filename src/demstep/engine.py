@@ -443,8 +443,18 @@ class Simulation:
         return float(masses.min()) if len(masses) else float(self.m.min())
 
     def stiffness_max(self) -> float:
-        """K_max for alpha: the law's largest stiffness (Hertz: at the TimeStep overlap)."""
-        return float(self.law.stiffness_bound(float(self.r.max()), self.timestep.overlap))
+        """K_max for alpha: the law's largest stiffness (Hertz: at the TimeStep overlap),
+        or an intact bond's normal or shear stiffness k^b A if larger (its springs add
+        to the contact's: counted as their sum)."""
+        k = float(self.law.stiffness_bound(float(self.r.max()), self.timestep.overlap))
+        bonds = self.bonds
+        if bonds.n and bonds.intact.any():
+            from demstep.contact.bonds import bond_springs
+
+            on = bonds.intact == 1
+            kn, ks, _, _ = bond_springs(bonds.radius[on], bonds.k_n[on], bonds.k_s[on], self.dim)
+            k += float(max(kn.max(), ks.max()))
+        return k
 
     def contact_set(self, horizon: float | None = None, cover: dict | None = None) -> ContactSet:
         """The contacts in the form the time-step analysis takes, walls included, with

@@ -58,6 +58,14 @@ must touch or overlap one another (one rigid body), radii > 0.
 ``twisting_friction`` mu_w (moments up to mu R* F_n; 0 with a stiffness: no limit),
 viscous damping ratio ``rolling_damping``.
 
+``[bonds]``: parallel bonds (Potyondy & Cundall 2004, :mod:`demstep.contact.bonds`)
+created at the start of ``stage`` (its name or 1-based number; default 1) between every
+pair whose surfaces are at most ``gap`` [L] apart, or between the pairs of ``file`` (a
+CSV with 0-based particle columns i, j, relative to the case file):
+``normal_stiffness``, ``shear_stiffness`` [M/(L^2 T^2)] per unit area (shear defaults
+to normal), ``tensile_strength``, ``shear_strength`` [M/(L T^2)] (default inf),
+``radius_multiplier`` (bond radius / smaller particle radius, default 1).
+
 ``[[walls]]``: ``name``, ``point`` [L], ``normal`` (into the domain), ``motion``
 (fixed, velocity, servo), ``velocity`` [L/T], ``target_stress`` [M/(L T^2)] (2D:
 force per unit length), ``servo_gain`` [L T/M] (omitted: automatic, correcting
@@ -245,6 +253,19 @@ ParticlesSection = Annotated[Union[LatticeParticles, GridParticles, FileParticle
                              Field(discriminator="generator")]
 
 
+class BondsSection(_Section):
+    """Parallel bonds created at the start of a stage (:mod:`demstep.contact.bonds`)."""
+
+    normal_stiffness: Positive
+    shear_stiffness: NonNegative | None = None
+    tensile_strength: Annotated[float, Field(gt=0)] = math.inf
+    shear_strength: Annotated[float, Field(gt=0)] = math.inf
+    radius_multiplier: Positive = 1.0
+    gap: NonNegative = 0.0
+    file: str | None = None
+    stage: Annotated[str, Field(min_length=1)] | Annotated[int, Field(ge=1)] = 1
+
+
 class ClumpTemplateSpec(_Section):
     """A clump shape: ``name`` and its ``members``, rows of centre and radius
     [x, y, (z,) r] [L] in the template's frame, or a CSV ``file`` (x,y[,z],r) relative
@@ -418,6 +439,7 @@ class Case(_Section):
     particles: ParticlesSection
     clumps: list[ClumpTemplateSpec] = []
     contact: ContactSection
+    bonds: BondsSection | None = None
     walls: list[WallSpec] = []
     box: BoxSection | None = None
     damping: DampingSection = Field(default_factory=DampingSection)
@@ -463,7 +485,30 @@ class Case(_Section):
         data = self.model_dump(mode="python", exclude_none=True)
         if self.particles.generator == "file":
             data["particles"]["path"] = str(self.particle_file())
+        if self.bond_file() is not None:
+            data["bonds"]["file"] = str(self.bond_file())
         return data
+
+    def bond_stage(self) -> int | None:
+        """Index of the stage at whose start the bonds are created (None: no bonds)."""
+        if self.bonds is None:
+            return None
+        ref = self.bonds.stage
+        if isinstance(ref, int):
+            if ref > len(self.stages):
+                raise InputError(f"bonds.stage: there are {len(self.stages)} stages, got {ref}")
+            return ref - 1
+        names = [st.name for st in self.stages]
+        if ref not in names:
+            raise InputError(f"bonds.stage: no stage named {ref!r}")
+        return names.index(ref)
+
+    def bond_file(self) -> Path | None:
+        """Absolute path of the bond list (None: bonds by gap)."""
+        if self.bonds is None or self.bonds.file is None:
+            return None
+        p = Path(self.bonds.file).expanduser()
+        return p if p.is_absolute() else (self._base_dir / p).resolve()
 
     def particle_file(self) -> Path:
         """Absolute path of the particle file (generator = 'file')."""

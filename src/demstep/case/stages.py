@@ -50,8 +50,27 @@ def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
         sim.timestep.validate()
         sim.dt = None  # chosen anew by the next run (a restart restores it)
     _check_servo_areas(sim, case, k)
+    if fresh and case.bond_stage() == k:
+        _create_bonds(sim, case)
     if fresh and stage.reset_ledger:
         sim.ledger.reset()
+
+
+def _create_bonds(sim, case: Case) -> None:
+    """Bonds of the case's ``[bonds]``: every pair within ``gap``, or the pairs of its
+    ``file`` (a CSV with 0-based particle columns i, j)."""
+    from demstep.contact.bonds import ParallelBonds
+    from demstep.io.formats import read_bond_csv
+
+    b = case.bonds
+    params = ParallelBonds(b.normal_stiffness, b.shear_stiffness, b.tensile_strength,
+                           b.shear_strength, b.radius_multiplier, b.gap)
+    path = case.bond_file()
+    pairs = None if path is None else read_bond_csv(path)
+    try:
+        sim.add_bonds(params, pairs)
+    except InputError as exc:
+        raise InputError(str(exc).replace("bonds:", "bonds.file:" if path else "bonds:", 1)) from None
 
 
 def _check_servo_areas(sim, case: Case, k: int) -> None:

@@ -185,6 +185,38 @@ def read_csv(path) -> ParticleData:
     return out
 
 
+def read_bond_csv(path) -> np.ndarray:
+    """Bond list: CSV with header i,j (0-based particle indices; extra columns
+    ignored); returns pairs (K, 2)."""
+    path = Path(path)
+    if not path.is_file():
+        raise missing_file(path)
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            reader = csv.reader(fh)
+            header = [h.strip().lower() for h in (next(reader, None) or [])]
+            missing = [c for c in ("i", "j") if c not in header]
+            if missing:
+                raise InputError(f"{path}:1: missing column {missing[0]!r} (header must name "
+                                 f"i and j; got {','.join(header) or 'nothing'})")
+            ci, cj = header.index("i"), header.index("j")
+            pairs = []
+            for line, row in enumerate(reader, start=2):
+                if not row or all(not c.strip() for c in row):
+                    continue
+                if len(row) < len(header):
+                    raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
+                pairs.append((_integer(row[ci].strip(), path, line, "column 'i'"),
+                              _integer(row[cj].strip(), path, line, "column 'j'")))
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    if not pairs:
+        raise InputError(f"{path}: no bonds")
+    return np.array(pairs, dtype=np.int64)
+
+
 def _integer_column(data, cols, name, path, lines, minimum):
     """An optional integer column (``type``: >= 1; ``body``: the clump of each sphere,
     -1 for a free sphere) or None."""
