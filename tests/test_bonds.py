@@ -185,3 +185,81 @@ def test_bond_between_distant_particles_is_refused():
     p, sim = chain(3)
     with pytest.raises(InputError, match=r"bonds: pair \(0, 2\) is 1 apart, beyond the gap 0.1"):
         sim.add_bonds(ParallelBonds(normal_stiffness=KN, gap=0.1), pairs=[[0, 2]])
+
+
+BONDED_CASE = """
+[particles]
+generator = "lattice"
+lattice = "hex"
+radius = 1.0
+size = [4, 3]
+density = 1000.0
+[contact]
+law = "linear"
+k_n = 1.0e5
+mu = 0.5
+[bonds]
+normal_stiffness = 1.0e5
+tensile_strength = 1.0e3
+shear_strength = 1.0e3
+gap = 0.01
+stage = "load"
+{extra}
+[box]
+margin = 0.0
+[[stages]]
+name = "settle"
+steps = 150
+[[stages]]
+name = "load"
+steps = 1500
+[stages.walls."y+"]
+motion = "velocity"
+velocity = [0.0, -0.05]
+"""
+
+
+def test_case_bonds_created_at_their_stage_break_under_the_moving_wall(tmp_path):
+    """[bonds] at the stage named 'load': the hex packing's touching pairs are bonded
+    there (not before), the lid crushes it, bonds break and their released energy is in
+    the history; the ledger balances."""
+    import csv
+
+    from demstep.case import build_simulation, load_case
+    from demstep.runner import run_case
+
+    path = tmp_path / "case.toml"
+    path.write_text(BONDED_CASE.format(extra=""))
+    case = load_case(path)
+    sim = build_simulation(case)
+    assert case.bond_stage() == 1 and sim.bonds.n == 0
+    run_case(case, tmp_path / "out")
+    rows = list(csv.DictReader(open(tmp_path / "out" / "history.csv")))
+    last = rows[-1]
+    assert float(last["bond_broken"]) > 0
+    assert float(last["energy_error"]) < 1e-2
+    assert all(float(r["strain_bonds"]) == 0.0 for r in rows if r["stage"] == "0")
+    assert max(float(r["strain_bonds"]) for r in rows if r["stage"] == "1") > 0
+
+
+@pytest.mark.parametrize("extra, content, message", [
+    ('file = "bonds.csv"', "i,j\n0,1\n0,99\n", "bonds.file: particle index 99"),
+    ('file = "bonds.csv"', "i,k\n0,1\n", "missing column 'j'"),
+    ('file = "bonds.csv"', "i,j\n0,x\n", "not an integer: 'x'"),
+    ('file = "missing.csv"', None, "missing.csv"),
+])
+def test_bad_bond_list_is_one_line_before_anything_is_written(tmp_path, extra, content, message):
+    import subprocess
+    import sys
+
+    path = tmp_path / "case.toml"
+    path.write_text(BONDED_CASE.format(extra=extra))
+    if content is not None:
+        (tmp_path / "bonds.csv").write_text(content)
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, "-m", "demstep.cli", "run", str(path), "--out", str(out)],
+                         capture_output=True, text=True)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], lines
+    assert not out.exists()
