@@ -329,15 +329,24 @@ def contact_chunks(contacts, n_particles: int, n_chunks: int):
     return chunks, spans
 
 
-def _chunked_scaled_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
-                           scale, x, work, chunks, spans, buf, y):
+def _chunked_scaled_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, scale, x, work,
+                           chunks, spans, buf, y, k_r=None, k_w=None):
     """y = S K S x like :func:`_scaled_contact_matvec`, the contacts cut into runs
     (``chunks``), one per thread, each summed into its own buffer ``buf[c]`` (n, nd) over
     its particle range ``spans[c]``; the buffers are then added in run order (fixed: the
     result does not depend on the scheduling). With one run it is bit-identical to the
-    serial product."""
+    serial product. Rolling and twisting springs ``k_r``, ``k_w`` (C,) when given (last,
+    optional: None compiles the product without them)."""
     n, nd = work.shape
     n_chunks = chunks.shape[0] - 1
+    if k_r is None:
+        kr = np.zeros(0)
+        kw = np.zeros(0)
+        rolling = False
+    else:
+        kr = k_r
+        kw = k_w
+        rolling = rotation
     for p in prange(n):
         for a in range(nd):
             work[p, a] = scale[p, a] * x[p * nd + a]
@@ -346,7 +355,7 @@ def _chunked_scaled_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolli
         for p in range(spans[c, 0], spans[c, 1]):
             for a in range(nd):
                 out[p, a] = 0.0
-        _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling,
+        _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, kr, kw, rolling,
                               rotation, work, out, chunks[c], chunks[c + 1])
     for p in prange(n):
         for a in range(nd):
@@ -369,11 +378,13 @@ def chunked_scaled_contact_matvec(contacts, k_n, k_t, rotation: bool, scale, x, 
     parallel into ``buf`` (n_chunks, n, nd)."""
     y = np.empty(x.shape[0]) if out is None else out
     kernel = _chunked_scaled_matvec_parallel if parallel else _chunked_scaled_matvec_serial
-    rolling = k_r is not None and bool(rotation)
-    kernel(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j, k_n, k_t,
-           k_r if rolling else _NO_ROLLING, k_w if rolling else _NO_ROLLING, rolling,
-           bool(rotation), scale, np.ascontiguousarray(x, dtype=np.float64), work, chunks,
-           spans, buf, y)
+    args = (contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j, k_n, k_t,
+            bool(rotation), scale, np.ascontiguousarray(x, dtype=np.float64), work, chunks,
+            spans, buf, y)
+    if k_r is not None and rotation:
+        kernel(*args, k_r, k_w)
+    else:
+        kernel(*args)
     return y
 
 
