@@ -277,8 +277,8 @@ def test_exact_undamped_step_with_rolling_is_the_dense_eigenvalue(name, seed, fi
 @pytest.mark.parametrize("which", ["rolling-viscous", "all+global"])
 def test_exact_damped_step_with_rolling_is_the_amplification_threshold(name, seed, fixed, which):
     p, c, _ = random_assembly(name, seed, fixed=fixed)
-    if which == "rolling-viscous":  # the rolling and twisting viscous parts alone
-        c = replace(c, c_n=0.0, c_t=0.0)
+    if which == "rolling-viscous":  # the rolling and twisting viscous parts alone, strong
+        c = replace(c, c_n=0.0, c_t=0.0, c_r=5 * c.c_r, c_w=5 * c.c_w)
         damping = GlobalDamping()
     else:
         damping = GlobalDamping(0.2, 0.01)
@@ -294,6 +294,20 @@ def test_exact_damped_step_with_rolling_is_the_amplification_threshold(name, see
     C = damping.mass * np.diag(np.where(s > 0, 1.0, 0.0)) + s[:, None] * (
         damping.stiffness * dense_matrix(p, c, True) + dense_matrix(p, c, True, True)) * s[None, :]
     assert np.linalg.eigvalsh(C)[-1] <= bound * (1 + 1e-12)
+
+
+@pytest.mark.parametrize("name", ["fcc", "hex"])
+def test_damping_bound_covers_the_rolling_dashpots(name):
+    """Weak rolling springs with strong viscous parts: lambda_max(M^-1/2 C M^-1/2) (dense)
+    stays below ScaledContactOperator.damping_bound (the closed form of the certifying
+    step and of the certificate)."""
+    p, c, rng = random_assembly(name, 21)
+    c = replace(c, c_n=0.0, c_t=0.0, k_r=1e-3 * c.k_r, k_w=1e-3 * c.k_w,
+                c_r=1.0 + rng.random(c.n), c_w=1.0 + rng.random(c.n))
+    s = scaling(p, True)
+    lam_c = np.linalg.eigvalsh(s[:, None] * dense_matrix(p, c, True, True) * s[None, :])[-1]
+    assert lam_c > 0
+    assert lam_c <= ScaledContactOperator(p, c, True).damping_bound() * (1 + 1e-12)
 
 
 def test_rolling_springs_lower_the_exact_step_measurably():
@@ -323,8 +337,14 @@ def test_rolling_springs_lower_the_exact_step_measurably():
 # ------------------------------------------------------------- element bounds
 @pytest.mark.parametrize("name,seed,fixed", ASSEMBLIES)
 @pytest.mark.parametrize("rotation", [True, False])
-def test_coupled_element_closed_forms_match_the_element_pencils(name, seed, fixed, rotation):
+@pytest.mark.parametrize("dominant", ["mixed", "twist", "rolling"])
+def test_coupled_element_closed_forms_match_the_element_pencils(name, seed, fixed, rotation,
+                                                                 dominant):
     p, c, _ = random_assembly(name, seed, fixed=fixed)
+    if dominant == "twist":  # the twist axis (3D) sets the element's step
+        c = replace(c, k_w=50 * c.k_w, c_w=20 * c.c_w)
+    elif dominant == "rolling":
+        c = replace(c, k_r=50 * c.k_r, c_r=20 * c.c_r)
     mass = element_mass(p, c)
     a1, a2 = 0.2, 0.03
     lam = coupled_element_lambda(c, mass, rotation)
@@ -354,6 +374,10 @@ def test_coupled_element_closed_forms_match_the_element_pencils(name, seed, fixe
         reference = min(2 / sigma, 2 / a1)
         assert dt[q] == pytest.approx(reference, rel=1e-9)
         assert dt[q] <= reference * (1 + 1e-12)  # the root from above: never a larger step
+    if dominant != "mixed" and rotation and (dominant == "rolling" or p.dim == 3):
+        # the rotational springs decide the element values of free contacts
+        free = mass.inv_I_i > 0
+        assert np.all(lam[free] > coupled_element_lambda(no_rolling(c), mass, True)[free])
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -496,6 +520,67 @@ def test_clumps_with_rolling_exact_element_and_nodal(seed, dim):
     Mh = V @ np.diag(w ** -0.5) @ V.T
     bound = ScaledContactOperator(p, c, True, bodies=bodies).damping_bound()
     assert np.linalg.eigvalsh(Mh @ C @ Mh)[-1] <= bound * (1 + 1e-12)
+
+
+def owner_element(p, c, bodies, q):
+    """(K_o, M_o) of contact q on its owners' DOFs: the sphere element (independent
+    reference above) mapped by each side's rigid-body map, and each owner's mass matrix
+    divided by its number of contacts (the uniform partition); wall sides dropped."""
+    dim = p.dim
+    nrot = 1 if dim == 2 else 3
+    nd = dim + nrot
+    sb = bodies.sphere_body
+    owner = np.where(sb < 0, -1 - np.arange(p.n), sb)  # free spheres: negative ids
+    ends = np.concatenate([c.i, c.j[c.j >= 0]])
+    counts = {o: int(np.sum(owner[ends] == o)) for o in np.unique(owner[ends])}
+    sides = [c.i[q]] + ([c.j[q]] if c.j[q] >= 0 else [])
+    Ke = element_matrix(c, q, True)[:len(sides) * nd, :len(sides) * nd]
+    G = np.zeros((len(sides) * nd, len(sides) * nd))
+    M = np.zeros((len(sides) * nd, len(sides) * nd))
+    for k, sph in enumerate(sides):
+        o = slice(k * nd, (k + 1) * nd)
+        n_c = counts[owner[sph]]
+        if sb[sph] < 0:
+            G[o, o] = np.eye(nd)
+            M[o, o] = np.diag([p.m[sph]] * dim + [p.inertia[sph]] * nrot) / n_c
+            continue
+        a = bodies.arm[sph]
+        block = np.eye(nd)
+        if dim == 3:
+            block[:3, 3:] = -cross_matrix(a)
+            inertia = bodies.inertia[sb[sph]]
+        else:
+            block[:2, 2] = [-a[1], a[0]]
+            inertia = bodies.inertia[sb[sph]][2:, 2:]
+        G[o, o] = block
+        M[o, o] = np.block([[bodies.mass[sb[sph]] * np.eye(dim), np.zeros((dim, nrot))],
+                            [np.zeros((nrot, dim)), inertia]]) / n_c
+    return G.T @ Ke @ G, M, G
+
+
+@pytest.mark.parametrize("seed,dim", [(1, 3), (3, 2)])
+def test_body_elements_with_rolling_match_their_pencils(seed, dim):
+    """Each contact element of an assembly with clumps, on its owners' DOFs with the
+    uniform partition of their mass matrices (independent reference): its step
+    undamped (2 / sqrt(lambda_max)) and damped (companion matrix) is body_element_dt's."""
+    import scipy.linalg
+
+    p, c, bodies = dumbbell_assembly(seed, dim)
+    a1 = 0.05
+    undamped = body_element_dt(p, replace(c, c_n=0.0, c_t=0.0, c_r=0.0, c_w=0.0), bodies, True)
+    damped = body_element_dt(p, c, bodies, True, a1)
+    for q in range(c.n):
+        K, M, G = owner_element(p, c, bodies, q)
+        Kc = owner_element(p, c.dashpot_springs(), bodies, q)[0]
+        lam = scipy.linalg.eigh(K, M, eigvals_only=True)[-1]
+        assert undamped[q] == pytest.approx(2 / math.sqrt(lam), rel=1e-9)
+        C = a1 * M + Kc
+        Minv = np.linalg.inv(M)
+        n = len(M)
+        L = np.block([[np.zeros((n, n)), np.eye(n)], [Minv @ K, Minv @ C]])
+        ev = np.linalg.eigvals(L)
+        sigma = ev[np.abs(ev.imag) < 1e-9 * np.abs(ev).max()].real.max()
+        assert damped[q] == pytest.approx(2 / sigma, rel=1e-7)
 
 
 # --------------------------------------------------------------- certificate
