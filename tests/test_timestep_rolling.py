@@ -685,6 +685,27 @@ def test_added_contacts_bound_with_rolling(dim):
     assert add_k > added_contacts_bound(p, plain, True)[0]
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_densest_packing_bound_with_rolling_scales_with_the_radius(dim):
+    """densest_packing_dt with rolling springs for particles of radius R is the coupled
+    element bound of the densest periodic packing of such particles (built here at
+    radius R), and below the bound without rolling springs."""
+    from demstep.packings import lattice as make_lattice
+    from demstep.particles import INERTIA_FACTOR
+    from demstep.timestep.estimates import densest_packing_dt
+
+    R, m, k, k_r = 0.3, 2.0, 5.0, 40.0
+    lat = make_lattice("hex" if dim == 2 else "fcc", R)
+    x, box = lat.supercell(3)
+    n = len(x)
+    p = Particles(x, np.full(n, R), np.full(n, m), np.full(n, INERTIA_FACTOR[dim] * m * R * R))
+    c = replace(find_contacts(p, k, 0.8 * k, periodic=box), k_r=k_r, k_w=0.5 * k_r)
+    ref = element_coupled_dt(p, c, True)
+    got = densest_packing_dt(dim, m, k, 0.8 * k, k_r=k_r, k_w=0.5 * k_r, radius=R)
+    assert got == pytest.approx(ref, rel=1e-12)
+    assert got < densest_packing_dt(dim, m, k, 0.8 * k)
+
+
 # ------------------------------------------------------------- Bloch lattice
 def test_bloch_with_rolling_bounds_the_supercell():
     """A periodic FCC supercell is a finite sample of the lattice's wave vectors: its
