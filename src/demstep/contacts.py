@@ -2,14 +2,15 @@
 
 A :class:`ContactSet` is what the time-step analysis needs of an assembly: for each
 contact the particle indices, the unit normal from particle ``i`` towards ``j`` (or
-towards the wall), the arms from each centre to the contact point and the normal and
-tangential stiffnesses. It is built from geometry (:func:`find_contacts`) or by the
+towards the wall), the arms from each centre to the contact point, the normal and
+tangential stiffnesses and dashpots, and (optional) the rolling and twisting springs
+and their viscous parts. It is built from geometry (:func:`find_contacts`) or by the
 engine from its live contact list.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -19,6 +20,8 @@ from demstep.particles import Particles
 
 #: default relative tolerance for "touching" contacts found from geometry
 DEFAULT_CONTACT_TOL = 1e-6
+#: the optional rolling-resistance fields of a ContactSet (default 0)
+ROLLING_FIELDS = ("k_r", "k_w", "c_r", "c_w")
 
 
 @dataclass
@@ -26,7 +29,17 @@ class ContactSet:
     """Contacts (C of them). ``j`` is -1 for a particle-wall contact (``wall`` gives the
     wall index, else -1). ``normal`` (C, dim) is the unit vector from i towards j or the
     wall; ``arm_i``/``arm_j`` [L] are the distances from the centres to the contact
-    point (``arm_j`` = 0 at walls); ``k_n``/``k_s`` [M/T^2] the spring stiffnesses."""
+    point (``arm_j`` = 0 at walls); ``k_n``/``k_s`` [M/T^2] the spring stiffnesses;
+    ``c_n``/``c_t`` [M/T] the dashpots (default 0).
+
+    Rolling and twisting resistance (:mod:`demstep.contact.laws`, default 0): springs
+    ``k_r`` (rolling) and ``k_w`` (twisting) [M L^2/T^2 per rad] and their viscous
+    coefficients ``c_r``, ``c_w`` [M L^2/T], acting on the relative rotation
+    phi = theta_j - theta_i (a wall does not rotate): the moment on j is
+    -(k_r (I - n n^T) + k_w n n^T) phi, i's the opposite; for disks (2D) phi is the z
+    rotation and the moment -k_r phi (no twisting: ``k_w`` and ``c_w`` are ignored).
+    They act on rotational degrees of freedom only, so an analysis with rotation
+    locked ignores them."""
 
     i: np.ndarray
     j: np.ndarray
@@ -38,6 +51,10 @@ class ContactSet:
     wall: np.ndarray | None = None
     c_n: np.ndarray | None = None
     c_t: np.ndarray | None = None
+    k_r: np.ndarray | None = None
+    k_w: np.ndarray | None = None
+    c_r: np.ndarray | None = None
+    c_w: np.ndarray | None = None
 
     def __post_init__(self):
         c = len(self.i)
@@ -57,9 +74,14 @@ class ContactSet:
                                               dtype=np.float64), (c,)).copy()
         self.c_t = np.broadcast_to(np.asarray(0.0 if self.c_t is None else self.c_t,
                                               dtype=np.float64), (c,)).copy()
+        for name in ROLLING_FIELDS:
+            value = getattr(self, name)
+            setattr(self, name, np.broadcast_to(np.asarray(0.0 if value is None else value,
+                                                           dtype=np.float64), (c,)).copy())
 
     #: the per-contact arrays, in constructor order
-    FIELDS = ("i", "j", "normal", "arm_i", "arm_j", "k_n", "k_s", "wall", "c_n", "c_t")
+    FIELDS = ("i", "j", "normal", "arm_i", "arm_j", "k_n", "k_s", "wall", "c_n", "c_t",
+              "k_r", "k_w", "c_r", "c_w")
 
     @property
     def n(self) -> int:
@@ -71,8 +93,25 @@ class ContactSet:
 
     @property
     def damped(self) -> bool:
-        """Whether any contact has a dashpot."""
-        return bool(self.n and (self.c_n.any() or self.c_t.any()))
+        """Whether any contact has a dashpot (translational, rolling or twisting)."""
+        return bool(self.n and (self.c_n.any() or self.c_t.any() or self.c_r.any()
+                                or self.c_w.any()))
+
+    @property
+    def has_rolling(self) -> bool:
+        """Whether any contact has a rolling or twisting spring or viscous coefficient
+        (in 2D: k_r or c_r only, disks do not twist)."""
+        if not self.n:
+            return False
+        if self.dim == 2:
+            return bool(self.k_r.any() or self.c_r.any())
+        return bool(self.k_r.any() or self.k_w.any() or self.c_r.any() or self.c_w.any())
+
+    def dashpot_springs(self) -> "ContactSet":
+        """The same contacts with the viscous coefficients in place of the springs
+        (k_n, k_s, k_r, k_w := c_n, c_t, c_r, c_w): their 'stiffness' matrix is the
+        damping matrix C_d [M/T] (the dashpots act on the same relative motions)."""
+        return replace(self, k_n=self.c_n, k_s=self.c_t, k_r=self.c_r, k_w=self.c_w)
 
     def subset(self, keep) -> "ContactSet":
         """The contacts selected by ``keep`` (a boolean mask or an index array)."""

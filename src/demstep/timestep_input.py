@@ -22,8 +22,15 @@ beta = -ln e / sqrt(ln^2 e + pi^2), in one of two conventions:
 * ``liggghts`` (LIGGGHTS 3.8): Hertz as above with beta_t = beta (``tangential_damping``
   on, its default); linear (``hooke``) c_n = 2 beta sqrt(m* k_n) and c_t = c_n.
 
-Every coefficient formula is the engine's (:func:`demstep.contact.laws.contact_coefficients`);
-only the LIGGGHTS choices of beta_t and of the linear c_t are made here.
+Rolling and twisting resistance (either model, :mod:`demstep.contact.laws`): per
+contact k_r, k_w [M L^2/T^2 per rad] by the convention ``beta`` (k = beta k_t R*^2,
+k_t the tangent tangential stiffness) or ``epsd`` (k = 2.25 k_n mu^2 R*^2, mu the
+rolling or twisting friction), and viscous parts c = 2 eta sqrt(I* k) with
+I* = 1/(1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2)) (a wall's term is zero).
+
+Every coefficient formula is the engine's (:func:`demstep.contact.laws.contact_coefficients`,
+:func:`demstep.contact.laws.rolling_coefficients`); only the LIGGGHTS choices of beta_t
+and of the linear c_t are made here.
 """
 
 from __future__ import annotations
@@ -66,7 +73,10 @@ class Material:
 class ContactModel:
     """How contacts become coefficients (module docstring). ``materials`` maps a particle
     type to its :class:`Material` (type 1 for files without a type column; the key None
-    gives the material of every type)."""
+    gives the material of every type). Rolling and twisting resistance as in
+    :class:`demstep.contact.laws.ContactLaw`: ``rolling_convention`` ("beta", "epsd" or
+    None: none), ``rolling_stiffness`` beta_r, ``twisting_stiffness`` beta_w,
+    ``rolling_friction`` mu_r, ``twisting_friction`` mu_w, ``rolling_damping`` eta."""
 
     model: str = "linear"
     k_n: float | None = None
@@ -79,6 +89,12 @@ class ContactModel:
     tangential_damping: bool = True
     convention: str = "demstep"
     overlap: float = 0.0
+    rolling_convention: str | None = None
+    rolling_stiffness: float = 0.0
+    twisting_stiffness: float = 0.0
+    rolling_friction: float = 0.0
+    twisting_friction: float = 0.0
+    rolling_damping: float = 0.0
 
     def validate(self):
         if self.model not in MODELS:
@@ -118,6 +134,26 @@ class ContactModel:
                              "--no-tangential-damping to switch it off)")
         if not (math.isfinite(self.overlap) and self.overlap >= 0):
             raise InputError(f"overlap: must be finite and >= 0, got {self.overlap!r}")
+        self._rolling_law()
+
+    def _rolling_law(self):
+        """The rolling-resistance part as a checked :class:`~demstep.contact.laws.ContactLaw`
+        (the law's own checks; messages name the options: rolling-stiffness, ...)."""
+        from demstep.contact.laws import ContactLaw
+
+        law = ContactLaw(**{name: getattr(self, name) for name in ROLLING_OPTIONS})
+        try:
+            law.validate()
+        except InputError as exc:
+            text = str(exc)
+            for name in ROLLING_OPTIONS:
+                text = text.replace(name, name.replace("_", "-"))
+            raise InputError(text) from None
+        return law
+
+    @property
+    def has_rolling(self) -> bool:
+        return self.rolling_convention is not None
 
     def material(self, t) -> Material:
         """The material of particle type ``t``."""
@@ -149,6 +185,15 @@ class ContactModel:
                 text += (f"; dashpots from restitution {self.restitution:g}"
                          + (f" (tangential {et:g})" if et is not None else " (normal only)")
                          + ", demstep convention")
+        if self.rolling_convention == "beta":
+            text += (f"; rolling resistance k_r = {self.rolling_stiffness:g} k_t R*^2, "
+                     f"k_w = {self.twisting_stiffness:g} k_t R*^2")
+        elif self.rolling_convention == "epsd":
+            text += (f"; rolling resistance (epsd) k_r = 2.25 k_n R*^2 x "
+                     f"{self.rolling_friction:g}^2, k_w = 2.25 k_n R*^2 x "
+                     f"{self.twisting_friction:g}^2")
+        if self.rolling_convention is not None and self.rolling_damping:
+            text += f", viscous ratio {self.rolling_damping:g}"
         return text
 
     # -------------------------------------------------------------- coefficients
@@ -175,11 +220,17 @@ class ContactModel:
                     self.restitution_tangential))
         if not self.tangential_damping:
             p = p._replace(c_t=0.0, beta_t=0.0)
+        if self.has_rolling:
+            roll = self._rolling_law().params()
+            p = p._replace(roll_mode=roll.roll_mode, beta_r=roll.beta_r, beta_w=roll.beta_w,
+                           mu_r=roll.mu_r, mu_w=roll.mu_w, eta_r=roll.eta_r)
         return p
 
     def apply(self, contacts: ContactSet, particles: Particles, types: np.ndarray) -> ContactSet:
-        """Fill the contacts' k_n, k_s, c_n, c_t from the model and the geometry."""
+        """Fill the contacts' k_n, k_s, c_n, c_t (and k_r, k_w, c_r, c_w with rolling
+        resistance) from the model and the geometry."""
         from demstep.contact.laws import contact_coefficients
+        from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
 
         i, j = contacts.i, contacts.j
         wall = j < 0
@@ -192,7 +243,8 @@ class ContactModel:
         inv = np.where(particles.fixed, 0.0, 1.0 / particles.m)
         inv_sum = inv[i] + np.where(wall, 0.0, inv[jj])
         m_star = np.where(inv_sum > 0, 1.0 / np.where(inv_sum > 0, inv_sum, 1.0), particles.m[i])
-        out = [np.zeros(contacts.n) for _ in range(4)]
+        out = [np.zeros(contacts.n) for _ in range(8)]
+        i_star = contact_rolling_inertia(contacts, particles) if self.has_rolling else None
         if self.model == "linear":
             groups = [(np.ones(contacts.n, dtype=bool), self.law_params())]
         else:
@@ -208,12 +260,57 @@ class ContactModel:
                                           m_star[sel])
             for k in range(4):
                 out[k][sel] = coeffs[k]
-        k_n, k_t, c_n, c_t = out
+            if i_star is not None:
+                rolling = rolling_coefficient_arrays(params, coeffs[0], coeffs[1],
+                                                     r_star[sel], i_star[sel])
+                for k in range(4):
+                    out[4 + k][sel] = rolling[k]
+        k_n, k_t, c_n, c_t, k_r, k_w, c_r, c_w = out
         if (self.convention == "liggghts" and self.model == "linear"
                 and self.restitution is not None):
             c_t = c_n.copy() if self.tangential_damping else np.zeros_like(c_n)
         return ContactSet(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
-                          contacts.arm_j, k_n, k_t, contacts.wall, c_n, c_t)
+                          contacts.arm_j, k_n, k_t, contacts.wall, c_n, c_t, k_r, k_w, c_r, c_w)
+
+
+#: the rolling-resistance fields of ContactModel and ContactLaw (option names with '-')
+ROLLING_OPTIONS = ("rolling_convention", "rolling_stiffness", "twisting_stiffness",
+                   "rolling_friction", "twisting_friction", "rolling_damping")
+
+
+def contact_effective_radius(contacts: ContactSet, particles: Particles) -> np.ndarray:
+    """R* (C,) [L]: r_i r_j / (r_i + r_j) for pairs, r_i at walls."""
+    wall = contacts.j < 0
+    r_i = particles.r[contacts.i]
+    r_j = particles.r[np.where(wall, contacts.i, contacts.j)]
+    return np.where(wall, r_i, r_i * r_j / (r_i + r_j))
+
+
+def contact_rolling_inertia(contacts: ContactSet, particles: Particles) -> np.ndarray:
+    """I* (C,) [M L^2] of every contact (:func:`demstep.contact.laws.rolling_inertia`,
+    the particles' own masses and inertias; a wall adds nothing)."""
+    from demstep.contact.laws import rolling_inertia
+
+    i, j = contacts.i, contacts.j
+    wall = j < 0
+    jj = np.where(wall, i, j)
+    p = particles
+    pair = rolling_inertia(p.inertia[i], p.m[i], p.r[i], p.inertia[jj], p.m[jj], p.r[jj])
+    alone = rolling_inertia(p.inertia[i], p.m[i], p.r[i])
+    return np.where(wall, alone, pair)
+
+
+def with_rolling(contacts: ContactSet, particles: Particles, params) -> ContactSet:
+    """The contacts with k_r, k_w, c_r, c_w from their k_n, k_s (tangent stiffnesses)
+    by the law ``params`` (a LawParams with rolling resistance)."""
+    from dataclasses import replace
+
+    from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
+
+    k_r, k_w, c_r, c_w = rolling_coefficient_arrays(
+        params, contacts.k_n, contacts.k_s, contact_effective_radius(contacts, particles),
+        contact_rolling_inertia(contacts, particles))
+    return replace(contacts, k_r=k_r, k_w=k_w, c_r=c_r, c_w=c_w)
 
 
 def effective_moduli(a: Material, b: Material) -> tuple[float, float]:
@@ -528,6 +625,10 @@ def from_simulation(sim, source: str, notes=None) -> AnalysisInput:
     its law's coefficients and its global viscous damping (demstep convention)."""
     contacts = sim.contact_set()
     particles = sim.particles_now()
+    params = sim.law.params()
+    if params.has_rolling and contacts.n and not contacts.has_rolling:
+        # the law's rolling and twisting springs from the contacts' tangent stiffnesses
+        contacts = with_rolling(contacts, particles, params)
     if not sim.rotation:
         notes = list(notes or []) + ["rotation locked in the simulation"]
     return AnalysisInput(particles, contacts, GlobalDamping(mass=float(sim.damping.viscous)),
@@ -545,6 +646,8 @@ def model_from_law(law, overlap: float = 0.0) -> ContactModel:
     common = dict(restitution=law.restitution, restitution_tangential=law.restitution_tangential,
                   gamma_n=float(law.damping_normal), gamma_t=float(law.damping_tangential),
                   convention="demstep", overlap=overlap)
+    common.update({name: getattr(law, name, None if name == "rolling_convention" else 0.0)
+                   for name in ROLLING_OPTIONS})
     if isinstance(law, HertzMindlin):
         return ContactModel("hertz", materials={None: Material(law.youngs_modulus, law.poisson_ratio)},
                             **common)

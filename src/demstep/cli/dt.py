@@ -3,7 +3,8 @@
 Inputs: a particle file (CSV, LIGGGHTS/LAMMPS dump, YADE text), a demstep case file
 (its initial state) or checkpoint (the run's contacts and overlaps), or a regular
 lattice. Contact models: linear (k_n, k_t) or Hertz-Mindlin (E, nu per material), with
-dashpots by restitution or absolute coefficients, and global damping. Output: the
+dashpots by restitution or absolute coefficients, rolling and twisting resistance
+(conventions beta and epsd, :mod:`demstep.contact.laws`), and global damping. Output: the
 table (or JSON), where the danger is (the particles and contacts carrying the critical
 mode, optionally as VTK) and an optional bar chart.
 """
@@ -102,6 +103,22 @@ def add_dt_parser(sub):
     mod.add_argument("--convention", choices=("demstep", "liggghts"), default=None,
                      help="restitution to dashpots: demstep's engine or LIGGGHTS 3.8 "
                      "(default: liggghts for dumps, demstep otherwise)")
+    mod.add_argument("--rolling-convention", choices=("beta", "epsd"), default=None,
+                     help="rolling and twisting resistance: 'beta' (k_r = beta_r k_t R*^2, "
+                     "k_w = beta_w k_t R*^2) or 'epsd' (k_r = 2.25 k_n mu_r^2 R*^2, "
+                     "k_w = 2.25 k_n mu_w^2 R*^2); default none")
+    mod.add_argument("--rolling-stiffness", type=number("rolling-stiffness", 0), default=None,
+                     metavar="BETA_R", help="beta convention: rolling stiffness factor beta_r")
+    mod.add_argument("--twisting-stiffness", type=number("twisting-stiffness", 0), default=None,
+                     metavar="BETA_W", help="beta convention: twisting stiffness factor beta_w")
+    mod.add_argument("--rolling-friction", type=number("rolling-friction", 0), default=None,
+                     metavar="MU_R", help="rolling friction mu_r (epsd: sets k_r; the moment "
+                     "limit mu_r R* F_n does not enter the linear analysis)")
+    mod.add_argument("--twisting-friction", type=number("twisting-friction", 0), default=None,
+                     metavar="MU_W", help="twisting friction mu_w (epsd: sets k_w)")
+    mod.add_argument("--rolling-damping", type=number("rolling-damping", 0), default=None,
+                     metavar="ETA_R", help="viscous ratio of the rolling and twisting springs: "
+                     "c = 2 eta sqrt(I* k) [M L^2/T]")
     mod.add_argument("--viscous", type=number("viscous", 0), default=0.0,
                      help="global mass-proportional damping a1 [1/T] (force -a1 m v)")
     mod.add_argument("--rayleigh", nargs=2, type=number("rayleigh", 0), metavar=("A1", "A2"),
@@ -196,9 +213,21 @@ def _model(args, default_convention: str):
     convention = args.convention or default_convention
     overlap = args.overlap if args.overlap is not None else 0.0
     cm = ContactModel(model, kn, args.ks, materials, args.restitution, args.restitution_t,
-                      args.gamma_n, args.gamma_t, args.tangential_damping, convention, overlap)
+                      args.gamma_n, args.gamma_t, args.tangential_damping, convention, overlap,
+                      **_rolling(args))
     cm.validate()
     return cm
+
+
+def _rolling(args) -> dict:
+    """The rolling-resistance fields of the ContactModel from the options (argparse
+    attributes of the same names; 0 when not given, the convention None: none)."""
+    from demstep.timestep_input import ROLLING_OPTIONS
+
+    out = {name: (getattr(args, name) if getattr(args, name) is not None else 0.0)
+           for name in ROLLING_OPTIONS}
+    out["rolling_convention"] = args.rolling_convention
+    return out
 
 
 def _damping(args):
@@ -283,6 +312,8 @@ def load_input(args):
                                 ("--restitution", args.restitution),
                                 ("--model", args.model), ("--box", args.box),
                                 ("--periodic", args.periodic), ("--density", args.density))
+                 + tuple(("--" + name.replace("_", "-"), getattr(args, name))
+                         for name in ti.ROLLING_OPTIONS)
                  if v is not None] + (["--wall"] if args.wall else []) \
             + (["--gamma-n/--gamma-t"] if args.gamma_n or args.gamma_t else []) \
             + (["--viscous/--rayleigh"] if args.viscous or args.rayleigh else [])
@@ -395,6 +426,7 @@ def critical_mode_report(report, data, top: int) -> dict | None:
     contacts = [{"i": int(c.i[k]), "j": int(c.j[k]) if c.j[k] >= 0 else None,
                  "wall": int(c.wall[k]) if c.j[k] < 0 else None, "k_n": float(c.k_n[k]),
                  "k_t": float(c.k_s[k]), "c_n": float(c.c_n[k]), "c_t": float(c.c_t[k]),
+                 "k_r": float(c.k_r[k]), "k_w": float(c.k_w[k]),
                  "share": float(contact_share[k])} for k in corder]
     return {"sigma": report.exact.sigma, "lambda_undamped": report.exact.lambda_undamped,
             "particles": particles, "contacts": contacts}
@@ -435,11 +467,15 @@ def format_report(report, danger=None) -> str:
                          f"{q['contacts']:>9}{q['share']:>8.3f}{q['translation']:>9.3f}"
                          f"{q['rotation']:>8.3f}")
         lines.append("  and the contacts carrying most of its strain energy:")
-        lines.append(f"  {'i':>9}{'j / wall':>10}{'k_n':>12}{'k_t':>12}{'c_n':>11}{'c_t':>11}{'share':>8}")
+        rolling = any(q.get("k_r") or q.get("k_w") for q in danger["contacts"])
+        roll_head = f"{'k_r':>11}{'k_w':>11}" if rolling else ""
+        lines.append(f"  {'i':>9}{'j / wall':>10}{'k_n':>12}{'k_t':>12}{'c_n':>11}{'c_t':>11}"
+                     f"{roll_head}{'share':>8}")
         for q in danger["contacts"]:
             other = str(q["j"]) if q["j"] is not None else f"wall {q['wall']}"
+            roll = f"{q['k_r']:>11.4g}{q['k_w']:>11.4g}" if rolling else ""
             lines.append(f"  {q['i']:>9}{other:>10}{q['k_n']:>12.4g}{q['k_t']:>12.4g}"
-                         f"{q['c_n']:>11.4g}{q['c_t']:>11.4g}{q['share']:>8.3f}")
+                         f"{q['c_n']:>11.4g}{q['c_t']:>11.4g}{roll}{q['share']:>8.3f}")
     return "\n".join(lines)
 
 

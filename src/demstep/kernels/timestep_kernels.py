@@ -3,10 +3,12 @@
 import numpy as np
 
 from demstep._numba import compile_parallel_and_serial, njit, prange
+from demstep.contact.laws import rolling_coefficients
 
 
 @njit
-def _stiffness_diagonal(i, j, normal, arm_i, arm_j, k_n, k_s, n, nd, rotation):
+def _stiffness_diagonal(i, j, normal, arm_i, arm_j, k_n, k_s, k_r, k_w, rolling, n, nd,
+                        rotation):
     dim = normal.shape[1]
     diag = np.zeros((n, nd))
     for c in range(i.shape[0]):
@@ -23,14 +25,40 @@ def _stiffness_diagonal(i, j, normal, arm_i, arm_j, k_n, k_s, n, nd, rotation):
                     diag[p, dim + k] += rot * (1.0 - n2)
             if rotation and dim == 2:
                 diag[p, 2] += rot
+            if rotation and rolling:
+                # the rolling element B = k_r (I - n n^T) + k_w n n^T (2D: k_r) on
+                # theta_i and theta_j: its diagonal on either side
+                if dim == 2:
+                    diag[p, 2] += k_r[c]
+                else:
+                    for k in range(3):
+                        n2 = normal[c, k] * normal[c, k]
+                        diag[p, 3 + k] += k_r[c] * (1.0 - n2) + k_w[c] * n2
     return diag
 
 
+#: placeholder for the rolling arrays of contacts without rolling resistance (never read)
+_NO_ROLLING = np.zeros(0)
+
+
+def _rolling_arrays(contacts, viscous: bool = False):
+    """(k_r, k_w, rolling) of the contacts for a kernel (``viscous``: their c_r, c_w);
+    ``rolling`` False (and empty placeholders) when the contacts have none, so the
+    products without rolling resistance are the same operations as before it existed."""
+    if not contacts.has_rolling:
+        return _NO_ROLLING, _NO_ROLLING, False
+    if viscous:
+        return contacts.c_r, contacts.c_w, True
+    return contacts.k_r, contacts.k_w, True
+
+
 def stiffness_diagonal_kernel(contacts, n_particles: int, nd: int, rotation: bool) -> np.ndarray:
-    """Summed contact stiffness per particle DOF (n, nd); see timestep.assembly."""
+    """Summed contact stiffness per particle DOF (n, nd), rolling and twisting springs
+    included; see timestep.assembly."""
+    k_r, k_w, rolling = _rolling_arrays(contacts)
     return _stiffness_diagonal(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
-                               contacts.arm_j, contacts.k_n, contacts.k_s, int(n_particles),
-                               int(nd), bool(rotation))
+                               contacts.arm_j, contacts.k_n, contacts.k_s, k_r, k_w, rolling,
+                               int(n_particles), int(nd), bool(rotation))
 
 
 @njit(inline="always")
@@ -73,16 +101,65 @@ def _contact_slip(c, i, j, normal, arm_i, arm_j, x, dim, nd, rotation):
     return d0, d1, d2, n0, n1, n2
 
 
+@njit(inline="always")
+def _relative_rotation(c, i, j, x, dim):
+    """phi = theta_j - theta_i of contact ``c`` (padded to 3; 2D: (0, 0, theta_z)); a wall
+    side (j < 0) does not rotate. ``x`` (n, nd) holds the DOFs with rotations."""
+    p = i[c]
+    q = j[c]
+    if dim == 2:
+        f = -x[p, 2]
+        if q >= 0:
+            f += x[q, 2]
+        return 0.0, 0.0, f
+    f0 = -x[p, 3]
+    f1 = -x[p, 4]
+    f2 = -x[p, 5]
+    if q >= 0:
+        f0 += x[q, 3]
+        f1 += x[q, 4]
+        f2 += x[q, 5]
+    return f0, f1, f2
+
+
+@njit(inline="always")
+def _rolling_moment(kr, kw, f0, f1, f2, n0, n1, n2, dim):
+    """B phi with B = k_r (I - n n^T) + k_w n n^T (the moment of the rolling and
+    twisting springs on j, sign reversed); 2D: k_r phi_z."""
+    if dim == 2:
+        return 0.0, 0.0, kr * f2
+    a = (kw - kr) * (f0 * n0 + f1 * n1 + f2 * n2)
+    return kr * f0 + a * n0, kr * f1 + a * n1, kr * f2 + a * n2
+
+
+@njit(inline="always")
+def _rolling_parts(f0, f1, f2, n0, n1, n2, dim):
+    """(|phi_perp|^2, phi_n^2): the squared rolling and twisting parts of phi (2D:
+    (phi_z^2, 0))."""
+    if dim == 2:
+        return f2 * f2, 0.0
+    fn = f0 * n0 + f1 * n1 + f2 * n2
+    return max(f0 * f0 + f1 * f1 + f2 * f2 - fn * fn, 0.0), fn * fn
+
+
 @njit
-def _contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, x, y):
+def _contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, x, y):
     """y += K x for the coupled contact stiffness K = sum B^T D B (springs ``k_n``,
-    ``k_t`` per contact) without assembling it; x, y (n, nd)."""
-    _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, x, y, 0, i.shape[0])
+    ``k_t`` per contact), plus with ``rolling`` the rolling elements (springs ``k_r``,
+    ``k_w``), without assembling it; x, y (n, nd)."""
+    _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
+                          x, y, 0, i.shape[0])
 
 
 @njit
-def _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, x, y, start, stop):
-    """y += K_c x summed over the contacts c = ``start`` ... ``stop`` - 1 (in order)."""
+def _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
+                          x, y, start, stop):
+    """y += K_c x summed over the contacts c = ``start`` ... ``stop`` - 1 (in order).
+
+    Per contact: the translational springs on the slip Delta at the contact point
+    (:func:`_contact_slip`) and, with ``rolling`` and ``rotation``, the rotational
+    element [[B, -B], [-B, B]] on (theta_i, theta_j), B = k_r (I - n n^T) + k_w n n^T
+    (2D: k_r; a wall side: B on theta_i only)."""
     dim = normal.shape[1]
     nd = x.shape[1]
     for c in range(start, stop):
@@ -124,11 +201,28 @@ def _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, x, y, 
                     y[q, 3] -= arm_j[c] * c0
                     y[q, 4] -= arm_j[c] * c1
                     y[q, 5] -= arm_j[c] * c2
+            if rolling:
+                f0, f1, f2 = _relative_rotation(c, i, j, x, dim)
+                m0, m1, m2 = _rolling_moment(k_r[c], k_w[c], f0, f1, f2, n0, n1, n2, dim)
+                if dim == 2:
+                    y[p, 2] -= m2
+                    if q >= 0:
+                        y[q, 2] += m2
+                else:
+                    y[p, 3] -= m0
+                    y[p, 4] -= m1
+                    y[p, 5] -= m2
+                    if q >= 0:
+                        y[q, 3] += m0
+                        y[q, 4] += m1
+                        y[q, 5] += m2
 
 
 @njit
-def _contact_energies(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, x, out):
-    """out[c] = 1/2 Delta_c . D_c Delta_c, the strain energy of each contact for DOFs x."""
+def _contact_energies(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, x,
+                      out):
+    """out[c] = 1/2 Delta_c . D_c Delta_c (+ 1/2 phi_c . B_c phi_c with ``rolling``), the
+    strain energy of each contact for DOFs x."""
     dim = normal.shape[1]
     nd = x.shape[1]
     for c in range(i.shape[0]):
@@ -137,10 +231,15 @@ def _contact_energies(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, x, out):
         dn = d0 * n0 + d1 * n1 + d2 * n2
         dt2 = d0 * d0 + d1 * d1 + d2 * d2 - dn * dn
         out[c] = 0.5 * (k_n[c] * dn * dn + k_t[c] * max(dt2, 0.0))
+        if rolling and rotation:
+            f0, f1, f2 = _relative_rotation(c, i, j, x, dim)
+            fr2, fw2 = _rolling_parts(f0, f1, f2, n0, n1, n2, dim)
+            out[c] += 0.5 * (k_r[c] * fr2 + k_w[c] * fw2)
 
 
 @njit
-def _scaled_contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, scale, x, work, y):
+def _scaled_contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
+                           scale, x, work, y):
     """y = S K S x (S = diag(scale)) for flat x, y (n nd,), ``work`` (n, nd) scratch."""
     n, nd = work.shape
     for p in range(n):
@@ -148,46 +247,62 @@ def _scaled_contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, scale
             work[p, a] = scale[p, a] * x[p * nd + a]
     out = y.reshape((n, nd))
     out[:] = 0.0
-    _contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, work, out)
+    _contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, work,
+                    out)
     for p in range(n):
         for a in range(nd):
             out[p, a] *= scale[p, a]
 
 
-def scaled_contact_matvec(contacts, k_n, k_t, rotation: bool, scale, x, work=None, out=None):
+def scaled_contact_matvec(contacts, k_n, k_t, rotation: bool, scale, x, work=None, out=None,
+                          k_r=None, k_w=None):
     """S K S x for flat x (n nd,), S = diag(scale) with scale (n, nd) = M^-1/2 (into
-    ``out`` when given)."""
+    ``out`` when given); K with springs ``k_n``, ``k_t`` [M/T^2] and, when given,
+    rolling and twisting springs ``k_r``, ``k_w`` [M L^2/T^2 per rad] (C,) each."""
     if work is None:
         work = np.empty_like(scale)
     y = np.empty(x.shape[0]) if out is None else out
+    rolling = k_r is not None and bool(rotation)
     _scaled_contact_matvec(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
-                           contacts.arm_j, k_n, k_t, bool(rotation), scale,
+                           contacts.arm_j, k_n, k_t, k_r if rolling else _NO_ROLLING,
+                           k_w if rolling else _NO_ROLLING, rolling, bool(rotation), scale,
                            np.ascontiguousarray(x, dtype=np.float64), work, y)
     return y
 
 
-def contact_matvec(contacts, k_n, k_t, rotation: bool, x: np.ndarray) -> np.ndarray:
-    """K x (n, nd) for the coupled contact stiffness with springs ``k_n``, ``k_t`` (C,)."""
+def contact_matvec(contacts, k_n, k_t, rotation: bool, x: np.ndarray, k_r=None,
+                   k_w=None) -> np.ndarray:
+    """K x (n, nd) for the coupled contact stiffness with springs ``k_n``, ``k_t`` (C,)
+    [M/T^2] and, when given, rolling and twisting springs ``k_r``, ``k_w`` (C,)
+    [M L^2/T^2 per rad]."""
     y = np.zeros_like(x)
+    rolling = k_r is not None and bool(rotation)
     _contact_matvec(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j,
-                    k_n, k_t, bool(rotation), x, y)
+                    k_n, k_t, k_r if rolling else _NO_ROLLING, k_w if rolling else _NO_ROLLING,
+                    rolling, bool(rotation), x, y)
     return y
 
 
-def contact_energies(contacts, k_n, k_t, rotation: bool, x: np.ndarray) -> np.ndarray:
-    """Strain energy (C,) of each contact's springs ``k_n``, ``k_t`` for the DOFs x (n, nd)."""
+def contact_energies(contacts, k_n, k_t, rotation: bool, x: np.ndarray, k_r=None,
+                     k_w=None) -> np.ndarray:
+    """Strain energy (C,) of each contact's springs ``k_n``, ``k_t`` (and, when given,
+    rolling and twisting springs ``k_r``, ``k_w``) for the DOFs x (n, nd)."""
     out = np.empty(contacts.n)
+    rolling = k_r is not None and bool(rotation)
     _contact_energies(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
-                      contacts.arm_j, k_n, k_t, bool(rotation), x, out)
+                      contacts.arm_j, k_n, k_t, k_r if rolling else _NO_ROLLING,
+                      k_w if rolling else _NO_ROLLING, rolling, bool(rotation), x, out)
     return out
 
 
 def damping_diagonal_kernel(contacts, n_particles: int, nd: int, rotation: bool) -> np.ndarray:
     """Summed dashpot coefficient per particle DOF (n, nd): the diagonal of C = sum
-    B^T G B (same form as the stiffness diagonal, with c_n, c_t for k_n, k_s)."""
+    B^T G B (same form as the stiffness diagonal, with c_n, c_t, c_r, c_w for k_n, k_s,
+    k_r, k_w)."""
+    c_r, c_w, rolling = _rolling_arrays(contacts, viscous=True)
     return _stiffness_diagonal(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
-                               contacts.arm_j, contacts.c_n, contacts.c_t, int(n_particles),
-                               int(nd), bool(rotation))
+                               contacts.arm_j, contacts.c_n, contacts.c_t, c_r, c_w, rolling,
+                               int(n_particles), int(nd), bool(rotation))
 
 
 # --- threaded matrix-free products -------------------------------------------------
@@ -215,14 +330,23 @@ def contact_chunks(contacts, n_particles: int, n_chunks: int):
 
 
 def _chunked_scaled_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, scale, x, work,
-                           chunks, spans, buf, y):
+                           chunks, spans, buf, y, k_r=None, k_w=None):
     """y = S K S x like :func:`_scaled_contact_matvec`, the contacts cut into runs
     (``chunks``), one per thread, each summed into its own buffer ``buf[c]`` (n, nd) over
     its particle range ``spans[c]``; the buffers are then added in run order (fixed: the
     result does not depend on the scheduling). With one run it is bit-identical to the
-    serial product."""
+    serial product. Rolling and twisting springs ``k_r``, ``k_w`` (C,) when given (last,
+    optional: None compiles the product without them)."""
     n, nd = work.shape
     n_chunks = chunks.shape[0] - 1
+    if k_r is None:
+        kr = np.zeros(0)
+        kw = np.zeros(0)
+        rolling = False
+    else:
+        kr = k_r
+        kw = k_w
+        rolling = rotation
     for p in prange(n):
         for a in range(nd):
             work[p, a] = scale[p, a] * x[p * nd + a]
@@ -231,8 +355,8 @@ def _chunked_scaled_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, scale
         for p in range(spans[c, 0], spans[c, 1]):
             for a in range(nd):
                 out[p, a] = 0.0
-        _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, rotation, work, out,
-                              chunks[c], chunks[c + 1])
+        _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, kr, kw, rolling,
+                              rotation, work, out, chunks[c], chunks[c + 1])
     for p in prange(n):
         for a in range(nd):
             s = 0.0
@@ -247,22 +371,29 @@ _chunked_scaled_matvec_parallel, _chunked_scaled_matvec_serial = \
 
 
 def chunked_scaled_contact_matvec(contacts, k_n, k_t, rotation: bool, scale, x, work, chunks,
-                                  spans, buf, out=None, parallel: bool = True):
-    """S K S x for flat x like :func:`scaled_contact_matvec`, the contact runs
-    (:func:`contact_chunks`) summed in parallel into ``buf`` (n_chunks, n, nd)."""
+                                  spans, buf, out=None, parallel: bool = True, k_r=None,
+                                  k_w=None):
+    """S K S x for flat x like :func:`scaled_contact_matvec` (rolling and twisting springs
+    ``k_r``, ``k_w`` when given), the contact runs (:func:`contact_chunks`) summed in
+    parallel into ``buf`` (n_chunks, n, nd)."""
     y = np.empty(x.shape[0]) if out is None else out
     kernel = _chunked_scaled_matvec_parallel if parallel else _chunked_scaled_matvec_serial
-    kernel(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j, k_n, k_t,
-           bool(rotation), scale, np.ascontiguousarray(x, dtype=np.float64), work, chunks,
-           spans, buf, y)
+    args = (contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j, k_n, k_t,
+            bool(rotation), scale, np.ascontiguousarray(x, dtype=np.float64), work, chunks,
+            spans, buf, y)
+    if k_r is not None and rotation:
+        kernel(*args, k_r, k_w)
+    else:
+        kernel(*args)
     return y
 
 
-def _contact_quadratic_forms(i, j, normal, arm_i, arm_j, k_n, k_t, c_n, c_t, rotation, x,
-                             chunks, sums):
+def _contact_quadratic_forms(i, j, normal, arm_i, arm_j, k_n, k_t, c_n, c_t, k_r, k_w, c_r,
+                             c_w, rolling, rotation, x, chunks, sums):
     """sums[c] = (x.K x, x.C x) over the contacts of run c, K with springs ``k_n``,
     ``k_t`` and C with ``c_n``, ``c_t`` (each the sum over contacts of
-    Delta.D Delta); x (n, nd) already scaled."""
+    Delta.D Delta), plus with ``rolling`` the rolling elements (phi.B phi, springs
+    ``k_r``, ``k_w`` and ``c_r``, ``c_w``); x (n, nd) already scaled."""
     dim = normal.shape[1]
     nd = x.shape[1]
     for r in prange(chunks.shape[0] - 1):
@@ -275,6 +406,11 @@ def _contact_quadratic_forms(i, j, normal, arm_i, arm_j, k_n, k_t, c_n, c_t, rot
             dt2 = max(d0 * d0 + d1 * d1 + d2 * d2 - dn * dn, 0.0)
             sk += k_n[c] * dn * dn + k_t[c] * dt2
             sc += c_n[c] * dn * dn + c_t[c] * dt2
+            if rolling:
+                f0, f1, f2 = _relative_rotation(c, i, j, x, dim)
+                fr2, fw2 = _rolling_parts(f0, f1, f2, n0, n1, n2, dim)
+                sk += k_r[c] * fr2 + k_w[c] * fw2
+                sc += c_r[c] * fr2 + c_w[c] * fw2
         sums[r, 0] = sk
         sums[r, 1] = sc
 
@@ -283,16 +419,26 @@ _quadratic_forms_parallel, _quadratic_forms_serial = \
     compile_parallel_and_serial(_contact_quadratic_forms)
 
 
+def _rolling_fields(contacts, rotation: bool):
+    """(k_r, k_w, c_r, c_w, rolling) of the contacts for a kernel (placeholders and
+    ``rolling`` False without rolling resistance or without rotation)."""
+    if rotation and contacts.has_rolling:
+        return contacts.k_r, contacts.k_w, contacts.c_r, contacts.c_w, True
+    return _NO_ROLLING, _NO_ROLLING, _NO_ROLLING, _NO_ROLLING, False
+
+
 def contact_quadratic_forms(contacts, rotation: bool, x, chunks=None, parallel: bool = False):
     """(x.K x, x.C_d x) for DOFs x (n, nd) in one pass over the contacts: K with the
-    springs ``k_n``, ``k_s``, C_d with the dashpots ``c_n``, ``c_t`` [same units as
-    the springs times T]. The runs ``chunks`` are summed in order (deterministic)."""
+    springs ``k_n``, ``k_s`` (and ``k_r``, ``k_w``), C_d with the dashpots ``c_n``,
+    ``c_t`` (and ``c_r``, ``c_w``) [same units as the springs times T]. The runs
+    ``chunks`` are summed in order (deterministic)."""
     if chunks is None:
         chunks = np.array([0, contacts.n], dtype=np.int64)
     sums = np.zeros((len(chunks) - 1, 2))
     kernel = _quadratic_forms_parallel if parallel else _quadratic_forms_serial
     kernel(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j,
-           contacts.k_n, contacts.k_s, contacts.c_n, contacts.c_t, bool(rotation),
+           contacts.k_n, contacts.k_s, contacts.c_n, contacts.c_t,
+           *_rolling_fields(contacts, rotation), bool(rotation),
            np.ascontiguousarray(x, dtype=np.float64), chunks, sums)
     total_k = 0.0
     total_c = 0.0
@@ -302,15 +448,17 @@ def contact_quadratic_forms(contacts, rotation: bool, x, chunks=None, parallel: 
     return total_k, total_c
 
 
-def _contact_gram(i, j, normal, arm_i, arm_j, k_n, k_t, c_n, c_t, rotation, X, chunks,
-                  k_sums, c_sums):
+def _contact_gram(i, j, normal, arm_i, arm_j, k_n, k_t, c_n, c_t, k_r, k_w, c_r, c_w, rolling,
+                  rotation, X, chunks, k_sums, c_sums):
     """Upper triangles of X_a.K X_b and X_a.C X_b (a <= b) over the contacts of each
-    run r into k_sums[r], c_sums[r] (k, k); X (k, n, nd) already scaled."""
+    run r into k_sums[r], c_sums[r] (k, k); X (k, n, nd) already scaled. With
+    ``rolling`` the rolling elements are included (phi_a.B phi_b)."""
     dim = normal.shape[1]
     nd = X.shape[2]
     nv = X.shape[0]
     for r in prange(chunks.shape[0] - 1):
         d = np.empty((nv, 4))
+        f = np.empty((nv, 4))
         ks = k_sums[r]
         cs = c_sums[r]
         for c in range(chunks[r], chunks[r + 1]):
@@ -324,6 +472,12 @@ def _contact_gram(i, j, normal, arm_i, arm_j, k_n, k_t, c_n, c_t, rotation, X, c
                 d[a, 1] = d1
                 d[a, 2] = d2
                 d[a, 3] = d0 * n0 + d1 * n1 + d2 * n2
+                if rolling:
+                    f0, f1, f2 = _relative_rotation(c, i, j, X[a], dim)
+                    f[a, 0] = f0
+                    f[a, 1] = f1
+                    f[a, 2] = f2
+                    f[a, 3] = f0 * n0 + f1 * n1 + f2 * n2
             kn = k_n[c]
             kt = k_t[c]
             cn = c_n[c]
@@ -334,6 +488,17 @@ def _contact_gram(i, j, normal, arm_i, arm_j, k_n, k_t, c_n, c_t, rotation, X, c
                     tt = d[a, 0] * d[b, 0] + d[a, 1] * d[b, 1] + d[a, 2] * d[b, 2] - nn
                     ks[a, b] += kn * nn + kt * tt
                     cs[a, b] += cn * nn + ct * tt
+            if rolling:
+                kr = k_r[c]
+                cr = c_r[c]
+                kw = k_w[c] if dim == 3 else 0.0
+                cw = c_w[c] if dim == 3 else 0.0
+                for a in range(nv):
+                    for b in range(a, nv):
+                        ww = f[a, 3] * f[b, 3] if dim == 3 else 0.0
+                        rr = f[a, 0] * f[b, 0] + f[a, 1] * f[b, 1] + f[a, 2] * f[b, 2] - ww
+                        ks[a, b] += kr * rr + kw * ww
+                        cs[a, b] += cr * rr + cw * ww
 
 
 _gram_parallel, _gram_serial = compile_parallel_and_serial(_contact_gram)
@@ -341,7 +506,8 @@ _gram_parallel, _gram_serial = compile_parallel_and_serial(_contact_gram)
 
 def contact_gram(contacts, rotation: bool, X, chunks=None, parallel: bool = False):
     """(X K X^T, X C_d X^T) (k, k) for k DOF sets X (k, n, nd) in one pass over the
-    contacts (K with ``k_n``, ``k_s``; C_d with ``c_n``, ``c_t``); runs summed in order."""
+    contacts (K with ``k_n``, ``k_s``, ``k_r``, ``k_w``; C_d with ``c_n``, ``c_t``,
+    ``c_r``, ``c_w``); runs summed in order."""
     if chunks is None:
         chunks = np.array([0, contacts.n], dtype=np.int64)
     nv = X.shape[0]
@@ -349,7 +515,8 @@ def contact_gram(contacts, rotation: bool, X, chunks=None, parallel: bool = Fals
     c_sums = np.zeros((len(chunks) - 1, nv, nv))
     kernel = _gram_parallel if parallel else _gram_serial
     kernel(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j,
-           contacts.k_n, contacts.k_s, contacts.c_n, contacts.c_t, bool(rotation),
+           contacts.k_n, contacts.k_s, contacts.c_n, contacts.c_t,
+           *_rolling_fields(contacts, rotation), bool(rotation),
            np.ascontiguousarray(X, dtype=np.float64), chunks, k_sums, c_sums)
     out = []
     for sums in (k_sums, c_sums):
@@ -501,3 +668,113 @@ def _rayleigh_residual(y, Ay):
 def _scale_into(w, factor, out):
     for p in range(w.shape[0]):
         out[p] = w[p] * factor
+
+
+# --- the coupled element with rolling resistance -------------------------------------
+
+@njit
+def symmetric2_top(p, q, r):
+    """Largest eigenvalue of the symmetric 2 x 2 matrix [[p, b], [b, q]] with b^2 = ``r``
+    (scalars or arrays): (p + q)/2 + sqrt(((p - q)/2)^2 + r)."""
+    h = 0.5 * (p - q)
+    return 0.5 * (p + q) + np.sqrt(h * h + r)
+
+
+@njit(inline="always")
+def _tangential_rolling_h(s, k_t, g_t, k_r, g_r, w_t, c_th, e2, a1):
+    """h(s) = s^2 - a1 s - lambda(s) and h'(s), lambda(s) the largest eigenvalue of the
+    tangential-rolling block X^1/2 W X^1/2, X = diag(k_t + s g_t, k_r + s g_r),
+    W = [[w_t, e], [e, c_th]] (:func:`tangential_rolling_dt`)."""
+    x_t = k_t + s * g_t
+    x_r = k_r + s * g_r
+    p = x_t * w_t
+    q = x_r * c_th
+    r = e2 * x_t * x_r
+    half = 0.5 * (p - q)
+    root = np.sqrt(half * half + r)
+    lam = 0.5 * (p + q) + root
+    dp = g_t * w_t
+    dq = g_r * c_th
+    dr = e2 * (g_t * x_r + x_t * g_r)
+    if root > 0.0:
+        dlam = 0.5 * (dp + dq) + (half * 0.5 * (dp - dq) + 0.5 * dr) / root
+    else:
+        dlam = 0.5 * (dp + dq) + 0.5 * abs(dp - dq)
+    return s * s - a1 * s - lam, 2.0 * s - a1 - dlam
+
+
+@njit
+def _tangential_rolling_sigma(k_t, g_t, k_r, g_r, w_t, c_th, e2, a1):
+    """Upper bound on the largest root sigma of h(sigma) = 0 (see
+    :func:`_tangential_rolling_h`): h < 0 below that root and >= 0 above it, for
+    sigma > 0 (the Rayleigh functional of a quadratic pencil with PSD K and C). Newton's
+    method from Weyl's upper bound damped_sigma(lambda(0), a1 + lambda_max(G^1/2 W
+    G^1/2)), kept inside the bracket (bisection otherwise); returns the smallest point
+    where h >= 0 was found (Weyl's bound if none)."""
+    lam_k = symmetric2_top(k_t * w_t, k_r * c_th, e2 * k_t * k_r)
+    if g_t == 0.0 and g_r == 0.0:
+        return 0.5 * (a1 + np.sqrt(a1 * a1 + 4.0 * lam_k))
+    lam_c = symmetric2_top(g_t * w_t, g_r * c_th, e2 * g_t * g_r)
+    c = a1 + lam_c
+    hi = 0.5 * (c + np.sqrt(c * c + 4.0 * lam_k))
+    lo = 0.0
+    s = hi
+    for _ in range(100):
+        h, dh = _tangential_rolling_h(s, k_t, g_t, k_r, g_r, w_t, c_th, e2, a1)
+        if h >= 0.0:
+            hi = min(hi, s)
+        else:
+            lo = max(lo, s)
+        if hi - lo <= 4e-16 * hi:
+            break
+        new = s - h / dh if dh > 0.0 else 0.5 * (lo + hi)
+        if not (lo < new < hi):
+            new = 0.5 * (lo + hi)
+        if abs(new - s) <= 1e-15 * s and h >= 0.0:
+            break
+        s = new
+    return hi
+
+
+@njit
+def _tangential_rolling_dt(k_t, g_t, k_r, g_r, w_t, c_th, e2, a1, out):
+    for c in range(k_t.shape[0]):
+        sigma = _tangential_rolling_sigma(k_t[c], g_t[c], k_r[c], g_r[c], w_t[c], c_th[c],
+                                          e2[c], a1)
+        out[c] = 2.0 / sigma if sigma > 0.0 else np.inf
+
+
+def tangential_rolling_dt(k_t, g_t, k_r, g_r, w_t, c_th, e2, a1: float) -> np.ndarray:
+    """Critical step (C,) [T] of the tangential-rolling block of coupled elements: the
+    largest root sigma of det((sigma^2 - a1 sigma) I - W (D + sigma G)) = 0 with
+    D = diag(k_t, k_r), G = diag(g_t, g_r) (springs and damping of the tangential slip
+    [M/T^2, M/T] and of the rolling rotation [M L^2/T^2, M L^2/T]) and
+    W = [[w_t, e], [e, c_th]] (``e2`` = e^2) the element's B M_e^-1 B^T on that pair of
+    strains; dt = 2 / sigma (an upper bound on sigma: dt never above the block's)."""
+    arrays = [np.ascontiguousarray(np.broadcast_to(np.asarray(v, dtype=np.float64),
+                                                   np.shape(k_t)))
+              for v in (k_t, g_t, k_r, g_r, w_t, c_th, e2)]
+    out = np.empty(arrays[0].shape[0])
+    _tangential_rolling_dt(*arrays, float(a1), out)
+    return out
+
+
+# --- per-contact rolling coefficients -------------------------------------------------
+
+@njit
+def _rolling_coefficient_arrays(params, k_n, k_t, r_star, i_star, k_r, k_w, c_r, c_w):
+    for c in range(k_n.shape[0]):
+        k_r[c], k_w[c], c_r[c], c_w[c] = rolling_coefficients(params, k_n[c], k_t[c],
+                                                              r_star[c], i_star[c])
+
+
+def rolling_coefficient_arrays(params, k_n, k_t, r_star, i_star):
+    """Rolling and twisting springs k_r, k_w [M L^2/T^2 per rad] and viscous coefficients
+    c_r, c_w [M L^2/T] (C,) each of contacts with tangent stiffnesses ``k_n``, ``k_t``
+    [M/T^2], effective radii ``r_star`` [L] and equivalent rotational inertias
+    ``i_star`` [M L^2], by the law's formula
+    (:func:`demstep.contact.laws.rolling_coefficients`, ``params`` a LawParams)."""
+    arrays = [np.ascontiguousarray(v, dtype=np.float64) for v in (k_n, k_t, r_star, i_star)]
+    out = [np.zeros(arrays[0].shape[0]) for _ in range(4)]
+    _rolling_coefficient_arrays(params, *arrays, *out)
+    return tuple(out)

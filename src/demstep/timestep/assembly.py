@@ -50,7 +50,9 @@ def _bsr_from_blocks(rows, cols, blocks, n_blocks):
 
 def assemble_stiffness(particles: Particles, contacts: ContactSet, rotation: bool,
                        scale: np.ndarray | None = None) -> sp.bsr_matrix:
-    """Global stiffness K [M/T^2] as BSR, or S K S for a DOF scaling S = diag(scale)."""
+    """Global stiffness K [M/T^2; rotational entries M L^2/T^2] as BSR, or S K S for a
+    DOF scaling S = diag(scale); the contacts' rolling and twisting springs included
+    (with rotation: :func:`~demstep.timestep.elements.coupled_element_blocks`)."""
     n = particles.n
     nd = dofs_per_particle(particles.dim, rotation)
     Kii, Kij, Kjj = coupled_element_blocks(contacts, rotation)
@@ -74,6 +76,7 @@ def scaled_stiffness(particles: Particles, contacts: ContactSet, rotation: bool)
 def stiffness_diagonal(particles: Particles, contacts: ContactSet, rotation: bool) -> np.ndarray:
     """Diagonal of the global K (N * nd,), in closed form: per contact and particle,
     translation K_n n_k^2 + K_s (1 - n_k^2); rotation K_s a^2 (1 - n_k^2) in 3D, K_s a^2
-    in 2D (the summed stiffness of YADE's GlobalStiffnessTimeStepper)."""
+    in 2D (the summed stiffness of YADE's GlobalStiffnessTimeStepper), plus the rolling
+    and twisting springs k_r (1 - n_k^2) + k_w n_k^2 in 3D, k_r in 2D."""
     nd = dofs_per_particle(particles.dim, rotation)
     return stiffness_diagonal_kernel(contacts, particles.n, nd, rotation).reshape(-1)

@@ -6,7 +6,8 @@ Hermitian dynamical matrix D(k) (nb nd x nb nd):
 
     D_ab(k) = sum over contacts of a with b in cell R of  K_ab exp(i k.R)  (+ K_aa on a),
 
-built from the same coupled element blocks as the finite assembly. omega_max^2 is the
+built from the same coupled element blocks as the finite assembly (rolling and twisting
+springs included: uniform ``k_r``, ``k_w`` and their viscous parts). omega_max^2 is the
 maximum over the Brillouin zone of lambda_max(M^-1/2 D(k) M^-1/2): a grid that contains
 the zone centre and boundary points, refined by Nelder-Mead from its best points.
 """
@@ -14,7 +15,7 @@ the zone centre and boundary points, refined by Nelder-Mead from its best points
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import minimize
@@ -37,8 +38,11 @@ class PeriodicContacts:
 
 
 def periodic_contacts(lat: Lattice, k_n: float, k_s: float,
-                      tol: float = DEFAULT_CONTACT_TOL) -> PeriodicContacts:
-    """All directed touching pairs of the lattice's basis particles."""
+                      tol: float = DEFAULT_CONTACT_TOL, k_r: float = 0.0, k_w: float = 0.0,
+                      c_r: float = 0.0, c_w: float = 0.0) -> PeriodicContacts:
+    """All directed touching pairs of the lattice's basis particles, with springs k_n,
+    k_s [M/T^2] and rolling and twisting springs k_r, k_w [M L^2/T^2 per rad] (viscous
+    parts c_r, c_w [M L^2/T])."""
     r = lat.radius
     rows = []
     for shift in itertools.product(range(-2, 3), repeat=lat.dim):
@@ -51,20 +55,23 @@ def periodic_contacts(lat: Lattice, k_n: float, k_s: float,
                     rows.append((a, b, shift, d / dist, dist))
     a, b, shifts, normals, dist = map(np.array, zip(*rows))
     arm = dist / 2.0
-    cs = ContactSet(a, b, normals, arm, arm, k_n, k_s)
+    cs = ContactSet(a, b, normals, arm, arm, k_n, k_s, k_r=k_r, k_w=k_w, c_r=c_r, c_w=c_w)
     return PeriodicContacts(np.asarray(shifts, dtype=float), cs)
 
 
 class DynamicalMatrix:
     """M^-1/2 D(k) M^-1/2 for a lattice of equal particles of ``density``; with
     dashpots ``c_n``, ``c_t`` [M/T] on every contact and global damping, also the
-    damping matrix C^(k) = a1 I + a2 A(k) + M^-1/2 C_d(k) M^-1/2."""
+    damping matrix C^(k) = a1 I + a2 A(k) + M^-1/2 C_d(k) M^-1/2. Rolling and twisting
+    springs ``k_r``, ``k_w`` [M L^2/T^2 per rad] and their viscous parts ``c_r``,
+    ``c_w`` [M L^2/T] on every contact (with rotation)."""
 
     def __init__(self, lat: Lattice, k_n: float, k_s: float, density: float, rotation: bool,
-                 c_n: float = 0.0, c_t: float = 0.0, damping: GlobalDamping | None = None):
+                 c_n: float = 0.0, c_t: float = 0.0, damping: GlobalDamping | None = None,
+                 k_r: float = 0.0, k_w: float = 0.0, c_r: float = 0.0, c_w: float = 0.0):
         self.lattice = lat
         self.rotation = rotation
-        self.pc = periodic_contacts(lat, k_n, k_s)
+        self.pc = periodic_contacts(lat, k_n, k_s, k_r=k_r, k_w=k_w, c_r=c_r, c_w=c_w)
         self.nb = len(lat.basis)
         self.nd = dofs_per_particle(lat.dim, rotation)
         m = float(particle_mass(lat.radius, density, lat.dim))
@@ -72,10 +79,11 @@ class DynamicalMatrix:
         s = 1.0 / np.sqrt(np.array([m] * lat.dim + [inertia] * n_rotations(lat.dim, rotation)))
         self.blocks = self._scaled_blocks(self.pc.contacts, s)
         self.damping = damping or GlobalDamping()
-        self.damped = c_n > 0 or c_t > 0 or self.damping.active
+        self.pc.contacts.c_n[:] = c_n
+        self.pc.contacts.c_t[:] = c_t
+        self.damped = self.pc.contacts.damped or self.damping.active
         if self.damped:
-            dashpots = replace(self.pc.contacts, k_n=c_n, k_s=c_t)
-            self.dashpot_blocks = self._scaled_blocks(dashpots, s)
+            self.dashpot_blocks = self._scaled_blocks(self.pc.contacts.dashpot_springs(), s)
         self.mass = m
 
     def _scaled_blocks(self, contacts, s):
@@ -133,8 +141,10 @@ class DynamicalMatrix:
 
 
 def bloch_lambda_max(lat: Lattice, k_n: float, k_s: float, density: float, rotation: bool,
-                     c_n: float = 0.0, c_t: float = 0.0, damping: GlobalDamping | None = None):
+                     c_n: float = 0.0, c_t: float = 0.0, damping: GlobalDamping | None = None,
+                     k_r: float = 0.0, k_w: float = 0.0, c_r: float = 0.0, c_w: float = 0.0):
     """omega_max^2 [1/T^2] of the infinite lattice (damped: sigma_max^2, so that
     dt = 2 / sqrt(value) either way) and the wave vector (fractional) of the fastest
-    mode."""
-    return DynamicalMatrix(lat, k_n, k_s, density, rotation, c_n, c_t, damping).lambda_max()
+    mode; uniform coefficients as in :class:`DynamicalMatrix`."""
+    return DynamicalMatrix(lat, k_n, k_s, density, rotation, c_n, c_t, damping,
+                           k_r, k_w, c_r, c_w).lambda_max()

@@ -221,9 +221,16 @@ def owner_mass_shares(particles, contacts, bodies: RigidBodies | None, rotation:
 
 
 def body_element_matrices(particles, contacts, bodies, rotation: bool):
-    """W = B M_e^-1 B^T (C, 3, 3) of every contact element with owners' shares
-    (:func:`owner_mass_shares`) and the local spring and dashpot matrices D, G (C, 3, 3)
-    (k_n n n^T + k_t (I - n n^T), likewise c_n, c_t), global frame; 2D in the plane."""
+    """W = B M_e^-1 B^T (C, s, s) of every contact element with owners' shares
+    (:func:`owner_mass_shares`) and the local spring and dashpot matrices D, G (C, s, s)
+    (k_n n n^T + k_t (I - n n^T), likewise c_n, c_t), global frame; 2D in the plane.
+
+    The strain is the slip Delta at the contact point (s = 3) or, with rotation and
+    rolling resistance in the contacts, (Delta, phi) (s = 6) with phi = omega_j -
+    omega_i the relative rotation of the owners (a member rotates with its body): then
+    D and G hold also k_r (I - n n^T) + k_w n n^T and c_r, c_w on phi (2D: k_r, c_r on
+    phi_z), and W = J M^-1 J^T with, per side, dDelta/domega = +/-[r]x and
+    dphi/domega = -/+I (``r`` the arm from the owner's centre to the contact point)."""
     dim = particles.dim
     mi, Ii, mj, Ij = owner_mass_shares(particles, contacts, bodies, rotation)
     ri, rj = contact_arms_from_owner(contacts, bodies, dim)
@@ -241,7 +248,33 @@ def body_element_matrices(particles, contacts, bodies, rotation: bool):
         W[:, :, 2] = 0.0
     D = contacts.k_n[:, None, None] * P + contacts.k_s[:, None, None] * tang
     G = contacts.c_n[:, None, None] * P + contacts.c_t[:, None, None] * tang
-    return W, D, G
+    if not (rotation and contacts.has_rolling):
+        return W, D, G
+    c = contacts.n
+    # slip-rotation coupling: -(X_i I_i + X_j I_j); rotations: I_i + I_j
+    Wr = np.zeros((c, 6, 6))
+    Wr[:, :3, :3] = W
+    coupling = -(np.einsum("cij,cjk->cik", Xi, Ii) + np.einsum("cij,cjk->cik", Xj, Ij))
+    Wr[:, :3, 3:] = coupling
+    Wr[:, 3:, :3] = coupling.transpose(0, 2, 1)
+    Wr[:, 3:, 3:] = Ii + Ij
+    if dim == 2:  # disks: phi_z only
+        roll = np.zeros((c, 3, 3))
+        roll[:, 2, 2] = 1.0
+        twist = np.zeros((c, 3, 3))
+        Wr[:, 2, :] = 0.0
+        Wr[:, :, 2] = 0.0
+        Wr[:, 3:5, :] = 0.0
+        Wr[:, :, 3:5] = 0.0
+    else:
+        roll, twist = tang, P
+    Dr = np.zeros((c, 6, 6))
+    Gr = np.zeros((c, 6, 6))
+    Dr[:, :3, :3] = D
+    Gr[:, :3, :3] = G
+    Dr[:, 3:, 3:] = contacts.k_r[:, None, None] * roll + contacts.k_w[:, None, None] * twist
+    Gr[:, 3:, 3:] = contacts.c_r[:, None, None] * roll + contacts.c_w[:, None, None] * twist
+    return Wr, Dr, Gr
 
 
 def body_element_dt(particles, contacts, bodies, rotation: bool, mass_damping: float = 0.0,
@@ -250,7 +283,8 @@ def body_element_dt(particles, contacts, bodies, rotation: bool, mass_damping: f
     owners' masses and inertia tensors split uniformly among their contacts (Rayleigh's
     partition, rigorous as :func:`demstep.timestep.elements.coupled_element_damped_dt`):
     the largest root sigma of det(sigma^2 I - sigma (a1 I + W^1/2 (a2 D + G) W^1/2) -
-    W^1/2 D W^1/2) = 0 on the element's strain space, dt = 2 / sigma."""
+    W^1/2 D W^1/2) = 0 on the element's strain space (the slip, and with rolling
+    resistance the relative rotation: :func:`body_element_matrices`), dt = 2 / sigma."""
     W, D, G = body_element_matrices(particles, contacts, bodies, rotation)
     w, V = np.linalg.eigh(W)
     w = np.clip(w, 0.0, None)
@@ -262,10 +296,11 @@ def body_element_dt(particles, contacts, bodies, rotation: bool, mass_damping: f
         with np.errstate(divide="ignore"):
             return np.where(lam > 0, 2.0 / np.sqrt(lam), np.inf)
     c = contacts.n
-    L = np.zeros((c, 6, 6))
-    L[:, :3, 3:] = np.eye(3)
-    L[:, 3:, :3] = B
-    L[:, 3:, 3:] = A + mass_damping * np.eye(3)
+    s = W.shape[1]  # 3, or 6 with rolling resistance
+    L = np.zeros((c, 2 * s, 2 * s))
+    L[:, :s, s:] = np.eye(s)
+    L[:, s:, :s] = B
+    L[:, s:, s:] = A + mass_damping * np.eye(s)
     ev = np.linalg.eigvals(L)
     real = np.where(np.abs(ev.imag) <= 1e-9 * np.maximum(np.abs(ev).max(axis=1, keepdims=True), 1e-300),
                     ev.real, -np.inf)
@@ -276,13 +311,17 @@ def body_element_dt(particles, contacts, bodies, rotation: bool, mass_damping: f
 
 def body_stiffness_diagonal(particles, contacts, bodies, rotation: bool, springs="k"):
     """The diagonal of K (or C with springs='c') per owner DOF (owners, nd), for the
-    nodal rule: sum over contacts of diag(B^T D B) of each side."""
+    nodal rule: sum over contacts of diag(B^T D B) of each side, plus with rotation the
+    rolling and twisting springs k_r (1 - n_k^2) + k_w n_k^2 (2D: k_r) on the owner's
+    rotations (a member rotates with its body)."""
     dim = particles.dim
     owner, n_free, n_owners = owners(particles.n, bodies)
     ri, rj = contact_arms_from_owner(contacts, bodies, dim)
     n3 = np.zeros((contacts.n, 3))
     n3[:, :dim] = contacts.normal
     kn, kt = (contacts.k_n, contacts.k_s) if springs == "k" else (contacts.c_n, contacts.c_t)
+    kr, kw = (contacts.k_r, contacts.k_w) if springs == "k" else (contacts.c_r, contacts.c_w)
+    rolling = rotation and contacts.has_rolling
     P = np.einsum("ci,cj->cij", n3, n3)
     D = kn[:, None, None] * P + kt[:, None, None] * (np.eye(3) - P)
     nrot = (1 if dim == 2 else 3) if rotation else 0
@@ -300,6 +339,13 @@ def body_stiffness_diagonal(particles, contacts, bodies, rotation: bool, springs
                 np.add.at(diag, (o, slice(dim, nd)), rot[:, 2:3])
             else:
                 np.add.at(diag, (o, slice(dim, nd)), rot)
+        if rolling:
+            if dim == 2:
+                np.add.at(diag, (o, slice(dim, nd)), kr[ok, None])
+            else:
+                n2 = n3[ok] ** 2
+                np.add.at(diag, (o, slice(dim, nd)),
+                          kr[ok, None] * (1.0 - n2) + kw[ok, None] * n2)
     return diag
 
 

@@ -16,8 +16,9 @@ where
 * the first two terms bound the covered contacts at the estimate's geometry (the
   left side is convex in sigma with slope at most Lambda_C, and does not decrease);
 * A_K + sigma A_C bounds the contacts added since (:meth:`StepCertificate.add`; each
-  group by the largest of its elements with each particle's whole mass, Rayleigh's
-  theorem on the group alone, and Weyl's inequality for the sum);
+  group by the largest of its coupled elements, the particles' masses split among the
+  group's contacts, Rayleigh's theorem on the group alone, and Weyl's inequality for
+  the sum: :func:`added_contacts_bound`, rolling and twisting springs included);
 * D(sigma) bounds how far the covered contacts' normals have turned (Weyl's inequality
   again): a contact's mass-scaled element matrix is E(n) = L(n)^T B(n) L(n) with
   B = b_n n n^T + b_t (I - n n^T) (b = sigma c + k) and L the map from the two
@@ -32,6 +33,16 @@ where
   the elements of one particle (x.E x <= |E| (|x_i|^2 + |x_j|^2) per element). Walls
   keep their normals (arms are the radii for every covered contact), so only pairs
   turn.
+
+  Rolling and twisting resistance (3D) adds to E the rotational element
+  L_phi^T R(n) L_phi with R = b_r (I - n n^T) + b_w n n^T (b = sigma c + k for the
+  rolling and twisting springs k_r, k_w and their viscous parts c_r, c_w) and L_phi
+  the map to phi = theta_j - theta_i, which does not depend on n:
+  |L_phi|^2 = 1/I_i + 1/I_j and R(n') - R(n) = (b_w - b_r)(n' n'^T - n n^T), whose
+  norm is at most |b_w - b_r| |n' - n|. So each pair's turn factor gains
+  (1/I_i + 1/I_j) |b_w - b_r|. For disks R = b_r does not depend on n: no term.
+  Splitting b = k + sigma c gives the factors f_k (springs) and f_c (viscous parts):
+  every term is at most the sum of its spring and sigma times its viscous part.
 
 Removed contacts only lower lambda_max (each element is positive semi-definite).
 With clumps the members' arms turn with their bodies, which this bound does not
@@ -110,6 +121,40 @@ def _turn_factor(l, rho, b_n, b_t):
     return l * (2.0 * rho * np.maximum(b_n, b_t) + l * np.abs(b_n - b_t))
 
 
+def _rolling_turn_factor(l_phi2, b_r, b_w):
+    """l_phi^2 |b_w - b_r|: the rolling element's |E(n') - E(n)| / |n' - n| (module doc),
+    l_phi^2 = 1/I_i + 1/I_j [1/(M L^2)]."""
+    return l_phi2 * np.abs(b_w - b_r)
+
+
+def added_contacts_bound(particles, added, rotation: bool, bodies=None) -> tuple[float, float]:
+    """(A_K [1/T^2], A_C [1/T]): bounds on lambda_max(K^) and lambda_max(C^) of a group
+    of ``added`` contacts alone (a ContactSet; with their longest possible arms), the
+    largest of their coupled elements with the particles' masses split uniformly among
+    the group's contacts (Rayleigh's theorem): springs and dashpots, rolling and
+    twisting ones included (with ``rotation``). With ``bodies`` (RigidBodies) the
+    elements of :func:`demstep.timestep.bodies.body_element_matrices`. Add them with
+    :meth:`StepCertificate.add`."""
+    if added.n == 0:
+        return 0.0, 0.0
+    if bodies is None:
+        from demstep.timestep.elements import coupled_element_lambda
+        from demstep.timestep.mass_split import element_mass
+
+        mass = element_mass(particles, added)
+        add_k = float(np.max(coupled_element_lambda(added, mass, rotation)))
+        add_c = float(np.max(coupled_element_lambda(added.dashpot_springs(), mass, rotation)))
+        return add_k, add_c
+    from demstep.timestep.bodies import body_element_matrices
+
+    W, D, G = body_element_matrices(particles, added, bodies, rotation)
+    w, V = np.linalg.eigh(W)
+    Wh = np.einsum("cij,cj,ckj->cik", V, np.sqrt(np.clip(w, 0.0, None)), V)
+    add_k = float(np.linalg.eigvalsh(Wh @ D @ Wh)[:, -1].max())
+    add_c = float(np.linalg.eigvalsh(Wh @ G @ Wh)[:, -1].max())
+    return add_k, add_c
+
+
 @dataclass
 class StepCertificate:
     """What an 'auto' estimate certified (module doc): ``sigma`` = sigma_c [1/T],
@@ -134,8 +179,9 @@ class StepCertificate:
                       bounded: bool = True) -> "StepCertificate":
         """The certificate of an estimate: its certified root ``sigma``, ``lam_c`` and the
         covered ``contacts`` (a ContactSet at the estimate's geometry; pairs have
-        ``j`` >= 0) with the particles' inverse masses and inverse moments of inertia
-        (zero for fixed particles, and for rotations when rotation is off)."""
+        ``j`` >= 0; their rolling and twisting springs count in the drift) with the
+        particles' inverse masses and inverse moments of inertia (zero for fixed
+        particles, and for rotations when rotation is off)."""
         cert = cls(float(sigma), float(lam_c), bounded=bounded)
         if not bounded or contacts.n == 0:
             return cert
@@ -150,8 +196,14 @@ class StepCertificate:
         c_t = zeros if contacts.c_t is None else contacts.c_t[pair]
         cert.pair_i, cert.pair_j = i, j
         cert.normal = np.ascontiguousarray(contacts.normal[pair], dtype=np.float64)
-        cert.f_k = np.ascontiguousarray(_turn_factor(l, rho, contacts.k_n[pair], contacts.k_s[pair]))
-        cert.f_c = np.ascontiguousarray(_turn_factor(l, rho, c_n, c_t))
+        f_k = _turn_factor(l, rho, contacts.k_n[pair], contacts.k_s[pair])
+        f_c = _turn_factor(l, rho, c_n, c_t)
+        if contacts.dim == 3 and contacts.has_rolling:
+            l_phi2 = inv_I[i] + inv_I[j]  # zero when rotation is off
+            f_k = f_k + _rolling_turn_factor(l_phi2, contacts.k_r[pair], contacts.k_w[pair])
+            f_c = f_c + _rolling_turn_factor(l_phi2, contacts.c_r[pair], contacts.c_w[pair])
+        cert.f_k = np.ascontiguousarray(f_k)
+        cert.f_c = np.ascontiguousarray(f_c)
         return cert
 
     def drift(self, x, periodic_len) -> tuple[float, float]:

@@ -9,7 +9,10 @@ Two formulations, both vectorised over contacts (leading axis C):
   lumped masses (eqs. 16-19).
 * **coupled** -- the tangential springs act on the true slip at the contact point,
   du_s = P (u_j - u_i) - (a_i theta_i + a_j theta_j) x n (DESIGN.md 1.1), i.e. the
-  linearised equations the engine integrates. Its element eigenvalues bound the
+  linearised equations the engine integrates, and the rolling and twisting springs
+  (:class:`~demstep.contacts.ContactSet` ``k_r``, ``k_w``) on the relative rotation
+  phi = theta_j - theta_i: a rotational element [[B, -B], [-B, B]] with
+  B = k_r (I - n n^T) + k_w n n^T (2D: B = k_r). Its element eigenvalues bound the
   assembly's (Rayleigh, eq. 4) for any polydisperse assembly.
 
 Element DOFs are ordered per particle, translations then rotations:
@@ -117,7 +120,11 @@ def paper_element_lambda(contacts, mass: ElementMass, rotation: bool) -> np.ndar
     """Largest eigenvalue of M_e^-1 K_e (C,) [1/T^2] for the paper's elements, in closed
     form (eqs. 20-21 reduce it to the local matrices, whose blocks are 2x2 rank one):
     translation max(K_n, K_s)(1/m_i' + 1/m_j'); rotation about axis k
-    K_s (r_eff_i,k^2 / I_i' + r_eff_j,k^2 / I_j')."""
+    K_s (r_eff_i,k^2 / I_i' + r_eff_j,k^2 / I_j').
+
+    As the paper defines it: the contacts' rolling and twisting springs (``k_r``,
+    ``k_w``) are not part of its elements and are ignored here; the coupled elements
+    include them."""
     im = mass.inv_m_i + mass.inv_m_j
     lam = np.maximum(contacts.k_n, contacts.k_s) * im
     if rotation:
@@ -131,7 +138,8 @@ def paper_element_lambda(contacts, mass: ElementMass, rotation: bool) -> np.ndar
 
 def paper_element_matrices(contacts, mass: ElementMass, rotation: bool):
     """Global element stiffness T^T K_local T and mass diagonal of the paper's elements
-    (eqs. 7-19). Returns (K_global (C, 2nd, 2nd), M_diag (C, 2nd))."""
+    (eqs. 7-19; rolling and twisting springs ignored, as in the paper). Returns
+    (K_global (C, 2nd, 2nd), M_diag (C, 2nd))."""
     dim = contacts.dim
     if rotation:
         ri = paper_effective_radii(contacts.normal, contacts.arm_i)
@@ -189,8 +197,21 @@ def spring_diagonal(contacts) -> np.ndarray:
                            np.repeat(contacts.k_s[:, None], contacts.dim - 1, axis=1)], axis=1)
 
 
+def rolling_matrix(contacts, viscous: bool = False) -> np.ndarray:
+    """B (C, n_rot, n_rot) of the rolling element: k_r (I - n n^T) + k_w n n^T
+    [M L^2/T^2 per rad] in 3D, k_r (1 x 1) for disks (no twisting); ``viscous``: the
+    same with c_r, c_w [M L^2/T]."""
+    k_r, k_w = (contacts.c_r, contacts.c_w) if viscous else (contacts.k_r, contacts.k_w)
+    if contacts.dim == 2:
+        return k_r[:, None, None].copy()
+    nn = np.einsum("ci,cj->cij", contacts.normal, contacts.normal)
+    return k_r[:, None, None] * (np.eye(3) - nn) + k_w[:, None, None] * nn
+
+
 def coupled_element_blocks(contacts, rotation: bool):
-    """Blocks K_ii, K_ij, K_jj (C, nd, nd) of the coupled element stiffness B^T D B.
+    """Blocks K_ii, K_ij, K_jj (C, nd, nd) of the coupled element stiffness B^T D B, plus
+    with rotation the rolling element (+B on the rotations of i and of j, -B between
+    them: :func:`rolling_matrix`).
 
     K_ji = K_ij^T. For wall contacts only K_ii is meaningful."""
     Bi, Bj = coupled_strain_operator(contacts.normal, contacts.arm_i, contacts.arm_j, rotation)
@@ -200,6 +221,12 @@ def coupled_element_blocks(contacts, rotation: bool):
     Kii = np.einsum("cka,ckb->cab", Bi, DBi)
     Kij = np.einsum("cka,ckb->cab", Bi, DBj)
     Kjj = np.einsum("cka,ckb->cab", Bj, DBj)
+    if rotation and contacts.has_rolling:
+        dim = contacts.dim
+        R = rolling_matrix(contacts)
+        Kii[:, dim:, dim:] += R
+        Kjj[:, dim:, dim:] += R
+        Kij[:, dim:, dim:] -= R
     return Kii, Kij, Kjj
 
 
@@ -211,18 +238,53 @@ def coupled_element_matrices(contacts, mass: ElementMass, rotation: bool):
     return K, paper_element_mass(mass, contacts.dim, rotation)
 
 
+def _rotation_weights(contacts, mass: ElementMass):
+    """c_th = 1/I_i' + 1/I_j' [1/(M L^2)] and e^2 = (a_i/I_i' - a_j/I_j')^2
+    [1/(M^2 L^2)]: the entries of W = B M_e^-1 B^T on phi and between phi and the slip
+    (:func:`coupled_element_lambda`)."""
+    c_th = mass.inv_I_i + mass.inv_I_j
+    e = contacts.arm_i * mass.inv_I_i - contacts.arm_j * mass.inv_I_j
+    return c_th, e * e
+
+
+def _rolling_elements(contacts) -> np.ndarray:
+    """Mask (C,) of the contacts with a rolling spring or viscous part."""
+    return (contacts.k_r != 0) | (contacts.c_r != 0) | (
+        ((contacts.k_w != 0) | (contacts.c_w != 0)) if contacts.dim == 3 else False)
+
+
 def coupled_element_lambda(contacts, mass: ElementMass, rotation: bool) -> np.ndarray:
     """Largest eigenvalue of M_e^-1 K_e (C,) [1/T^2] for coupled elements, closed form.
 
-    The non-zero eigenvalues of M^-1 B^T D B are those of D^1/2 B M^-1 B^T D^1/2, and
-    B M^-1 B^T = (1/m_i' + 1/m_j') I + (a_i^2/I_i' + a_j^2/I_j') P in the local frame,
-    so lambda = max(K_n c_m, K_s (c_m + c_r)), c_m = 1/m_i' + 1/m_j',
-    c_r = a_i^2/I_i' + a_j^2/I_j' (c_r = 0 without rotation)."""
+    The non-zero eigenvalues of M^-1 B^T D B are those of D^1/2 W D^1/2 with
+    W = B M^-1 B^T on the element's strains. Without rolling springs the strain is the
+    slip Delta and W = (1/m_i' + 1/m_j') I + (a_i^2/I_i' + a_j^2/I_j') P in the local
+    frame, so lambda = max(K_n c_m, K_s (c_m + c_r)), c_m = 1/m_i' + 1/m_j',
+    c_r = a_i^2/I_i' + a_j^2/I_j' (c_r = 0 without rotation).
+
+    With rolling and twisting springs (rotation on) the strain adds phi = theta_j -
+    theta_i: W_phiphi = c_th I (c_th = 1/I_i' + 1/I_j') and W_Deltaphi = e [n]x with
+    e = a_j/I_j' - a_i/I_i' (the slip's rotational part is a n x theta). The normal slip
+    and the twist phi_n stay apart (K_n c_m and k_w c_th, 3D only); each tangential
+    direction pairs with the perpendicular rolling one in the 2 x 2 block
+    [[k_t (c_m + c_r), e sqrt(k_t k_r)], [e sqrt(k_t k_r), k_r c_th]] (twice in 3D,
+    once in 2D). Contacts without rolling springs give exactly the value above."""
     c_m = mass.inv_m_i + mass.inv_m_j
     c_r = 0.0
     if rotation:
         c_r = contacts.arm_i**2 * mass.inv_I_i + contacts.arm_j**2 * mass.inv_I_j
-    return np.maximum(contacts.k_n * c_m, contacts.k_s * (c_m + c_r))
+    lam = np.maximum(contacts.k_n * c_m, contacts.k_s * (c_m + c_r))
+    if rotation and contacts.has_rolling:
+        from demstep.kernels.timestep_kernels import symmetric2_top
+
+        c_th, e2 = _rotation_weights(contacts, mass)
+        k_t, k_r = contacts.k_s, contacts.k_r
+        rolled = np.maximum(contacts.k_n * c_m,
+                            symmetric2_top(k_t * (c_m + c_r), k_r * c_th, e2 * k_t * k_r))
+        if contacts.dim == 3:
+            rolled = np.maximum(rolled, contacts.k_w * c_th)
+        lam = np.where(_rolling_elements(contacts), rolled, lam)
+    return lam
 
 
 def element_lambda_numeric(K: np.ndarray, M_diag: np.ndarray) -> np.ndarray:
@@ -249,7 +311,16 @@ def coupled_element_damped_dt(contacts, mass: ElementMass, rotation: bool,
     global M, C and K, an assembly stepped below min over elements of 2 / sigma_e keeps
     P(dt) = M - dt/2 C - dt^2/4 K positive semi-definite: a rigorous bound for any
     dashpots (:mod:`demstep.timestep.damping`), Rayleigh's theorem (eq. 4) for the
-    damped scheme. Without damping it is 2 / sqrt(coupled_element_lambda)."""
+    damped scheme. Without damping it is 2 / sqrt(coupled_element_lambda).
+
+    With rolling and twisting resistance (rotation on; D and G then also hold k_r, k_w
+    and c_r, c_w on phi): the normal axis as above, the twist (3D) the root for
+    d = k_w, g = c_w, w = c_th, and each tangential-rolling pair of
+    :func:`coupled_element_lambda` the largest root of the 2 x 2 pencil
+    det((sigma^2 - a1 sigma) I - W (D + sigma (a2 D + G))) = 0, found by Newton's
+    method from Weyl's upper bound and returned from above
+    (:func:`demstep.kernels.timestep_kernels.tangential_rolling_dt`). Contacts without
+    rolling springs or viscous parts give exactly the value above."""
     from demstep.timestep.stability import damped_dt
 
     c_m = mass.inv_m_i + mass.inv_m_j
@@ -260,4 +331,16 @@ def coupled_element_damped_dt(contacts, mass: ElementMass, rotation: bool,
     a1, a2 = float(mass_damping), float(stiffness_damping)
     dt_n = damped_dt(contacts.k_n * c_m, a1 + (a2 * contacts.k_n + contacts.c_n) * c_m)
     dt_t = damped_dt(contacts.k_s * w_t, a1 + (a2 * contacts.k_s + contacts.c_t) * w_t)
+    if rotation and contacts.has_rolling:
+        from demstep.kernels.timestep_kernels import tangential_rolling_dt
+
+        c_th, e2 = _rotation_weights(contacts, mass)
+        rolls = _rolling_elements(contacts)
+        dt_tr = tangential_rolling_dt(contacts.k_s, a2 * contacts.k_s + contacts.c_t,
+                                      contacts.k_r, a2 * contacts.k_r + contacts.c_r,
+                                      w_t, c_th, e2, a1)
+        if contacts.dim == 3:
+            dt_w = damped_dt(contacts.k_w * c_th, a1 + (a2 * contacts.k_w + contacts.c_w) * c_th)
+            dt_tr = np.minimum(dt_tr, dt_w)
+        dt_t = np.where(rolls, dt_tr, dt_t)
     return np.minimum(dt_n, dt_t)

@@ -13,6 +13,15 @@ the contacts), and the step is eq. 28's :func:`~demstep.timestep.stability.dampe
 (k, c); ``guidance`` keeps the paper's safety factor 0.75 outside. The material time scales
 of :mod:`demstep.timestep.rules` (``rayleigh-*``, ``hertz-time``) are never damped:
 they are what the codes that use them check.
+
+Rolling and twisting resistance (the contacts' ``k_r``, ``k_w``, ``c_r``, ``c_w``; with
+rotation only) enters ``exact``, ``exact-undamped``, ``exact-periodic``,
+``element-coupled`` (the rotational element on the relative rotation) and ``nodal``
+(the summed rotational stiffness of a DOF). ``element-paper`` stays the paper's
+element (translation and tangential arms: it ignores them), and ``itasca`` and
+``guidance`` are rules in K_max = max(k_n, k_t) and m_min that have no rotational
+spring; the ``conservative`` column compares each with the exact step that includes
+them.
 """
 
 from __future__ import annotations
@@ -124,7 +133,9 @@ def _damping(damping) -> GlobalDamping:
 
 def element_paper_dt(particles, contacts, rotation, mass_split="uniform", damping=None) -> float:
     """min over contacts of the paper's element steps [T] (eqs. 6-21); damped per axis
-    as described in the module docstring."""
+    as described in the module docstring. The paper's elements have no rolling or
+    twisting springs: the contacts' ``k_r``, ``k_w`` (and ``c_r``, ``c_w``) are
+    ignored, so with rolling resistance this is no bound of any kind."""
     from demstep.timestep.elements import paper_element_lambda
 
     d = _damping(damping)
@@ -172,8 +183,10 @@ def exact_dt(particles, contacts, rotation, damping=None, bodies=None) -> float:
 def nodal_dt(particles, contacts, rotation, damping=None, bodies=None) -> float:
     """YADE GlobalStiffnessTimeStepper's rule without safety factor [T]:
     sqrt(2) * sqrt(min over free DOFs of M_dd / K_dd), K_dd the summed contact
-    stiffness of the DOF (translation and, with rotation, rotation). Damped:
-    :func:`damped_dt` (2 K_dd/M_dd, a1 + 2 (a2 K_dd + C_dd)/M_dd) per DOF."""
+    stiffness of the DOF (translation and, with rotation, rotation: tangential springs
+    at their arms plus the rolling and twisting springs, as YADE adds its rotational
+    stiffness of cohesive contacts). Damped: :func:`damped_dt` (2 K_dd/M_dd,
+    a1 + 2 (a2 K_dd + C_dd)/M_dd) per DOF."""
     from demstep.kernels.timestep_kernels import damping_diagonal_kernel
 
     d = _damping(damping)
@@ -201,7 +214,9 @@ def nodal_dt(particles, contacts, rotation, damping=None, bodies=None) -> float:
 
 def dashpot_ratio(contacts: ContactSet) -> float:
     """beta = max over contacts of c/k [T] (normal and tangential): the stiffness-
-    proportional damping that bounds the dashpots (C <= beta K when c/k <= beta)."""
+    proportional damping that bounds the dashpots (C <= beta K when c/k <= beta). The
+    rolling and twisting viscous parts are left out: the rules that use beta
+    (``itasca``, ``guidance``) have a translational frequency and no rotational spring."""
     ratios = [0.0]
     for c, k in ((contacts.c_n, contacts.k_n), (contacts.c_t, contacts.k_s)):
         on = k > 0
@@ -241,11 +256,15 @@ _DENSEST = {2: "hex", 3: "fcc"}
 
 def densest_packing_dt(dim: int, mass: float, k_n: float, k_t: float, c_n: float = 0.0,
                        c_t: float = 0.0, mass_damping: float = 0.0,
-                       rotation: bool = True) -> float:
+                       rotation: bool = True, k_r: float = 0.0, k_w: float = 0.0,
+                       c_r: float = 0.0, c_w: float = 0.0, radius: float = 1.0) -> float:
     """The coupled element bound [T] of the densest packing of equal particles of
     ``mass`` (hexagonal disks, FCC spheres; uniform split) whose contacts have springs
     k_n, k_t [M/T^2], dashpots c_n, c_t [M/T] and global damping a1 = ``mass_damping``:
-    the step to use before any contact has formed."""
+    the step to use before any contact has formed. With rolling resistance: rolling and
+    twisting springs k_r, k_w [M L^2/T^2 per rad], viscous parts c_r, c_w [M L^2/T],
+    for particles of ``radius`` [L] (their moment of inertia; without rolling springs
+    the bound does not depend on it)."""
     from demstep.contacts import find_contacts
     from demstep.packings import lattice
     from demstep.particles import INERTIA_FACTOR
@@ -253,10 +272,18 @@ def densest_packing_dt(dim: int, mass: float, k_n: float, k_t: float, c_n: float
     lat = lattice(_DENSEST[dim], 1.0)
     x, box = lat.supercell(3)
     n = len(x)
+    # lengths in units of the radius: arms 1, inertia factor m r^2 (the rolling springs
+    # [M L^2/T^2] scaled by 1/r^2 to match)
+    scale = 1.0 / (float(radius) ** 2)
     p = Particles(x, np.ones(n), np.full(n, mass), np.full(n, INERTIA_FACTOR[dim] * mass))
     c = find_contacts(p, k_n, k_t, periodic=box)
     c.c_n[:] = c_n
     c.c_t[:] = c_t
+    if k_r or k_w or c_r or c_w:
+        c.k_r[:] = k_r * scale
+        c.k_w[:] = k_w * scale
+        c.c_r[:] = c_r * scale
+        c.c_w[:] = c_w * scale
     return element_coupled_dt(p, c, rotation, damping=GlobalDamping(mass_damping))
 
 
@@ -315,6 +342,12 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
         m_min = float(particles.m[~particles.fixed].min())
     k_max = contacts.k_max()
     beta = dashpot_ratio(contacts)
+    if contacts.has_rolling and rotation:
+        report.notes.append("rolling and twisting resistance: in exact, element-coupled and "
+                            "nodal; element-paper is the paper's element without it")
+    elif contacts.has_rolling:
+        report.notes.append("rolling and twisting resistance: no part of the analysis, "
+                            "rotation is locked")
     report.m_min, report.k_max = m_min, k_max
     dim = particles.dim
     exact = None
@@ -372,5 +405,7 @@ def _periodic_dt(lattice, contacts, density, rotation, damping: GlobalDamping):
         raise InputError("density: needed for the exact-periodic estimate")
     lam, _ = bloch_lambda_max(lattice, float(contacts.k_n.max()), float(contacts.k_s.max()),
                               density, rotation, c_n=float(contacts.c_n.max()),
-                              c_t=float(contacts.c_t.max()), damping=damping)
+                              c_t=float(contacts.c_t.max()), damping=damping,
+                              k_r=float(contacts.k_r.max()), k_w=float(contacts.k_w.max()),
+                              c_r=float(contacts.c_r.max()), c_w=float(contacts.c_w.max()))
     return float(dt_from_lambda(lam))

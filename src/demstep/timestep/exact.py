@@ -36,6 +36,7 @@ Every product with K^ or C^ is computed from the contact list by a compiled kern
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse.linalg as spla
@@ -90,11 +91,26 @@ START_BLOCK = 4
 PARALLEL_MIN_CONTACTS = 100_000
 
 
+class Springs(NamedTuple):
+    """Per-contact coefficients (C,) of one operator: normal and tangential springs
+    ``k_n``, ``k_t`` [M/T^2] and the rolling and twisting springs ``k_r``, ``k_w``
+    [M L^2/T^2 per rad] (None: none, or rotation locked); or any combination with the
+    dashpots in the same slots (a pencil, or the damping matrix itself)."""
+
+    k_n: np.ndarray
+    k_t: np.ndarray
+    k_r: np.ndarray | None = None
+    k_w: np.ndarray | None = None
+
+
 class ScaledContactOperator:
     """K^ = M^-1/2 K M^-1/2 and C^_d = M^-1/2 C_d M^-1/2 of an assembly as products.
 
     DOFs are (N, nd) per particle (translations, then rotations); fixed particles have
-    infinite mass (their DOFs are scaled by zero). ``pencil(sigma)`` is the operator
+    infinite mass (their DOFs are scaled by zero). K and C_d hold every contact's
+    springs and dashpots: normal and tangential on the slip at the contact point, and
+    with rotation the rolling and twisting ones on the relative rotation
+    (:class:`~demstep.contacts.ContactSet`). ``pencil(sigma)`` is the operator
     (1 + sigma a2) K^ + sigma C^_d; the mass-proportional part sigma a1 I of
     A(sigma) = sigma C^ + K^ is a shift added by the caller."""
 
@@ -107,6 +123,9 @@ class ScaledContactOperator:
         self.particles = particles
         self.contacts = contacts
         self.rotation = bool(rotation)
+        #: whether the rolling and twisting springs (and viscous parts) enter: the
+        #: contacts have some and the rotations are free
+        self.rolling = self.rotation and contacts.has_rolling
         self.damping = damping or GlobalDamping()
         self.nd = dofs_per_particle(particles.dim, rotation)
         self.scale = inverse_sqrt_mass(particles, rotation).reshape(particles.n, self.nd)
@@ -130,23 +149,33 @@ class ScaledContactOperator:
         self._buf = (np.empty((self.threads, particles.n, self.nd)) if self.threads > 1
                      else None)
 
-    def springs(self, sigma: float):
-        """(k_n, k_t) per contact of the pencil at ``sigma``."""
+    def springs(self, sigma: float) -> Springs:
+        """The per-contact coefficients of the pencil at ``sigma``: each spring k
+        combined with its dashpot c as (1 + sigma a2) k + sigma c, for the normal and
+        tangential springs and (when the contacts have them and rotation is on) the
+        rolling and twisting ones (else ``k_r``, ``k_w`` None)."""
         a2 = self.damping.stiffness
         c = self.contacts
+        rolling = self.rolling
         if sigma == 0.0:
-            return c.k_n, c.k_s
-        return ((1.0 + sigma * a2) * c.k_n + sigma * c.c_n,
-                (1.0 + sigma * a2) * c.k_s + sigma * c.c_t)
+            return Springs(c.k_n, c.k_s, c.k_r if rolling else None, c.k_w if rolling else None)
+        f = 1.0 + sigma * a2
+        if not rolling:
+            return Springs(f * c.k_n + sigma * c.c_n, f * c.k_s + sigma * c.c_t)
+        return Springs(f * c.k_n + sigma * c.c_n, f * c.k_s + sigma * c.c_t,
+                       f * c.k_r + sigma * c.c_r, f * c.k_w + sigma * c.c_w)
 
-    def apply(self, x: np.ndarray, k_n, k_t, out: np.ndarray | None = None) -> np.ndarray:
-        """S K(k_n, k_t) S x for flat x (size,) (into ``out`` when given); on
+    def apply(self, x: np.ndarray, springs: Springs,
+              out: np.ndarray | None = None) -> np.ndarray:
+        """S K(springs) S x for flat x (size,) (into ``out`` when given); on
         ``threads`` > 1 the contact runs are summed in parallel; with bodies, G^T K G
         through the owner map (:mod:`demstep.timestep.bodies`)."""
+        k_n, k_t, k_r, k_w = springs
         if self.owner_map is not None:
             om = self.owner_map
             u = om.expand(np.asarray(x).reshape(om.n_owners, self.nd), self.particles.n)
-            y = om.reduce(contact_matvec(self.contacts, k_n, k_t, self.rotation, u)).reshape(-1)
+            y = om.reduce(contact_matvec(self.contacts, k_n, k_t, self.rotation, u,
+                                         k_r, k_w)).reshape(-1)
             if out is None:
                 return y
             out[:] = y
@@ -154,26 +183,32 @@ class ScaledContactOperator:
         if self.threads > 1:
             return chunked_scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation,
                                                  self.scale, x, self._work, self._chunks,
-                                                 self._spans, self._buf, out)
+                                                 self._spans, self._buf, out, k_r=k_r, k_w=k_w)
         return scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation, self.scale,
-                                     x, self._work, out)
+                                     x, self._work, out, k_r, k_w)
 
     def stiffness(self, x):
-        return self.apply(x, self.contacts.k_n, self.contacts.k_s)
+        return self.apply(x, self.springs(0.0))
 
     def dashpots(self, x):
-        return self.apply(x, self.contacts.c_n, self.contacts.c_t)
+        c = self.contacts
+        rolling = self.rolling
+        return self.apply(x, Springs(c.c_n, c.c_t, c.c_r if rolling else None,
+                                     c.c_w if rolling else None))
 
     def pencil(self, sigma: float) -> spla.LinearOperator:
-        k_n, k_t = self.springs(sigma)
-        return _Pencil(self, k_n, k_t)
+        return _Pencil(self, self.springs(sigma))
 
     def dense_pencil(self, sigma: float) -> np.ndarray:
-        k_n, k_t = self.springs(sigma)
+        springs = self.springs(sigma)
         if self.owner_map is not None:  # small systems: column by column
-            return np.stack([self.apply(e, k_n, k_t) for e in np.eye(self.size)], axis=1)
-        springs = replace(self.contacts, k_n=k_n, k_s=k_t)
-        return assemble_stiffness(self.particles, springs, self.rotation,
+            return np.stack([self.apply(e, springs) for e in np.eye(self.size)], axis=1)
+        k_n, k_t, k_r, k_w = springs
+        if k_r is None:
+            contacts = replace(self.contacts, k_n=k_n, k_s=k_t)
+        else:
+            contacts = replace(self.contacts, k_n=k_n, k_s=k_t, k_r=k_r, k_w=k_w)
+        return assemble_stiffness(self.particles, contacts, self.rotation,
                                   scale=self.scale.reshape(-1)).toarray()
 
     def top(self, sigma: float, v0=None, dense_limit: int = DENSE_LIMIT,
@@ -227,8 +262,9 @@ class ScaledContactOperator:
         return z[0] / np.linalg.norm(z[0])
 
     def damping_bound(self) -> float:
-        """An upper bound on lambda_max(C^) [1/T] (C^ with a1, a2 and the dashpots) from
-        Rayleigh's theorem on the coupled elements (uniform mass split)."""
+        """An upper bound on lambda_max(C^) [1/T] (C^ with a1, a2 and the dashpots, rolling
+        and twisting ones included) from Rayleigh's theorem on the coupled elements
+        (uniform mass split)."""
         from demstep.timestep.elements import coupled_element_lambda
         from demstep.timestep.mass_split import element_mass
 
@@ -237,6 +273,7 @@ class ScaledContactOperator:
         if self.contacts.n and self.bodies is not None:
             from demstep.timestep.bodies import body_element_matrices
 
+            # with rolling resistance W, D, G act on the strains (Delta, phi)
             # lambda_max(W^1/2 X W^1/2) <= lambda_max(X) lambda_max(W) per element
             W, D, G = body_element_matrices(self.particles, self.contacts, self.bodies,
                                             self.rotation)
@@ -251,22 +288,23 @@ class ScaledContactOperator:
                 bound += d.stiffness * float(coupled_element_lambda(self.contacts, mass,
                                                                     self.rotation).max())
             if self.contacts.damped:
-                dashpots = replace(self.contacts, k_n=self.contacts.c_n, k_s=self.contacts.c_t)
-                bound += float(coupled_element_lambda(dashpots, mass, self.rotation).max())
+                bound += float(coupled_element_lambda(self.contacts.dashpot_springs(), mass,
+                                                      self.rotation).max())
         return bound
 
     def mode_shares(self, q: np.ndarray):
         """Where the mode q (unit, mass-scaled) lives: per owner (particle, or body) the
         translational and rotational shares of its kinetic energy (all shares sum to 1),
-        and per contact its share of the strain energy (C,)."""
+        and per contact its share of the strain energy (C,; rolling and twisting
+        springs included)."""
         dim = self.particles.dim
         qq = (q.reshape(-1, self.nd)) ** 2
         trans = qq[:, :dim].sum(axis=1)
         rot = qq[:, dim:].sum(axis=1)
         total = trans.sum() + rot.sum()
         u = self.displacement(q)
-        energy = contact_energies(self.contacts, self.contacts.k_n, self.contacts.k_s,
-                                  self.rotation, u)
+        k = self.springs(0.0)
+        energy = contact_energies(self.contacts, k.k_n, k.k_t, self.rotation, u, k.k_r, k.k_w)
         e_sum = energy.sum()
         return (trans / total, rot / total,
                 energy / e_sum if e_sum > 0 else energy)
@@ -280,21 +318,21 @@ class ScaledContactOperator:
 
 
 class _Pencil(spla.LinearOperator):
-    """The pencil K(k_n, k_t) of a :class:`ScaledContactOperator` as a LinearOperator
+    """The pencil K(springs) of a :class:`ScaledContactOperator` as a LinearOperator
     with ``matvec_into(x, out)`` for the Lanczos iteration."""
 
-    def __init__(self, op: ScaledContactOperator, k_n, k_t):
+    def __init__(self, op: ScaledContactOperator, springs: Springs):
         super().__init__(np.float64, (op.size, op.size))
-        self.op, self.k_n, self.k_t = op, k_n, k_t
+        self.op, self.springs_ = op, springs
 
     def _matvec(self, x):
-        return self.op.apply(np.ravel(x), self.k_n, self.k_t)
+        return self.op.apply(np.ravel(x), self.springs_)
 
     def _rmatvec(self, x):
         return self._matvec(x)
 
     def matvec_into(self, x, out):
-        self.op.apply(x, self.k_n, self.k_t, out)
+        self.op.apply(x, self.springs_, out)
 
 
 @dataclass
