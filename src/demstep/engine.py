@@ -503,7 +503,8 @@ class Simulation:
             else:  # the longest arms a contact can have (they shorten as it closes)
                 ai, aj = self.r[i].copy(), self.r[j].copy()
             parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
-                                    c_n=cn, c_t=ct))
+                                    c_n=cn, c_t=ct,
+                                    **self._rolling_springs(params, kn, kt, r_star, i, j)))
             if cover is not None:
                 cover["pairs"] = _sorted_keys(i * len(self.r) + j, delta_eval)
         if len(self.wp):
@@ -526,13 +527,51 @@ class Simulation:
             kn, kt, cn, ct = self._coefficients(law_id, params, delta_eval, self.r[p], self.m[p])
             arm = dist if horizon is None else self.r[p].copy()
             parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim],
-                                    arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct))
+                                    arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct,
+                                    **self._rolling_springs(params, kn, kt, self.r[p], p, None)))
             if cover is not None:
                 cover["walls"] = _sorted_keys(p * max(1, len(self.walls)) + wi, delta_eval)
+        parts.extend(self._bond_elements())
         if not parts:
             return ContactSet(np.zeros(0), np.zeros(0), np.zeros((0, dim)), np.zeros(0),
                               np.zeros(0), 0.0, 0.0)
         return ContactSet.concatenate(parts)
+
+    def _rolling_springs(self, params, k_n, k_t, r_star, i, j) -> dict:
+        """Rolling and twisting springs and viscous coefficients of contacts (i, j)
+        (j None: walls) as ContactSet keywords, by the law's formula with the engine's
+        equivalent rotational inertia (a fixed particle counts as a wall); empty without
+        rolling resistance."""
+        if not params.has_rolling:
+            return {}
+        from demstep.contact.laws import rolling_inertia
+        from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
+
+        free = self.inv_m > 0
+        inertia, m = np.where(free, self.inertia, 0.0), np.where(free, self.m, 0.0)
+        if j is None:
+            i_star = rolling_inertia(inertia[i], m[i], self.r[i])
+        else:
+            i_star = rolling_inertia(inertia[i], m[i], self.r[i], inertia[j], m[j], self.r[j])
+        k_r, k_w, c_r, c_w = rolling_coefficient_arrays(params, k_n, k_t, r_star, i_star)
+        return {"k_r": k_r, "k_w": k_w, "c_r": c_r, "c_w": c_w}
+
+    def _bond_elements(self) -> list:
+        """The intact parallel bonds as contact elements (a list of one ContactSet, or
+        none): springs k_n^b A, k_s^b A at the bond point (arms to the middle of the gap),
+        bending k_n^b I and twisting k_s^b J on the relative rotation
+        (:func:`demstep.contact.bonds.bond_springs`)."""
+        bonds = self.bonds
+        on = bonds.intact == 1
+        if not on.any():
+            return []
+        from demstep.contact.bonds import bond_springs
+
+        i, j = bonds.i[on], bonds.j[on]
+        d, dist, _, ai, aj, _ = pair_geometry_arrays(self.x, self.r, i, j, self.periodic_len)
+        kn, ks, kr, kw = bond_springs(bonds.radius[on], bonds.k_n[on], bonds.k_s[on], self.dim)
+        return [ContactSet(i, j, (d / dist[:, None])[:, :self.dim], ai, aj, kn, ks,
+                           k_r=kr, k_w=kw)]
 
     def _reach_speed(self, horizon: float) -> np.ndarray:
         """Per particle, |v| + h |a| [L/T] (a from the last contact and applied forces and
@@ -1020,14 +1059,16 @@ class Simulation:
             m_star = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), self.m[i])
             kn, kt, cn, ct = self._coefficients(law_id, params, delta, r_star, m_star)
             parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
-                                    c_n=cn, c_t=ct))
+                                    c_n=cn, c_t=ct,
+                                    **self._rolling_springs(params, kn, kt, r_star, i, j)))
         if wall_mask.any():
             p, wi = self.wp[wall_mask], self.ww[wall_mask]
             _, dist, delta, arm = wall_geometry_arrays(self.x, self.r, p, wi, self.wall_point,
                                                        self.wall_normal)
             kn, kt, cn, ct = self._coefficients(law_id, params, delta, self.r[p], self.m[p])
             parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim],
-                                    arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct))
+                                    arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct,
+                                    **self._rolling_springs(params, kn, kt, self.r[p], p, None)))
         if not parts:
             return ContactSet(np.zeros(0), np.zeros(0), np.zeros((0, dim)), np.zeros(0),
                               np.zeros(0), 0.0, 0.0)

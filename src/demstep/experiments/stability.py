@@ -58,11 +58,12 @@ class StabilityResult:
 
 def build_specimen(name: str, alpha: float, k: float = 1.0e6, density: float = 1.0,
                    precompression: float = 1.0e-3, rotation: bool = True, seed: int = 1,
-                   law_options: dict | None = None):
+                   law_options: dict | None = None, bonds=None):
     """A pre-compressed periodic specimen with a small random perturbation;
     ``law_options`` are keyword arguments of :class:`LinearSpring`: dashpots
     (``restitution``, ``restitution_tangential``, ``damping_normal``,
-    ``damping_tangential``) and rolling resistance (``rolling_convention``, ...)."""
+    ``damping_tangential``) and rolling resistance (``rolling_convention``, ...);
+    ``bonds`` (:class:`demstep.contact.bonds.ParallelBonds`) bonds every contact."""
     if name == SPECIMEN:
         from demstep.experiments.fcc_plane_strain import FCCConfig, fcc_specimen
 
@@ -89,13 +90,15 @@ def build_specimen(name: str, alpha: float, k: float = 1.0e6, density: float = 1
     sim = Simulation(p, law, periodic=box, velocities=v, angular_velocities=w if rotation else None,
                      timestep=TimeStep.from_alpha(alpha), rotation=rotation, runaway_factor=0,
                      jump_limit=np.inf, energy=EnergyMonitor(every=10**9))
+    if bonds is not None:
+        sim.add_bonds(bonds)
     return sim
 
 
 def is_unstable(name: str, alpha: float, steps: int = 3000, growth: float = 1.0e3,
-                rotation: bool = True, law_options: dict | None = None) -> bool:
+                rotation: bool = True, law_options: dict | None = None, bonds=None) -> bool:
     """The energy criterion of the module docstring."""
-    sim = build_specimen(name, alpha, rotation=rotation, law_options=law_options)
+    sim = build_specimen(name, alpha, rotation=rotation, law_options=law_options, bonds=bonds)
     sim.run(steps=1)
     ke0 = sim.ledger.kinetic
     flag = {"unstable": False}
@@ -140,6 +143,33 @@ def stability_threshold(name: str, rtol: float = 2e-3, lo: float = 0.05, hi: flo
         else:
             lo = mid
     return StabilityResult(name, hi, estimates, (lo, hi), trials)
+
+
+def engine_threshold(name: str, law_options: dict | None = None, bonds=None,
+                     rotation: bool = True, rtol: float = 2e-3, steps: int = 3000) -> dict:
+    """The engine's measured threshold and the exact critical step of the specimen with
+    the given law options (rolling resistance, dashpots) and bonds, both as alpha =
+    dt / sqrt(m / K) with the engine's K (:meth:`Simulation.stiffness_max`), plus the
+    exact step of the contact law's normal and tangential springs alone (what a rule
+    that ignores rolling springs and bonds would certify)."""
+    sim = build_specimen(name, 0.1, rotation=rotation, law_options=law_options, bonds=bonds)
+    sim.prepare()
+    scale = math.sqrt(sim.m_min / sim.stiffness_max())
+    exact = sim.critical_dt("exact", rotation=rotation) / scale
+    springs_only = build_specimen(name, 0.1, rotation=rotation)
+    springs_only.prepare()
+    exact_springs = springs_only.critical_dt("exact", rotation=rotation) / scale
+    kw = dict(rotation=rotation, law_options=law_options, bonds=bonds, steps=steps)
+    lo, hi = 0.5 * exact, 1.5 * exact
+    if is_unstable(name, lo, **kw) or not is_unstable(name, hi, **kw):
+        raise RuntimeError(f"{name}: the bracket [{lo:.4g}, {hi:.4g}] does not contain the threshold")
+    while hi / lo - 1.0 > rtol:
+        mid = 0.5 * (lo + hi)
+        if is_unstable(name, mid, **kw):
+            hi = mid
+        else:
+            lo = mid
+    return {"measured": hi, "bracket": (lo, hi), "exact": exact, "exact_springs_only": exact_springs}
 
 
 # ------------------------------------------------------------- damping study
