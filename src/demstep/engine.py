@@ -809,6 +809,9 @@ class Simulation:
                          bonds.shear_strength)
         self.bonds = Bonds(*(np.concatenate([getattr(old, f), getattr(new, f)])
                              for f in Bonds._fields))
+        if len(i) and self.timestep.mode != "fixed":
+            self._dt_cert = None  # stiffer now: alpha and 'auto' choose the step anew
+            self.dt = None
         return len(i)
 
     # ---------------------------------------------------------------- state
@@ -1008,8 +1011,14 @@ class Simulation:
             mass = element_mass(p, added)
             c_m = mass.inv_m_i + mass.inv_m_j
             c_r = (added.arm_i**2 * mass.inv_I_i + added.arm_j**2 * mass.inv_I_j) if rotation else 0.0
-            add_k = float(np.max(np.maximum(added.k_n * c_m, added.k_s * (c_m + c_r))))
-            add_c = float(np.max(np.maximum(added.c_n * c_m, added.c_t * (c_m + c_r))))
+            k_e = np.maximum(added.k_n * c_m, added.k_s * (c_m + c_r))
+            c_e = np.maximum(added.c_n * c_m, added.c_t * (c_m + c_r))
+            if rotation and added.has_rolling:  # rolling/twisting springs: their own block
+                c_rot = mass.inv_I_i + mass.inv_I_j
+                k_e = k_e + np.maximum(added.k_r, added.k_w) * c_rot
+                c_e = c_e + np.maximum(added.c_r, added.c_w) * c_rot
+            add_k = float(np.max(k_e))
+            add_c = float(np.max(c_e))
         else:
             from demstep.timestep.bodies import body_element_matrices
 
