@@ -674,11 +674,21 @@ def from_case(path, stage: int = 1, contact_tol: float = DEFAULT_CONTACT_TOL,
              f"{len(sim.r)} particles, {len(sim.walls)} walls"]
     if not sim.rotation:
         notes.append("rotation locked in the case")
+    bond_stage = case.bond_stage()
+    if bond_stage is not None and bond_stage < stage - 1:  # bonded at an earlier stage
+        from demstep.case.stages import create_bonds
+
+        create_bonds(sim, case)
     out = from_particles(sim.particles_now(), model, None,
                          periodic if any(v is not None for v in periodic) else None,
                          sim.walls, contact_tol, GlobalDamping(mass=float(sim.damping.viscous)),
                          sim.v[:, :sim.dim], impact_velocity, str(path), notes,
                          sim.rigid_bodies())
+    bonds = sim._bond_elements()
+    if bonds:  # intact parallel bonds: elements of their own, beside the contacts
+        out.contacts = ContactSet.concatenate([out.contacts] + bonds)
+        out.notes.append(f"{bonds[0].n} parallel bonds (springs k^b A, bending k_n^b I, "
+                         f"twisting k_s^b J)")
     out.rotation = sim.rotation
     return out
 

@@ -51,12 +51,12 @@ def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
         sim.dt = None  # chosen anew by the next run (a restart restores it)
     _check_servo_areas(sim, case, k)
     if fresh and case.bond_stage() == k:
-        _create_bonds(sim, case)
+        create_bonds(sim, case)
     if fresh and stage.reset_ledger:
         sim.ledger.reset()
 
 
-def _create_bonds(sim, case: Case) -> None:
+def create_bonds(sim, case: Case) -> None:
     """Bonds of the case's ``[bonds]``: every pair within ``gap``, or the pairs of its
     ``file`` (a CSV with 0-based particle columns i, j)."""
     from demstep.contact.bonds import ParallelBonds
