@@ -26,8 +26,7 @@ from demstep.timestep.assembly import assemble_stiffness, stiffness_diagonal
 from demstep.timestep.bodies import RigidBodies, body_element_dt, body_stiffness_diagonal
 from demstep.timestep.certificate import StepCertificate, added_contacts_bound
 from demstep.timestep.damping import GlobalDamping
-from demstep.timestep.elements import (coupled_element_damped_dt, coupled_element_lambda,
-                                       coupled_element_matrices)
+from demstep.timestep.elements import coupled_element_damped_dt, coupled_element_lambda
 from demstep.timestep.estimates import element_coupled_dt, nodal_dt
 from demstep.timestep.exact import ScaledContactOperator, exact_critical_step
 from demstep.timestep.mass_split import element_mass
@@ -845,6 +844,49 @@ def test_cli_case_file_refuses_rolling_options(tmp_path, capsys):
     code, out, err = run(["dt", str(case), "--rolling-convention", "beta"], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1
     assert "--rolling-convention" in err and "case" in err
+
+
+def test_cli_case_file_with_rolling_resistance(tmp_path, capsys):
+    """A case whose [contact] has rolling resistance: `demstep dt case.toml` takes the
+    law's rolling springs (beta: k_r = beta_r k_t R*^2, disks: no twisting) and its
+    exact step drops below the same case without them."""
+    from pathlib import Path
+
+    text = (Path(__file__).parent.parent / "examples" / "hex_biaxial_2d.toml").read_text()
+    text = text.replace("size = [10, 6]", "size = [3, 2]")
+    plain = tmp_path / "plain.toml"
+    plain.write_text(text)
+    rolled = tmp_path / "rolled.toml"
+    rolled.write_text(text.replace('restitution = 0.5', 'restitution = 0.5\n'
+                                   'rolling_convention = "beta"\nrolling_stiffness = 3.0\n'
+                                   'rolling_damping = 0.2'))
+    code, out, err = run(["dt", str(plain), "--json"], capsys)
+    assert code == 0, err
+    base = json.loads(out)
+    code, out, err = run(["dt", str(rolled), "--json"], capsys)
+    assert code == 0, err
+    data = json.loads(out)
+    assert any("rolling" in n for n in data["notes"])
+    assert exact_of(data) < exact_of(base)
+    for q in data["critical_mode"]["contacts"]:
+        r_star = 0.5 if q["j"] is not None else 1.0
+        assert q["k_r"] == pytest.approx(3.0 * q["k_t"] * r_star**2)
+
+
+def test_fixed_particle_counts_as_a_wall_in_the_rolling_inertia():
+    """I* of a contact with a fixed particle is the moving side's I + m r^2 alone (the
+    engine's convention), so its viscous rolling part is 2 eta sqrt(I* k_r)."""
+    from demstep.timestep_input import ContactModel, from_particles
+
+    x = np.array([[0.0, 0, 0], [2.0, 0, 0]])
+    p0 = Particles.from_density(x, np.array([1.0, 1.0]), 1.0)
+    p = Particles(p0.x, p0.r, p0.m, p0.inertia, fixed=np.array([True, False]))
+    model = ContactModel("linear", k_n=100.0, rolling_convention="beta", rolling_stiffness=1.0,
+                         rolling_damping=0.5)
+    c = from_particles(p, model).contacts
+    assert c.n == 1
+    i_star = p.inertia[1] + p.m[1] * 1.0
+    assert c.c_r[0] == pytest.approx(2 * 0.5 * math.sqrt(i_star * c.k_r[0]), rel=1e-14)
 
 
 def test_laws_with_rolling_reach_the_analysis_from_a_case_law_and_a_simulation():

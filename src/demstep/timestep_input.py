@@ -288,16 +288,18 @@ def contact_effective_radius(contacts: ContactSet, particles: Particles) -> np.n
 
 def contact_rolling_inertia(contacts: ContactSet, particles: Particles) -> np.ndarray:
     """I* (C,) [M L^2] of every contact (:func:`demstep.contact.laws.rolling_inertia`,
-    the particles' own masses and inertias; a wall adds nothing)."""
+    the particles' own masses and inertias; a wall or a fixed particle adds nothing, as
+    in the engine)."""
     from demstep.contact.laws import rolling_inertia
 
     i, j = contacts.i, contacts.j
-    wall = j < 0
-    jj = np.where(wall, i, j)
     p = particles
-    pair = rolling_inertia(p.inertia[i], p.m[i], p.r[i], p.inertia[jj], p.m[jj], p.r[jj])
-    alone = rolling_inertia(p.inertia[i], p.m[i], p.r[i])
-    return np.where(wall, alone, pair)
+    moving = ~p.fixed
+    inertia, m = np.where(moving, p.inertia, 0.0), np.where(moving, p.m, 0.0)
+    side_j = (j >= 0) & moving[np.maximum(j, 0)]
+    jj = np.maximum(j, 0)
+    return rolling_inertia(inertia[i], m[i], p.r[i], np.where(side_j, inertia[jj], 0.0),
+                           np.where(side_j, m[jj], 0.0), p.r[jj])
 
 
 def with_rolling(contacts: ContactSet, particles: Particles, params) -> ContactSet:
