@@ -679,8 +679,19 @@ class Simulation:
         kn, kt, cn, ct = self._coefficients(int(params.law), params,
                                             np.array([self.timestep.overlap * r]),
                                             np.array([r]), np.array([0.5 * m]))
+        # rolling springs of such a contact (R* = r_max: stiffer than a pair's), the
+        # equivalent inertia of two of the lightest particles
+        rolling = self._rolling_springs(params, kn, kt, np.array([r]), np.array([0]), None)
+        if rolling:
+            from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
+            from demstep.particles import INERTIA_FACTOR
+
+            i_star = 0.5 * (INERTIA_FACTOR[self.dim] + 1.0) * m * r * r
+            rolling = dict(zip(("k_r", "k_w", "c_r", "c_w"), (
+                float(v[0]) for v in rolling_coefficient_arrays(params, kn, kt, np.array([r]),
+                                                                np.array([i_star])))))
         return densest_packing_dt(self.dim, m, kn[0], kt[0], cn[0], ct[0],
-                                  self.damping.viscous, self.rotation)
+                                  self.damping.viscous, self.rotation, radius=r, **rolling)
 
     def _choose_dt(self, force: bool = False, scheduled: bool = True):
         """dt for the next steps. 'auto': ``safety`` x the critical step of every contact
