@@ -50,6 +50,22 @@ def pair_geometry(xi0, xi1, xi2, xj0, xj1, xj2, r_i, r_j, len0, len1, len2):
     return d0, d1, d2, dist, r_i + r_j - dist, a_i, a_j, n0, n1, n2
 
 
+@njit(inline="always")
+def into_tangent_plane(ox, oy, oz, nx, ny, nz):
+    """A history vector (a tangential force, a rolling or bending moment) carried into
+    the tangent plane of the current unit normal n: its normal component removed and
+    its magnitude kept (zero stays zero)."""
+    mag_old = math.sqrt(ox * ox + oy * oy + oz * oz)
+    if mag_old > 0.0:
+        on = ox * nx + oy * ny + oz * nz
+        ox, oy, oz = ox - on * nx, oy - on * ny, oz - on * nz
+        mag = math.sqrt(ox * ox + oy * oy + oz * oz)
+        if mag > 0.0:
+            s = mag_old / mag
+            ox, oy, oz = ox * s, oy * s, oz * s
+    return ox, oy, oz
+
+
 @njit
 def pair_geometry_arrays(x, r, i, j, periodic_len):
     """:func:`pair_geometry` of pairs (i, j) (C,): branch vectors (C, 3), distances,

@@ -7,22 +7,7 @@ import math
 
 from demstep._numba import njit
 from demstep.contact.bonds import bond_section
-from demstep.contact.geometry import pair_geometry
-
-
-@njit(inline="always")
-def _into_plane(ox, oy, oz, nx, ny, nz):
-    """A vector rotated into the plane normal to n, its magnitude kept."""
-    mag_old = math.sqrt(ox * ox + oy * oy + oz * oz)
-    if mag_old == 0.0:
-        return 0.0, 0.0, 0.0
-    on = ox * nx + oy * ny + oz * nz
-    ox, oy, oz = ox - on * nx, oy - on * ny, oz - on * nz
-    mag = math.sqrt(ox * ox + oy * oy + oz * oz)
-    if mag == 0.0:
-        return 0.0, 0.0, 0.0
-    s = mag_old / mag
-    return ox * s, oy * s, oz * s
+from demstep.contact.geometry import into_tangent_plane, pair_geometry
 
 
 @njit
@@ -65,12 +50,12 @@ def bond_forces(x, v, w, r, bonds, periodic_len, box_rate, dt, dim, force, torqu
         # normal force and twisting moment: scalars along n; shear force and bending
         # moment: vectors rotated into the current tangent plane first
         fn = bonds.normal[b] - kn * area * dun
-        sx, sy, sz = _into_plane(bonds.shear[b, 0], bonds.shear[b, 1], bonds.shear[b, 2], nx, ny, nz)
+        sx, sy, sz = into_tangent_plane(bonds.shear[b, 0], bonds.shear[b, 1], bonds.shear[b, 2], nx, ny, nz)
         sx -= ks * area * (dux - dun * nx)
         sy -= ks * area * (duy - dun * ny)
         sz -= ks * area * (duz - dun * nz)
         mt = bonds.twist[b] - ks * polar * dpn
-        bx, by, bz = _into_plane(bonds.bend[b, 0], bonds.bend[b, 1], bonds.bend[b, 2], nx, ny, nz)
+        bx, by, bz = into_tangent_plane(bonds.bend[b, 0], bonds.bend[b, 1], bonds.bend[b, 2], nx, ny, nz)
         bx -= kn * second * (dpx - dpn * nx)
         by -= kn * second * (dpy - dpn * ny)
         bz -= kn * second * (dpz - dpn * nz)

@@ -20,7 +20,9 @@ import math
 import numpy as np
 
 from demstep._numba import compile_parallel_and_serial, njit, prange
-from demstep.contact.geometry import contact_arms, image_count, pair_geometry, wall_geometry
+from demstep.contact.geometry import (
+    contact_arms, image_count, into_tangent_plane, pair_geometry, wall_geometry,
+)
 from demstep.contact.laws import (
     dashpot_coefficients, normal_force, rolling_coefficients, tangential_stiffness,
 )
@@ -72,14 +74,7 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
     dun = dux * nx + duy * ny + duz * nz
     dtx, dty, dtz = dux - dun * nx, duy - dun * ny, duz - dun * nz
     # the old tangential force, rotated into the current tangent plane (magnitude kept)
-    mag_old = math.sqrt(ox * ox + oy * oy + oz * oz)
-    if mag_old > 0.0:
-        on = ox * nx + oy * ny + oz * nz
-        ox, oy, oz = ox - on * nx, oy - on * ny, oz - on * nz
-        mag = math.sqrt(ox * ox + oy * oy + oz * oz)
-        if mag > 0.0:
-            s = mag_old / mag
-            ox, oy, oz = ox * s, oy * s, oz * s
+    ox, oy, oz = into_tangent_plane(ox, oy, oz, nx, ny, nz)
     if delta <= 0.0:
         # separated: the stored tangential energy is released (dissipated)
         d_fric = -0.5 * (ox * dtx + oy * dty + oz * dtz) + etan_old
@@ -134,14 +129,7 @@ def rolling_response(params, nx, ny, nz, delta, r_star, i_star, k_n, k_t, f_el, 
     drx, dry, drz = dpx - dpn * nx, dpy - dpn * ny, dpz - dpn * nz
     # the old rolling moment, rotated into the current tangent plane (magnitude kept);
     # the twisting moment is a component along n
-    mag_old = math.sqrt(mrx * mrx + mry * mry + mrz * mrz)
-    if mag_old > 0.0:
-        on = mrx * nx + mry * ny + mrz * nz
-        mrx, mry, mrz = mrx - on * nx, mry - on * ny, mrz - on * nz
-        mag = math.sqrt(mrx * mrx + mry * mry + mrz * mrz)
-        if mag > 0.0:
-            s = mag_old / mag
-            mrx, mry, mrz = mrx * s, mry * s, mrz * s
+    mrx, mry, mrz = into_tangent_plane(mrx, mry, mrz, nx, ny, nz)
     d_visc_old = -0.5 * (mdx * dpx + mdy * dpy + mdz * dpz)
     if delta <= 0.0:
         # separated: the stored energy is released (dissipated)
