@@ -70,15 +70,27 @@ def njit(*args, **kwargs):
 prange = numba.prange
 
 
+def with_globals(func, name: str, overrides: dict):
+    """A copy of the Python function ``func`` named ``name`` whose global names
+    ``overrides`` resolve to other objects (e.g. the serial versions of the loops it
+    calls), to be compiled on its own: numba compiles only what a version calls, and
+    each copy has its own qualified name, so its own on-disk cache entry."""
+    namespace = {**func.__globals__, **overrides} if overrides else func.__globals__
+    copy = types.FunctionType(func.__code__, namespace, name, func.__defaults__,
+                              func.__closure__)
+    copy.__qualname__ = name
+    copy.__doc__ = func.__doc__
+    copy.__module__ = func.__module__
+    return copy
+
+
 def compile_parallel_and_serial(func):
     """Two compiled versions of one loop driver: threaded (prange) and serial.
 
     The serial one is compiled from a copy of the function with its own qualified name,
     so the two never share an on-disk cache entry."""
-    serial = types.FunctionType(func.__code__, func.__globals__, func.__name__ + "_serial",
-                                func.__defaults__, func.__closure__)
+    serial = with_globals(func, func.__name__ + "_serial", {})
     serial.__qualname__ = func.__qualname__ + "_serial"
-    serial.__doc__ = func.__doc__
     return njit(parallel=True)(func), njit(serial)
 
 

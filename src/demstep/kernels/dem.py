@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from demstep._numba import compile_parallel_and_serial, njit, prange
+from demstep._numba import compile_parallel_and_serial, njit, prange, with_globals as _with_globals
 from demstep.contact.geometry import (
     contact_arms, image_count, into_tangent_plane, pair_geometry, wall_geometry,
 )
@@ -723,14 +723,15 @@ rolling_forces, rolling_forces_serial = compile_parallel_and_serial(_rolling_loo
 wall_rolling, wall_rolling_serial = compile_parallel_and_serial(_wall_rolling_loop)
 
 
-@njit
-def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params):
+def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params):
     """Run up to ``n_steps`` steps of the documented order
     (:meth:`demstep.engine.Simulation.run`) on the bundles of :mod:`demstep.state`
     (``ctl`` Controls, ``sph`` Spheres, ``bodies`` Bodies, ``pairs`` Pairs, ``bonds`` Bonds,
     ``walls`` Walls, ``box`` Box, ``ledger`` Ledger) with the law ``law`` (its id) and ``params``
-    (:class:`~demstep.contact.laws.LawParams`); ``ctl.parallel``: threaded loops, else
-    serial ones. Returns (steps done, stop reason).
+    (:class:`~demstep.contact.laws.LawParams`). Compiled twice, with the threaded loops
+    (:func:`advance_parallel`) and with the serial ones (:func:`advance_serial`), so that
+    a run compiles only the version it uses; :func:`advance` picks by ``ctl.parallel``.
+    Returns (steps done, stop reason).
 
     Periodic box: ``box.motion`` (3,) fixed / rate / servo; ``box.servo`` (3, 5) with
     the columns of the wall ``servo`` (rate in the gain column for BOX_RATE: dL/dt
@@ -746,7 +747,7 @@ def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, pa
     dt = ctl.dt
     dt_prev = ctl.dt_prev
     first = ctl.first
-    parallel = ctl.parallel
+    wall_chunks = pairs.force_buf.shape[0] if ctl.parallel else 1
     out = np.empty(8)
     out_bodies = np.empty(8)
     box_sums = np.zeros((4, 3))
@@ -759,54 +760,30 @@ def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, pa
         dt_slip = 0.0 if first else dt_prev
         for k in range(3):
             box_rate[k] = 0.0 if first else box_state[5, k] / dt_prev
-        if parallel:
-            e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
-                x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, law, params,
-                dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
-                pairs.chunks, pairs.spans, pairs.force_buf, pairs.torque_buf, box_sums, pairs.geo)
-        else:
-            e_n, e_t, d_fric, d_dash, n_pp = pair_forces_serial(
-                x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, law, params,
-                dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
-                pairs.chunks, pairs.spans, pairs.force_buf, pairs.torque_buf, box_sums, pairs.geo)
+        e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
+            x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, law, params,
+            dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
+            pairs.chunks, pairs.spans, pairs.force_buf, pairs.torque_buf, box_sums, pairs.geo)
         # 1b. rolling and twisting resistance of the pairs (a law with it only)
         er_s, er_p, er_v = 0.0, 0.0, 0.0
         if pairs.roll.shape[0] > 0:
-            if parallel:
-                er_s, er_p, er_v = rolling_forces(
-                    w, r, m, sph.inertia, inv_m, pairs.i, pairs.j, pairs.geo, law, params,
-                    dt_slip, pairs.roll, pairs.chunks, pairs.torque_buf)
-            else:
-                er_s, er_p, er_v = rolling_forces_serial(
-                    w, r, m, sph.inertia, inv_m, pairs.i, pairs.j, pairs.geo, law, params,
-                    dt_slip, pairs.roll, pairs.chunks, pairs.torque_buf)
+            er_s, er_p, er_v = rolling_forces(
+                w, r, m, sph.inertia, inv_m, pairs.i, pairs.j, pairs.geo, law, params,
+                dt_slip, pairs.roll, pairs.chunks, pairs.torque_buf)
         if n_chunks == 1:
             force[:] = pairs.force_buf[0]
             torque[:] = pairs.torque_buf[0]
-        elif parallel:
+        else:
             reduce_forces(pairs.force_buf, pairs.torque_buf, pairs.spans, force, torque)
-        else:
-            reduce_forces_serial(pairs.force_buf, pairs.torque_buf, pairs.spans, force, torque)
         # 2. particle-wall contact forces
-        if parallel:
-            we_n, we_t, wd_fric, wd_dash = wall_forces(
-                x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
-                law, params, dt_slip, walls.shear, walls.dashpot, walls.shear_energy, force,
-                torque, wall_force, walls.contacts, walls.k_sum, n_chunks)
-        else:
-            we_n, we_t, wd_fric, wd_dash = wall_forces_serial(
-                x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
-                law, params, dt_slip, walls.shear, walls.dashpot, walls.shear_energy, force,
-                torque, wall_force, walls.contacts, walls.k_sum, 1)
+        we_n, we_t, wd_fric, wd_dash = wall_forces(
+            x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
+            law, params, dt_slip, walls.shear, walls.dashpot, walls.shear_energy, force,
+            torque, wall_force, walls.contacts, walls.k_sum, wall_chunks)
         if walls.roll.shape[0] > 0:
-            if parallel:
-                wr_s, wr_p, wr_v = wall_rolling(
-                    x, w, r, m, sph.inertia, walls.p, walls.wall, wall_point, wall_normal, law,
-                    params, dt_slip, walls.roll, torque, n_chunks)
-            else:
-                wr_s, wr_p, wr_v = wall_rolling_serial(
-                    x, w, r, m, sph.inertia, walls.p, walls.wall, wall_point, wall_normal, law,
-                    params, dt_slip, walls.roll, torque, 1)
+            wr_s, wr_p, wr_v = wall_rolling(
+                x, w, r, m, sph.inertia, walls.p, walls.wall, wall_point, wall_normal, law,
+                params, dt_slip, walls.roll, torque, wall_chunks)
             er_s += wr_s
             er_p += wr_p
             er_v += wr_v
@@ -855,33 +832,18 @@ def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, pa
                                                 int(box_sums[2, k]), box_sums[3, k], dt,
                                                 box.servo[k, S_MAXSPEED])
         # 5. central-difference update with damping; particle ledger terms
-        if parallel:
-            integrate(x, v, w, m, sph.inertia, inv_m, sph.inv_I, r, force, torque, sph.applied,
-                      ctl.gravity, dt, dt_prev, ctl.local_damping, ctl.viscous_damping,
-                      sph.damp_force, sph.damp_torque, sph.x_ref, first, ctl.store_damping, out,
-                      bodies.sphere_body)
-        else:
-            integrate_serial(x, v, w, m, sph.inertia, inv_m, sph.inv_I, r, force, torque,
-                             sph.applied, ctl.gravity, dt, dt_prev, ctl.local_damping,
-                             ctl.viscous_damping, sph.damp_force, sph.damp_torque, sph.x_ref,
-                             first, ctl.store_damping, out, bodies.sphere_body)
+        integrate(x, v, w, m, sph.inertia, inv_m, sph.inv_I, r, force, torque, sph.applied,
+                  ctl.gravity, dt, dt_prev, ctl.local_damping, ctl.viscous_damping,
+                  sph.damp_force, sph.damp_torque, sph.x_ref, first, ctl.store_damping, out,
+                  bodies.sphere_body)
         if bodies.m.shape[0] > 0:
             # rigid bodies: forces summed from their members, leapfrog, members follow
-            if parallel:
-                body_step(bodies.x, bodies.q, bodies.v, bodies.L, bodies.m, bodies.inertia,
-                          bodies.inv_m, bodies.inv_I, bodies.force, bodies.torque, bodies.applied,
-                          bodies.start, bodies.member, bodies.offset, bodies.damp_force,
-                          bodies.damp_torque, x, v, w, r, force, torque, sph.x_ref, ctl.gravity,
-                          dt, dt_prev, ctl.local_damping, ctl.viscous_damping, first,
-                          ctl.store_damping, out_bodies)
-            else:
-                body_step_serial(bodies.x, bodies.q, bodies.v, bodies.L, bodies.m,
-                                 bodies.inertia, bodies.inv_m, bodies.inv_I, bodies.force,
-                                 bodies.torque, bodies.applied, bodies.start, bodies.member,
-                                 bodies.offset, bodies.damp_force, bodies.damp_torque, x, v, w,
-                                 r, force, torque, sph.x_ref, ctl.gravity, dt, dt_prev,
-                                 ctl.local_damping, ctl.viscous_damping, first,
-                                 ctl.store_damping, out_bodies)
+            body_step(bodies.x, bodies.q, bodies.v, bodies.L, bodies.m, bodies.inertia,
+                      bodies.inv_m, bodies.inv_I, bodies.force, bodies.torque, bodies.applied,
+                      bodies.start, bodies.member, bodies.offset, bodies.damp_force,
+                      bodies.damp_torque, x, v, w, r, force, torque, sph.x_ref, ctl.gravity,
+                      dt, dt_prev, ctl.local_damping, ctl.viscous_damping, first,
+                      ctl.store_damping, out_bodies)
             for k in range(6):
                 out[k] += out_bodies[k]
             out[6] = max(out[6], out_bodies[6])
@@ -944,3 +906,18 @@ def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, pa
         if math.sqrt(out[6]) + boundary_move > 0.5 * ctl.skin:
             return step + 1, STOP_REBUILD
     return n_steps, STOP_DONE
+
+
+#: the loops each compiled version of :func:`_advance` calls, by the names it uses
+_SERIAL_LOOPS = {"pair_forces": pair_forces_serial, "rolling_forces": rolling_forces_serial,
+                 "reduce_forces": reduce_forces_serial, "wall_forces": wall_forces_serial,
+                 "wall_rolling": wall_rolling_serial, "integrate": integrate_serial,
+                 "body_step": body_step_serial}
+advance_parallel = njit(_with_globals(_advance, "advance_parallel", {}))
+advance_serial = njit(_with_globals(_advance, "advance_serial", _SERIAL_LOOPS))
+
+
+def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params):
+    """:func:`_advance` with the threaded loops (``ctl.parallel``) or the serial ones."""
+    run = advance_parallel if ctl.parallel else advance_serial
+    return run(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params)
