@@ -913,11 +913,54 @@ _SERIAL_LOOPS = {"pair_forces": pair_forces_serial, "rolling_forces": rolling_fo
                  "reduce_forces": reduce_forces_serial, "wall_forces": wall_forces_serial,
                  "wall_rolling": wall_rolling_serial, "integrate": integrate_serial,
                  "body_step": body_step_serial}
-advance_parallel = njit(_with_globals(_advance, "advance_parallel", {}))
-advance_serial = njit(_with_globals(_advance, "advance_serial", _SERIAL_LOOPS))
+
+
+@njit
+def _no_rolling(*args):
+    """Stands in for the rolling-resistance loops in a step compiled without them."""
+    return 0.0, 0.0, 0.0
+
+
+@njit
+def _no_bonds(*args):
+    """Stands in for the bond loop in a step compiled without bonds."""
+    return 0.0, 0.0, 0
+
+
+@njit
+def _no_bodies(*args):
+    """Stands in for the rigid-body step in a step compiled without clumps."""
+    return None
+
+
+#: the compiled versions of the step made so far, by (parallel, rolling, bonds, bodies)
+_STEPS = {}
+
+
+def step_kernel(parallel: bool, rolling: bool, bonds: bool, bodies: bool):
+    """The compiled step (:func:`_advance`) with the threaded or the serial loops and
+    only the features a run uses: a law without rolling resistance, a run without
+    bonds or clumps does not compile (or load) their loops. Each version has its own
+    name, so its own on-disk cache entry."""
+    key = (bool(parallel), bool(rolling), bool(bonds), bool(bodies))
+    kernel = _STEPS.get(key)
+    if kernel is None:
+        overrides = {} if parallel else dict(_SERIAL_LOOPS)
+        if not rolling:
+            overrides.update(rolling_forces=_no_rolling, wall_rolling=_no_rolling)
+        if not bonds:
+            overrides["bond_forces"] = _no_bonds
+        if not bodies:
+            overrides["body_step"] = _no_bodies
+        name = "advance_{}_{}{}{}".format("parallel" if parallel else "serial",
+                                          *(int(f) for f in key[1:]))
+        kernel = _STEPS[key] = njit(_with_globals(_advance, name, overrides))
+    return kernel
 
 
 def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params):
-    """:func:`_advance` with the threaded loops (``ctl.parallel``) or the serial ones."""
-    run = advance_parallel if ctl.parallel else advance_serial
+    """:func:`_advance` compiled for this call's loops (threaded when ``ctl.parallel``)
+    and features (rolling history, bonds, rigid bodies present)."""
+    run = step_kernel(ctl.parallel, pairs.roll.shape[0] > 0 or walls.roll.shape[0] > 0,
+                      bonds.i.shape[0] > 0, bodies.m.shape[0] > 0)
     return run(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params)
