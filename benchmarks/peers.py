@@ -17,6 +17,10 @@ files the peers read):
 
 Both: linear springs k_n = k_s = 1e6, friction 0.5 (walls too), density 2500, rotation
 on, dt = 0.1 sqrt(m / k_n), Verlet skin 0.15 r (demstep's default) in every code.
+``--law hertz``: Hertz-Mindlin instead (LIGGGHTS ``model hertz tangential history``),
+E = 5.93e7 Pa and nu = 0.25, so that the tangent normal stiffness of the dense
+packing's overlap (0.002 r, R* = r/2) is k_n = 1e6; same dt; restitution as above
+(LIGGGHTS' Tsuji form, which demstep's Hertz dashpot follows); no YADE row.
 The exact peer settings are in :func:`liggghts_input` and :data:`YADE_SCRIPT`.
 
 Only the stepping is timed: every code first runs ``--warmup`` steps (numba compiles
@@ -52,7 +56,13 @@ RESULT_TAG = "BENCH_RESULT "
 
 
 # ----------------------------------------------------------------------------- problems
-def make_problem(problem: str, n_target: int, skin: float | None = None):
+#: Hertz-Mindlin material of ``--law hertz``: E* = k_n / (2 sqrt(R* delta)) with
+#: R* = 0.25, delta = 0.001 (the dense packing), E = 2 (1 - nu^2) E*
+HERTZ_POISSON = 0.25
+HERTZ_YOUNG = 2.0 * (1.0 - HERTZ_POISSON**2) * 1.0e6 / (2.0 * math.sqrt(0.25 * 0.001))
+
+
+def make_problem(problem: str, n_target: int, skin: float | None = None, law: str = "linear"):
     """Positions (N, 3) and a JSON-able spec of the problem (same for every code)."""
     k_n = k_s = 1.0e6
     mu = 0.5
@@ -102,7 +112,10 @@ def make_problem(problem: str, n_target: int, skin: float | None = None):
             "density": density, "mass": mass, "k_n": k_n, "k_s": k_s, "mu": mu, "mu_wall": mu,
             "restitution": restitution, "gravity": gravity, "dt": dt, "walls": walls,
             "skin": 0.15 * radius if skin is None else float(skin),
-            "domain_lo": domain_lo, "domain_hi": domain_hi}
+            "domain_lo": domain_lo, "domain_hi": domain_hi, "law": law,
+            "youngs_modulus": HERTZ_YOUNG, "poisson_ratio": HERTZ_POISSON}
+    if law not in ("linear", "hertz"):
+        raise SystemExit(f"unknown law {law!r}: linear or hertz")
     if restitution is not None:
         ln = math.log(restitution)
         beta = -ln / math.sqrt(math.pi**2 + ln**2)
@@ -125,7 +138,7 @@ from pathlib import Path
 import numpy as np
 import demstep  # before numba.set_num_threads: demstep chooses the threading layer
 import numba
-from demstep.contact.laws import LinearSpring
+from demstep.contact.laws import HertzMindlin, LinearSpring
 from demstep.engine import Simulation, TimeStep
 from demstep.particles import Particles
 from demstep.walls import Wall
@@ -136,7 +149,11 @@ spec = json.loads((folder / "spec.json").read_text())
 x = np.load(folder / "x.npy")
 t_setup = time.perf_counter()
 particles = Particles.from_density(x, np.full(len(x), spec["radius"]), spec["density"])
-law = LinearSpring(k_n=spec["k_n"], k_s=spec["k_s"], mu=spec["mu"], restitution=spec["restitution"])
+if spec.get("law", "linear") == "hertz":
+    law = HertzMindlin(youngs_modulus=spec["youngs_modulus"], poisson_ratio=spec["poisson_ratio"],
+                       mu=spec["mu"], restitution=spec["restitution"])
+else:
+    law = LinearSpring(k_n=spec["k_n"], k_s=spec["k_s"], mu=spec["mu"], restitution=spec["restitution"])
 walls = []
 for w in spec["walls"]:
     point = np.zeros(3); point[w["axis"]] = w["pos"]
@@ -205,6 +222,24 @@ def liggghts_input(spec, warmup, steps, dump):
         g11 = spec["c_pp"] / (0.5 * m)
         g12 = spec["c_pw"] / m
     model = "model hooke/stiffness tangential history"
+    if spec.get("law", "linear") == "hertz":
+        model = "model hertz tangential history"
+        e, nu = spec["youngs_modulus"], spec["poisson_ratio"]
+        rest = 1.0 if spec["restitution"] is None else spec["restitution"]
+        materials = [
+            f"fix m1 all property/global youngsModulus peratomtype {e!r} {e!r}",
+            f"fix m2 all property/global poissonsRatio peratomtype {nu!r} {nu!r}",
+            f"fix m3 all property/global coefficientRestitution peratomtypepair 2 {rest!r} {rest!r} {rest!r} {rest!r}",
+            f"fix m5 all property/global coefficientFriction peratomtypepair 2 {mu!r} {muw!r} {muw!r} {muw!r}",
+        ]
+    else:
+        materials = [
+            f"fix m1 all property/global kn peratomtypepair 2 {kn!r} {kn!r} {kn!r} {kn!r}",
+            f"fix m2 all property/global kt peratomtypepair 2 {ks!r} {ks!r} {ks!r} {ks!r}",
+            f"fix m3 all property/global gamman peratomtypepair 2 {g11!r} {g12!r} {g12!r} {g12!r}",
+            "fix m4 all property/global gammat peratomtypepair 2 0.0 0.0 0.0 0.0",
+            f"fix m5 all property/global coefficientFriction peratomtypepair 2 {mu!r} {muw!r} {muw!r} {muw!r}",
+        ]
     lines = [
         "atom_style granular",
         "atom_modify map array",
@@ -217,11 +252,7 @@ def liggghts_input(spec, warmup, steps, dump):
         "neigh_modify delay 0",
         f"pair_style gran {model} tangential_damping off",
         "pair_coeff * *",
-        f"fix m1 all property/global kn peratomtypepair 2 {kn!r} {kn!r} {kn!r} {kn!r}",
-        f"fix m2 all property/global kt peratomtypepair 2 {ks!r} {ks!r} {ks!r} {ks!r}",
-        f"fix m3 all property/global gamman peratomtypepair 2 {g11!r} {g12!r} {g12!r} {g12!r}",
-        "fix m4 all property/global gammat peratomtypepair 2 0.0 0.0 0.0 0.0",
-        f"fix m5 all property/global coefficientFriction peratomtypepair 2 {mu!r} {muw!r} {muw!r} {muw!r}",
+        *materials,
     ]
     for i, w in enumerate(spec["walls"]):
         plane = "xyz"[w["axis"]] + "plane"
@@ -509,8 +540,10 @@ def run_once(code, workdir, x, spec, threads, warmup, steps, dump, demstep_src, 
 
 def benchmark(args):
     workdir = Path(tempfile.mkdtemp(prefix="demstep-peers-"))
-    x, spec = make_problem(args.problem, args.n, args.skin)
+    x, spec = make_problem(args.problem, args.n, args.skin, args.law)
     codes = [c for c in args.codes.split(",") if c]
+    if args.law == "hertz" and "yade" in codes:
+        codes.remove("yade")
     notes = []
     todo = []
     for code in codes:
@@ -630,7 +663,7 @@ def check(args):
     codes = [c for c in args.codes.split(",") if c and available(c)]
     report = {}
     for problem in ("dense", "settle"):
-        x0, spec = make_problem(problem, args.n, args.skin)
+        x0, spec = make_problem(problem, args.n, args.skin, args.law)
         finals = {}
         for code in codes:
             res = run_once(code, workdir, x0, spec, 1, 0, args.steps, True, args.demstep_src,
@@ -674,6 +707,7 @@ def print_check(report):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--problem", choices=("dense", "settle"), default="dense")
+    ap.add_argument("--law", choices=("linear", "hertz"), default="linear")
     ap.add_argument("--n", type=int, default=None, help="target number of spheres (nearest feasible)")
     ap.add_argument("--threads", type=int, default=1, help="demstep numba threads, LIGGGHTS MPI ranks, YADE OpenMP threads")
     ap.add_argument("--repeat", type=int, default=3)
