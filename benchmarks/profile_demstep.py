@@ -81,7 +81,7 @@ def main(argv=None):
         "first": False, "acc_out": np.empty(8), "box_sums": np.zeros((4, 3)),
         "store_dashpot": params.has_dashpots, "store_damping": False,
         "chunks": chunks, "spans": spans, "force_buf": force_buf, "torque_buf": torque_buf,
-        "geo": geo, "n_chunks": len(chunks) - 1,
+        "geo": geo, "n_chunks": len(chunks) - 1, "sphere_body": sim.bodies.sphere_body,
     }
 
     def arg(name):

@@ -55,13 +55,13 @@ def into_tangent_plane(ox, oy, oz, nx, ny, nz):
     """A history vector (a tangential force, a rolling or bending moment) carried into
     the tangent plane of the current unit normal n: its normal component removed and
     its magnitude kept (zero stays zero)."""
-    mag_old = math.sqrt(ox * ox + oy * oy + oz * oz)
-    if mag_old > 0.0:
+    mag2_old = ox * ox + oy * oy + oz * oz
+    if mag2_old > 0.0:
         on = ox * nx + oy * ny + oz * nz
         ox, oy, oz = ox - on * nx, oy - on * ny, oz - on * nz
-        mag = math.sqrt(ox * ox + oy * oy + oz * oz)
-        if mag > 0.0:
-            s = mag_old / mag
+        mag2 = ox * ox + oy * oy + oz * oz
+        if mag2 > 0.0:
+            s = math.sqrt(mag2_old / mag2)  # one root for the ratio of the magnitudes
             ox, oy, oz = ox * s, oy * s, oz * s
     return ox, oy, oz
 

@@ -90,11 +90,11 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
     f_nd = -c_n * v_n
     # tangential spring: trial increment, then the Coulomb slider
     tx, ty, tz = ox - k_t * dtx, oy - k_t * dty, oz - k_t * dtz
-    mag = math.sqrt(tx * tx + ty * ty + tz * tz)
+    mag2 = tx * tx + ty * ty + tz * tz
     limit = mu * f_el
     tdx, tdy, tdz = 0.0, 0.0, 0.0
-    if mag > limit:
-        s = limit / mag
+    if mag2 > limit * limit:  # (squares: the root only for a sliding contact)
+        s = limit / math.sqrt(mag2)
         tx, ty, tz = tx * s, ty * s, tz * s
     else:
         vtx, vty, vtz = vx - v_n * nx, vy - v_n * ny, vz - v_n * nz
