@@ -24,7 +24,7 @@ from demstep.contact.geometry import (
     contact_arms, image_count, into_tangent_plane, pair_geometry, wall_geometry,
 )
 from demstep.contact.laws import (
-    dashpot_coefficients, normal_force, rolling_coefficients, tangential_stiffness,
+    LAW_LINEAR, dashpot_coefficients, normal_force, rolling_coefficients, tangential_stiffness,
 )
 from demstep.kernels.bodies import body_step, body_step_serial
 from demstep.kernels.bonds import bond_forces
@@ -346,6 +346,8 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     kc1 = 0.0
     kc2 = 0.0
     mu = params.mu
+    needs_m_star = params.beta_n > 0.0 or params.beta_t > 0.0
+    needs_r_star = law != LAW_LINEAR
     len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
     rate0, rate1, rate2 = box_rate[0], box_rate[1], box_rate[2]
     for k in prange(pi.shape[0]):
@@ -391,9 +393,15 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
             vjx = v[j, 0] - a_j * (w[j, 1] * nz - w[j, 2] * ny) - n0 * rate0
             vjy = v[j, 1] - a_j * (w[j, 2] * nx - w[j, 0] * nz) - n1 * rate1
             vjz = v[j, 2] - a_j * (w[j, 0] * ny - w[j, 1] * nx) - n2 * rate2
-            inv_sum = inv_m[i] + inv_m[j]
-            m_star = 1.0 / inv_sum if inv_sum > 0.0 else m[i]
-            r_star = r[i] * r[j] / (r[i] + r[j])
+            # effective mass and radius only where the law reads them (restitution
+            # dashpots; Hertz): two divisions a pair saved otherwise
+            m_star = 0.0
+            if needs_m_star:
+                inv_sum = inv_m[i] + inv_m[j]
+                m_star = 1.0 / inv_sum if inv_sum > 0.0 else m[i]
+            r_star = 0.0
+            if needs_r_star:
+                r_star = r[i] * r[j] / (r[i] + r[j])
             (fx, fy, fz, c_en, c_et, c_fric, c_dash, c_kn, _, tx, ty, tz, ndx, ndy, ndz,
              e_new) = contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star,
                                        vjx - vix, vjy - viy, vjz - viz, dt, ox, oy, oz,
