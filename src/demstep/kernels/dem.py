@@ -182,6 +182,36 @@ def rolling_inertia_pair(inertia_i, m_i, r_i, inertia_j, m_j, r_j):
     return 1.0 / inv if inv > 0.0 else 0.0
 
 
+@njit(inline="always")
+def _rolling_contact(law, params, h, nx, ny, nz, delta, r_star, i_star, wx, wy, wz, dt):
+    """:func:`rolling_response` of one contact whose history row is ``h``
+    (ROLL_WIDTH values, updated in place): the law's normal force and tangent
+    stiffnesses at ``delta``, then the response. Returns (touched, moment on j (3),
+    stored energy, plastic and viscous dissipation); touched False (and zeros) for a
+    contact apart and without history."""
+    if delta <= 0.0 and h[ROLL_ENERGY] == 0.0 and h[0] == 0.0 and h[1] == 0.0 \
+            and h[2] == 0.0 and h[3] == 0.0 and h[4] == 0.0 and h[5] == 0.0 and h[6] == 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    k_n = 0.0
+    k_t = 0.0
+    f_el = 0.0
+    if delta > 0.0:
+        f_el, k_n, _ = normal_force(law, params, delta, r_star)
+        k_t = tangential_stiffness(law, params, delta, r_star)
+    (mx, my, mz, e_new, c_p, c_v, h0, h1, h2, h3, h4, h5, h6, h7) = rolling_response(
+        params, nx, ny, nz, delta, r_star, i_star, k_n, k_t, f_el, wx, wy, wz, dt,
+        h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7])
+    h[0] = h0
+    h[1] = h1
+    h[2] = h2
+    h[3] = h3
+    h[4] = h4
+    h[5] = h5
+    h[6] = h6
+    h[7] = h7
+    return True, mx, my, mz, e_new, c_p, c_v
+
+
 def _rolling_loop(w, r, m, inertia, inv_m, pi, pj, geo, law, params, dt, roll, chunks,
                   torque_buf):
     """Rolling and twisting resistance of all Verlet pairs (compiled twice), after the
@@ -198,34 +228,15 @@ def _rolling_loop(w, r, m, inertia, inv_m, pi, pj, geo, law, params, dt, roll, c
         for k in range(chunks[c], chunks[c + 1]):
             i = pi[k]
             j = pj[k]
-            delta = r[i] + r[j] - geo[k, 3]
-            h = roll[k]
-            if delta <= 0.0 and h[ROLL_ENERGY] == 0.0 and h[0] == 0.0 and h[1] == 0.0 \
-                    and h[2] == 0.0 and h[3] == 0.0 and h[4] == 0.0 and h[5] == 0.0 \
-                    and h[6] == 0.0:
-                continue
-            r_star = r[i] * r[j] / (r[i] + r[j])
-            k_n = 0.0
-            k_t = 0.0
-            f_el = 0.0
-            if delta > 0.0:
-                f_el, k_n, _ = normal_force(law, params, delta, r_star)
-                k_t = tangential_stiffness(law, params, delta, r_star)
             i_star = rolling_inertia_pair(
                 inertia[i] if inv_m[i] > 0.0 else 0.0, m[i] if inv_m[i] > 0.0 else 0.0, r[i],
                 inertia[j] if inv_m[j] > 0.0 else 0.0, m[j] if inv_m[j] > 0.0 else 0.0, r[j])
-            (mx, my, mz, e_new, c_p, c_v, h0, h1, h2, h3, h4, h5, h6, h7) = rolling_response(
-                params, geo[k, 0], geo[k, 1], geo[k, 2], delta, r_star, i_star, k_n, k_t, f_el,
-                w[j, 0] - w[i, 0], w[j, 1] - w[i, 1], w[j, 2] - w[i, 2], dt,
-                h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7])
-            h[0] = h0
-            h[1] = h1
-            h[2] = h2
-            h[3] = h3
-            h[4] = h4
-            h[5] = h5
-            h[6] = h6
-            h[7] = h7
+            touched, mx, my, mz, e_new, c_p, c_v = _rolling_contact(
+                law, params, roll[k], geo[k, 0], geo[k, 1], geo[k, 2], r[i] + r[j] - geo[k, 3],
+                r[i] * r[j] / (r[i] + r[j]), i_star, w[j, 0] - w[i, 0], w[j, 1] - w[i, 1],
+                w[j, 2] - w[i, 2], dt)
+            if not touched:
+                continue
             tb[j, 0] += mx
             tb[j, 1] += my
             tb[j, 2] += mz
@@ -257,30 +268,12 @@ def _wall_rolling_loop(x, w, r, m, inertia, wp, ww, wall_point, wall_normal, law
             nx, ny, nz, dist, delta, a = wall_geometry(
                 x[p, 0], x[p, 1], x[p, 2], r[p], wall_point[wi, 0], wall_point[wi, 1],
                 wall_point[wi, 2], wall_normal[wi, 0], wall_normal[wi, 1], wall_normal[wi, 2])
-            h = roll[q]
-            if delta <= 0.0 and h[ROLL_ENERGY] == 0.0 and h[0] == 0.0 and h[1] == 0.0 \
-                    and h[2] == 0.0 and h[3] == 0.0 and h[4] == 0.0 and h[5] == 0.0 \
-                    and h[6] == 0.0:
+            touched, mx, my, mz, e_new, c_p, c_v = _rolling_contact(
+                law, params, roll[q], nx, ny, nz, delta, r[p],
+                rolling_inertia_pair(inertia[p], m[p], r[p], 0.0, 0.0, 0.0),
+                -w[p, 0], -w[p, 1], -w[p, 2], dt)
+            if not touched:
                 continue
-            k_n = 0.0
-            k_t = 0.0
-            f_el = 0.0
-            if delta > 0.0:
-                f_el, k_n, _ = normal_force(law, params, delta, r[p])
-                k_t = tangential_stiffness(law, params, delta, r[p])
-            i_star = rolling_inertia_pair(inertia[p], m[p], r[p], 0.0, 0.0, 0.0)
-            (mx, my, mz, e_new, c_p, c_v, h0, h1, h2, h3, h4, h5, h6, h7) = rolling_response(
-                params, nx, ny, nz, delta, r[p], i_star, k_n, k_t, f_el,
-                -w[p, 0], -w[p, 1], -w[p, 2], dt,
-                h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7])
-            h[0] = h0
-            h[1] = h1
-            h[2] = h2
-            h[3] = h3
-            h[4] = h4
-            h[5] = h5
-            h[6] = h6
-            h[7] = h7
             torque[p, 0] -= mx
             torque[p, 1] -= my
             torque[p, 2] -= mz
