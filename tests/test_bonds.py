@@ -280,3 +280,20 @@ def test_engine_threshold_with_bonds_matches_the_exact_step(name, k_ratio):
     assert res["exact"] <= res["bracket"][1]
     assert res["measured"] == pytest.approx(res["exact"], rel=5e-3)
     assert res["exact"] < 0.9 * res["exact_springs_only"]
+
+
+def test_bonds_between_clumps_load_the_bodies_and_keep_the_balance():
+    """Bonds between the members of different two-sphere clumps (never within one):
+    after bonding a settled heap of clumps, the bonds carry strain and the ledger
+    still closes."""
+    from test_rolling_resistance import _settling_clumps
+
+    sim = _settling_clumps(LinearSpring(k_n=1e5, mu=0.4, restitution=0.5))
+    added = sim.add_bonds(ParallelBonds(normal_stiffness=1e5, tensile_strength=2e3,
+                                        shear_strength=2e3, gap=0.05))
+    sb = sim.bodies.sphere_body
+    assert added > 5
+    assert np.all(sb[sim.bonds.i] != sb[sim.bonds.j])
+    sim.run(steps=4000)
+    assert sim.ledger.as_dict()["strain_bonds"] > 0
+    assert sim.monitor.max_error < 2e-3
