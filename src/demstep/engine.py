@@ -1013,31 +1013,10 @@ class Simulation:
         # the longest arms the contacts can have (they lengthen as a contact opens)
         added = replace(added, arm_i=self.r[added.i].copy(),
                         arm_j=np.where(added.j >= 0, self.r[np.maximum(added.j, 0)], 0.0))
-        bodies = self.rigid_bodies()
-        rotation = self.rotation
-        p = self.particles_now()
-        if bodies is None:
-            from demstep.timestep.mass_split import element_mass
+        from demstep.timestep.certificate import added_contacts_bound
 
-            mass = element_mass(p, added)
-            c_m = mass.inv_m_i + mass.inv_m_j
-            c_r = (added.arm_i**2 * mass.inv_I_i + added.arm_j**2 * mass.inv_I_j) if rotation else 0.0
-            k_e = np.maximum(added.k_n * c_m, added.k_s * (c_m + c_r))
-            c_e = np.maximum(added.c_n * c_m, added.c_t * (c_m + c_r))
-            if rotation and added.has_rolling:  # rolling/twisting springs: their own block
-                c_rot = mass.inv_I_i + mass.inv_I_j
-                k_e = k_e + np.maximum(added.k_r, added.k_w) * c_rot
-                c_e = c_e + np.maximum(added.c_r, added.c_w) * c_rot
-            add_k = float(np.max(k_e))
-            add_c = float(np.max(c_e))
-        else:
-            from demstep.timestep.bodies import body_element_matrices
-
-            W, D, G = body_element_matrices(p, added, bodies, rotation)
-            w, V = np.linalg.eigh(W)
-            Wh = np.einsum("cij,cj,ckj->cik", V, np.sqrt(np.clip(w, 0.0, None)), V)
-            add_k = float(np.linalg.eigvalsh(Wh @ D @ Wh)[:, -1].max())
-            add_c = float(np.linalg.eigvalsh(Wh @ G @ Wh)[:, -1].max())
+        add_k, add_c = added_contacts_bound(self.particles_now(), added, self.rotation,
+                                            self.rigid_bodies())
         drift = cert.drift(self.x, self.periodic_len)
         if sigma * sigma < cert.bound(sigma, drift) + add_k + sigma * add_c:
             return False
