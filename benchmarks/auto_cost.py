@@ -25,24 +25,13 @@ import json, sys, time
 import numpy as np
 import numba
 sys.path.insert(0, sys.argv[5])
-from peers import make_problem
-from demstep.contact.laws import LinearSpring
-from demstep.engine import Simulation, TimeStep
-from demstep.particles import Particles
-from demstep.walls import Wall
+from peers import demstep_simulation, make_problem
+from demstep.engine import TimeStep
 
 problem, n, steps, threads = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 numba.set_num_threads(threads)
 x, spec = make_problem(problem, n)
-particles = Particles.from_density(x, np.full(len(x), spec["radius"]), spec["density"])
-law = LinearSpring(k_n=spec["k_n"], k_s=spec["k_s"], mu=spec["mu"], restitution=spec["restitution"])
-walls = []
-for w in spec["walls"]:
-    point = np.zeros(3); point[w["axis"]] = w["pos"]
-    normal = np.zeros(3); normal[w["axis"]] = w["sense"]
-    walls.append(Wall(point, normal))
-sim = Simulation(particles, law, walls, gravity=spec["gravity"], skin=spec["skin"],
-                 timestep=TimeStep.auto(safety=0.8, method="exact", every=500))
+sim = demstep_simulation(x, spec, TimeStep.auto(safety=0.8, method="exact", every=500))
 spent = {"choose_dt": 0.0, "covered": 0.0, "estimates": 0, "checks": 0}  # checks: coverage and extensions
 choose, still = sim._choose_dt, sim._still_certified
 

@@ -132,35 +132,49 @@ def write_problem(folder: Path, x, spec):
 
 
 # ----------------------------------------------------------------------------- demstep
+def demstep_simulation(x, spec, timestep):
+    """The problem ``spec`` with positions ``x`` as a demstep Simulation stepping by
+    ``timestep`` (a TimeStep): the one place the benchmarks (peers, auto_cost,
+    profile_demstep) translate a problem into demstep."""
+    from demstep.contact.laws import HertzMindlin, LinearSpring
+    from demstep.engine import Simulation
+    from demstep.particles import Particles
+    from demstep.walls import Wall
+
+    particles = Particles.from_density(x, np.full(len(x), spec["radius"]), spec["density"])
+    common = dict(mu=spec["mu"], restitution=spec["restitution"])
+    if spec.get("law", "linear") == "hertz":
+        law = HertzMindlin(youngs_modulus=spec["youngs_modulus"],
+                           poisson_ratio=spec["poisson_ratio"], **common)
+    else:
+        law = LinearSpring(k_n=spec["k_n"], k_s=spec["k_s"], **common)
+    walls = []
+    for w in spec["walls"]:
+        point = np.zeros(3)
+        point[w["axis"]] = w["pos"]
+        normal = np.zeros(3)
+        normal[w["axis"]] = w["sense"]
+        walls.append(Wall(point, normal))
+    return Simulation(particles, law, walls, gravity=spec["gravity"], timestep=timestep,
+                      skin=spec["skin"])
+
+
 DEMSTEP_CHILD = r"""
 import json, sys, time
 from pathlib import Path
 import numpy as np
 import demstep  # before numba.set_num_threads: demstep chooses the threading layer
 import numba
-from demstep.contact.laws import HertzMindlin, LinearSpring
-from demstep.engine import Simulation, TimeStep
-from demstep.particles import Particles
-from demstep.walls import Wall
+from demstep.engine import TimeStep
 
 folder, threads, warmup, steps, dump = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == "1"
+sys.path.insert(0, sys.argv[6])
+from peers import demstep_simulation
 numba.set_num_threads(threads)
 spec = json.loads((folder / "spec.json").read_text())
 x = np.load(folder / "x.npy")
 t_setup = time.perf_counter()
-particles = Particles.from_density(x, np.full(len(x), spec["radius"]), spec["density"])
-if spec.get("law", "linear") == "hertz":
-    law = HertzMindlin(youngs_modulus=spec["youngs_modulus"], poisson_ratio=spec["poisson_ratio"],
-                       mu=spec["mu"], restitution=spec["restitution"])
-else:
-    law = LinearSpring(k_n=spec["k_n"], k_s=spec["k_s"], mu=spec["mu"], restitution=spec["restitution"])
-walls = []
-for w in spec["walls"]:
-    point = np.zeros(3); point[w["axis"]] = w["pos"]
-    normal = np.zeros(3); normal[w["axis"]] = w["sense"]
-    walls.append(Wall(point, normal))
-sim = Simulation(particles, law, walls, gravity=spec["gravity"], timestep=TimeStep.fixed(spec["dt"]),
-                 skin=spec["skin"])
+sim = demstep_simulation(x, spec, TimeStep.fixed(spec["dt"]))
 if warmup:
     sim.run(steps=warmup)
 t_setup = time.perf_counter() - t_setup
@@ -185,7 +199,7 @@ def demstep_command(folder, threads, warmup, steps, dump, demstep_src):
     if demstep_src:
         env["PYTHONPATH"] = str(demstep_src) + os.pathsep + env.get("PYTHONPATH", "")
     cmd = [sys.executable, "-c", DEMSTEP_CHILD, str(folder), str(threads), str(warmup),
-           str(steps), "1" if dump else "0"]
+           str(steps), "1" if dump else "0", str(HERE)]
     return cmd, env, threads
 
 

@@ -39,26 +39,13 @@ def main(argv=None):
     import demstep  # noqa: F401  (chooses the threading layer before numba starts threads)
     import numba
 
-    from demstep.contact.laws import LinearSpring
-    from demstep.engine import Simulation, TimeStep
+    from demstep.engine import TimeStep
     from demstep.kernels import dem, neighbors
-    from demstep.particles import Particles
-    from demstep.walls import Wall
-    from peers import make_problem
+    from peers import demstep_simulation, make_problem
 
     numba.set_num_threads(args.threads)
     x, spec = make_problem(args.problem, args.n)
-    particles = Particles.from_density(x, np.full(len(x), spec["radius"]), spec["density"])
-    law = LinearSpring(k_n=spec["k_n"], k_s=spec["k_s"], mu=spec["mu"], restitution=spec["restitution"])
-    walls = []
-    for wd in spec["walls"]:
-        point = np.zeros(3)
-        point[wd["axis"]] = wd["pos"]
-        normal = np.zeros(3)
-        normal[wd["axis"]] = wd["sense"]
-        walls.append(Wall(point, normal))
-    sim = Simulation(particles, law, walls, gravity=spec["gravity"],
-                     timestep=TimeStep.fixed(spec["dt"]), skin=spec["skin"])
+    sim = demstep_simulation(x, spec, TimeStep.fixed(spec["dt"]))
     sim.run(steps=args.warmup)
 
     # a whole step, as the benchmark times it

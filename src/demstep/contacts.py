@@ -218,3 +218,45 @@ def _pair_contacts(x, r, tol, periodic) -> ContactSet:
         k = int(np.flatnonzero(dist <= 0)[0])
         raise InputError(f"particles: particles {i[k]} and {j[k]} have the same centre")
     return ContactSet(i, j, d[:, :dim] / dist[:, None], arm_i, arm_j, 0.0, 0.0)
+
+
+def contact_effective_radius(contacts: ContactSet, r: np.ndarray) -> np.ndarray:
+    """R* (C,) [L]: r_i r_j / (r_i + r_j) for pairs, r_i at walls (radii ``r``)."""
+    wall = contacts.j < 0
+    r_i = r[contacts.i]
+    r_j = r[np.where(wall, contacts.i, contacts.j)]
+    return np.where(wall, r_i, r_i * r_j / (r_i + r_j))
+
+
+def contact_rolling_inertia(contacts: ContactSet, r, m, inertia, moving) -> np.ndarray:
+    """I* (C,) [M L^2] of every contact: 1 / (1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2))
+    (:func:`demstep.contact.laws.rolling_inertia`) over the particles that move
+    (``moving``); a wall or a fixed particle adds nothing, as in the engine's kernels."""
+    from demstep.contact.laws import rolling_inertia
+
+    i, j = contacts.i, contacts.j
+    jj = np.maximum(j, 0)
+    inertia = np.where(moving, inertia, 0.0)
+    m = np.where(moving, m, 0.0)
+    side_j = j >= 0
+    return rolling_inertia(inertia[i], m[i], r[i], np.where(side_j, inertia[jj], 0.0),
+                           np.where(side_j, m[jj], 0.0), r[jj])
+
+
+def with_rolling(contacts: ContactSet, r, m, inertia, moving, params) -> ContactSet:
+    """The contacts with their rolling and twisting springs k_r, k_w and viscous parts
+    c_r, c_w from their k_n, k_s (tangent stiffnesses), by the law ``params`` (a
+    LawParams; :func:`demstep.contact.laws.rolling_coefficients`): R* from the radii
+    ``r``, the equivalent rotational inertia from the masses ``m`` and ``inertia`` of
+    the particles that move (``moving``: a fixed particle, like a wall, adds nothing;
+    the engine's kernels use the same rule). Unchanged without rolling resistance."""
+    if not params.has_rolling or contacts.n == 0:
+        return contacts
+    from dataclasses import replace
+
+    from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
+
+    k_r, k_w, c_r, c_w = rolling_coefficient_arrays(
+        params, contacts.k_n, contacts.k_s, contact_effective_radius(contacts, r),
+        contact_rolling_inertia(contacts, r, m, inertia, moving))
+    return replace(contacts, k_r=k_r, k_w=k_w, c_r=c_r, c_w=c_w)

@@ -52,7 +52,7 @@ import numpy as np
 from demstep.backend import get_backend
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
 from demstep.contact.laws import ContactLaw, LinearSpring
-from demstep.contacts import ContactSet
+from demstep.contacts import ContactSet, with_rolling
 from demstep.energy import A_ROLLING, E_STRAIN_R, EnergyBalanceError, EnergyLedger, EnergyMonitor
 from demstep.errors import InputError, SimulationDiverged
 from demstep.kernels import dem
@@ -503,8 +503,7 @@ class Simulation:
             else:  # the longest arms a contact can have (they shorten as it closes)
                 ai, aj = self.r[i].copy(), self.r[j].copy()
             parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
-                                    c_n=cn, c_t=ct,
-                                    **self._rolling_springs(params, kn, kt, r_star, i, j)))
+                                    c_n=cn, c_t=ct))
             if cover is not None:
                 cover["pairs"] = _sorted_keys(i * len(self.r) + j, delta_eval)
         if len(self.wp):
@@ -527,36 +526,23 @@ class Simulation:
             kn, kt, cn, ct = self._coefficients(law_id, params, delta_eval, self.r[p], self.m[p])
             arm = dist if horizon is None else self.r[p].copy()
             parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim],
-                                    arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct,
-                                    **self._rolling_springs(params, kn, kt, self.r[p], p, None)))
+                                    arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct))
             if cover is not None:
                 cover["walls"] = _sorted_keys(p * max(1, len(self.walls)) + wi, delta_eval)
-        parts.extend(self._bond_elements())
-        if not parts:
-            return ContactSet(np.zeros(0), np.zeros(0), np.zeros((0, dim)), np.zeros(0),
-                              np.zeros(0), 0.0, 0.0)
-        return ContactSet.concatenate(parts)
+        return self._with_rolling_and_bonds(parts, params)
 
-    def _rolling_springs(self, params, k_n, k_t, r_star, i, j) -> dict:
-        """Rolling and twisting springs and viscous coefficients of contacts (i, j)
-        (j None: walls) as ContactSet keywords, by the law's formula with the engine's
-        equivalent rotational inertia (a fixed particle counts as a wall); empty without
-        rolling resistance."""
-        if not params.has_rolling:
-            return {}
-        from demstep.contact.laws import rolling_inertia
-        from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
+    def _with_rolling_and_bonds(self, parts, params) -> ContactSet:
+        """The contact parts as one ContactSet with the law's rolling and twisting
+        springs (:func:`demstep.contacts.with_rolling`, the kernels' rule for fixed
+        particles), then the intact bonds as elements of their own."""
+        contacts = (ContactSet.concatenate(parts) if parts else
+                    ContactSet(np.zeros(0), np.zeros(0), np.zeros((0, self.dim)), np.zeros(0),
+                               np.zeros(0), 0.0, 0.0))
+        contacts = with_rolling(contacts, self.r, self.m, self.inertia, self.inv_m > 0, params)
+        bonds = self.bond_elements()
+        return ContactSet.concatenate([contacts] + bonds) if bonds else contacts
 
-        free = self.inv_m > 0
-        inertia, m = np.where(free, self.inertia, 0.0), np.where(free, self.m, 0.0)
-        if j is None:
-            i_star = rolling_inertia(inertia[i], m[i], self.r[i])
-        else:
-            i_star = rolling_inertia(inertia[i], m[i], self.r[i], inertia[j], m[j], self.r[j])
-        k_r, k_w, c_r, c_w = rolling_coefficient_arrays(params, k_n, k_t, r_star, i_star)
-        return {"k_r": k_r, "k_w": k_w, "c_r": c_r, "c_w": c_w}
-
-    def _bond_elements(self) -> list:
+    def bond_elements(self) -> list:
         """The intact parallel bonds as contact elements (a list of one ContactSet, or
         none): springs k_n^b A, k_s^b A at the bond point (arms to the middle of the gap),
         bending k_n^b I and twisting k_s^b J on the relative rotation
@@ -679,10 +665,9 @@ class Simulation:
         kn, kt, cn, ct = self._coefficients(int(params.law), params,
                                             np.array([self.timestep.overlap * r]),
                                             np.array([r]), np.array([0.5 * m]))
-        # rolling springs of such a contact (R* = r_max: stiffer than a pair's), the
-        # equivalent inertia of two of the lightest particles
-        rolling = self._rolling_springs(params, kn, kt, np.array([r]), np.array([0]), None)
-        if rolling:
+        rolling = {}
+        if params.has_rolling:  # such a contact's rolling springs (R* = r_max: stiffer than
+            # a pair's), the equivalent inertia of two of the lightest particles
             from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
             from demstep.particles import INERTIA_FACTOR
 
@@ -811,9 +796,8 @@ class Simulation:
         sb = self.bodies.sphere_body
         keep = (sb[i] < 0) | (sb[i] != sb[j])
         old = self.bonds
-        if old.n:
-            have = set(zip(old.i[old.intact == 1].tolist(), old.j[old.intact == 1].tolist()))
-            keep &= np.array([(a, b) not in have for a, b in zip(i.tolist(), j.tolist())], bool)
+        intact = old.intact == 1
+        keep &= ~np.isin(i * n + j, old.i[intact] * n + old.j[intact])
         i, j = i[keep], j[keep]
         radius = bonds.radius_multiplier * np.minimum(self.r[i], self.r[j])
         new = Bonds.make(i, j, radius, bonds.normal_stiffness, bonds.k_s, bonds.tensile_strength,
@@ -1058,20 +1042,19 @@ class Simulation:
             m_star = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), self.m[i])
             kn, kt, cn, ct = self._coefficients(law_id, params, delta, r_star, m_star)
             parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
-                                    c_n=cn, c_t=ct,
-                                    **self._rolling_springs(params, kn, kt, r_star, i, j)))
+                                    c_n=cn, c_t=ct))
         if wall_mask.any():
             p, wi = self.wp[wall_mask], self.ww[wall_mask]
             _, dist, delta, arm = wall_geometry_arrays(self.x, self.r, p, wi, self.wall_point,
                                                        self.wall_normal)
             kn, kt, cn, ct = self._coefficients(law_id, params, delta, self.r[p], self.m[p])
             parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim],
-                                    arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct,
-                                    **self._rolling_springs(params, kn, kt, self.r[p], p, None)))
+                                    arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct))
         if not parts:
             return ContactSet(np.zeros(0), np.zeros(0), np.zeros((0, dim)), np.zeros(0),
                               np.zeros(0), 0.0, 0.0)
-        return ContactSet.concatenate(parts)
+        return with_rolling(ContactSet.concatenate(parts), self.r, self.m, self.inertia,
+                            self.inv_m > 0, params)
 
     # --------------------------------------------------------------- running
     def every(self, n: int, callback: Callable[["Simulation"], None]):

@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from demstep.contact.laws import RollingResistance
 from demstep.contacts import DEFAULT_CONTACT_TOL, ContactSet, find_contacts
 from demstep.errors import InputError
 from demstep.particles import Particles, particle_inertia
@@ -70,7 +71,7 @@ class Material:
 
 
 @dataclass
-class ContactModel:
+class ContactModel(RollingResistance):
     """How contacts become coefficients (module docstring). ``materials`` maps a particle
     type to its :class:`Material` (type 1 for files without a type column; the key None
     gives the material of every type). Rolling and twisting resistance as in
@@ -89,12 +90,6 @@ class ContactModel:
     tangential_damping: bool = True
     convention: str = "demstep"
     overlap: float = 0.0
-    rolling_convention: str | None = None
-    rolling_stiffness: float = 0.0
-    twisting_stiffness: float = 0.0
-    rolling_friction: float = 0.0
-    twisting_friction: float = 0.0
-    rolling_damping: float = 0.0
 
     def validate(self):
         if self.model not in MODELS:
@@ -108,8 +103,6 @@ class ContactModel:
             _positive("kn", self.k_n)
             if self.k_t is not None:
                 _non_negative("ks", self.k_t)
-            if self.materials and any(m.youngs for m in self.materials.values()) and False:
-                pass
         else:
             if self.k_n is not None or self.k_t is not None:
                 raise InputError("kn: --kn/--ks belong to the linear model; the hertz model "
@@ -141,7 +134,7 @@ class ContactModel:
         (the law's own checks; messages name the options: rolling-stiffness, ...)."""
         from demstep.contact.laws import ContactLaw
 
-        law = ContactLaw(**{name: getattr(self, name) for name in ROLLING_OPTIONS})
+        law = ContactLaw(**self.rolling_settings())
         try:
             law.validate()
         except InputError as exc:
@@ -230,13 +223,14 @@ class ContactModel:
         """Fill the contacts' k_n, k_s, c_n, c_t (and k_r, k_w, c_r, c_w with rolling
         resistance) from the model and the geometry."""
         from demstep.contact.laws import contact_coefficients
+        from demstep.contacts import contact_effective_radius, contact_rolling_inertia
         from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
 
         i, j = contacts.i, contacts.j
         wall = j < 0
         jj = np.where(wall, i, j)
         r_i, r_j = particles.r[i], particles.r[jj]
-        r_star = np.where(wall, r_i, r_i * r_j / (r_i + r_j))
+        r_star = contact_effective_radius(contacts, particles.r)
         dist = np.where(wall, contacts.arm_i, contacts.arm_i + contacts.arm_j)
         delta = np.where(wall, r_i - dist, r_i + r_j - dist)
         delta = np.maximum(delta, self.overlap * r_star)
@@ -244,7 +238,9 @@ class ContactModel:
         inv_sum = inv[i] + np.where(wall, 0.0, inv[jj])
         m_star = np.where(inv_sum > 0, 1.0 / np.where(inv_sum > 0, inv_sum, 1.0), particles.m[i])
         out = [np.zeros(contacts.n) for _ in range(8)]
-        i_star = contact_rolling_inertia(contacts, particles) if self.has_rolling else None
+        p = particles
+        i_star = (contact_rolling_inertia(contacts, p.r, p.m, p.inertia, ~p.fixed)
+                  if self.has_rolling else None)
         if self.model == "linear":
             groups = [(np.ones(contacts.n, dtype=bool), self.law_params())]
         else:
@@ -274,45 +270,16 @@ class ContactModel:
 
 
 #: the rolling-resistance fields of ContactModel and ContactLaw (option names with '-')
-ROLLING_OPTIONS = ("rolling_convention", "rolling_stiffness", "twisting_stiffness",
-                   "rolling_friction", "twisting_friction", "rolling_damping")
-
-
-def contact_effective_radius(contacts: ContactSet, particles: Particles) -> np.ndarray:
-    """R* (C,) [L]: r_i r_j / (r_i + r_j) for pairs, r_i at walls."""
-    wall = contacts.j < 0
-    r_i = particles.r[contacts.i]
-    r_j = particles.r[np.where(wall, contacts.i, contacts.j)]
-    return np.where(wall, r_i, r_i * r_j / (r_i + r_j))
-
-
-def contact_rolling_inertia(contacts: ContactSet, particles: Particles) -> np.ndarray:
-    """I* (C,) [M L^2] of every contact (:func:`demstep.contact.laws.rolling_inertia`,
-    the particles' own masses and inertias; a wall or a fixed particle adds nothing, as
-    in the engine)."""
-    from demstep.contact.laws import rolling_inertia
-
-    i, j = contacts.i, contacts.j
-    p = particles
-    moving = ~p.fixed
-    inertia, m = np.where(moving, p.inertia, 0.0), np.where(moving, p.m, 0.0)
-    side_j = (j >= 0) & moving[np.maximum(j, 0)]
-    jj = np.maximum(j, 0)
-    return rolling_inertia(inertia[i], m[i], p.r[i], np.where(side_j, inertia[jj], 0.0),
-                           np.where(side_j, m[jj], 0.0), p.r[jj])
+ROLLING_OPTIONS = RollingResistance.field_names()
 
 
 def with_rolling(contacts: ContactSet, particles: Particles, params) -> ContactSet:
-    """The contacts with k_r, k_w, c_r, c_w from their k_n, k_s (tangent stiffnesses)
-    by the law ``params`` (a LawParams with rolling resistance)."""
-    from dataclasses import replace
+    """The contacts with the law's rolling and twisting springs (``params`` a LawParams):
+    :func:`demstep.contacts.with_rolling` with the particles' own masses and inertias."""
+    from demstep import contacts as cs
 
-    from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
-
-    k_r, k_w, c_r, c_w = rolling_coefficient_arrays(
-        params, contacts.k_n, contacts.k_s, contact_effective_radius(contacts, particles),
-        contact_rolling_inertia(contacts, particles))
-    return replace(contacts, k_r=k_r, k_w=k_w, c_r=c_r, c_w=c_w)
+    p = particles
+    return cs.with_rolling(contacts, p.r, p.m, p.inertia, ~p.fixed, params)
 
 
 def effective_moduli(a: Material, b: Material) -> tuple[float, float]:
@@ -627,10 +594,6 @@ def from_simulation(sim, source: str, notes=None) -> AnalysisInput:
     its law's coefficients and its global viscous damping (demstep convention)."""
     contacts = sim.contact_set()
     particles = sim.particles_now()
-    params = sim.law.params()
-    if params.has_rolling and contacts.n and not contacts.has_rolling:
-        # the law's rolling and twisting springs from the contacts' tangent stiffnesses
-        contacts = with_rolling(contacts, particles, params)
     if not sim.rotation:
         notes = list(notes or []) + ["rotation locked in the simulation"]
     return AnalysisInput(particles, contacts, GlobalDamping(mass=float(sim.damping.viscous)),
@@ -648,8 +611,7 @@ def model_from_law(law, overlap: float = 0.0) -> ContactModel:
     common = dict(restitution=law.restitution, restitution_tangential=law.restitution_tangential,
                   gamma_n=float(law.damping_normal), gamma_t=float(law.damping_tangential),
                   convention="demstep", overlap=overlap)
-    common.update({name: getattr(law, name, None if name == "rolling_convention" else 0.0)
-                   for name in ROLLING_OPTIONS})
+    common.update(law.rolling_settings())
     if isinstance(law, HertzMindlin):
         return ContactModel("hertz", materials={None: Material(law.youngs_modulus, law.poisson_ratio)},
                             **common)
@@ -686,7 +648,7 @@ def from_case(path, stage: int = 1, contact_tol: float = DEFAULT_CONTACT_TOL,
                          sim.walls, contact_tol, GlobalDamping(mass=float(sim.damping.viscous)),
                          sim.v[:, :sim.dim], impact_velocity, str(path), notes,
                          sim.rigid_bodies())
-    bonds = sim._bond_elements()
+    bonds = sim.bond_elements()
     if bonds:  # intact parallel bonds: elements of their own, beside the contacts
         out.contacts = ContactSet.concatenate([out.contacts] + bonds)
         out.notes.append(f"{bonds[0].n} parallel bonds (springs k^b A, bending k_n^b I, "

@@ -131,15 +131,13 @@ def _fixed_flags(case: Case, x: np.ndarray) -> np.ndarray:
 
 def build_law(case: Case):
     """The contact law object of the case."""
-    from demstep.contact.laws import HertzMindlin, LinearSpring
+    from demstep.contact.laws import HertzMindlin, LinearSpring, RollingResistance
 
     c = case.contact
     common = dict(mu=c.mu, mu_wall=c.mu_wall, damping_normal=c.damping_normal,
                   damping_tangential=c.damping_tangential, restitution=c.restitution,
                   restitution_tangential=c.restitution_tangential,
-                  rolling_convention=c.rolling_convention, rolling_stiffness=c.rolling_stiffness,
-                  twisting_stiffness=c.twisting_stiffness, rolling_friction=c.rolling_friction,
-                  twisting_friction=c.twisting_friction, rolling_damping=c.rolling_damping)
+                  **{name: getattr(c, name) for name in RollingResistance.field_names()})
     if c.law == "linear":
         return LinearSpring(k_n=c.k_n, k_s=c.k_s, **common)
     return HertzMindlin(youngs_modulus=c.youngs_modulus, poisson_ratio=c.poisson_ratio, **common)

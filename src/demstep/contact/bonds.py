@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from demstep._numba import njit
-from demstep.errors import InputError
+from demstep.contact.laws import _check
 
 
 @njit(inline="always")
@@ -70,18 +70,6 @@ def bond_springs(radius, k_n, k_s, dim):
     return kn, ks, kr, kw
 
 
-def _positive(name, value, strict=True):
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"bonds.{name}: expected a number, got {value!r}") from None
-    if not math.isfinite(v) and not (v == math.inf and name.endswith("strength")):
-        raise InputError(f"bonds.{name}: must be finite, got {value!r}")
-    if v < 0 or (strict and v == 0):
-        raise InputError(f"bonds.{name}: must be {'>' if strict else '>='} 0, got {value!r}")
-    return v
-
-
 @dataclass
 class ParallelBonds:
     """Parameters of parallel bonds (module docstring): ``normal_stiffness``,
@@ -98,13 +86,13 @@ class ParallelBonds:
     gap: float = 0.0
 
     def validate(self) -> "ParallelBonds":
-        _positive("normal_stiffness", self.normal_stiffness)
+        _check("bonds.normal_stiffness", self.normal_stiffness, strict=True)
         if self.shear_stiffness is not None:
-            _positive("shear_stiffness", self.shear_stiffness, strict=False)
-        _positive("tensile_strength", self.tensile_strength)
-        _positive("shear_strength", self.shear_strength)
-        _positive("radius_multiplier", self.radius_multiplier)
-        _positive("gap", self.gap, strict=False)
+            _check("bonds.shear_stiffness", self.shear_stiffness)
+        _check("bonds.tensile_strength", self.tensile_strength, strict=True, allow_inf=True)
+        _check("bonds.shear_strength", self.shear_strength, strict=True, allow_inf=True)
+        _check("bonds.radius_multiplier", self.radius_multiplier, strict=True)
+        _check("bonds.gap", self.gap)
         return self
 
     @property

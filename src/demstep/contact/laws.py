@@ -34,7 +34,7 @@ c = 2 sqrt(5/6) beta sqrt(m* k_tangent) (Hertz, Tsuji et al. 1992 as in LIGGGHTS
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 import numpy as np
@@ -204,19 +204,46 @@ def damping_ratio_from_restitution(e: float) -> float:
     return -ln / math.sqrt(math.pi**2 + ln**2)
 
 
-def _check(name, value, minimum=0.0, strict=False):
+def _check(name, value, minimum=0.0, strict=False, allow_inf=False):
+    """``value`` as a float, or InputError naming ``name``: finite (or +inf with
+    ``allow_inf``) and >= ``minimum`` (> with ``strict``)."""
     try:
         v = float(value)
     except (TypeError, ValueError):
         raise InputError(f"{name}: expected a number, got {value!r}") from None
-    if not math.isfinite(v) or v < minimum or (strict and v == minimum):
+    finite = math.isfinite(v) or (allow_inf and v == math.inf)
+    if not finite or v < minimum or (strict and v == minimum):
         rel = ">" if strict else ">="
-        raise InputError(f"{name}: must be finite and {rel} {minimum:g}, got {value!r}")
+        what = "" if allow_inf else "finite and "
+        raise InputError(f"{name}: must be {what}{rel} {minimum:g}, got {value!r}")
     return v
 
 
+@dataclass(kw_only=True)
+class RollingResistance:
+    """The rolling and twisting resistance settings (module docstring), shared by the
+    engine's laws and ``demstep dt``'s contact model: ``rolling_convention`` "beta" or
+    "epsd" (None: none), stiffness factors ``rolling_stiffness`` beta_r and
+    ``twisting_stiffness`` beta_w, moment limits ``rolling_friction`` mu_r and
+    ``twisting_friction`` mu_w, viscous damping ratio ``rolling_damping``."""
+
+    rolling_convention: str | None = None
+    rolling_stiffness: float = 0.0
+    twisting_stiffness: float = 0.0
+    rolling_friction: float = 0.0
+    twisting_friction: float = 0.0
+    rolling_damping: float = 0.0
+
+    @classmethod
+    def field_names(cls) -> tuple:
+        return tuple(f.name for f in fields(RollingResistance))
+
+    def rolling_settings(self) -> dict:
+        return {name: getattr(self, name) for name in self.field_names()}
+
+
 @dataclass
-class ContactLaw:
+class ContactLaw(RollingResistance):
     """Common contact parameters: friction ``mu`` (particle-particle), ``mu_wall``
     (None: same as mu), dashpots by coefficient (``damping_normal``,
     ``damping_tangential`` [M/T]) or by ``restitution`` (normal) and
@@ -232,12 +259,6 @@ class ContactLaw:
     damping_tangential: float = 0.0
     restitution: float | None = None
     restitution_tangential: float | None = None
-    rolling_convention: str | None = None
-    rolling_stiffness: float = 0.0
-    twisting_stiffness: float = 0.0
-    rolling_friction: float = 0.0
-    twisting_friction: float = 0.0
-    rolling_damping: float = 0.0
 
     law_id = -1
 

@@ -183,15 +183,18 @@ def rolling_inertia_pair(inertia_i, m_i, r_i, inertia_j, m_j, r_j):
 
 
 @njit(inline="always")
-def _rolling_contact(law, params, h, nx, ny, nz, delta, r_star, i_star, wx, wy, wz, dt):
+def _rolling_contact(law, params, h, nx, ny, nz, delta, r_star, inertia_i, m_i, r_i,
+                     inertia_j, m_j, r_j, wx, wy, wz, dt):
     """:func:`rolling_response` of one contact whose history row is ``h``
     (ROLL_WIDTH values, updated in place): the law's normal force and tangent
-    stiffnesses at ``delta``, then the response. Returns (touched, moment on j (3),
+    stiffnesses at ``delta``, the equivalent inertia of the two sides (a side of zero
+    inertia and mass adds nothing), then the response. Returns (touched, moment on j (3),
     stored energy, plastic and viscous dissipation); touched False (and zeros) for a
     contact apart and without history."""
     if delta <= 0.0 and h[ROLL_ENERGY] == 0.0 and h[0] == 0.0 and h[1] == 0.0 \
             and h[2] == 0.0 and h[3] == 0.0 and h[4] == 0.0 and h[5] == 0.0 and h[6] == 0.0:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    i_star = rolling_inertia_pair(inertia_i, m_i, r_i, inertia_j, m_j, r_j)
     k_n = 0.0
     k_t = 0.0
     f_el = 0.0
@@ -228,12 +231,13 @@ def _rolling_loop(w, r, m, inertia, inv_m, pi, pj, geo, law, params, dt, roll, c
         for k in range(chunks[c], chunks[c + 1]):
             i = pi[k]
             j = pj[k]
-            i_star = rolling_inertia_pair(
-                inertia[i] if inv_m[i] > 0.0 else 0.0, m[i] if inv_m[i] > 0.0 else 0.0, r[i],
-                inertia[j] if inv_m[j] > 0.0 else 0.0, m[j] if inv_m[j] > 0.0 else 0.0, r[j])
+            free_i = inv_m[i] > 0.0  # a fixed particle counts as a wall
+            free_j = inv_m[j] > 0.0
             touched, mx, my, mz, e_new, c_p, c_v = _rolling_contact(
                 law, params, roll[k], geo[k, 0], geo[k, 1], geo[k, 2], r[i] + r[j] - geo[k, 3],
-                r[i] * r[j] / (r[i] + r[j]), i_star, w[j, 0] - w[i, 0], w[j, 1] - w[i, 1],
+                r[i] * r[j] / (r[i] + r[j]), inertia[i] if free_i else 0.0,
+                m[i] if free_i else 0.0, r[i], inertia[j] if free_j else 0.0,
+                m[j] if free_j else 0.0, r[j], w[j, 0] - w[i, 0], w[j, 1] - w[i, 1],
                 w[j, 2] - w[i, 2], dt)
             if not touched:
                 continue
@@ -269,9 +273,8 @@ def _wall_rolling_loop(x, w, r, m, inertia, wp, ww, wall_point, wall_normal, law
                 x[p, 0], x[p, 1], x[p, 2], r[p], wall_point[wi, 0], wall_point[wi, 1],
                 wall_point[wi, 2], wall_normal[wi, 0], wall_normal[wi, 1], wall_normal[wi, 2])
             touched, mx, my, mz, e_new, c_p, c_v = _rolling_contact(
-                law, params, roll[q], nx, ny, nz, delta, r[p],
-                rolling_inertia_pair(inertia[p], m[p], r[p], 0.0, 0.0, 0.0),
-                -w[p, 0], -w[p, 1], -w[p, 2], dt)
+                law, params, roll[q], nx, ny, nz, delta, r[p], inertia[p], m[p], r[p], 0.0, 0.0,
+                0.0, -w[p, 0], -w[p, 1], -w[p, 2], dt)
             if not touched:
                 continue
             torque[p, 0] -= mx
