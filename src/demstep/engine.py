@@ -1189,9 +1189,9 @@ class Simulation:
     def _work_space(self, parallel: bool) -> Pairs:
         """The pair list with its work space: chunks (one per thread, equal numbers of
         pairs), the particle range of each chunk's buffer (:func:`dem.pair_chunks`), the
-        force/torque buffers (chunks, N, 3) and the pair geometry (P, 4); rebuilt when
-        the pair list or the thread count changes. The geometry keeps its memory across
-        rebuilds (fresh pages cost a fault each)."""
+        force/torque buffers (chunks, N, 3) and, for rolling resistance, the pair geometry
+        (P, 4); rebuilt when the pair list or the thread count changes. The geometry keeps
+        its memory across rebuilds (fresh pages cost a fault each)."""
         import numba
 
         n_chunks = numba.get_num_threads() if parallel else 1
@@ -1205,11 +1205,13 @@ class Simulation:
         if force_buf.shape != shape:
             force_buf = np.zeros(shape)
             torque_buf = np.zeros(shape)
-        if len(self._geo_store) < n_pairs:
-            self._geo_store = np.empty((int(1.25 * n_pairs) + 64, 4))
+        # the pair geometry is kept for the rolling-resistance loop only
+        n_geo = n_pairs if pairs.roll.shape[0] > 0 else 0
+        if len(self._geo_store) < n_geo:
+            self._geo_store = np.empty((int(1.25 * n_geo) + 64, 4))
         self._chunks_for = n_chunks
         return pairs._replace(chunks=chunks, spans=spans, force_buf=force_buf,
-                              torque_buf=torque_buf, geo=self._geo_store[:n_pairs])
+                              torque_buf=torque_buf, geo=self._geo_store[:n_geo])
 
     def contact_forces(self):
         """Pairs in contact now: (i, j) (C, 2), the force on j (C, 3) [M L/T^2] (elastic at

@@ -11,10 +11,10 @@ from demstep._numba import njit
 def image_count(d, length):
     """Number of box lengths to subtract from a separation component ``d`` [L] for the
     minimum image along a periodic axis of ``length`` [L] (0 when ``length`` is 0: the
-    axis is not periodic)."""
-    if length > 0.0:
-        return np.rint(d / length)
-    return 0.0
+    axis is not periodic). Multiplies by the inverse length: inside a loop over pairs the
+    inverse is loop-invariant and computed once, not a division per pair and axis."""
+    inverse = 1.0 / length if length > 0.0 else 0.0
+    return np.rint(d * inverse)
 
 
 @njit(inline="always")
