@@ -1,7 +1,11 @@
 """numba settings in one place.
 
 ``fastmath`` stays off: the energy ledger must reproduce bit for bit between runs and
-a restart must continue identically. ``cache=True`` keeps compiled kernels on disk so a
+a restart must continue identically. One flag is allowed where a loop opts in
+(:data:`CONTRACT`): fusing a multiply and an add into one instruction (FMA) that rounds
+once instead of twice. It is deterministic (the same code gives the same bits on every
+run and after a restart) and changes a result by at most its last bits per operation;
+no reassociation, no approximate functions, NaN and infinities kept. ``cache=True`` keeps compiled kernels on disk so a
 second run starts computing at once. Setting ``NUMBA_DISABLE_JIT=1`` runs every kernel
 as plain Python (the tests use this against slow numpy references).
 """
@@ -16,6 +20,9 @@ import numba
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 JIT_OPTIONS = dict(cache=True, fastmath=False, error_model="numpy", nogil=True)
+
+#: the one fastmath flag a loop may opt in to: multiply-add contraction (FMA)
+CONTRACT = {"contract": True}
 
 
 #: whether compiled kernels can be cached on disk; set False (with one warning) the
@@ -84,14 +91,15 @@ def with_globals(func, name: str, overrides: dict):
     return copy
 
 
-def compile_parallel_and_serial(func):
-    """Two compiled versions of one loop driver: threaded (prange) and serial.
+def compile_parallel_and_serial(func, **options):
+    """Two compiled versions of one loop driver: threaded (prange) and serial, both
+    with ``options`` (e.g. ``fastmath=CONTRACT``) on top of the package's.
 
     The serial one is compiled from a copy of the function with its own qualified name,
     so the two never share an on-disk cache entry."""
     serial = with_globals(func, func.__name__ + "_serial", {})
     serial.__qualname__ = func.__qualname__ + "_serial"
-    return njit(parallel=True)(func), njit(serial)
+    return njit(parallel=True, **options)(func), njit(**options)(serial)
 
 
 def set_threads(n: int | None) -> int:

@@ -169,7 +169,8 @@ def _body_loop(bx, bq, bv, bL, bm, binertia, binv_m, binv_I, bforce, btorque, ba
     ke_t = 0.0
     ke_r = 0.0
     disp2 = 0.0
-    jump = 0.0
+    jump2 = 0.0
+    x_flat, v_flat, x_ref_flat = x.reshape(-1), v.reshape(-1), x_ref.reshape(-1)
     for b in prange(bm.shape[0]):
         q0, q1, q2, q3 = bq[b, 0], bq[b, 1], bq[b, 2], bq[b, 3]
         # 1. forces and torques about the centre of mass
@@ -250,10 +251,10 @@ def _body_loop(bx, bq, bv, bL, bm, binertia, binv_m, binv_I, bforce, btorque, ba
             w[p, 2] = om2
             for j in range(3):
                 x[p, j] += dt * v[p, j]
-            d2, jp = moved_since_build(x, v, x_ref, r, p, dt)
+            d2, jp2 = moved_since_build(x_flat, v_flat, x_ref_flat, r, p)
             disp2 = max(disp2, d2)
-            jump = max(jump, jp)
-    store_step_terms(out, w_body, w_app, d_local, d_global, ke_t, ke_r, disp2, jump)
+            jump2 = max(jump2, jp2)
+    store_step_terms(out, w_body, w_app, d_local, d_global, ke_t, ke_r, disp2, jump2, dt)
 
 
 body_step, body_step_serial = compile_parallel_and_serial(_body_loop)

@@ -3,26 +3,33 @@ lists were built, and the layout of the terms they hand to the ledger."""
 
 import math
 
+from numba import uint64 as _U
+
 from demstep._numba import njit
 
 
 @njit(inline="always")
-def moved_since_build(x, v, x_ref, r, p, dt):
-    """(squared displacement of sphere p since the lists were built, its |v| dt / r)."""
+def moved_since_build(x_flat, v_flat, x_ref_flat, r, p):
+    """(squared displacement of sphere p since the lists were built, its (|v| / r)^2
+    [1/T^2]; :func:`store_step_terms` turns the largest into |v| dt / r), from flat
+    views of the (N, 3) positions, velocities and positions at the last build."""
     d2 = 0.0
     vv = 0.0
+    b = _U(3) * _U(p)
     for k in range(3):
-        dd = x[p, k] - x_ref[p, k]
+        q = b + _U(k)
+        dd = x_flat[q] - x_ref_flat[q]
         d2 += dd * dd
-        vv += v[p, k] * v[p, k]
-    return d2, math.sqrt(vv) * dt / r[p]
+        vv += v_flat[q] * v_flat[q]
+    return d2, vv / (r[p] * r[p])
 
 
 @njit(inline="always")
-def store_step_terms(out, w_body, w_app, d_local, d_global, ke_t, ke_r, disp2, jump):
+def store_step_terms(out, w_body, w_app, d_local, d_global, ke_t, ke_r, disp2, jump2, dt):
     """``out`` (8,): work of gravity, of applied forces, local and global damping
     dissipation, kinetic energy of translation and rotation at t, the largest squared
-    displacement since the lists were built, the largest |v| dt / r."""
+    displacement since the lists were built, the largest |v| dt / r (from the largest
+    (|v| / r)^2 ``jump2``: one root per step, not per sphere)."""
     out[0] = w_body
     out[1] = w_app
     out[2] = d_local
@@ -30,4 +37,4 @@ def store_step_terms(out, w_body, w_app, d_local, d_global, ke_t, ke_r, disp2, j
     out[4] = ke_t
     out[5] = ke_r
     out[6] = disp2
-    out[7] = jump
+    out[7] = math.sqrt(jump2) * dt
