@@ -881,6 +881,10 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
     extents = np.empty(3)
     nw = wall_point.shape[0]
     n_chunks = pairs.force_buf.shape[0]
+    # one chunk: the pair loop writes the particles' forces and torques directly
+    n_particles = force.shape[0]
+    force_buf = force.reshape((1, n_particles, 3)) if n_chunks == 1 else pairs.force_buf
+    torque_buf = torque.reshape((1, n_particles, 3)) if n_chunks == 1 else pairs.torque_buf
     for step in range(n_steps):
         # 1. pair contact forces; the slip increment of step n is x(t) - x(t - dt_prev)
         dt_slip = 0.0 if first else dt_prev
@@ -889,18 +893,15 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
             x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, law, params,
             dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
-            pairs.chunks, pairs.spans, pairs.force_buf, pairs.torque_buf, box_sums, pairs.geo)
+            pairs.chunks, pairs.spans, force_buf, torque_buf, box_sums, pairs.geo)
         # 1b. rolling and twisting resistance of the pairs (a law with it only)
         er_s, er_p, er_v = 0.0, 0.0, 0.0
         if pairs.roll.shape[0] > 0:
             er_s, er_p, er_v = rolling_forces(
                 w, r, m, sph.inertia, inv_m, pairs.i, pairs.j, pairs.geo, law, params,
-                dt_slip, pairs.roll, pairs.chunks, pairs.torque_buf)
-        if n_chunks == 1:
-            force[:] = pairs.force_buf[0]
-            torque[:] = pairs.torque_buf[0]
-        else:
-            reduce_forces(pairs.force_buf, pairs.torque_buf, pairs.spans, force, torque)
+                dt_slip, pairs.roll, pairs.chunks, torque_buf)
+        if n_chunks > 1:
+            reduce_forces(force_buf, torque_buf, pairs.spans, force, torque)
         # 2. particle-wall contact forces
         we_n, we_t, wd_fric, wd_dash = wall_forces(
             x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
