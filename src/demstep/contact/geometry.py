@@ -29,22 +29,28 @@ def contact_arms(r_i, r_j, distance):
 
 
 @njit(inline="always")
-def pair_geometry(xi0, xi1, xi2, xj0, xj1, xj2, r_i, r_j, len0, len1, len2):
+def pair_geometry(xi0, xi1, xi2, xj0, xj1, xj2, r_i, r_j, len0, len1, len2, periodic=True):
     """The geometry of a pair, the one place it is computed: branch vector from i to j
     (d0, d1, d2) [L] with the minimum image along periodic axes (lengths ``len*`` [L],
     0: not periodic), centre distance [L], overlap delta_n = r_i + r_j - distance [L]
     (> 0: touching), the arms from each centre to the contact point [L]
-    (:func:`contact_arms`) and the image counts (n0, n1, n2) subtracted. Scalars only
-    (array arguments cost a reference count per call in the compiled loops)."""
+    (:func:`contact_arms`) and the image counts (n0, n1, n2) subtracted. ``periodic``
+    False (no axis periodic: a loop-invariant test in a loop over pairs) skips the
+    image counts. Scalars only (array arguments cost a reference count per call in the
+    compiled loops)."""
     d0 = xj0 - xi0
     d1 = xj1 - xi1
     d2 = xj2 - xi2
-    n0 = image_count(d0, len0)
-    n1 = image_count(d1, len1)
-    n2 = image_count(d2, len2)
-    d0 -= len0 * n0
-    d1 -= len1 * n1
-    d2 -= len2 * n2
+    n0 = 0.0
+    n1 = 0.0
+    n2 = 0.0
+    if periodic:
+        n0 = image_count(d0, len0)
+        n1 = image_count(d1, len1)
+        n2 = image_count(d2, len2)
+        d0 -= len0 * n0
+        d1 -= len1 * n1
+        d2 -= len2 * n2
     dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     a_i, a_j = contact_arms(r_i, r_j, dist)
     return d0, d1, d2, dist, r_i + r_j - dist, a_i, a_j, n0, n1, n2

@@ -436,7 +436,7 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
                 r_j = r[j]
                 d0, d1, d2, dist, delta, a_i, a_j, n0, n1, n2 = pair_geometry(
                     X[a], X[a + one], X[a + two], X[q], X[q + one], X[q + two], r_i, r_j,
-                    len0, len1, len2)
+                    len0, len1, len2, periodic)
                 inv_dist = 1.0 / dist
                 nx, ny, nz = d0 * inv_dist, d1 * inv_dist, d2 * inv_dist
                 if store_geo:
