@@ -177,3 +177,42 @@ def test_normals_turned_too_far_force_a_new_estimate():
     assert not sim._still_certified()
     sim.step += 1  # off the multiple: the drift is checked at the next one
     assert sim._still_certified()
+
+
+def test_uncovered_masks_equal_a_numpy_search():
+    """The coverage checks of the 'auto' step (compiled merges over the sorted pair and
+    wall lists) flag exactly the touching contacts missing from the cover, or, for a
+    non-linear law, covered at a smaller overlap, as np.searchsorted finds them."""
+    from demstep.kernels.neighbors import build_pair_list, build_wall_list
+    from demstep.timestep.certificate import uncovered_pairs, uncovered_walls
+
+    rng = np.random.default_rng(3)
+    n = 400
+    x = rng.uniform(0.0, 6.0, (n, 3))
+    r = rng.uniform(0.25, 0.35, n)
+    pi, pj = build_pair_list(x, r, 0.1, np.zeros(3))
+    point = np.array([[0.0, 0, 0], [6.0, 0, 0], [0, 0, 0.0]])
+    normal = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 0, 1.0]])
+    wp, ww = build_wall_list(x, r, point, normal, 0.1)
+    d = np.linalg.norm(x[pj] - x[pi], axis=1)
+    delta_p = r[pi] + r[pj] - d
+    delta_w = r[wp] - np.einsum("ij,ij->i", x[wp] - point[ww], normal[ww])
+    for keys_all, delta, name in ((pi * n + pj, delta_p, "pairs"), (wp * 3 + ww, delta_w, "walls")):
+        on = delta > 0
+        assert on.sum() > 10 and (~on).sum() > 10, name
+        # cover a random half of the touching contacts (and some apart), at overlaps
+        # some of them have outgrown
+        chosen = np.flatnonzero(on)[rng.random(on.sum()) < 0.5]
+        chosen = np.union1d(chosen, np.flatnonzero(~on)[:5])
+        known = keys_all[chosen]
+        assumed = delta[chosen] * rng.choice([0.5, 2.0], len(chosen))
+        for check in (False, True):
+            pos = np.minimum(np.searchsorted(known, keys_all), len(known) - 1)
+            expect = on & ((known[pos] != keys_all)
+                           | (check & (delta > np.where(known[pos] == keys_all, assumed[pos], np.inf))))
+            if name == "pairs":
+                got = uncovered_pairs(x, r, pi, pj, np.zeros(3), known, assumed, check)
+            else:
+                got = uncovered_walls(x, r, wp, ww, point, normal, 3, known, assumed, check)
+            assert np.array_equal(got, expect), (name, check)
+            assert got.sum() > 0

@@ -930,28 +930,18 @@ class Simulation:
         cover = getattr(self, "_dt_cover", None)
         if cover is None:
             return None
-        from demstep.timestep.certificate import uncovered_pairs
+        from demstep.timestep.certificate import uncovered_pairs, uncovered_walls
 
         nonlinear = self.law.law_id != 0  # a non-linear law stiffer than assumed
-        known, assumed = cover.get("pairs", (np.zeros(0, dtype=np.int64), np.zeros(0)))
+        none = (np.zeros(0, dtype=np.int64), np.zeros(0))
+        known, assumed = cover.get("pairs", none)
         pair_mask = uncovered_pairs(self.x, self.r, self.pi, self.pj, self.periodic_len,
                                     known, assumed, nonlinear)
-        wall_mask = np.zeros(len(self.wp), dtype=bool)
-        if len(self.wp):
-            delta = wall_geometry_arrays(self.x, self.r, self.wp, self.ww,
-                                         self.wall_point, self.wall_normal)[2]
-            on = np.flatnonzero(delta > 0)
-            if len(on):
-                if "walls" not in cover or len(cover["walls"][0]) == 0:
-                    wall_mask[on] = True
-                else:
-                    keys = self.wp * max(1, len(self.walls)) + self.ww
-                    known, assumed = cover["walls"]
-                    pos = np.minimum(np.searchsorted(known, keys[on]), len(known) - 1)
-                    missing = known[pos] != keys[on]
-                    if nonlinear:
-                        missing |= delta[on] > assumed[pos]
-                    wall_mask[on[missing]] = True
+        known, assumed = cover.get("walls", none)
+        wall_mask = uncovered_walls(self.x, self.r, self.wp, self.ww, self.wall_point,
+                                    self.wall_normal, max(1, len(self.walls)),
+                                    np.asarray(known, dtype=np.int64),
+                                    np.asarray(assumed, dtype=np.float64), nonlinear)
         return pair_mask, wall_mask
 
     def _still_certified(self) -> bool:

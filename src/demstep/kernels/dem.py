@@ -623,7 +623,8 @@ def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu
     ``torque`` rows of its own particles only. ``wall_force`` (W, 3) receives the force
     the particles exert on each wall, ``wall_contacts`` and ``wall_k`` the number of
     touching particles and the sum of their k_n (per run first, then summed). Returns
-    (strain_n, strain_t, friction, dashpot)."""
+    (strain_n, strain_t, friction, dashpot). Arrays of particles and wall pairs are read
+    through flat views with unsigned indices (as in :func:`_pair_loop`)."""
     e_n = 0.0
     e_t = 0.0
     d_fric = 0.0
@@ -632,40 +633,53 @@ def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu
     n_pairs = wp.shape[0]
     # per run and wall: force on the wall (3), touching particles, their k_n
     per_run = np.zeros((n_chunks, n_walls, 5))
+    # flat views, unsigned indices (as in the pair loop)
+    X = x.reshape(-1)
+    V = v.reshape(-1)
+    W = w.reshape(-1)
+    F = force.reshape(-1)
+    T = torque.reshape(-1)
+    FT = wft.reshape(-1)
+    FD = wfd.reshape(-1)
+    one, two, three = _U(1), _U(2), _U(3)
     for c in prange(n_chunks):
         run = per_run[c]
         for q in range(_particle_boundary(wp, (n_pairs * c) // n_chunks),
                        _particle_boundary(wp, (n_pairs * (c + 1)) // n_chunks)):
-            p = wp[q]
+            p = _U(wp[q])
             wi = ww[q]
+            b = three * p
+            h = three * _U(q)
             nx, ny, nz, dist, delta, a = wall_geometry(
-                x[p, 0], x[p, 1], x[p, 2], r[p], wall_point[wi, 0], wall_point[wi, 1],
+                X[b], X[b + one], X[b + two], r[p], wall_point[wi, 0], wall_point[wi, 1],
                 wall_point[wi, 2], wall_normal[wi, 0], wall_normal[wi, 1], wall_normal[wi, 2])
-            if delta <= 0.0 and wetan[q] == 0.0 and wft[q, 0] == 0.0 and wft[q, 1] == 0.0 \
-                    and wft[q, 2] == 0.0 and wfd[q, 0] == 0.0 and wfd[q, 1] == 0.0 \
-                    and wfd[q, 2] == 0.0:
+            ox, oy, oz = FT[h], FT[h + one], FT[h + two]
+            fdx, fdy, fdz = FD[h], FD[h + one], FD[h + two]
+            e_old = wetan[q]
+            if delta <= 0.0 and e_old == 0.0 and ox == 0.0 and oy == 0.0 and oz == 0.0 \
+                    and fdx == 0.0 and fdy == 0.0 and fdz == 0.0:
                 continue
-            vix = v[p, 0] + a * (w[p, 1] * nz - w[p, 2] * ny)
-            viy = v[p, 1] + a * (w[p, 2] * nx - w[p, 0] * nz)
-            viz = v[p, 2] + a * (w[p, 0] * ny - w[p, 1] * nx)
+            vix = V[b] + a * (W[b + one] * nz - W[b + two] * ny)
+            viy = V[b + one] + a * (W[b + two] * nx - W[b] * nz)
+            viz = V[b + two] + a * (W[b] * ny - W[b + one] * nx)
             (fx, fy, fz, c_en, c_et, c_fric, c_dash, c_kn, _, tx, ty, tz, ndx, ndy, ndz,
              e_new) = contact_response(
                 law, params, wall_mu[wi], nx, ny, nz, delta, r[p], m[p],
                 wall_vel[wi, 0] - vix, wall_vel[wi, 1] - viy, wall_vel[wi, 2] - viz, dt,
-                wft[q, 0], wft[q, 1], wft[q, 2], wfd[q, 0], wfd[q, 1], wfd[q, 2], wetan[q])
-            wft[q, 0] = tx
-            wft[q, 1] = ty
-            wft[q, 2] = tz
-            wfd[q, 0] = ndx
-            wfd[q, 1] = ndy
-            wfd[q, 2] = ndz
+                ox, oy, oz, fdx, fdy, fdz, e_old)
+            FT[h] = tx
+            FT[h + one] = ty
+            FT[h + two] = tz
+            FD[h] = ndx
+            FD[h + one] = ndy
+            FD[h + two] = ndz
             wetan[q] = e_new
-            force[p, 0] -= fx
-            force[p, 1] -= fy
-            force[p, 2] -= fz
-            torque[p, 0] -= a * (ny * fz - nz * fy)
-            torque[p, 1] -= a * (nz * fx - nx * fz)
-            torque[p, 2] -= a * (nx * fy - ny * fx)
+            F[b] -= fx
+            F[b + one] -= fy
+            F[b + two] -= fz
+            T[b] -= a * (ny * fz - nz * fy)
+            T[b + one] -= a * (nz * fx - nx * fz)
+            T[b + two] -= a * (nx * fy - ny * fx)
             run[wi, 0] += fx
             run[wi, 1] += fy
             run[wi, 2] += fz

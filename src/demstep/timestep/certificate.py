@@ -57,7 +57,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from demstep._numba import njit
-from demstep.contact.geometry import image_count, pair_geometry
+from demstep.contact.geometry import image_count, pair_geometry, wall_geometry
 
 
 @njit(cache=True)
@@ -100,13 +100,40 @@ def uncovered_pairs(x, r, pi, pj, periodic_len, known, assumed, check_overlap):
     n = r.shape[0]
     mask = np.zeros(pi.shape[0], dtype=np.bool_)
     pos = 0
+    periodic = periodic_len[0] > 0.0 or periodic_len[1] > 0.0 or periodic_len[2] > 0.0
     for c in range(pi.shape[0]):
         p, q = pi[c], pj[c]
         delta = pair_geometry(x[p, 0], x[p, 1], x[p, 2], x[q, 0], x[q, 1], x[q, 2], r[p], r[q],
-                              periodic_len[0], periodic_len[1], periodic_len[2])[4]
+                              periodic_len[0], periodic_len[1], periodic_len[2], periodic)[4]
         if delta <= 0.0:
             continue
         key = p * n + q
+        while pos < known.shape[0] and known[pos] < key:
+            pos += 1
+        if pos == known.shape[0] or known[pos] != key:
+            mask[c] = True
+        elif check_overlap and delta > assumed[pos]:
+            mask[c] = True
+    return mask
+
+
+@njit(cache=True)
+def uncovered_walls(x, r, wp, ww, wall_point, wall_normal, n_walls, known, assumed,
+                    check_overlap):
+    """Mask over the particle-wall list (wp, ww), sorted by (p, w), of the touching
+    contacts whose key p n_walls + w is not among ``known`` (sorted; empty: none
+    covered) or, with ``check_overlap``, whose overlap exceeds the one ``assumed`` for
+    it: one pass merging the two sorted lists, as :func:`uncovered_pairs`."""
+    mask = np.zeros(wp.shape[0], dtype=np.bool_)
+    pos = 0
+    for c in range(wp.shape[0]):
+        p, w = wp[c], ww[c]
+        delta = wall_geometry(x[p, 0], x[p, 1], x[p, 2], r[p], wall_point[w, 0],
+                              wall_point[w, 1], wall_point[w, 2], wall_normal[w, 0],
+                              wall_normal[w, 1], wall_normal[w, 2])[4]
+        if delta <= 0.0:
+            continue
+        key = p * n_walls + w
         while pos < known.shape[0] and known[pos] < key:
             pos += 1
         if pos == known.shape[0] or known[pos] != key:
