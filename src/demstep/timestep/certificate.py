@@ -91,6 +91,19 @@ def _drift_sums(x, i, j, normal_ref, f_k, f_c, periodic_len, n_particles):
     return sum_k.max() if n_particles else 0.0, sum_c.max() if n_particles else 0.0
 
 
+@njit(inline="always")
+def _not_covered(known, assumed, pos, key, delta, check_overlap):
+    """One step of the merge of a sorted contact list with the sorted ``known`` keys
+    (from ``pos``): whether the touching contact ``key`` (overlap ``delta``) is missing
+    from them or, with ``check_overlap``, covered at a smaller overlap; and the merge's
+    new position."""
+    while pos < known.shape[0] and known[pos] < key:
+        pos += 1
+    if pos == known.shape[0] or known[pos] != key:
+        return True, pos
+    return check_overlap and delta > assumed[pos], pos
+
+
 @njit(cache=True)
 def uncovered_pairs(x, r, pi, pj, periodic_len, known, assumed, check_overlap):
     """Mask over the pair list (pi, pj), sorted by (i, j), of the closed pairs whose key
@@ -108,12 +121,7 @@ def uncovered_pairs(x, r, pi, pj, periodic_len, known, assumed, check_overlap):
         if delta <= 0.0:
             continue
         key = p * n + q
-        while pos < known.shape[0] and known[pos] < key:
-            pos += 1
-        if pos == known.shape[0] or known[pos] != key:
-            mask[c] = True
-        elif check_overlap and delta > assumed[pos]:
-            mask[c] = True
+        mask[c], pos = _not_covered(known, assumed, pos, key, delta, check_overlap)
     return mask
 
 
@@ -134,12 +142,7 @@ def uncovered_walls(x, r, wp, ww, wall_point, wall_normal, n_walls, known, assum
         if delta <= 0.0:
             continue
         key = p * n_walls + w
-        while pos < known.shape[0] and known[pos] < key:
-            pos += 1
-        if pos == known.shape[0] or known[pos] != key:
-            mask[c] = True
-        elif check_overlap and delta > assumed[pos]:
-            mask[c] = True
+        mask[c], pos = _not_covered(known, assumed, pos, key, delta, check_overlap)
     return mask
 
 
