@@ -96,12 +96,14 @@ def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capac
     buf_a = np.empty((n_threads, capacity), dtype=np.int64)
     buf_b = np.empty((n_threads, capacity), dtype=np.int64)
     found = np.zeros(n_threads, dtype=np.int64)
+    # each thread's stencil ranges, between 64-byte pads (no cache line shared)
+    seg_all = np.empty((n_threads, 20, 2), dtype=np.int64)
     for t in prange(n_threads):
         k = 0
         # particle ranges to test against the particles of a cell: cells adjacent along
         # z are adjacent in cell order, so each column of the stencil is one range of
         # ``members`` (two where it wraps around a periodic z)
-        seg = np.empty((12, 2), dtype=np.int64)
+        seg = seg_all[t, 4:16]
         for c in range(bounds[t], bounds[t + 1]):
             if start[c] == start[c + 1]:
                 continue
