@@ -5,8 +5,8 @@ a restart must continue identically. One flag is allowed where a loop opts in
 (:data:`CONTRACT`): fusing a multiply and an add into one instruction (FMA) that rounds
 once instead of twice. It is deterministic (the same code gives the same bits on every
 run and after a restart) and changes a result by at most its last bits per operation;
-no reassociation, no approximate functions, NaN and infinities kept. ``cache=True`` keeps compiled kernels on disk so a
-second run starts computing at once. Setting ``NUMBA_DISABLE_JIT=1`` runs every kernel
+no reassociation, no approximate functions, NaN and infinities kept. ``cache=True``
+keeps compiled kernels on disk so a second run starts computing at once. Setting ``NUMBA_DISABLE_JIT=1`` runs every kernel
 as plain Python (the tests use this against slow numpy references).
 """
 

@@ -18,6 +18,13 @@ def image_count(d, length):
 
 
 @njit(inline="always")
+def any_periodic(periodic_len):
+    """Whether any axis of the box lengths ``periodic_len`` (3,) [L] is periodic (> 0):
+    the loop-invariant flag with which the loops over pairs skip the minimum image."""
+    return periodic_len[0] > 0.0 or periodic_len[1] > 0.0 or periodic_len[2] > 0.0
+
+
+@njit(inline="always")
 def contact_arms(r_i, r_j, distance):
     """Distances [L] from each centre to the contact point of two overlapping particles.
 

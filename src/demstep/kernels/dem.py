@@ -22,7 +22,7 @@ from numba import uint64 as _U
 
 from demstep._numba import CONTRACT, compile_parallel_and_serial, njit, prange, with_globals as _with_globals
 from demstep.contact.geometry import (
-    contact_arms, image_count, into_tangent_plane, pair_geometry, wall_geometry,
+    any_periodic, into_tangent_plane, pair_geometry, wall_geometry,
 )
 from demstep.contact.laws import (
     LAW_LINEAR, dashpot_coefficients, normal_force, rolling_coefficients, tangential_stiffness,
@@ -407,7 +407,7 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     needs_r_star = law != LAW_LINEAR
     store_geo = geo.shape[0] > 0
     len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
-    periodic = len0 > 0.0 or len1 > 0.0 or len2 > 0.0
+    periodic = any_periodic(periodic_len)
     rate0, rate1, rate2 = box_rate[0], box_rate[1], box_rate[2]
     X = x.reshape(-1)
     V = v.reshape(-1)

@@ -12,7 +12,7 @@ import numba
 import numpy as np
 
 from demstep._numba import njit, prange
-from demstep.contact.geometry import image_count
+from demstep.contact.geometry import any_periodic, image_count
 from demstep.errors import InputError
 
 
@@ -67,7 +67,7 @@ def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capac
     len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
     n0, n1, n2 = ncell[0], ncell[1], ncell[2]
     ncells = n0 * n1 * n2
-    periodic = len0 > 0.0 or len1 > 0.0 or len2 > 0.0
+    periodic = any_periodic(periodic_len)
     start, members = _bin(x, lo, inv_cell, ncell)
     # positions and radii in cell order: the inner loop reads contiguous memory
     xs = np.empty((n, 3))

@@ -57,7 +57,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from demstep._numba import njit
-from demstep.contact.geometry import image_count, pair_geometry, wall_geometry
+from demstep.contact.geometry import any_periodic, image_count, pair_geometry, wall_geometry
 
 
 @njit(cache=True)
@@ -113,7 +113,7 @@ def uncovered_pairs(x, r, pi, pj, periodic_len, known, assumed, check_overlap):
     n = r.shape[0]
     mask = np.zeros(pi.shape[0], dtype=np.bool_)
     pos = 0
-    periodic = periodic_len[0] > 0.0 or periodic_len[1] > 0.0 or periodic_len[2] > 0.0
+    periodic = any_periodic(periodic_len)
     for c in range(pi.shape[0]):
         p, q = pi[c], pj[c]
         delta = pair_geometry(x[p, 0], x[p, 1], x[p, 2], x[q, 0], x[q, 1], x[q, 2], r[p], r[q],
