@@ -114,6 +114,20 @@ def test_sparse_matrix_free_path_matches_dense(name, seed, walls, fixed):
     assert sparse.dt_undamped == pytest.approx(dense.dt_undamped, rel=1e-8)
 
 
+@pytest.mark.parametrize("tol", [1e-8, 1e-7])
+def test_a_looser_eigen_tolerance_still_certifies(tol):
+    """A caller's looser residual tolerance (a run's estimates need no more) makes the
+    first candidate bound sit 4 tol above the iterate; it must still be accepted (it was
+    not: above 2.5e-9 the iteration ran out and raised) and stay a certificate: never
+    above the dense reference, at most the margin below it."""
+    p, c, rng = random_assembly("fcc", 2, False, True)
+    cc = replace(c, c_n=rng.random(c.n), c_t=rng.random(c.n))
+    dense = exact_critical_step(p, cc, True, GlobalDamping(0.1), dense_limit=10**6)
+    loose = exact_critical_step(p, cc, True, GlobalDamping(0.1), dense_limit=0, tol=tol)
+    assert loose.dt <= dense.dt * (1 + 1e-12)
+    assert loose.dt == pytest.approx(dense.dt, rel=20 * tol)
+
+
 @pytest.mark.parametrize("beta", [0.01, 0.1, 0.5])
 @pytest.mark.parametrize("a1", [0.0, 0.2])
 def test_proportional_damping_is_eq28_at_the_fastest_mode(beta, a1):

@@ -117,6 +117,47 @@ def test_lanczos_finds_the_top_eigenpair(top, basis, keep):
     assert pair.value <= w[-1] * (1 + 1e-12) <= pair.upper * (1 + 1e-12)
 
 
+@pytest.mark.parametrize("n", [7, 16384 * 3 + 5])
+@pytest.mark.parametrize("local,rows", [([3], [3]), ([2, 3], [0, 1, 2, 3]),
+                                        ([1, 2, 3], [0, 1, 2, 3, 4])])
+def test_blocked_vector_operations_match_numpy(monkeypatch, n, local, rows):
+    """The Lanczos vector kernels against numpy: the two Gram-Schmidt passes (odd and
+    even row counts, a last partial block), the row combination written over the rows
+    it reads (a thick restart) and the scaling; the threaded versions give the same bits
+    as the serial ones (the summation order is the blocks', not the threads')."""
+    from demstep.kernels import timestep_kernels as tk
+
+    rng = np.random.default_rng(n)
+    V = np.linalg.qr(rng.standard_normal((n, 6)))[0].T.copy()
+    w0 = rng.standard_normal(n) + 3.0 * V[3]
+    local_a, rows_a = np.array(local, dtype=np.int64), np.array(rows, dtype=np.int64)
+    h_ref = V[local_a] @ w0
+    w1 = w0 - V[local_a].T @ h_ref
+    h2_ref = V[rows_a] @ w1
+    w2 = w1 - V[rows_a].T @ h2_ref
+    S = rng.standard_normal((5, 3))
+    results = []
+    for threshold in (10**9, 1):  # serial, then threaded
+        monkeypatch.setattr(tk, "PARALLEL_MIN_DOFS", threshold)
+        w = w0.copy()
+        h, h2 = np.empty(6), np.empty(7)
+        beta2 = tk.lanczos_orthogonalize(V, local_a, rows_a, w, h, h2)
+        np.testing.assert_allclose(h[:len(local)], h_ref, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(h2[:len(rows)], h2_ref, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(w, w2, rtol=1e-12, atol=1e-12)
+        assert beta2 == pytest.approx(w2 @ w2, rel=1e-12)
+        U = V.copy()
+        tk.combine_rows(U, 5, S, U)  # in place: U[:3] = S^T V[:5]
+        np.testing.assert_allclose(U[:3], S.T @ V[:5], rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(U[3:], V[3:])
+        out = np.empty(n)
+        tk.scale_into(w0, 0.25, out)
+        np.testing.assert_array_equal(out, 0.25 * w0)
+        results.append((w, h[:len(local)], h2[:len(rows) + 1], U))
+    for a, b in zip(*results):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_lanczos_stops_once_above_a_threshold():
     A, w = spectrum_matrix(300, [1.0, 0.99], 2)
     start = np.random.default_rng(1).standard_normal(300)

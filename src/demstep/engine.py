@@ -608,17 +608,29 @@ class Simulation:
             if _record:
                 from demstep.timestep.exact import ScaledContactOperator
 
-                op = ScaledContactOperator(p, contacts, rotation, damping, bodies)
+                op = ScaledContactOperator(p, contacts, rotation, damping, bodies,
+                                           workspace=self._solver_workspace())
                 self._record_certificate(2.0 / dt, op.damping_bound(), contacts, bodies)
             return dt
         mode = getattr(self, "_dt_mode", None)
-        result = exact_critical_step(p, contacts, rotation, damping, v0=mode, bodies=bodies)
+        result = exact_critical_step(p, contacts, rotation, damping, v0=mode, bodies=bodies,
+                                     workspace=self._solver_workspace())
         if _record:
             self._dt_mode = result.mode
             self.dt_exact_undamped = result.dt_undamped
             self._record_certificate(2.0 / result.dt, result.operator.damping_bound(),
                                      contacts, bodies)
         return result.dt
+
+    def _solver_workspace(self):
+        """The time-step analysis' scratch arrays (Lanczos basis, product buffers), kept
+        from one estimate to the next (:class:`demstep.timestep.eigen.Workspace`)."""
+        ws = getattr(self, "_dt_workspace", None)
+        if ws is None:
+            from demstep.timestep.eigen import Workspace
+
+            ws = self._dt_workspace = Workspace()
+        return ws
 
     def _record_certificate(self, sigma, lam_c, contacts, bodies):
         from demstep.timestep.certificate import StepCertificate
@@ -739,7 +751,8 @@ class Simulation:
         from demstep.timestep.stability import damped_sigma
 
         op = ScaledContactOperator(self.particles_now(), contacts, self.rotation,
-                                   self._global_damping(), None)
+                                   self._global_damping(), None,
+                                   workspace=self._solver_workspace())
         if op.size != mode.size:
             return None
         sigma_lo = float(damped_sigma(*op.rayleigh_terms(mode / np.linalg.norm(mode))))

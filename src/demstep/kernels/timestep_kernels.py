@@ -554,42 +554,45 @@ def _norm2(w):
     return _dot(w, w)
 
 
-@njit
-def _dot2(v0, v1, w):
-    """(v0 . w, v1 . w) in one pass over w (2 partial sums each)."""
-    n = w.shape[0]
-    m = n - n % 2
-    a0 = 0.0
-    a1 = 0.0
-    b0 = 0.0
-    b1 = 0.0
-    for p in range(0, m, 2):
-        a0 += v0[p] * w[p]
-        a1 += v0[p + 1] * w[p + 1]
-        b0 += v1[p] * w[p]
-        b1 += v1[p + 1] * w[p + 1]
-    for p in range(m, n):
-        a0 += v0[p] * w[p]
-        b0 += v1[p] * w[p]
-    return a0 + a1, b0 + b1
+#: elements per block of the Lanczos vector operations below: the unit of their parallel
+#: runs and of every dot product's summation order (within a block, then over the blocks
+#: in order), so that a result does not depend on the number of threads
+VECTOR_BLOCK = 16384
+#: vectors from this length on run the Lanczos vector operations on several threads
+#: (they are memory-bound: 1.5x on two threads at 6e6, measured in benchmarks/RESULTS.md)
+PARALLEL_MIN_DOFS = 200_000
 
 
-@njit
-def _row_dots(V, rows, w, out):
-    """out[a] = V[rows[a]] . w (two rows per pass over w)."""
+@njit(inline="always")
+def _block_dots(V, rows, w, lo, hi, out):
+    """out[a] = V[rows[a], lo:hi] . w[lo:hi] (two rows per pass, two partial sums each)."""
     nr = rows.shape[0]
+    m = lo + (hi - lo) - (hi - lo) % 2
     a = 0
-    while a + 1 < nr:
-        out[a], out[a + 1] = _dot2(V[rows[a]], V[rows[a + 1]], w)
+    while a < nr:
+        v0 = V[rows[a]]
+        v1 = V[rows[a + 1]] if a + 1 < nr else v0
+        s0 = 0.0
+        s1 = 0.0
+        t0 = 0.0
+        t1 = 0.0
+        for p in range(lo, m, 2):
+            s0 += v0[p] * w[p]
+            s1 += v0[p + 1] * w[p + 1]
+            t0 += v1[p] * w[p]
+            t1 += v1[p + 1] * w[p + 1]
+        for p in range(m, hi):
+            s0 += v0[p] * w[p]
+            t0 += v1[p] * w[p]
+        out[a] = s0 + s1
+        if a + 1 < nr:
+            out[a + 1] = t0 + t1
         a += 2
-    if a < nr:
-        out[a] = _dot(V[rows[a]], w)
 
 
-@njit
-def _subtract_rows(V, rows, h, w):
-    """w -= sum_a h[a] V[rows[a]] (two rows per pass over w); returns |w|^2 after."""
-    n = w.shape[0]
+@njit(inline="always")
+def _block_subtract(V, rows, h, w, lo, hi):
+    """w[lo:hi] -= sum_a h[a] V[rows[a], lo:hi] (two rows per pass)."""
     nr = rows.shape[0]
     a = 0
     while a + 1 < nr:
@@ -597,36 +600,83 @@ def _subtract_rows(V, rows, h, w):
         v1 = V[rows[a + 1]]
         h0 = h[a]
         h1 = h[a + 1]
-        for p in range(n):
+        for p in range(lo, hi):
             w[p] -= h0 * v0[p] + h1 * v1[p]
         a += 2
     if a < nr:
         v0 = V[rows[a]]
         h0 = h[a]
-        for p in range(n):
+        for p in range(lo, hi):
             w[p] -= h0 * v0[p]
-    return _norm2(w)
 
 
-@njit
-def _orthogonalize(V, rows, w, h):
-    """One classical Gram-Schmidt pass of w against the rows ``rows`` of V:
-    h = V[rows] w, w -= V[rows]^T h; returns |w|^2."""
-    _row_dots(V, rows, w, h)
-    return _subtract_rows(V, rows, h, w)
+@njit(inline="always")
+def _sum_blocks(part, count, out):
+    """out[a] = sum over the blocks (in order) of part[b, a], a < ``count``."""
+    for a in range(count):
+        s = 0.0
+        for b in range(part.shape[0]):
+            s += part[b, a]
+        out[a] = s
 
 
-@njit
-def _combine_rows(V, m, S, out):
-    """out[c] = sum_{i < m} S[i, c] V[i] (out (k, n) may be V[:k]: the rows are combined
-    block by block, each block read completely before it is written)."""
+def _lanczos_orthogonalize(V, local, rows, w, h, h2):
+    """Orthogonalise the new Lanczos vector w: a classical Gram-Schmidt pass against the
+    rows ``local`` of V (h = V[local] w, w -= V[local]^T h), then one against the rows
+    ``rows`` (h2 likewise); returns |w|^2 after both. Three sweeps over blocks of
+    :data:`VECTOR_BLOCK` elements: the first pass' dots; its subtraction with the
+    second pass' dots (w's block is still in cache); the second subtraction with the
+    norm."""
+    n = w.shape[0]
+    nb = (n + VECTOR_BLOCK - 1) // VECTOR_BLOCK
+    nl = local.shape[0]
+    nr = rows.shape[0]
+    part = np.empty((nb, max(nl, nr, 1)))
+    for b in prange(nb):
+        lo = b * VECTOR_BLOCK
+        _block_dots(V, local, w, lo, min(n, lo + VECTOR_BLOCK), part[b])
+    _sum_blocks(part, nl, h)
+    for b in prange(nb):
+        lo = b * VECTOR_BLOCK
+        hi = min(n, lo + VECTOR_BLOCK)
+        _block_subtract(V, local, h, w, lo, hi)
+        _block_dots(V, rows, w, lo, hi, part[b])
+    _sum_blocks(part, nr, h2)
+    for b in prange(nb):
+        lo = b * VECTOR_BLOCK
+        hi = min(n, lo + VECTOR_BLOCK)
+        _block_subtract(V, rows, h2, w, lo, hi)
+        s = 0.0
+        for p in range(lo, hi):
+            s += w[p] * w[p]
+        part[b, 0] = s
+    _sum_blocks(part, 1, h2[nr:])
+    return h2[nr]
+
+
+_lanczos_orthogonalize_parallel, _lanczos_orthogonalize_serial = \
+    compile_parallel_and_serial(_lanczos_orthogonalize)
+
+
+def lanczos_orthogonalize(V, local, rows, w, h, h2) -> float:
+    """:func:`_lanczos_orthogonalize` (h2 needs one slot more than ``rows``), on
+    several threads for vectors of :data:`PARALLEL_MIN_DOFS` elements or more."""
+    kernel = (_lanczos_orthogonalize_parallel if w.shape[0] >= PARALLEL_MIN_DOFS
+              else _lanczos_orthogonalize_serial)
+    return kernel(V, local, rows, w, h, h2)
+
+
+def _combine_rows_blocks(V, m, S, out):
+    """out[c] = sum_{i < m} S[i, c] V[i] (out (k, n) may be V[:k]: each block of
+    :data:`VECTOR_BLOCK` elements is read completely before it is written)."""
     n = V.shape[1]
     k = S.shape[1]
-    block = 1024
-    acc = np.empty((k, block))
-    for start in range(0, n, block):
-        stop = min(start + block, n)
+    nb = (n + VECTOR_BLOCK - 1) // VECTOR_BLOCK
+    for b in prange(nb):
+        start = b * VECTOR_BLOCK
+        stop = min(start + VECTOR_BLOCK, n)
         size = stop - start
+        acc = np.empty((k, size))
         for c in range(k):
             a = acc[c]
             v = V[0, start:stop]
@@ -643,6 +693,23 @@ def _combine_rows(V, m, S, out):
             a = acc[c]
             for p in range(size):
                 o[p] = a[p]
+
+
+_combine_rows_parallel, _combine_rows_serial = compile_parallel_and_serial(_combine_rows_blocks)
+
+
+def combine_rows(V, m, S, out):
+    """out[c] = sum_{i < m} S[i, c] V[i] for the columns c of S (m, k); ``out`` (k, n)
+    may be V[:k] itself (a thick restart); threaded like :func:`lanczos_orthogonalize`."""
+    kernel = _combine_rows_parallel if V.shape[1] >= PARALLEL_MIN_DOFS else _combine_rows_serial
+    kernel(V, m, np.ascontiguousarray(S), out)
+
+
+@njit
+def scale_into(w, factor, out):
+    """out = factor w (serial: on two threads it was slower, 1.4 vs 1.1 ms at 1.5e6)."""
+    for p in range(w.shape[0]):
+        out[p] = w[p] * factor
 
 
 @njit
@@ -662,12 +729,6 @@ def _rayleigh_residual(y, Ay):
         t0 = Ay[p] - theta * y[p]
         r0 += t0 * t0
     return theta, np.sqrt(r0 + r1)
-
-
-@njit
-def _scale_into(w, factor, out):
-    for p in range(w.shape[0]):
-        out[p] = w[p] * factor
 
 
 # --- the coupled element with rolling resistance -------------------------------------

@@ -50,7 +50,7 @@ from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
 from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.eigen import (DENSE_LIMIT, EIGSH_TOL, WARM_START_MIX, Eigenpair,
-                                    top_eigenpair)
+                                    Workspace, top_eigenpair)
 from demstep.timestep.elements import dofs_per_particle
 from demstep.timestep.stability import damped_sigma
 
@@ -61,7 +61,9 @@ SIGMA_RTOL = 1e-10
 #: certified step is at most ~4e-9 below the exact one); on the dense path
 CERTIFY_MARGIN = 4e-9
 DENSE_CERTIFY_MARGIN = 1e-11
-#: the closed-form upper bound is accepted within this of the iterate
+#: an upper bound (the candidate t or the closed form) is accepted within this of the
+#: iterate, or within twice the first margin when a looser ``tol`` makes that larger
+#: (the candidate itself sits a margin above the iterate)
 CLOSED_FORM_RTOL = 1e-8
 #: eigen-tolerances of the intermediate solves of the safeguarded iteration: each only
 #: needs a vector good enough for a Rayleigh-functional value, whose error is quadratic
@@ -112,11 +114,14 @@ class ScaledContactOperator:
     with rotation the rolling and twisting ones on the relative rotation
     (:class:`~demstep.contacts.ContactSet`). ``pencil(sigma)`` is the operator
     (1 + sigma a2) K^ + sigma C^_d; the mass-proportional part sigma a1 I of
-    A(sigma) = sigma C^ + K^ is a shift added by the caller."""
+    A(sigma) = sigma C^ + K^ is a shift added by the caller. Its buffers and the
+    eigensolver's basis live in ``workspace`` (:class:`~demstep.timestep.eigen.Workspace`;
+    a new one when not given), which successive operators of the same assembly size
+    may share (one at a time: every product overwrites the buffers)."""
 
     def __init__(self, particles: Particles, contacts: ContactSet, rotation: bool,
                  damping: GlobalDamping | None = None, bodies=None,
-                 threads: int | None = None):
+                 threads: int | None = None, workspace: Workspace | None = None):
         if contacts.n and contacts.dim != particles.dim:
             raise InputError(f"contacts: dimension {contacts.dim} does not match the "
                              f"particles' {particles.dim}")
@@ -130,7 +135,8 @@ class ScaledContactOperator:
         self.nd = dofs_per_particle(particles.dim, rotation)
         self.scale = inverse_sqrt_mass(particles, rotation).reshape(particles.n, self.nd)
         self.size = particles.n * self.nd
-        self._work = np.empty_like(self.scale)
+        self.workspace = workspace if workspace is not None else Workspace()
+        self._work = self.workspace.array("operator_work", self.scale.shape)
         self.bodies = bodies if bodies is not None and bodies.n else None
         self.owner_map = None
         if self.bodies is not None:
@@ -146,8 +152,8 @@ class ScaledContactOperator:
         #: number of contact runs summed in parallel (1: the serial product)
         self.threads = max(1, min(int(threads), max(contacts.n, 1)))
         self._chunks, self._spans = contact_chunks(contacts, particles.n, self.threads)
-        self._buf = (np.empty((self.threads, particles.n, self.nd)) if self.threads > 1
-                     else None)
+        self._buf = (self.workspace.array("operator_runs", (self.threads, particles.n, self.nd))
+                     if self.threads > 1 else None)
 
     def springs(self, sigma: float) -> Springs:
         """The per-contact coefficients of the pencil at ``sigma``: each spring k
@@ -218,7 +224,8 @@ class ScaledContactOperator:
         """Top eigenpair of the pencil at ``sigma`` (without the a1 shift)."""
         return top_eigenpair(self.pencil(sigma), v0=v0, dense_limit=dense_limit, tol=tol,
                              dense=lambda: self.dense_pencil(sigma), solver=solver, mix=mix,
-                             stop_above=stop_above, stop_tol=stop_tol, block=block)
+                             stop_above=stop_above, stop_tol=stop_tol, block=block,
+                             workspace=self.workspace)
 
     def rayleigh_terms(self, q: np.ndarray):
         """(k_q, c_q): q.K^ q and q.C^ q for a unit vector q (C^ with a1 and a2), summed
@@ -255,10 +262,10 @@ class ScaledContactOperator:
             if new <= s * (1.0 + 1e-14):
                 break
             s = new
-        from demstep.kernels.timestep_kernels import _combine_rows
+        from demstep.kernels.timestep_kernels import combine_rows
 
         z = np.empty((1, Y.shape[1]))
-        _combine_rows(Y, k, np.ascontiguousarray(u[:, None]), z)
+        combine_rows(Y, k, u[:, None], z)
         return z[0] / np.linalg.norm(z[0])
 
     def damping_bound(self) -> float:
@@ -363,7 +370,8 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
                         dense_limit: int = DENSE_LIMIT, rtol: float = SIGMA_RTOL,
                         max_iter: int = 100, tol: float = EIGSH_TOL,
                         loose_tol: float = LOOSE_TOL, threads: int | None = None,
-                        solver: str = "lanczos", bodies=None) -> ExactStep:
+                        solver: str = "lanczos", bodies=None,
+                        workspace: Workspace | None = None) -> ExactStep:
     """Exact (and certified) critical step, with contact dashpots and global damping when
     present; ``v0`` warm-starts the eigensolver (a previous ``mode``).
 
@@ -374,8 +382,10 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
     ``threads``: contact runs summed in parallel in each product (None: numba's threads
     from :data:`PARALLEL_MIN_CONTACTS` contacts on); ``solver``: "lanczos" or "arpack"
     (scipy's eigsh, the earlier solver, for comparison); ``bodies``
-    (:class:`demstep.timestep.bodies.RigidBodies`): clumps, six DOFs each."""
-    op = ScaledContactOperator(particles, contacts, rotation, damping, bodies, threads=threads)
+    (:class:`demstep.timestep.bodies.RigidBodies`): clumps, six DOFs each;
+    ``workspace``: the scratch arrays, kept by a caller that solves again (a run)."""
+    op = ScaledContactOperator(particles, contacts, rotation, damping, bodies, threads=threads,
+                               workspace=workspace)
     if contacts.n == 0 and not op.damping.mass:
         raise InputError("contacts: the assembly has no contacts")
     damped = contacts.damped or op.damping.active
@@ -410,6 +420,7 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
     dense_path = op.size <= dense_limit
     margin = DENSE_CERTIFY_MARGIN if dense_path else max(CERTIFY_MARGIN, 4.0 * tol)
     certify_tol = margin / 4.0
+    accept_rtol = max(CLOSED_FORM_RTOL, 2.0 * margin)
     solve_tol = max(FIRST_TOL, loose_tol) if loose_tol > tol and not dense_path else tol
     iterations = 0
     while True:
@@ -445,7 +456,7 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
         bound = top.upper + a1 * t
         up = t if t * t >= bound else closed_form_upper(top, t, bound)
         lower = max(sigma, new)
-        if up <= lower * (1.0 + CLOSED_FORM_RTOL):
+        if up <= lower * (1.0 + accept_rtol):
             sigma = lower
             break
         if new > sigma * (1.0 + rtol):
