@@ -30,7 +30,7 @@ def assembled(p, c, rotation, k_n, k_t):
     return assemble_stiffness(p, replace(c, k_n=k_n, k_s=k_t), rotation, scale=s).toarray()
 
 
-@pytest.mark.parametrize("dim,rotation", [(2, True), (3, True), (3, False)])
+@pytest.mark.parametrize("dim,rotation", [(2, True), (2, False), (3, True), (3, False)])
 @pytest.mark.parametrize("shuffle", [False, True])
 def test_threaded_product_equals_serial_and_assembled(dim, rotation, shuffle):
     """Contact runs summed into per-run buffers: one run is bit-identical to the serial

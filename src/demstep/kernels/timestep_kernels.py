@@ -65,36 +65,51 @@ def stiffness_diagonal_kernel(contacts, n_particles: int, nd: int, rotation: boo
 def _contact_slip(c, i, j, normal, arm_i, arm_j, x, dim, nd, rotation):
     """Relative displacement of j's contact point w.r.t. i's for contact ``c`` (global
     axes, padded to 3): Delta = u_j - u_i - (a_i theta_i + a_j theta_j) x n; a wall
-    side (j < 0) does not move. ``x`` (n, nd) holds the DOFs already scaled."""
+    side (j < 0) does not move. ``x`` (n, nd) holds the DOFs already scaled.
+
+    Each particle's row is taken once (``x[p]``: indexing ``x[p, k]`` with a signed p
+    tests for a negative index at every access) and everything of the second particle
+    is read in one branch."""
     p = i[c]
     q = j[c]
-    d0 = -x[p, 0]
-    d1 = -x[p, 1]
-    d2 = -x[p, 2] if dim == 3 else 0.0
-    if q >= 0:
-        d0 += x[q, 0]
-        d1 += x[q, 1]
-        if dim == 3:
-            d2 += x[q, 2]
+    xp = x[p]
     n0 = normal[c, 0]
     n1 = normal[c, 1]
     n2 = normal[c, 2] if dim == 3 else 0.0
+    d0 = -xp[0]
+    d1 = -xp[1]
+    d2 = -xp[2] if dim == 3 else 0.0
+    t0 = 0.0
+    t1 = 0.0
+    t2 = 0.0
+    if rotation:
+        ai = arm_i[c]
+        if dim == 2:
+            t2 = ai * xp[2]
+        else:
+            t0 = ai * xp[3]
+            t1 = ai * xp[4]
+            t2 = ai * xp[5]
+    if q >= 0:
+        xq = x[q]
+        d0 += xq[0]
+        d1 += xq[1]
+        if dim == 3:
+            d2 += xq[2]
+        if rotation:
+            aj = arm_j[c]
+            if dim == 2:
+                t2 += aj * xq[2]
+            else:
+                t0 += aj * xq[3]
+                t1 += aj * xq[4]
+                t2 += aj * xq[5]
     if rotation:
         if dim == 2:
-            th = arm_i[c] * x[p, 2]
-            if q >= 0:
-                th += arm_j[c] * x[q, 2]
             # theta z x n = theta (-n1, n0)
-            d0 += th * n1
-            d1 -= th * n0
+            d0 += t2 * n1
+            d1 -= t2 * n0
         else:
-            t0 = arm_i[c] * x[p, 3]
-            t1 = arm_i[c] * x[p, 4]
-            t2 = arm_i[c] * x[p, 5]
-            if q >= 0:
-                t0 += arm_j[c] * x[q, 3]
-                t1 += arm_j[c] * x[q, 4]
-                t2 += arm_j[c] * x[q, 5]
             d0 -= t1 * n2 - t2 * n1
             d1 -= t2 * n0 - t0 * n2
             d2 -= t0 * n1 - t1 * n0
@@ -107,18 +122,20 @@ def _relative_rotation(c, i, j, x, dim):
     side (j < 0) does not rotate. ``x`` (n, nd) holds the DOFs with rotations."""
     p = i[c]
     q = j[c]
+    xp = x[p]
     if dim == 2:
-        f = -x[p, 2]
+        f = -xp[2]
         if q >= 0:
-            f += x[q, 2]
+            f += x[q][2]
         return 0.0, 0.0, f
-    f0 = -x[p, 3]
-    f1 = -x[p, 4]
-    f2 = -x[p, 5]
+    f0 = -xp[3]
+    f1 = -xp[4]
+    f2 = -xp[5]
     if q >= 0:
-        f0 += x[q, 3]
-        f1 += x[q, 4]
-        f2 += x[q, 5]
+        xq = x[q]
+        f0 += xq[3]
+        f1 += xq[4]
+        f2 += xq[5]
     return f0, f1, f2
 
 
@@ -151,71 +168,166 @@ def _contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rot
                           x, y, 0, i.shape[0])
 
 
-@njit
-def _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
-                          x, y, start, stop):
+@njit(inline="always")
+def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, dim,
+                      x, y, start, stop):
     """y += K_c x summed over the contacts c = ``start`` ... ``stop`` - 1 (in order).
 
-    Per contact: the translational springs on the slip Delta at the contact point
-    (:func:`_contact_slip`) and, with ``rolling`` and ``rotation``, the rotational
+    Per contact: the translational springs on the slip Delta at the contact point (as
+    :func:`_contact_slip`) and, with ``rolling`` and ``rotation``, the rotational
     element [[B, -B], [-B, B]] on (theta_i, theta_j), B = k_r (I - n n^T) + k_w n n^T
-    (2D: k_r; a wall side: B on theta_i only)."""
-    dim = normal.shape[1]
-    nd = x.shape[1]
+    (2D: k_r; a wall side: B on theta_i only). Inlined into drivers that fix ``dim``,
+    ``rotation`` and ``rolling`` as constants (:func:`_contact_matvec_range`).
+
+    The slip is written out here rather than taken from :func:`_contact_slip`: a helper
+    that takes arrays, called per contact, and a particle row taken on the wall side
+    too, each cost 1.5x on the whole product (numba's reference counting of the array
+    views; measured on a 1.3e5-sphere FCC block: 8.6 ms against 13-14 ms per product).
+    Both are checked against the assembled matrix (tests/test_exact_solver.py)."""
     for c in range(start, stop):
-        d0, d1, d2, n0, n1, n2 = _contact_slip(c, i, j, normal, arm_i, arm_j, x, dim, nd,
-                                               rotation)
+        p = i[c]
+        q = j[c]
+        n0 = normal[c, 0]
+        n1 = normal[c, 1]
+        n2 = normal[c, 2] if dim == 3 else 0.0
+        xp = x[p]
+        d0 = -xp[0]
+        d1 = -xp[1]
+        d2 = -xp[2] if dim == 3 else 0.0
+        t0 = 0.0
+        t1 = 0.0
+        t2 = 0.0
+        r0 = 0.0
+        r1 = 0.0
+        r2 = 0.0
+        if rotation:
+            ai = arm_i[c]
+            if dim == 3:
+                t0 = ai * xp[3]
+                t1 = ai * xp[4]
+                t2 = ai * xp[5]
+                if rolling:
+                    r0 = -xp[3]
+                    r1 = -xp[4]
+                    r2 = -xp[5]
+            else:
+                t2 = ai * xp[2]
+                if rolling:
+                    r2 = -xp[2]
+        if q >= 0:
+            xq = x[q]
+            d0 += xq[0]
+            d1 += xq[1]
+            if dim == 3:
+                d2 += xq[2]
+            if rotation:
+                aj = arm_j[c]
+                if dim == 3:
+                    t0 += aj * xq[3]
+                    t1 += aj * xq[4]
+                    t2 += aj * xq[5]
+                    if rolling:
+                        r0 += xq[3]
+                        r1 += xq[4]
+                        r2 += xq[5]
+                else:
+                    t2 += aj * xq[2]
+                    if rolling:
+                        r2 += xq[2]
+        if rotation:
+            if dim == 3:
+                d0 -= t1 * n2 - t2 * n1
+                d1 -= t2 * n0 - t0 * n2
+                d2 -= t0 * n1 - t1 * n0
+            else:
+                # theta z x n = theta (-n1, n0)
+                d0 += t2 * n1
+                d1 -= t2 * n0
         dn = d0 * n0 + d1 * n1 + d2 * n2
         kt = k_t[c]
         a = (k_n[c] - kt) * dn
         f0 = kt * d0 + a * n0
         f1 = kt * d1 + a * n1
         f2 = kt * d2 + a * n2
-        p = i[c]
-        q = j[c]
-        y[p, 0] -= f0
-        y[p, 1] -= f1
+        # d Delta / d theta: 3D a [n]x (gradient -a (n x f)); 2D -a t with t = (-n1, n0)
+        c0 = n1 * f2 - n2 * f1
+        c1 = n2 * f0 - n0 * f2
+        c2 = n0 * f1 - n1 * f0
+        tf = -n1 * f0 + n0 * f1
+        m0 = 0.0
+        m1 = 0.0
+        m2 = 0.0
+        if rotation and rolling:
+            m0, m1, m2 = _rolling_moment(k_r[c], k_w[c], r0, r1, r2, n0, n1, n2, dim)
+        yp = y[p]
+        yp[0] -= f0
+        yp[1] -= f1
         if dim == 3:
-            y[p, 2] -= f2
-        if q >= 0:
-            y[q, 0] += f0
-            y[q, 1] += f1
-            if dim == 3:
-                y[q, 2] += f2
+            yp[2] -= f2
         if rotation:
-            if dim == 2:
-                # d Delta / d theta = -a t, t = (-n1, n0)
-                tf = -n1 * f0 + n0 * f1
-                y[p, 2] -= arm_i[c] * tf
-                if q >= 0:
-                    y[q, 2] -= arm_j[c] * tf
+            ai = arm_i[c]
+            if dim == 3:
+                yp[3] -= ai * c0 + m0
+                yp[4] -= ai * c1 + m1
+                yp[5] -= ai * c2 + m2
             else:
-                # d Delta / d theta = a [n]x: gradient -a (n x f)
-                c0 = n1 * f2 - n2 * f1
-                c1 = n2 * f0 - n0 * f2
-                c2 = n0 * f1 - n1 * f0
-                y[p, 3] -= arm_i[c] * c0
-                y[p, 4] -= arm_i[c] * c1
-                y[p, 5] -= arm_i[c] * c2
-                if q >= 0:
-                    y[q, 3] -= arm_j[c] * c0
-                    y[q, 4] -= arm_j[c] * c1
-                    y[q, 5] -= arm_j[c] * c2
-            if rolling:
-                f0, f1, f2 = _relative_rotation(c, i, j, x, dim)
-                m0, m1, m2 = _rolling_moment(k_r[c], k_w[c], f0, f1, f2, n0, n1, n2, dim)
-                if dim == 2:
-                    y[p, 2] -= m2
-                    if q >= 0:
-                        y[q, 2] += m2
+                yp[2] -= ai * tf + m2
+        if q >= 0:
+            yq = y[q]
+            yq[0] += f0
+            yq[1] += f1
+            if dim == 3:
+                yq[2] += f2
+            if rotation:
+                aj = arm_j[c]
+                if dim == 3:
+                    yq[3] += m0 - aj * c0
+                    yq[4] += m1 - aj * c1
+                    yq[5] += m2 - aj * c2
                 else:
-                    y[p, 3] -= m0
-                    y[p, 4] -= m1
-                    y[p, 5] -= m2
-                    if q >= 0:
-                        y[q, 3] += m0
-                        y[q, 4] += m1
-                        y[q, 5] += m2
+                    yq[2] += m2 - aj * tf
+
+
+@njit
+def _products_3d_rotation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop):
+    _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, _NO_ROLLING, _NO_ROLLING, False,
+                      True, 3, x, y, start, stop)
+
+
+@njit
+def _products_3d_rolling(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, x, y, start, stop):
+    _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, True, True, 3, x, y,
+                      start, stop)
+
+
+@njit
+def _products_3d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop):
+    _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, _NO_ROLLING, _NO_ROLLING, False,
+                      False, 3, x, y, start, stop)
+
+
+@njit
+def _products_2d(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, x, y,
+                 start, stop):
+    _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, 2,
+                      x, y, start, stop)
+
+
+@njit
+def _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
+                          x, y, start, stop):
+    """y += K_c x summed over the contacts c = ``start`` ... ``stop`` - 1 (in order), by
+    a driver compiled for the dimension and the DOFs (:func:`_contact_products` with
+    them as constants: 2.2x on the 3D product with rotation, measured)."""
+    if normal.shape[1] == 2:
+        _products_2d(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, x, y,
+                     start, stop)
+    elif not rotation:
+        _products_3d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop)
+    elif rolling:
+        _products_3d_rolling(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, x, y, start, stop)
+    else:
+        _products_3d_rotation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop)
 
 
 @njit
