@@ -778,28 +778,38 @@ def lanczos_orthogonalize(V, local, rows, w, h, h2) -> float:
     return kernel(V, local, rows, w, h, h2)
 
 
+#: elements per block of :func:`combine_rows`: its k partial sums of one block stay in
+#: the core's L2 cache while the m rows stream past once
+COMBINE_BLOCK = 2048
+
+
 def _combine_rows_blocks(V, m, S, out):
     """out[c] = sum_{i < m} S[i, c] V[i] (out (k, n) may be V[:k]: each block of
-    :data:`VECTOR_BLOCK` elements is read completely before it is written)."""
+    :data:`COMBINE_BLOCK` elements is read completely before it is written)."""
     n = V.shape[1]
     k = S.shape[1]
-    nb = (n + VECTOR_BLOCK - 1) // VECTOR_BLOCK
+    nb = (n + COMBINE_BLOCK - 1) // COMBINE_BLOCK
     for b in prange(nb):
-        start = b * VECTOR_BLOCK
-        stop = min(start + VECTOR_BLOCK, n)
+        start = b * COMBINE_BLOCK
+        stop = min(start + COMBINE_BLOCK, n)
         size = stop - start
-        acc = np.empty((k, size))
-        for c in range(k):
-            a = acc[c]
-            v = V[0, start:stop]
-            s = S[0, c]
-            for p in range(size):
-                a[p] = s * v[p]
-            for i in range(1, m):
-                v = V[i, start:stop]
-                s = S[i, c]
+        acc = np.zeros((k, size))
+        i = 0
+        while i < m:  # four rows per pass over the partial sums (L2 traffic / 4)
+            r = min(4, m - i)
+            v0 = V[i, start:stop]
+            v1 = V[i + 1 if r > 1 else i, start:stop]
+            v2 = V[i + 2 if r > 2 else i, start:stop]
+            v3 = V[i + 3 if r > 3 else i, start:stop]
+            for c in range(k):
+                a = acc[c]
+                s0 = S[i, c]
+                s1 = S[i + 1, c] if r > 1 else 0.0
+                s2 = S[i + 2, c] if r > 2 else 0.0
+                s3 = S[i + 3, c] if r > 3 else 0.0
                 for p in range(size):
-                    a[p] += s * v[p]
+                    a[p] += (s0 * v0[p] + s1 * v1[p]) + (s2 * v2[p] + s3 * v3[p])
+            i += r
         for c in range(k):
             o = out[c, start:stop]
             a = acc[c]
