@@ -48,7 +48,7 @@ def test_threaded_product_equals_serial_and_assembled(dim, rotation, shuffle):
     np.testing.assert_allclose(y_serial, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
     for runs in (1, 3, 7):
         chunks, spans = contact_chunks(c, p.n, runs)
-        buf = np.empty((runs, p.n, serial.nd))
+        buf = np.empty((runs - 1, p.n, serial.nd))
         out = {}
         for name, kernel in (("parallel", _chunked_scaled_matvec_parallel),
                              ("serial", _chunked_scaled_matvec_serial)):

@@ -152,7 +152,8 @@ class ScaledContactOperator:
         #: number of contact runs summed in parallel (1: the serial product)
         self.threads = max(1, min(int(threads), max(contacts.n, 1)))
         self._chunks, self._spans = contact_chunks(contacts, particles.n, self.threads)
-        self._buf = (self.workspace.array("operator_runs", (self.threads, particles.n, self.nd))
+        self._buf = (self.workspace.array("operator_runs",
+                                          (self.threads - 1, particles.n, self.nd))
                      if self.threads > 1 else None)
 
     def springs(self, sigma: float) -> Springs:
