@@ -74,6 +74,15 @@ class Workspace:
             self._arrays[name] = a
         return a
 
+    def release(self, *names: str):
+        """Forget the arrays ``names`` (their memory goes once nothing else holds them)."""
+        for name in names:
+            self._arrays.pop(name, None)
+
+
+#: the arrays of :func:`lanczos_top` in a :class:`Workspace`
+LANCZOS_ARRAYS = ("lanczos_basis", "lanczos_w")
+
 
 @dataclass
 class Eigenpair:
@@ -148,11 +157,11 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
     if max_matvecs is None:
         max_matvecs = LANCZOS_MAX_MATVECS
     workspace = workspace if workspace is not None else Workspace()
-    V = workspace.array("lanczos_basis", (m + 1, n))
+    V = workspace.array(LANCZOS_ARRAYS[0], (m + 1, n))
     T = np.zeros((m + 1, m + 1))
     norm = np.sqrt(tk._norm2(v0))
     tk.scale_into(v0, 1.0 / norm, V[0])
-    w = workspace.array("lanczos_w", (n,))
+    w = workspace.array(LANCZOS_ARRAYS[1], (n,))
     h = np.empty(m + 1)
     h2 = np.empty(m + 2)
     j = 0       # the basis vector to expand

@@ -49,8 +49,8 @@ from demstep.kernels.timestep_kernels import (chunked_scaled_contact_matvec, con
 from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
 from demstep.timestep.damping import GlobalDamping
-from demstep.timestep.eigen import (DENSE_LIMIT, EIGSH_TOL, WARM_START_MIX, Eigenpair,
-                                    Workspace, top_eigenpair)
+from demstep.timestep.eigen import (DENSE_LIMIT, EIGSH_TOL, LANCZOS_ARRAYS, WARM_START_MIX,
+                                    Eigenpair, Workspace, top_eigenpair)
 from demstep.timestep.elements import dofs_per_particle
 from demstep.timestep.stability import damped_sigma
 
@@ -384,9 +384,22 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
     from :data:`PARALLEL_MIN_CONTACTS` contacts on); ``solver``: "lanczos" or "arpack"
     (scipy's eigsh, the earlier solver, for comparison); ``bodies``
     (:class:`demstep.timestep.bodies.RigidBodies`): clumps, six DOFs each;
-    ``workspace``: the scratch arrays, kept by a caller that solves again (a run)."""
+    ``workspace``: the scratch arrays, kept by a caller that solves again (a run);
+    without one, the Lanczos basis is released on return (the result's operator keeps
+    only its product buffers)."""
     op = ScaledContactOperator(particles, contacts, rotation, damping, bodies, threads=threads,
                                workspace=workspace)
+    try:
+        return _exact_step(op, contacts, v0, dense_limit, rtol, max_iter, tol, loose_tol,
+                           solver)
+    finally:
+        if workspace is None:
+            op.workspace.release(*LANCZOS_ARRAYS)
+
+
+def _exact_step(op, contacts, v0, dense_limit, rtol, max_iter, tol, loose_tol,
+                solver) -> ExactStep:
+    """:func:`exact_critical_step` on the operator ``op``."""
     if contacts.n == 0 and not op.damping.mass:
         raise InputError("contacts: the assembly has no contacts")
     damped = contacts.damped or op.damping.active
