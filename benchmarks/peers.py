@@ -22,6 +22,9 @@ E = 5.93e7 Pa and nu = 0.25, so that the tangent normal stiffness of the dense
 packing's overlap (0.002 r, R* = r/2) is k_n = 1e6; same dt; restitution as above
 (LIGGGHTS' Tsuji form, which demstep's Hertz dashpot follows); no YADE row.
 The exact peer settings are in :func:`liggghts_input` and :data:`YADE_SCRIPT`.
+``--order shuffled``: the same spheres in a fixed random order, in memory and in the
+peers' input files (LIGGGHTS sorts its atoms spatially itself, ``atom_modify sort``,
+on by default; demstep keeps the order it is given).
 
 Only the stepping is timed: every code first runs ``--warmup`` steps (numba compiles
 or loads its cache, neighbour lists are built), then ``--steps`` steps are timed:
@@ -62,8 +65,17 @@ HERTZ_POISSON = 0.25
 HERTZ_YOUNG = 2.0 * (1.0 - HERTZ_POISSON**2) * 1.0e6 / (2.0 * math.sqrt(0.25 * 0.001))
 
 
-def make_problem(problem: str, n_target: int, skin: float | None = None, law: str = "linear"):
-    """Positions (N, 3) and a JSON-able spec of the problem (same for every code)."""
+#: seed of the permutation of ``--order shuffled``
+SHUFFLE_SEED = 0
+
+
+def make_problem(problem: str, n_target: int, skin: float | None = None, law: str = "linear",
+                 order: str = "lattice"):
+    """Positions (N, 3) and a JSON-able spec of the problem (same for every code).
+    ``order``: the spheres in lattice order (neighbours in space are neighbours in
+    memory, as a generator writes them) or ``shuffled`` (a fixed random permutation, as
+    particles inserted at random places and numbered in insertion order come from
+    another code's file)."""
     k_n = k_s = 1.0e6
     mu = 0.5
     density = 2500.0
@@ -116,6 +128,11 @@ def make_problem(problem: str, n_target: int, skin: float | None = None, law: st
             "youngs_modulus": HERTZ_YOUNG, "poisson_ratio": HERTZ_POISSON}
     if law not in ("linear", "hertz"):
         raise SystemExit(f"unknown law {law!r}: linear or hertz")
+    if order == "shuffled":
+        x = x[np.random.default_rng(SHUFFLE_SEED).permutation(len(x))]
+    elif order != "lattice":
+        raise SystemExit(f"unknown order {order!r}: lattice or shuffled")
+    spec["order"] = order
     if restitution is not None:
         ln = math.log(restitution)
         beta = -ln / math.sqrt(math.pi**2 + ln**2)
@@ -554,7 +571,7 @@ def run_once(code, workdir, x, spec, threads, warmup, steps, dump, demstep_src, 
 
 def benchmark(args):
     workdir = Path(tempfile.mkdtemp(prefix="demstep-peers-"))
-    x, spec = make_problem(args.problem, args.n, args.skin, args.law)
+    x, spec = make_problem(args.problem, args.n, args.skin, args.law, args.order)
     codes = [c for c in args.codes.split(",") if c]
     if args.law == "hertz" and "yade" in codes:
         codes.remove("yade")
@@ -722,6 +739,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--problem", choices=("dense", "settle"), default="dense")
     ap.add_argument("--law", choices=("linear", "hertz"), default="linear")
+    ap.add_argument("--order", choices=("lattice", "shuffled"), default="lattice",
+                    help="the spheres' order in memory and in the peers' input files")
     ap.add_argument("--n", type=int, default=None, help="target number of spheres (nearest feasible)")
     ap.add_argument("--threads", type=int, default=1, help="demstep numba threads, LIGGGHTS MPI ranks, YADE OpenMP threads")
     ap.add_argument("--repeat", type=int, default=3)
