@@ -23,8 +23,10 @@ packing's overlap (0.002 r, R* = r/2) is k_n = 1e6; same dt; restitution as abov
 (LIGGGHTS' Tsuji form, which demstep's Hertz dashpot follows); no YADE row.
 The exact peer settings are in :func:`liggghts_input` and :data:`YADE_SCRIPT`.
 ``--order shuffled``: the same spheres in a fixed random order, in memory and in the
-peers' input files (LIGGGHTS sorts its atoms spatially itself, ``atom_modify sort``,
-on by default; demstep keeps the order it is given).
+peers' input files, as particles inserted at random places come from another code.
+LIGGGHTS sorts its atoms spatially itself (``atom_modify sort``, on by default);
+demstep's child puts them in spatial order as ``demstep run`` does with a particle file
+(:func:`demstep.packings.spatial_order`; the engine keeps the order it is given).
 
 Only the stepping is timed: every code first runs ``--warmup`` steps (numba compiles
 or loads its cache, neighbour lists are built), then ``--steps`` steps are timed:
@@ -158,6 +160,12 @@ def demstep_simulation(x, spec, timestep):
     from demstep.particles import Particles
     from demstep.walls import Wall
 
+    if spec.get("order") == "shuffled":
+        # as ``demstep run`` reads a particle file: in spatial order (LIGGGHTS sorts its
+        # atoms likewise, atom_modify sort)
+        from demstep.packings import spatial_order
+
+        x = x[spatial_order(x, 2.0 * spec["radius"])]
     particles = Particles.from_density(x, np.full(len(x), spec["radius"]), spec["density"])
     common = dict(mu=spec["mu"], restitution=spec["restitution"])
     if spec.get("law", "linear") == "hertz":

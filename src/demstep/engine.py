@@ -184,6 +184,9 @@ class Simulation:
     parallel : threaded kernels (True), serial (False), or automatic (None: threaded
         from PARALLEL_MIN_PARTICLES particles on when numba has more than one thread)
     backend : the kernels' implementation (:mod:`demstep.backend`; "cpu": numba)
+    source_index : the input row of each particle when the caller put them in another
+        order (:func:`demstep.packings.spatial_order`: ``demstep run`` does so for a
+        particle file); messages and outputs name particles by it (:meth:`particle_id`)
 
     The state lives in the bundles of :mod:`demstep.state` (``spheres``, ``bodies``,
     ``pairs``, ``wall_state``, ``box``, and the ``ledger``); the familiar names (``x``,
@@ -198,7 +201,8 @@ class Simulation:
                  jump_limit: float = 0.25, runaway_factor: float = 10.0,
                  checkpoint_dir: str | os.PathLike | None = None, rotation: bool = True,
                  parallel: bool | None = None, backend: str = "cpu", clumps=None,
-                 clump_velocities=None, clump_angular_velocities=None, clump_fixed=None):
+                 clump_velocities=None, clump_angular_velocities=None, clump_fixed=None,
+                 source_index=None):
         bodies = None
         if clumps is not None:
             from demstep.clumps import with_members
@@ -219,6 +223,13 @@ class Simulation:
         self.particles = particles
         self.dim = particles.dim
         self.clumps = clumps
+        self.source_index = None
+        if source_index is not None:
+            source_index = np.asarray(source_index, dtype=np.int64)
+            if source_index.shape != (particles.n,):
+                raise InputError(f"source_index: expected {particles.n} rows, got "
+                                 f"{source_index.shape}")
+            self.source_index = source_index
         self.law = law if law is not None else LinearSpring()
         self.law.validate()
         self.damping = damping if damping is not None else Damping()
@@ -302,6 +313,11 @@ class Simulation:
         self.energy_floor = None
 
     # ------------------------------------------------------------------ setup
+    def particle_id(self, k: int) -> int:
+        """How messages and outputs name particle ``k``: its input row when the
+        particles were reordered (``source_index``), else k itself."""
+        return int(k if self.source_index is None else self.source_index[k])
+
     def _set_walls(self, walls: list[Wall]):
         for wall in walls:
             if wall.dim != self.dim:
@@ -341,7 +357,8 @@ class Simulation:
             deep = dist < 0.5 * self.r[:, None]
             if deep.any():
                 p, k = np.argwhere(deep)[0]
-                raise InputError(f"wall {walls[k].name!r}: cuts deep into particle {p} "
+                raise InputError(f"wall {walls[k].name!r}: cuts deep into particle "
+                                 f"{self.particle_id(p)} "
                                  f"(centre {dist[p, k]:.4g} from the wall, radius {self.r[p]:.4g})")
 
     def _update_masses(self):
@@ -798,13 +815,15 @@ class Simulation:
                 raise InputError(f"bonds: particle index {pairs[bad][0]} outside 0..{n - 1}")
             if (pairs[:, 0] == pairs[:, 1]).any():
                 k = int(np.flatnonzero(pairs[:, 0] == pairs[:, 1])[0])
-                raise InputError(f"bonds: pair {k} bonds particle {pairs[k, 0]} to itself")
+                raise InputError(f"bonds: pair {k} bonds particle "
+                                 f"{self.particle_id(pairs[k, 0])} to itself")
             i, j = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
             d, dist, delta, *_ = pair_geometry_arrays(self.x, self.r, i, j, self.periodic_len)
             far = -delta > bonds.gap * (1 + 1e-12)
             if far.any():
                 k = int(np.flatnonzero(far)[0])
-                raise InputError(f"bonds: pair ({i[k]}, {j[k]}) is {-delta[k]:.6g} apart, beyond "
+                raise InputError(f"bonds: pair ({self.particle_id(i[k])}, "
+                                 f"{self.particle_id(j[k])}) is {-delta[k]:.6g} apart, beyond "
                                  f"the gap {bonds.gap:g}")
         sb = self.bodies.sphere_body
         keep = (sb[i] < 0) | (sb[i] != sb[j])

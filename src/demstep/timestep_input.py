@@ -365,6 +365,12 @@ class AnalysisInput:
     rotation: bool = True  # False: the state's own rotation lock
     simulation: object = None
     bodies: object = None  # RigidBodies of clumps, or None
+    #: each particle's id for reports: its file row when a run reordered the particles
+    #: (Simulation.source_index), None: its index
+    ids: np.ndarray | None = None
+
+    def particle_id(self, k: int) -> int:
+        return int(k if self.ids is None else self.ids[k])
 
 
 def periodic_lengths(box: np.ndarray, periodic: np.ndarray, x: np.ndarray, r: np.ndarray,
@@ -601,7 +607,7 @@ def from_simulation(sim, source: str, notes=None) -> AnalysisInput:
                          notes=list(notes or []) + [f"contacts of {source}: the engine's law "
                                                     f"({type(sim.law).__name__}, demstep "
                                                     f"convention)"],
-                         bodies=sim.rigid_bodies())
+                         bodies=sim.rigid_bodies(), ids=getattr(sim, "source_index", None))
 
 
 def model_from_law(law, overlap: float = 0.0) -> ContactModel:
@@ -654,6 +660,7 @@ def from_case(path, stage: int = 1, contact_tol: float = DEFAULT_CONTACT_TOL,
         out.notes.append(f"{bonds[0].n} parallel bonds (springs k^b A, bending k_n^b I, "
                          f"twisting k_s^b J)")
     out.rotation = sim.rotation
+    out.ids = sim.source_index
     return out
 
 

@@ -30,7 +30,9 @@ scaling for quasi-static runs; the critical step grows by its square root).
 * ``generator = "file"``: ``path`` (relative to the case file) of a CSV, LIGGGHTS dump
   or YADE text file (:mod:`demstep.io.formats`), ``format`` (auto, csv, liggghts,
   yade), ``snapshot`` (LIGGGHTS: 0 first, -1 last). ``density`` may be omitted when the
-  file has masses.
+  file has masses. From 1000 spheres on the run holds them in spatial order (2.5x faster
+  on a file in random order); indices (``fixed.indices``, bond files), messages and
+  the VTK ``id`` still count the file's rows (0-based, after LIGGGHTS' sort by id).
 
 * ``generator = "clumps"``: rigid bodies of several spheres (:mod:`demstep.clumps`):
   ``templates`` (names of ``[[clumps]]`` shapes, used in turn), ``count`` (bodies per

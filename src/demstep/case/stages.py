@@ -67,6 +67,16 @@ def create_bonds(sim, case: Case) -> None:
                            b.shear_strength, b.radius_multiplier, b.gap)
     path = case.bond_file()
     pairs = None if path is None else read_bond_csv(path)
+    if pairs is not None and sim.source_index is not None:
+        pairs = np.asarray(pairs)
+        n = len(sim.source_index)
+        if (pairs.ndim == 2 and np.issubdtype(pairs.dtype, np.integer)
+                and ((pairs >= 0) & (pairs < n)).all()):
+            # the file's rows -> the reordered particles (invalid rows are left for
+            # add_bonds to name as they are in the file)
+            inverse = np.empty(n, dtype=np.int64)
+            inverse[sim.source_index] = np.arange(n)
+            pairs = inverse[pairs]
     try:
         sim.add_bonds(params, pairs)
     except InputError as exc:

@@ -409,7 +409,8 @@ def critical_mode_report(report, data, top: int) -> dict | None:
         for k in order:
             if k < n_free:
                 s_index = int(free[k])
-                entry = {"index": s_index, "radius": float(p.r[s_index]), "mass": float(p.m[s_index])}
+                entry = {"index": data.particle_id(s_index), "radius": float(p.r[s_index]),
+                         "mass": float(p.m[s_index])}
             else:
                 b = int(k - n_free)
                 entry = {"index": None, "body": b, "radius": None,
@@ -418,12 +419,14 @@ def critical_mode_report(report, data, top: int) -> dict | None:
                          rotation=float(rot[k]), contacts=int(owner_counts[k]))
             particles.append(entry)
     else:
-        particles = [{"index": int(k), "radius": float(p.r[k]), "mass": float(p.m[k]),
+        particles = [{"index": data.particle_id(k), "radius": float(p.r[k]),
+                      "mass": float(p.m[k]),
                       "share": float(share[k]), "translation": float(trans[k]),
                       "rotation": float(rot[k]), "contacts": int(counts[k])} for k in order]
     c = data.contacts
     corder = np.argsort(-contact_share, kind="stable")[:top]
-    contacts = [{"i": int(c.i[k]), "j": int(c.j[k]) if c.j[k] >= 0 else None,
+    contacts = [{"i": data.particle_id(c.i[k]),
+                 "j": data.particle_id(c.j[k]) if c.j[k] >= 0 else None,
                  "wall": int(c.wall[k]) if c.j[k] < 0 else None, "k_n": float(c.k_n[k]),
                  "k_t": float(c.k_s[k]), "c_n": float(c.c_n[k]), "c_t": float(c.c_t[k]),
                  "k_r": float(c.k_r[k]), "k_w": float(c.k_w[k]),
@@ -507,5 +510,6 @@ def write_mode_vtk(path, data, report) -> Path:
                        point_data={"radius": data.particles.r, "mass": data.particles.m,
                                    "translation": trans3 / scale, "rotation": rot3 / scale,
                                    "share": t_share + r_share,
-                                   "id": np.arange(data.particles.n, dtype=np.int64)})
+                                   "id": (np.arange(data.particles.n, dtype=np.int64)
+                                          if data.ids is None else np.asarray(data.ids))})
     return write_mesh(path, mesh)

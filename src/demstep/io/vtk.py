@@ -46,6 +46,16 @@ def _meshio():
     return meshio
 
 
+def particle_ids(sim) -> np.ndarray:
+    """Each sphere's id (N,): its input row when the particles were reordered
+    (``sim.source_index``: ``demstep run`` puts a file's particles in spatial order),
+    else its index."""
+    source = getattr(sim, "source_index", None)
+    if source is not None and len(source) == len(sim.r):
+        return np.asarray(source, dtype=np.int64)
+    return np.arange(len(sim.r), dtype=np.int64)
+
+
 def particle_mesh(sim):
     """Particles as vertices with their state as point data."""
     meshio = _meshio()
@@ -60,7 +70,7 @@ def particle_mesh(sim):
             "force": np.array(sim.force, dtype=np.float64),
             "torque": np.array(sim.torque, dtype=np.float64),
             "fixed": sim.fixed.astype(np.int32),
-            "id": np.arange(n, dtype=np.int64),
+            "id": particle_ids(sim),
             "body": np.array(sim.bodies.sphere_body, dtype=np.int64),
         })
 

@@ -1,0 +1,150 @@
+"""Spatial order of particles: Morton keys against a bit-by-bit reference, the locality
+the order buys, and ``demstep run`` on a particle file in random order (reordered
+internally, named by the file's rows everywhere)."""
+
+import numpy as np
+import pytest
+
+import demstep.case.build as case_build
+from demstep.case import build_simulation, load_case
+from demstep.contacts import find_contacts
+from demstep.errors import InputError
+from demstep.io.formats import write_csv
+from demstep.io.vtk import particle_mesh
+from demstep.packings import lattice, morton_keys, spatial_order
+from demstep.particles import Particles
+
+
+def reference_keys(cells, bits):
+    """Morton keys bit by bit: bit b of axis k goes to bit dim b + k."""
+    dim = cells.shape[1]
+    keys = []
+    for row in cells:
+        key = 0
+        for b in range(bits):
+            for k in range(dim):
+                key |= ((int(row[k]) >> b) & 1) << (dim * b + k)
+        keys.append(key)
+    return np.array(keys, dtype=np.uint64)
+
+
+@pytest.mark.parametrize("dim,bits", [(2, 32), (3, 21)])
+def test_morton_keys_match_a_bitwise_reference(dim, bits):
+    rng = np.random.default_rng(dim)
+    cells = rng.integers(0, 2**bits, size=(200, dim), dtype=np.uint64)
+    cells[:4] = 0
+    cells[1, 0] = cells[2, dim - 1] = 2**bits - 1  # every bit of one axis
+    np.testing.assert_array_equal(morton_keys(cells), reference_keys(cells, bits))
+    corners = np.array(np.meshgrid(*[[0, 1]] * dim, indexing="ij")).reshape(dim, -1).T
+    # the unit cube in Z order: x fastest
+    order = np.argsort(morton_keys(corners))
+    np.testing.assert_array_equal(corners[order][:, 0], np.tile([0, 1], 2 ** (dim - 1)))
+
+
+def test_spatial_order_brings_contacts_close_in_memory():
+    x = lattice("fcc", 0.5).block(10)
+    r = np.full(len(x), 0.5 * 1.001)
+    shuffled = np.random.default_rng(3).permutation(len(x))
+    xs = x[shuffled]
+    order = spatial_order(xs, 2.0 * r.max())
+    np.testing.assert_array_equal(np.sort(order), np.arange(len(x)))  # a permutation
+
+    def median_gap(xx):
+        c = find_contacts(Particles.from_density(xx, r, 1.0), 1.0)
+        return np.median(np.abs(c.i - c.j))
+
+    assert median_gap(xs[order]) < median_gap(xs) / 20
+    # stable within a cell: one big cell keeps the given order
+    np.testing.assert_array_equal(spatial_order(xs, 1e9), np.arange(len(x)))
+    with pytest.raises(InputError, match="cell"):
+        spatial_order(xs, 0.0)
+
+
+CASE = """
+name = "shuffled"
+[particles]
+generator = "file"
+path = "{path}"
+density = 2500.0
+[particles.fixed]
+indices = [{fixed}]
+[contact]
+law = "linear"
+k_n = 1.0e5
+mu = 0.5
+[box]
+margin = 0.0
+[timestep]
+alpha = 0.1
+{bonds}
+[[stages]]
+name = "squeeze"
+steps = 40
+[stages.walls."z+"]
+motion = "velocity"
+velocity = [0.0, 0.0, -0.05]
+"""
+
+
+def shuffled_packing(n_side=8):
+    x = lattice("fcc", 0.5).block(n_side)
+    rng = np.random.default_rng(7)
+    x = x[rng.permutation(len(x))] + rng.normal(0.0, 1e-4, x.shape)
+    return x, np.full(len(x), 0.5 * 1.001)
+
+
+def make_case(tmp_path, x, r, fixed=(3, 900), bonds=""):
+    write_csv(tmp_path / "spheres.csv", x, r)
+    text = CASE.format(path="spheres.csv", fixed=", ".join(map(str, fixed)), bonds=bonds)
+    (tmp_path / "case.toml").write_text(text)
+    return load_case(tmp_path / "case.toml")
+
+
+def test_a_file_in_random_order_runs_reordered_and_named_by_its_rows(tmp_path, monkeypatch):
+    x, r = shuffled_packing()
+    assert len(x) >= case_build.SPATIAL_ORDER_MIN
+    case = make_case(tmp_path, x, r)
+    sim = build_simulation(case)
+    src = sim.source_index
+    assert src is not None and sorted(src) == list(range(len(x)))
+    np.testing.assert_array_equal(sim.x, x[src])  # particle k is the file's row src[k]
+    assert set(src[sim.fixed]) == {3, 900}  # fixed by the file's rows
+    np.testing.assert_array_equal(particle_mesh(sim).point_data["id"], src)
+    # the same run without reordering: the same motion, particle by particle
+    monkeypatch.setattr(case_build, "SPATIAL_ORDER_MIN", 10**9)
+    plain = build_simulation(case)
+    assert plain.source_index is None
+    np.testing.assert_array_equal(particle_mesh(plain).point_data["id"], np.arange(len(x)))
+    for s in (sim, plain):
+        s.run(steps=60)
+    moved = np.abs(plain.x - x).max()
+    assert moved > 1e-6  # something happened
+    np.testing.assert_allclose(sim.x, plain.x[src], rtol=0, atol=1e-9 * moved)
+    np.testing.assert_allclose(sim.v, plain.v[src], rtol=0,
+                               atol=1e-9 * np.abs(plain.v).max())
+
+
+def test_messages_and_bond_files_name_the_files_rows(tmp_path):
+    x, r = shuffled_packing()
+    x[1000] = x[5]  # coincident with row 5
+    case = make_case(tmp_path, x, r)
+    with pytest.raises(InputError) as err:
+        build_simulation(case)
+    message = str(err.value)
+    assert "coincident" in message and " 5 " in message + " " and "1000" in message
+
+    x, r = shuffled_packing()
+    rows = (10, int(np.argmin(np.linalg.norm(x - x[10], axis=1) + 1e9 * (np.arange(len(x)) == 10))))
+    (tmp_path / "bonds.csv").write_text(f"i,j\n{rows[0]},{rows[1]}\n")
+    bonds = ('[bonds]\nnormal_stiffness = 1.0e6\ngap = 0.01\nfile = "bonds.csv"\n'
+             'stage = 1')
+    case = make_case(tmp_path, x, r, bonds=bonds)
+    from demstep.case.stages import create_bonds
+
+    sim = build_simulation(case)
+    create_bonds(sim, case)
+    assert sim.bonds.n == 1
+    assert {sim.particle_id(sim.bonds.i[0]), sim.particle_id(sim.bonds.j[0])} == set(rows)
+    (tmp_path / "bonds.csv").write_text(f"i,j\n{rows[0]},{len(x)}\n")
+    with pytest.raises(InputError, match=f"particle index {len(x)} outside"):
+        create_bonds(build_simulation(case), case)
