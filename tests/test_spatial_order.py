@@ -148,3 +148,36 @@ def test_messages_and_bond_files_name_the_files_rows(tmp_path):
     (tmp_path / "bonds.csv").write_text(f"i,j\n{rows[0]},{len(x)}\n")
     with pytest.raises(InputError, match=f"particle index {len(x)} outside"):
         create_bonds(build_simulation(case), case)
+
+
+def test_dt_of_a_reordered_case_reports_the_files_rows(tmp_path, capsys):
+    """`demstep dt CASE` on a file the run reorders: the particles and contacts of the
+    danger report are the file's rows (radii differ per particle, so a wrong mapping
+    shows), and its VTK ids likewise."""
+    import json
+
+    import meshio
+
+    from demstep.cli import main
+
+    x, _ = shuffled_packing()
+    r = 0.5 * 1.001 * (1.0 + 0.02 * np.random.default_rng(9).random(len(x)))
+    x = x * (1.0 + 0.021)  # spacing for the largest radii: contacts by the tolerance
+    case = make_case(tmp_path, x, r)
+    assert build_simulation(case).source_index is not None
+    vtk = tmp_path / "mode.vtu"
+    code = main(["dt", str(tmp_path / "case.toml"), "--methods", "exact", "--json",
+                 "--contact-tol", "0.05", "--top", "5", "--mode-vtk", str(vtk)])
+    out = json.loads(capsys.readouterr().out)
+    assert code in (0, None)
+    particles = out["critical_mode"]["particles"]
+    assert particles
+    for q in particles:
+        assert q["radius"] == pytest.approx(r[q["index"]], rel=1e-12)
+    for c in out["critical_mode"]["contacts"]:
+        if c["j"] is not None:  # the two rows touch (within the tolerance)
+            gap = np.linalg.norm(x[c["i"]] - x[c["j"]]) - r[c["i"]] - r[c["j"]]
+            assert gap <= 0.05 * min(r[c["i"]], r[c["j"]])
+    mesh = meshio.read(vtk)
+    ids = mesh.point_data["id"]
+    np.testing.assert_allclose(mesh.point_data["radius"], r[ids], rtol=1e-12)
