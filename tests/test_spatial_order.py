@@ -109,14 +109,17 @@ def test_a_file_in_random_order_runs_reordered_and_named_by_its_rows(tmp_path, m
     assert src is not None and sorted(src) == list(range(len(x)))
     np.testing.assert_array_equal(sim.x, x[src])  # particle k is the file's row src[k]
     assert set(src[sim.fixed]) == {3, 900}  # fixed by the file's rows
+    # a restart rebuilds the case and loads its checkpoint: the same order every time
+    np.testing.assert_array_equal(build_simulation(case).source_index, src)
     np.testing.assert_array_equal(particle_mesh(sim).point_data["id"], src)
     # the same run without reordering: the same motion, particle by particle
     monkeypatch.setattr(case_build, "SPATIAL_ORDER_MIN", 10**9)
     plain = build_simulation(case)
     assert plain.source_index is None
     np.testing.assert_array_equal(particle_mesh(plain).point_data["id"], np.arange(len(x)))
-    for s in (sim, plain):
-        s.run(steps=60)
+    sim.run(steps=60)
+    with pytest.warns(RuntimeWarning, match="random order"):  # the engine notices
+        plain.run(steps=60)
     moved = np.abs(plain.x - x).max()
     assert moved > 1e-6  # something happened
     np.testing.assert_allclose(sim.x, plain.x[src], rtol=0, atol=1e-9 * moved)
@@ -181,3 +184,18 @@ def test_dt_of_a_reordered_case_reports_the_files_rows(tmp_path, capsys):
     mesh = meshio.read(vtk)
     ids = mesh.point_data["id"]
     np.testing.assert_allclose(mesh.point_data["radius"], r[ids], rtol=1e-12)
+
+
+def test_a_simulation_of_particles_in_random_order_warns_once(recwarn):
+    from demstep.engine import Simulation
+
+    x, r = shuffled_packing()
+    sim = Simulation(Particles.from_density(x, r, 2500.0))
+    sim.run(steps=3)
+    sim.run(steps=3)
+    warned = [w for w in recwarn if "random order" in str(w.message)]
+    assert len(warned) == 1
+    recwarn.clear()
+    order = spatial_order(x, 2.0 * r.max())
+    Simulation(Particles.from_density(x[order], r, 2500.0)).run(steps=3)
+    assert not [w for w in recwarn if "random order" in str(w.message)]

@@ -43,6 +43,7 @@ import logging
 import math
 import os
 import tempfile
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -399,6 +400,32 @@ class Simulation:
         finally:
             numba.set_num_threads(threads)
 
+    #: the first pair list of at least N/2 pairs warns when the median index distance of
+    #: its pairs exceeds this share of the particles (from SPATIAL_ORDER_MIN particles
+    #: on): the benchmark packings at 1e5 give 0.0001-0.0007 in lattice or spatial
+    #: order, 0.29 shuffled
+    ORDER_WARN_SHARE = 0.1
+
+    def _check_order(self, pi, pj):
+        """Warn (once, at the first pair list of N/2 pairs or more) when the particles
+        are in random order: every pair's data is gathered by index, and a packing in
+        random order runs 2.5x slower than in spatial order (benchmarks/RESULTS.md)."""
+        from demstep.packings import SPATIAL_ORDER_MIN
+
+        n = len(self.r)
+        if n < SPATIAL_ORDER_MIN:
+            self._order_checked = True
+            return
+        if len(pi) < n // 2:
+            return
+        self._order_checked = True
+        share = float(np.median(pj - pi)) / n
+        if share > self.ORDER_WARN_SHARE:
+            warnings.warn(f"demstep: the {n} particles are in random order (pairs lie "
+                          f"{share:.0%} of the list apart in memory, median); put them in "
+                          f"spatial order first (x[demstep.packings.spatial_order(x, "
+                          f"2 * r.max())]): up to 2.5x faster", RuntimeWarning, stacklevel=4)
+
     def _rebuild_lists(self):
         be = self.backend
         for k in range(3):
@@ -421,6 +448,8 @@ class Simulation:
             sb = bodies.sphere_body
             keep = (sb[pi] < 0) | (sb[pi] != sb[pj])
             pi, pj = pi[keep], pj[keep]
+        if not getattr(self, "_order_checked", False):
+            self._check_order(pi, pj)
         if self._dashpot_history:
             shear, dashpot, energy = be.transfer_history(old.i, old.j, pi, pj, old.shear,
                                                          old.dashpot, old.shear_energy)
