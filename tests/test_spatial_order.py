@@ -1,6 +1,6 @@
-"""Spatial order of particles: Morton keys against a bit-by-bit reference, the locality
-the order buys, and ``demstep run`` on a particle file in random order (reordered
-internally, named by the file's rows everywhere)."""
+"""Spatial order of particles: rows of cells, the locality the order buys, and
+``demstep run`` on a particle file in random order (reordered internally, named by the
+file's rows everywhere)."""
 
 import numpy as np
 import pytest
@@ -11,34 +11,23 @@ from demstep.contacts import find_contacts
 from demstep.errors import InputError
 from demstep.io.formats import write_csv
 from demstep.io.vtk import particle_mesh
-from demstep.packings import lattice, morton_keys, spatial_order
+from demstep.packings import lattice, spatial_order
 from demstep.particles import Particles
 
 
-def reference_keys(cells, bits):
-    """Morton keys bit by bit: bit b of axis k goes to bit dim b + k."""
-    dim = cells.shape[1]
-    keys = []
-    for row in cells:
-        key = 0
-        for b in range(bits):
-            for k in range(dim):
-                key |= ((int(row[k]) >> b) & 1) << (dim * b + k)
-        keys.append(key)
-    return np.array(keys, dtype=np.uint64)
-
-
-@pytest.mark.parametrize("dim,bits", [(2, 32), (3, 21)])
-def test_morton_keys_match_a_bitwise_reference(dim, bits):
+@pytest.mark.parametrize("dim", [2, 3])
+def test_spatial_order_is_rows_of_cells_x_fastest(dim):
+    """Cells of side ``cell`` in rows: z (2D: y) slowest, x fastest; the given order
+    kept within a cell."""
     rng = np.random.default_rng(dim)
-    cells = rng.integers(0, 2**bits, size=(200, dim), dtype=np.uint64)
-    cells[:4] = 0
-    cells[1, 0] = cells[2, dim - 1] = 2**bits - 1  # every bit of one axis
-    np.testing.assert_array_equal(morton_keys(cells), reference_keys(cells, bits))
-    corners = np.array(np.meshgrid(*[[0, 1]] * dim, indexing="ij")).reshape(dim, -1).T
-    # the unit cube in Z order: x fastest
-    order = np.argsort(morton_keys(corners))
-    np.testing.assert_array_equal(corners[order][:, 0], np.tile([0, 1], 2 ** (dim - 1)))
+    x = rng.uniform(0.0, 10.0, (500, dim))
+    x[0] = 0.0  # the corner cell starts at the origin
+    order = spatial_order(x, 2.0)
+    cells = np.floor(x[order] / 2.0).astype(int)
+    keys = sum(cells[:, k] * 10**k for k in range(dim))  # row-major, x fastest
+    assert (np.diff(keys) >= 0).all()
+    same = np.diff(keys) == 0
+    assert (np.diff(order)[same] > 0).all()  # stable within a cell
 
 
 def test_spatial_order_brings_contacts_close_in_memory():

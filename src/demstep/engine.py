@@ -400,11 +400,11 @@ class Simulation:
         finally:
             numba.set_num_threads(threads)
 
-    #: the first pair list of at least N/2 pairs warns when the median index distance of
-    #: its pairs exceeds this share of the particles (from SPATIAL_ORDER_MIN particles
-    #: on): the benchmark packings at 1e5 give 0.0001-0.0007 in lattice or spatial
-    #: order, 0.29 shuffled
-    ORDER_WARN_SHARE = 0.1
+    #: the first pair list of at least N/2 pairs warns when fewer than this share of its
+    #: pairs lie within N/100 of each other in memory (from SPATIAL_ORDER_MIN particles
+    #: on): in random order about 2 %; in spatial order most of them (the pairs along a
+    #: row of cells and between rows; those between layers may be a layer apart)
+    ORDER_WARN_CLOSE = 0.2
 
     def _check_order(self, pi, pj):
         """Warn (once, at the first pair list of N/2 pairs or more) when the particles
@@ -419,12 +419,13 @@ class Simulation:
         if len(pi) < n // 2:
             return
         self._order_checked = True
-        share = float(np.median(pj - pi)) / n
-        if share > self.ORDER_WARN_SHARE:
-            warnings.warn(f"demstep: the {n} particles are in random order (pairs lie "
-                          f"{share:.0%} of the list apart in memory, median); put them in "
-                          f"spatial order first (x[demstep.packings.spatial_order(x, "
-                          f"2 * r.max())]): up to 2.5x faster", RuntimeWarning, stacklevel=4)
+        close = float(np.mean(pj - pi < max(64, n // 100)))
+        if close < self.ORDER_WARN_CLOSE:
+            warnings.warn(f"demstep: the {n} particles are in random order (only "
+                          f"{close:.0%} of the pairs lie within {max(64, n // 100)} places of "
+                          f"each other in memory); put them in spatial order first "
+                          f"(x[demstep.packings.spatial_order(x, 2 * r.max())]): up to 2.5x "
+                          f"faster", RuntimeWarning, stacklevel=4)
 
     def _rebuild_lists(self):
         be = self.backend

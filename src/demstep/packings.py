@@ -120,52 +120,25 @@ def jittered_polydisperse(n_target: int, dim: int, seed: int = 0, jitter: float 
 SPATIAL_ORDER_MIN = 1000
 
 
-def _spread_bits(v: np.ndarray, dim: int) -> np.ndarray:
-    """The bits of the cell coordinates ``v`` (uint64) spaced ``dim`` apart (bit k moves
-    to bit dim k), the first 21 (3D) or 32 (2D) of them: one axis' share of a Morton
-    key."""
-    if dim == 3:
-        v = v & np.uint64(0x1FFFFF)
-        for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF),
-                            (8, 0x100F00F00F00F00F), (4, 0x10C30C30C30C30C3),
-                            (2, 0x1249249249249249)):
-            v = (v | (v << np.uint64(shift))) & np.uint64(mask)
-        return v
-    v = v & np.uint64(0xFFFFFFFF)
-    for shift, mask in ((16, 0x0000FFFF0000FFFF), (8, 0x00FF00FF00FF00FF),
-                        (4, 0x0F0F0F0F0F0F0F0F), (2, 0x3333333333333333),
-                        (1, 0x5555555555555555)):
-        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
-    return v
-
-
-def morton_keys(cells: np.ndarray) -> np.ndarray:
-    """Morton (Z-order) keys (N,) uint64 of non-negative integer cell coordinates
-    (N, dim): the bits of the axes interleaved, x in the lowest bit."""
-    cells = np.asarray(cells, dtype=np.uint64)
-    dim = cells.shape[1]
-    key = np.zeros(len(cells), dtype=np.uint64)
-    for k in range(dim):
-        key |= _spread_bits(cells[:, k], dim) << np.uint64(k)
-    return key
-
-
 def spatial_order(x: np.ndarray, cell: float) -> np.ndarray:
     """A permutation of the particles at ``x`` (N, dim) [L] that puts neighbours in space
-    near each other in memory: the Morton (Z-curve) order of cubic cells of side
-    ``cell`` [L] (e.g. the neighbour search's, 2 r_max + skin), stable within a cell.
+    near each other in memory: by cubic cells of side ``cell`` [L] (e.g. the neighbour
+    search's, 2 r_max + skin), in rows along x, then y, then z (x fastest), stable
+    within a cell.
 
     The engine keeps the order it is given, and every pair's data is gathered by
     particle index: on a packing in random order (another code's file, particles
     numbered as they were inserted) a step of the dense 1e5-sphere benchmark took 2.5x
-    as long as in lattice order (benchmarks/RESULTS.md). LAMMPS and LIGGGHTS sort their
-    atoms spatially by default (``atom_modify sort``)."""
+    as long as in lattice order (benchmarks/RESULTS.md). Rows of cells put a particle's
+    neighbours at three steady offsets (along x, one row, one layer), which the pair
+    loop reads as three forward streams: measured faster than a Morton (Z-curve) order
+    of the same cells (dense 6.2 against 5.2 M particle-steps/s, settling 17.7 against
+    15.8 M). LAMMPS and LIGGGHTS sort their atoms by bins likewise (``atom_modify
+    sort``)."""
     x = np.asarray(x, dtype=np.float64)
     if len(x) == 0:
         return np.zeros(0, dtype=np.int64)
     if not (np.isfinite(cell) and cell > 0):
         raise InputError(f"cell: must be finite and > 0, got {cell!r}")
-    dim = x.shape[1]
-    top = (1 << (21 if dim == 3 else 32)) - 1
-    cells = np.clip(np.floor((x - x.min(axis=0)) / cell), 0, top)
-    return np.argsort(morton_keys(cells.astype(np.uint64)), kind="stable")
+    cells = np.floor((x - x.min(axis=0)) / cell)
+    return np.lexsort(tuple(cells[:, k] for k in range(x.shape[1])))  # last key first
