@@ -188,3 +188,46 @@ def test_a_simulation_of_particles_in_random_order_warns_once(recwarn):
     order = spatial_order(x, 2.0 * r.max())
     Simulation(Particles.from_density(x[order], r, 2500.0)).run(steps=3)
     assert not [w for w in recwarn if "random order" in str(w.message)]
+
+
+def test_dt_of_a_file_in_random_order_is_solved_reordered_and_reports_its_rows(tmp_path,
+                                                                               capsys):
+    """`demstep dt FILE` renumbers a file's particles in spatial order after reading and
+    checking them: the step is the same as in the file's order (the dense reference on
+    the file's numbering, within the certificate's margin), and the reports and the
+    mode VTK name the file's rows (radii differ per particle)."""
+    import json
+
+    import meshio
+
+    import demstep.timestep_input as ti
+    from demstep.cli import main
+
+    x, _ = shuffled_packing()
+    r = 0.5 * 1.001 * (1.0 + 0.02 * np.random.default_rng(4).random(len(x)))
+    x = x * 1.021
+    write_csv(tmp_path / "spheres.csv", x, r)
+    argv = ["dt", str(tmp_path / "spheres.csv"), "--methods", "exact", "--json",
+            "--kn", "1e5", "--density", "2500", "--contact-tol", "0.05", "--top", "5"]
+    vtk = tmp_path / "mode.vtu"
+    assert main(argv + ["--mode-vtk", str(vtk)]) in (0, None)
+    out = json.loads(capsys.readouterr().out)
+    for q in out["critical_mode"]["particles"]:
+        assert q["radius"] == pytest.approx(r[q["index"]], rel=1e-12)
+    mesh = meshio.read(vtk)
+    np.testing.assert_allclose(mesh.point_data["radius"], r[mesh.point_data["id"]],
+                               rtol=1e-12)
+    reordered = ti.from_file(tmp_path / "spheres.csv", ti.ContactModel(k_n=1e5, k_t=1e5),
+                             density=2500.0, contact_tol=0.05)
+    assert reordered.ids is not None
+    original = ti.from_particles(Particles.from_density(x, r, 2500.0),
+                                 ti.ContactModel(k_n=1e5, k_t=1e5), None, None, (), 0.05)
+    assert original.contacts.n == reordered.contacts.n
+    np.testing.assert_array_equal(reordered.particles.r, r[reordered.ids])
+    from demstep.timestep.exact import exact_critical_step
+
+    dt_a = exact_critical_step(reordered.particles, reordered.contacts, True).dt
+    dt_b = exact_critical_step(original.particles, original.contacts, True).dt
+    assert dt_a == pytest.approx(dt_b, rel=1e-8)
+    dt_json = [m["dt"] for m in out["estimates"] if m["method"] == "exact"]
+    assert dt_json and dt_json[0] == pytest.approx(dt_b, rel=1e-8)

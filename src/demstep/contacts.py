@@ -115,6 +115,16 @@ class ContactSet:
         """The contacts selected by ``keep`` (a boolean mask or an index array)."""
         return ContactSet(*(getattr(self, f)[keep] for f in self.FIELDS))
 
+    def renumbered(self, new_index: np.ndarray) -> "ContactSet":
+        """The same contacts on renumbered particles: particle p becomes
+        ``new_index[p]`` (walls stay -1), the contacts sorted by their new i (stable)."""
+        i = new_index[self.i]
+        j = np.where(self.j >= 0, new_index[np.maximum(self.j, 0)], self.j)
+        order = np.argsort(i, kind="stable")
+        moved = self.subset(order)
+        moved.i, moved.j = i[order], j[order]
+        return moved
+
     @property
     def is_wall(self) -> np.ndarray:
         return self.j < 0

@@ -84,6 +84,11 @@ class Particles:
     def n(self) -> int:
         return self.x.shape[0]
 
+    def take(self, order) -> "Particles":
+        """The particles in the order ``order`` (each new row's old row)."""
+        return Particles(self.x[order], self.r[order], self.m[order], self.inertia[order],
+                         self.fixed[order])
+
     def copy(self) -> "Particles":
         return Particles(self.x.copy(), self.r.copy(), self.m.copy(), self.inertia.copy(),
                          self.fixed.copy())

@@ -44,6 +44,7 @@ import numpy as np
 from demstep.contact.laws import RollingResistance
 from demstep.contacts import DEFAULT_CONTACT_TOL, ContactSet, find_contacts
 from demstep.errors import InputError
+from demstep.packings import SPATIAL_ORDER_MIN
 from demstep.particles import Particles, particle_inertia
 from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.estimates import Materials
@@ -524,9 +525,31 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
         m[members] = bodies.mass[bodies.sphere_body[members]]  # contacts' effective masses
     inertia = particle_inertia(m, data.r, dim)
     particles = Particles(x, data.r, m, inertia)
-    return from_particles(particles, model, types, periodic, _walls(walls, box_arr, dim),
-                          contact_tol, damping, data.v, impact_velocity, str(path), notes,
-                          bodies)
+    out = from_particles(particles, model, types, periodic, _walls(walls, box_arr, dim),
+                         contact_tol, damping, data.v, impact_velocity, str(path), notes,
+                         bodies)
+    if bodies is None and particles.n >= SPATIAL_ORDER_MIN:
+        _put_in_spatial_order(out)
+    return out
+
+
+def _put_in_spatial_order(data: AnalysisInput) -> None:
+    """Renumber the particles of ``data`` (read, checked and in contact, named by the
+    file's rows in any message so far) in spatial order, the file's row of each kept in
+    ``ids`` for the reports: the products of the exact step gather by index (1e5 dense
+    spheres in random order: 5.0 s against 1.6 s in spatial order)."""
+    from demstep.packings import spatial_order
+
+    p = data.particles
+    order = spatial_order(p.x, 2.0 * float(p.r.max()))
+    new_index = np.empty(p.n, dtype=np.int64)
+    new_index[order] = np.arange(p.n)
+    data.particles = p.take(order)
+    data.contacts = data.contacts.renumbered(new_index)
+    data.types = data.types[order]
+    if data.velocities is not None:
+        data.velocities = data.velocities[order]
+    data.ids = order
 
 
 def _all_densities(model: ContactModel) -> bool:

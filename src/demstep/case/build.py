@@ -84,14 +84,6 @@ def _particles(case: Case, x, r, m):
     return Particles(x, r, m, particle_inertia(m, r, x.shape[1]), fixed)
 
 
-def _reordered(particles, order):
-    """``particles`` in the order ``order`` (each new row's old row)."""
-    from demstep.particles import Particles
-
-    return Particles(particles.x[order], particles.r[order], particles.m[order],
-                     particles.inertia[order], particles.fixed[order])
-
-
 def _clump_set(case: Case):
     """The bodies of ``generator = "clumps"``: the templates in turn on the grid."""
     from demstep.case.schema import clump_templates
@@ -242,7 +234,7 @@ def _build_simulation(case: Case, checkpoint_dir):
             # by index, and other codes number particles as they inserted them (2.5x on
             # a dense packing in random order); messages and outputs keep the file's rows
             source_index = spatial_order(x, 2.0 * float(r.max()))
-            particles = _reordered(particles, source_index)
+            particles = particles.take(source_index)
             x, r = particles.x, particles.r
     if clumps is not None:
         from demstep.clumps import expand
