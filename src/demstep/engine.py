@@ -310,6 +310,7 @@ class Simulation:
         self._damping_history = False
         self._dashpot_history = False
         self._pairs_built = False
+        self._order_checked = False  # whether the particle order was looked at (_check_order)
         self._next_dt_update = 0
         self.energy_floor = None
 
@@ -449,7 +450,7 @@ class Simulation:
             sb = bodies.sphere_body
             keep = (sb[pi] < 0) | (sb[pi] != sb[pj])
             pi, pj = pi[keep], pj[keep]
-        if not getattr(self, "_order_checked", False):
+        if not self._order_checked:
             self._check_order(pi, pj)
         if self._dashpot_history:
             shear, dashpot, energy = be.transfer_history(old.i, old.j, pi, pj, old.shear,

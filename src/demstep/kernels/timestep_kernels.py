@@ -62,20 +62,11 @@ def stiffness_diagonal_kernel(contacts, n_particles: int, nd: int, rotation: boo
 
 
 @njit(inline="always")
-def _contact_slip(c, i, j, normal, arm_i, arm_j, x, dim, nd, rotation):
-    """Relative displacement of j's contact point w.r.t. i's for contact ``c`` (global
-    axes, padded to 3): Delta = u_j - u_i - (a_i theta_i + a_j theta_j) x n; a wall
-    side (j < 0) does not move. ``x`` (n, nd) holds the DOFs already scaled.
-
-    Each particle's row is taken once (``x[p]``: indexing ``x[p, k]`` with a signed p
-    tests for a negative index at every access) and everything of the second particle
-    is read in one branch."""
-    p = i[c]
-    q = j[c]
-    xp = x[p]
-    n0 = normal[c, 0]
-    n1 = normal[c, 1]
-    n2 = normal[c, 2] if dim == 3 else 0.0
+def _slip_of_rows(xp, xq, has_q, n0, n1, n2, a_i, a_j, dim, rotation):
+    """Relative displacement of j's contact point w.r.t. i's (global axes, padded to
+    3): Delta = u_j - u_i - (a_i theta_i + a_j theta_j) x n, from the particles' DOF
+    rows ``xp``, ``xq`` (already scaled; ``xq`` ignored without ``has_q``: a wall side
+    does not move) and the contact's unit normal and arms [L]."""
     d0 = -xp[0]
     d1 = -xp[1]
     d2 = -xp[2] if dim == 3 else 0.0
@@ -83,27 +74,24 @@ def _contact_slip(c, i, j, normal, arm_i, arm_j, x, dim, nd, rotation):
     t1 = 0.0
     t2 = 0.0
     if rotation:
-        ai = arm_i[c]
         if dim == 2:
-            t2 = ai * xp[2]
+            t2 = a_i * xp[2]
         else:
-            t0 = ai * xp[3]
-            t1 = ai * xp[4]
-            t2 = ai * xp[5]
-    if q >= 0:
-        xq = x[q]
+            t0 = a_i * xp[3]
+            t1 = a_i * xp[4]
+            t2 = a_i * xp[5]
+    if has_q:
         d0 += xq[0]
         d1 += xq[1]
         if dim == 3:
             d2 += xq[2]
         if rotation:
-            aj = arm_j[c]
             if dim == 2:
-                t2 += aj * xq[2]
+                t2 += a_j * xq[2]
             else:
-                t0 += aj * xq[3]
-                t1 += aj * xq[4]
-                t2 += aj * xq[5]
+                t0 += a_j * xq[3]
+                t1 += a_j * xq[4]
+                t2 += a_j * xq[5]
     if rotation:
         if dim == 2:
             # theta z x n = theta (-n1, n0)
@@ -113,30 +101,56 @@ def _contact_slip(c, i, j, normal, arm_i, arm_j, x, dim, nd, rotation):
             d0 -= t1 * n2 - t2 * n1
             d1 -= t2 * n0 - t0 * n2
             d2 -= t0 * n1 - t1 * n0
+    return d0, d1, d2
+
+
+@njit(inline="always")
+def _rotation_of_rows(xp, xq, has_q, dim):
+    """phi = theta_j - theta_i (padded to 3; 2D: (0, 0, theta_z)) from the DOF rows with
+    rotations (``xq`` ignored without ``has_q``: a wall side does not rotate)."""
+    if dim == 2:
+        f = -xp[2]
+        if has_q:
+            f += xq[2]
+        return 0.0, 0.0, f
+    f0 = -xp[3]
+    f1 = -xp[4]
+    f2 = -xp[5]
+    if has_q:
+        f0 += xq[3]
+        f1 += xq[4]
+        f2 += xq[5]
+    return f0, f1, f2
+
+
+@njit(inline="always")
+def _contact_slip(c, i, j, normal, arm_i, arm_j, x, dim, nd, rotation):
+    """:func:`_slip_of_rows` of contact ``c`` and the normal (padded to 3) for DOFs
+    ``x`` (n, nd), already scaled. A particle's row is taken once (``x[p]``; indexing
+    ``x[p, k]`` with a signed p tests for a negative index at every access), the second
+    particle's only when there is one."""
+    p = i[c]
+    q = j[c]
+    n0 = normal[c, 0]
+    n1 = normal[c, 1]
+    n2 = normal[c, 2] if dim == 3 else 0.0
+    xp = x[p]
+    if q >= 0:
+        d0, d1, d2 = _slip_of_rows(xp, x[q], True, n0, n1, n2, arm_i[c], arm_j[c], dim,
+                                   rotation)
+    else:
+        d0, d1, d2 = _slip_of_rows(xp, xp, False, n0, n1, n2, arm_i[c], 0.0, dim, rotation)
     return d0, d1, d2, n0, n1, n2
 
 
 @njit(inline="always")
 def _relative_rotation(c, i, j, x, dim):
-    """phi = theta_j - theta_i of contact ``c`` (padded to 3; 2D: (0, 0, theta_z)); a wall
-    side (j < 0) does not rotate. ``x`` (n, nd) holds the DOFs with rotations."""
-    p = i[c]
+    """:func:`_rotation_of_rows` of contact ``c`` for DOFs ``x`` (n, nd)."""
     q = j[c]
-    xp = x[p]
-    if dim == 2:
-        f = -xp[2]
-        if q >= 0:
-            f += x[q][2]
-        return 0.0, 0.0, f
-    f0 = -xp[3]
-    f1 = -xp[4]
-    f2 = -xp[5]
+    xp = x[i[c]]
     if q >= 0:
-        xq = x[q]
-        f0 += xq[3]
-        f1 += xq[4]
-        f2 += xq[5]
-    return f0, f1, f2
+        return _rotation_of_rows(xp, x[q], True, dim)
+    return _rotation_of_rows(xp, xp, False, dim)
 
 
 @njit(inline="always")
@@ -179,70 +193,32 @@ def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, r
     (2D: k_r; a wall side: B on theta_i only). Inlined into drivers that fix ``dim``,
     ``rotation`` and ``rolling`` as constants (:func:`_contact_matvec_range`).
 
-    The slip is written out here rather than taken from :func:`_contact_slip`: a helper
-    that takes arrays, called per contact, and a particle row taken on the wall side
-    too, each cost 1.5x on the whole product (numba's reference counting of the array
-    views; measured on a 1.3e5-sphere FCC block: 8.6 ms against 13-14 ms per product).
-    Both are checked against the assembled matrix (tests/test_exact_solver.py)."""
+    The slip comes from the particles' rows (:func:`_slip_of_rows`), taken here, the
+    second one only when it exists: the index-based :func:`_contact_slip` called per
+    contact (it takes the contact arrays), or a row taken on a wall's missing side,
+    each cost 1.5x on the whole product (numba's reference counting of array views;
+    1.3e5-sphere FCC block: 8.6 ms against 13-14 ms per product)."""
     for c in range(start, stop):
         p = i[c]
         q = j[c]
         n0 = normal[c, 0]
         n1 = normal[c, 1]
         n2 = normal[c, 2] if dim == 3 else 0.0
-        xp = x[p]
-        d0 = -xp[0]
-        d1 = -xp[1]
-        d2 = -xp[2] if dim == 3 else 0.0
-        t0 = 0.0
-        t1 = 0.0
-        t2 = 0.0
         r0 = 0.0
         r1 = 0.0
         r2 = 0.0
-        if rotation:
-            ai = arm_i[c]
-            if dim == 3:
-                t0 = ai * xp[3]
-                t1 = ai * xp[4]
-                t2 = ai * xp[5]
-                if rolling:
-                    r0 = -xp[3]
-                    r1 = -xp[4]
-                    r2 = -xp[5]
-            else:
-                t2 = ai * xp[2]
-                if rolling:
-                    r2 = -xp[2]
+        xp = x[p]
         if q >= 0:
             xq = x[q]
-            d0 += xq[0]
-            d1 += xq[1]
-            if dim == 3:
-                d2 += xq[2]
-            if rotation:
-                aj = arm_j[c]
-                if dim == 3:
-                    t0 += aj * xq[3]
-                    t1 += aj * xq[4]
-                    t2 += aj * xq[5]
-                    if rolling:
-                        r0 += xq[3]
-                        r1 += xq[4]
-                        r2 += xq[5]
-                else:
-                    t2 += aj * xq[2]
-                    if rolling:
-                        r2 += xq[2]
-        if rotation:
-            if dim == 3:
-                d0 -= t1 * n2 - t2 * n1
-                d1 -= t2 * n0 - t0 * n2
-                d2 -= t0 * n1 - t1 * n0
-            else:
-                # theta z x n = theta (-n1, n0)
-                d0 += t2 * n1
-                d1 -= t2 * n0
+            d0, d1, d2 = _slip_of_rows(xp, xq, True, n0, n1, n2, arm_i[c], arm_j[c], dim,
+                                       rotation)
+            if rotation and rolling:
+                r0, r1, r2 = _rotation_of_rows(xp, xq, True, dim)
+        else:
+            d0, d1, d2 = _slip_of_rows(xp, xp, False, n0, n1, n2, arm_i[c], 0.0, dim,
+                                       rotation)
+            if rotation and rolling:
+                r0, r1, r2 = _rotation_of_rows(xp, xp, False, dim)
         dn = d0 * n0 + d1 * n1 + d2 * n2
         kt = k_t[c]
         a = (k_n[c] - kt) * dn

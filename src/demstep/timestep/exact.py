@@ -390,16 +390,15 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
     op = ScaledContactOperator(particles, contacts, rotation, damping, bodies, threads=threads,
                                workspace=workspace)
     try:
-        return _exact_step(op, contacts, v0, dense_limit, rtol, max_iter, tol, loose_tol,
-                           solver)
+        return _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver)
     finally:
         if workspace is None:
             op.workspace.release(*LANCZOS_ARRAYS)
 
 
-def _exact_step(op, contacts, v0, dense_limit, rtol, max_iter, tol, loose_tol,
-                solver) -> ExactStep:
-    """:func:`exact_critical_step` on the operator ``op``."""
+def _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver) -> ExactStep:
+    """:func:`exact_critical_step` on the operator ``op`` (its contacts and damping)."""
+    contacts = op.contacts
     if contacts.n == 0 and not op.damping.mass:
         raise InputError("contacts: the assembly has no contacts")
     damped = contacts.damped or op.damping.active
