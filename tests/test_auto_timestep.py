@@ -130,6 +130,36 @@ def test_a_contact_outside_the_cover_forces_a_new_estimate():
     assert sim.dt <= 0.9 * sim.critical_dt("exact") * (1 + 1e-9)
 
 
+def test_an_uncovered_contact_is_caught_at_the_step_it_closes():
+    """The pair loop counts the contacts that close beyond the cover of the certified
+    step and ends the chunk of steps there: the new estimate comes at the step the
+    contact closed, not at the next check (every AUTO_CHECK_EVERY steps)."""
+    def falling():
+        x = np.array([[0.0, 0, 0], [0.0, 0, 2.05]])
+        p = Particles.from_density(x, np.ones(2), 1.0, fixed=[True, False])
+        sim = Simulation(p, LinearSpring(k_n=1e4, restitution=0.2), gravity=[0, 0, -9.81],
+                         timestep=TimeStep.auto(safety=0.9, method="exact", every=10**6))
+        sim.prepare()
+        sim._dt_cover = {}  # as if the last estimate had seen no pair
+        return sim
+
+    # the step at which the contact closes, from a twin checked after every step
+    twin = falling()
+    touching = []
+    twin.every(1, lambda s: touching.append((s.step, s.n_contacts)))
+    twin.run(steps=400)
+    closing = min(step for step, n in touching if n > 0)
+    assert closing % Simulation.AUTO_CHECK_EVERY != 0  # the check alone would be late
+
+    sim = falling()
+    estimates = []
+    choose = sim._choose_dt
+    sim._choose_dt = lambda *a, **k: (estimates.append(sim.step), choose(*a, **k))[1]
+    sim.run(steps=400)
+    assert estimates == [closing]
+    assert sim.n_dt_estimates == 2
+
+
 @pytest.mark.parametrize("law", [
     LinearSpring(k_n=2e5, k_s=1e5, mu=0.4, restitution=0.5, restitution_tangential=0.5),
     HertzMindlin(youngs_modulus=5e6, poisson_ratio=0.3, mu=0.4, restitution=0.5,
@@ -147,3 +177,38 @@ def test_extended_certificates_stay_below_the_exact_step(law):
     checked = [(dt, crit) for dt, crit in record if crit is not None]
     assert len(checked) > 100
     assert all(dt <= crit * (1 + 1e-9) for dt, crit in checked)
+
+
+@pytest.mark.parametrize("law", [
+    LinearSpring(k_n=2e5, k_s=1e5, mu=0.4, restitution=0.5),
+    HertzMindlin(youngs_modulus=5e6, poisson_ratio=0.3, mu=0.4, restitution=0.5),
+], ids=["linear", "hertz"])
+def test_the_pair_loops_cover_follows_the_record_through_rebuilds(law):
+    """The per-pair cover the pair loops compare overlaps with, carried over by every
+    rebuild of the lists, is never more generous than the record of the contacts the
+    last estimate covered (a pair left out of the record: 0; in it: its overlap, or any
+    with the linear law)."""
+    from demstep.engine import _cover_of
+
+    sim = settling_simulation(law, 0.9)
+    nonlinear = isinstance(law, HertzMindlin)
+    seen = {"rebuilds": set(), "pairs": 0, "covered": 0}
+
+    def check(s):
+        rec = s._dt_cover
+        n, nw = len(s.r), max(1, len(s.walls))
+        for keys, cover, name in ((s.pairs.i * n + s.pairs.j, s.pairs.cover, "pairs"),
+                                  (s.wall_state.p * nw + s.wall_state.wall,
+                                   s.wall_state.cover, "walls")):
+            assert len(cover) == len(keys)
+            expect = _cover_of(keys, *rec.get(name, (np.zeros(0, np.int64), np.zeros(0))),
+                               nonlinear)
+            assert np.all(cover <= expect)
+            assert np.all((cover == 0) | (cover == expect))
+            seen["pairs"] += len(keys)
+            seen["covered"] += int(np.count_nonzero(cover))
+        seen["rebuilds"].add(s.n_rebuilds)
+
+    sim.every(7, check)
+    sim.run(steps=1500)
+    assert len(seen["rebuilds"]) > 10 and seen["covered"] > seen["pairs"] // 4

@@ -205,3 +205,39 @@ def test_undamped_sparse_step_matches_dense_eigh():
     assert r.lambda_undamped == pytest.approx(lam, rel=1e-10)
     assert r.dt <= 2.0 / np.sqrt(lam) * (1 + 1e-12)
     assert r.dt == pytest.approx(2.0 / np.sqrt(lam), rel=1e-9)
+
+
+def test_a_workspace_without_huge_pages_refuses_them():
+    """The engine's workspace maps its large arrays with transparent huge pages refused
+    (in a running simulation the kernel compacted memory for each 2 MB page): the
+    mapping is not eligible for them (/proc/self/smaps), while numpy's own large
+    arrays are where the system offers them on request."""
+    import re
+    from pathlib import Path
+
+    from demstep.timestep.eigen import SMALL_PAGES_MIN, Workspace
+
+    smaps = Path("/proc/self/smaps")
+    mode = Path("/sys/kernel/mm/transparent_hugepage/enabled")
+    if not smaps.exists() or not mode.exists() or "[never]" in mode.read_text():
+        pytest.skip("no transparent huge pages here")
+
+    def eligible(a):
+        addr = a.__array_interface__["data"][0] + a.nbytes // 2  # numpy's advice skips the head
+        text = smaps.read_text()
+        for m in re.finditer(r"^([0-9a-f]+)-([0-9a-f]+) .*?THPeligible:\s+(\d)", text,
+                             re.M | re.S):
+            if int(m.group(1), 16) <= addr < int(m.group(2), 16):
+                return m.group(3) == "1"
+        raise AssertionError("mapping not found")
+
+    ws = Workspace(huge_pages=False)
+    a = ws.array("basis", (4, SMALL_PAGES_MIN // 8))
+    a[:] = 1.0
+    assert ws.array("basis", (4, SMALL_PAGES_MIN // 8)) is a  # kept between solves
+    assert not eligible(a)
+    b = Workspace().array("basis", (4, SMALL_PAGES_MIN // 8))
+    b[:] = 1.0
+    assert eligible(b)
+    small = Workspace(huge_pages=False).array("w", (SMALL_PAGES_MIN // 16,))
+    assert isinstance(small.base, (np.ndarray, type(None)))  # numpy's own allocation

@@ -106,9 +106,14 @@ def test_pair_forces_equal_numpy_reference(kernel):
     sums = np.zeros((4, 3))
     fn = dem.pair_forces_serial if kernel == "serial" else dem.pair_forces
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
-    e_n, e_t, fric, dash, nc = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
-                                  params, dt, ft2, fd2, et2, True, chunks, spans, fbuf, tbuf, sums,
-                                  np.empty((P, 4)))
+    # the cover of each pair (0: none, inf: any overlap, else an overlap limit)
+    delta = r[pi] + r[pj] - np.linalg.norm(x[pj] - x[pi], axis=1)
+    cover = np.choose(np.arange(P) % 3, [np.zeros(P), np.full(P, np.inf), 0.5 * np.abs(delta)])
+    e_n, e_t, fric, dash, nc, uncovered = fn(
+        x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0, params, dt, ft2, fd2, et2,
+        True, chunks, spans, fbuf, tbuf, sums, np.empty((P, 4)), cover)
+    assert uncovered == np.count_nonzero(delta > cover) > 0
+    assert nc == np.count_nonzero(delta > 0)
     force, new_t, new_fd, new_et, ref_en, ref_fric, ref_dash, arm_i, arm_j, n = ref
     tol = dict(rtol=1e-10, atol=1e-12)
     assert np.allclose(ft2, new_t, **tol)
@@ -156,9 +161,9 @@ def test_hertz_pair_forces_equal_numpy_reference(kernel):
     sums = np.zeros((4, 3))
     fn = dem.pair_forces_serial if kernel == "serial" else dem.pair_forces
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
-    e_n, e_t, fric, dash, nc = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
+    e_n, e_t, fric, dash, nc, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
                                   LAW_HERTZ, params, dt, ft2, fd2, et2, True, chunks, spans,
-                                  fbuf, tbuf, sums, np.empty((P, 4)))
+                                  fbuf, tbuf, sums, np.empty((P, 4)), np.zeros(0))
     tol = dict(rtol=1e-10, atol=1e-12)
     assert np.allclose(ft2, new_t, **tol)
     assert np.allclose(fd2, new_fd, **tol)
@@ -189,7 +194,7 @@ def test_pair_forces_without_dashpot_skip_its_history():
         out = dem.pair_forces_serial(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
                                      params, 1e-3, ft2, fd2, et2, store, np.array([0, P]),
                                      np.array([[0, len(r)]]), fbuf, tbuf, np.zeros((4, 3)),
-                                     np.empty((P, 4)))
+                                     np.empty((P, 4)), np.zeros(0))
         assert not fd2.any()
         results.append((out, ft2, et2, fbuf, tbuf))
     (o1, *a1), (o2, *a2) = results
@@ -336,9 +341,9 @@ def test_pair_blocks_any_chunking_equal_numpy_reference(n_chunks):
     fbuf, tbuf = np.full((n_chunks, len(r), 3), np.nan), np.full((n_chunks, len(r), 3), np.nan)
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
     fn = dem.pair_forces_serial if n_chunks == 1 else dem.pair_forces
-    e_n, e_t, fric, dash, nc = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
+    e_n, e_t, fric, dash, nc, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
                                   law.params(), dt, ft2, fd2, et2, True, chunks, spans, fbuf,
-                                  tbuf, np.zeros((4, 3)), np.empty((0, 4)))
+                                  tbuf, np.zeros((4, 3)), np.empty((0, 4)), np.zeros(0))
     tol = dict(rtol=1e-10, atol=1e-12)
     assert np.allclose(ft2, new_t, **tol) and np.allclose(fd2, new_fd, **tol)
     assert np.allclose(et2, new_et, **tol)

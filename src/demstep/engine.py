@@ -161,6 +161,21 @@ def _as3(a, n=None):
     return out
 
 
+_NO_COVER = (np.zeros(0, dtype=np.int64), np.zeros(0))
+
+
+def _cover_of(keys, known, assumed, nonlinear: bool) -> np.ndarray:
+    """Per pair of sorted ``keys``: the overlap ``assumed`` for it among the sorted
+    ``known`` keys (any, +inf, unless ``nonlinear``), 0 when it is not among them."""
+    known = np.asarray(known, dtype=np.int64)
+    if len(known) == 0:
+        return np.zeros(len(keys))
+    at = np.minimum(np.searchsorted(known, keys), len(known) - 1)
+    found = known[at] == keys
+    value = np.asarray(assumed, dtype=np.float64)[at] if nonlinear else np.inf
+    return np.where(found, value, 0.0)
+
+
 class Simulation:
     """An explicit DEM simulation of disks (2D) or spheres (3D).
 
@@ -291,7 +306,7 @@ class Simulation:
         self._update_masses()
         self.backend = get_backend(backend)
         self.ledger = EnergyLedger()
-        self.counters = np.zeros(3)
+        self.counters = np.zeros(4)
         self.pairs = Pairs.empty(n)
         self.bonds = Bonds.empty()
         self.step = 0
@@ -353,7 +368,8 @@ class Simulation:
                                 z3.copy(), z3.copy(), point.copy(), np.zeros(nw),
                                 np.zeros(nw, dtype=np.int64), np.zeros(nw), box_lo, box_hi,
                                 np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
-                                z0, z0.copy(), np.zeros(0), np.zeros((0, ROLL_WIDTH)))
+                                z0, z0.copy(), np.zeros(0), np.zeros((0, ROLL_WIDTH)),
+                                np.zeros(0))
         if nw:
             dist = np.einsum("pwk,wk->pw", self.x[:, None, :] - point[None], normal)
             deep = dist < 0.5 * self.r[:, None]
@@ -458,21 +474,25 @@ class Simulation:
         else:  # no dashpot forces to carry: zeros the kernels never touch
             shear, energy = be.transfer_history(old.i, old.j, pi, pj, old.shear, old.shear_energy)
             dashpot = np.zeros((len(pi), 3))
-        roll = old.roll
+        roll, cover = old.roll, old.cover
         if len(roll):
             roll, = be.transfer_history(old.i, old.j, pi, pj, roll)
+        if len(cover):  # new pairs: not covered (0)
+            cover, = be.transfer_history(old.i, old.j, pi, pj, cover)
         self.pairs = old._replace(i=pi, j=pj, shear=shear, dashpot=dashpot, shear_energy=energy,
-                                  roll=roll)
+                                  roll=roll, cover=cover)
         self._chunks_for = None
         wp, ww = be.build_wall_list(self.x, self.r, ws.point, ws.normal, self.skin,
                                     expected_pairs=len(ws.p) if built else None)
         wshear, wdash, wenergy = be.transfer_history(ws.p, ws.wall, wp, ww, ws.shear,
                                                      ws.dashpot, ws.shear_energy)
-        wroll = ws.roll
+        wroll, wcover = ws.roll, ws.cover
         if len(wroll):
             wroll, = be.transfer_history(ws.p, ws.wall, wp, ww, wroll)
+        if len(wcover):
+            wcover, = be.transfer_history(ws.p, ws.wall, wp, ww, wcover)
         self.wall_state = ws._replace(p=wp, wall=ww, shear=wshear, dashpot=wdash,
-                                      shear_energy=wenergy, roll=wroll)
+                                      shear_energy=wenergy, roll=wroll, cover=wcover)
         self.x_ref[:] = self.x
         self.wall_state.ref[:] = self.wall_state.point
         self.box.ref[:] = self.box.length
@@ -677,7 +697,7 @@ class Simulation:
         if ws is None:
             from demstep.timestep.eigen import Workspace
 
-            ws = self._dt_workspace = Workspace()
+            ws = self._dt_workspace = Workspace(huge_pages=False)
         return ws
 
     def _record_certificate(self, sigma, lam_c, contacts, bodies):
@@ -909,6 +929,9 @@ class Simulation:
         data = dict(data)
         for name in ("pairs", "wall_state"):  # checkpoints from before rolling resistance
             data.setdefault(f"{name}.roll", np.zeros((0, ROLL_WIDTH)))
+        old_cover = "pairs.cover" not in data  # and from before the cover was tracked
+        for name in ("pairs", "wall_state"):
+            data.setdefault(f"{name}.cover", np.zeros(0))
         for f in Bonds.STATE:  # and from before bonds
             data.setdefault(f"bonds.{f}", getattr(Bonds.empty(), f))
         missing = [k for k in needed if k not in data]
@@ -931,11 +954,14 @@ class Simulation:
         self.ledger.energy[:] = 0.0
         self.ledger.acc[:len(data["ledger.acc"])] = data["ledger.acc"]
         self.ledger.energy[:len(data["ledger.energy"])] = data["ledger.energy"]
-        self.counters[:] = data["ledger.counters"]
+        self.counters[:] = 0.0  # older checkpoints: the first three
+        self.counters[:len(data["ledger.counters"])] = data["ledger.counters"]
         self.gravity = np.ascontiguousarray(data["gravity"], dtype=np.float64)
         if "monitor" in data:
             self.monitor.restore_state(data["monitor"])
         self.restore_timestep_state({k: data[k] for k in data if k.startswith("ts_")})
+        if old_cover:
+            self._sync_cover(reset=False)
         step, time, dt, dt_prev, first, max_err, next_dt, dt_est, t_step, t_time, t_dt = \
             np.asarray(data["scalars"], dtype=np.float64)
         self.step = int(step)
@@ -984,7 +1010,8 @@ class Simulation:
             if f"ts_cover_{name}_keys" in data:
                 cover[name] = (np.array(data[f"ts_cover_{name}_keys"]),
                                np.array(data[f"ts_cover_{name}_overlap"]))
-        self._dt_cover = cover if cover or "ts_mode" in data else None
+        # (the pair loops' cover arrays are part of the saved state: not synced here)
+        self._cover_record = cover if cover or "ts_mode" in data else None
 
     def _uncovered(self):
         """Masks over the pair and wall lists of the closed contacts the last 'auto'
@@ -1007,18 +1034,72 @@ class Simulation:
                                     np.asarray(assumed, dtype=np.float64), nonlinear)
         return pair_mask, wall_mask
 
+    @property
+    def _dt_cover(self) -> dict | None:
+        """The contacts the last 'auto' estimate covered: {'pairs': (keys, overlaps),
+        'walls': ...}, keys sorted (None before the first estimate). Setting it syncs
+        the pair loops' cover arrays (:meth:`_sync_cover`)."""
+        return self.__dict__.get("_cover_record")
+
+    @_dt_cover.setter
+    def _dt_cover(self, cover: dict | None):
+        self._cover_record = cover
+        self._sync_cover()
+
+    def _sync_cover(self, reset: bool = True):
+        """Each pair's and wall pair's cover (``pairs.cover``, ``wall_state.cover``: the
+        largest overlap [L] the last estimate covered it at; any overlap with the linear
+        law; 0 when not covered) from the record of the contacts it covered, for the pair
+        loops to count the contacts that close beyond it; none tracked without a record.
+        ``reset``: the count starts again (the record has just been checked)."""
+        cover = self._dt_cover
+        if cover is None:
+            self.pairs = self.pairs._replace(cover=np.zeros(0))
+            self.wall_state = self.wall_state._replace(cover=np.zeros(0))
+        else:
+            nonlinear = self.law.law_id != 0
+            ws = self.wall_state
+            self.pairs = self.pairs._replace(cover=_cover_of(
+                self.pairs.i * len(self.r) + self.pairs.j, *cover.get("pairs", _NO_COVER),
+                nonlinear))
+            self.wall_state = ws._replace(cover=_cover_of(
+                ws.p * max(1, len(self.walls)) + ws.wall, *cover.get("walls", _NO_COVER),
+                nonlinear))
+        if reset:
+            self.counters[3] = 0.0
+
+    def _uncovered_now(self):
+        """:meth:`_uncovered`, skipped (no contact uncovered) when the pair loops counted
+        no contact closed beyond its cover since the last check; the cover synced after
+        a check."""
+        if getattr(self, "_dt_cover", None) is None:
+            return None
+        tracked = (len(self.pairs.cover) == len(self.pairs.i)
+                   and len(self.wall_state.cover) == len(self.wall_state.p))
+        if tracked and self.counters[3] == 0:
+            return np.zeros(len(self.pairs.i), dtype=bool), np.zeros(len(self.wall_state.p),
+                                                                      dtype=bool)
+        return self._uncovered()
+
     def _still_certified(self) -> bool:
         """The check of the 'auto' control between estimates: False when there was no
         estimate, or when a contact closed that the last one did not cover and
         :meth:`_certify_added` cannot add it, or when the covered contacts' normals
         turned so far that the certificate no longer holds at dt
         (:mod:`demstep.timestep.certificate`; checked at every multiple of
-        AUTO_CHECK_EVERY steps: the certificate has the slack of the safety factor)."""
-        masks = self._uncovered()
+        AUTO_CHECK_EVERY steps: the certificate has the slack of the safety factor). The
+        pair loops count the contacts that close beyond their cover at every step; the
+        closed contacts are compared with the record only when they counted some."""
+        masks = self._uncovered_now()
         if masks is None:
             return False
         if masks[0].any() or masks[1].any():
-            return self._certify_added(*masks)
+            covered = self._certify_added(*masks)
+            if covered:
+                self._sync_cover()
+            return covered
+        if self.counters[3]:
+            self._sync_cover()
         cert = getattr(self, "_dt_cert", None)
         if (cert is None or not cert.bounded or self.dt is None
                 or self.step % self.AUTO_CHECK_EVERY):
@@ -1161,6 +1242,8 @@ class Simulation:
         budget = steps if steps is not None else (max_steps if max_steps is not None else 10**12)
         if budget < 0:
             raise InputError(f"run: steps must be >= 0, got {budget}")
+        if self.timestep.mode != "auto" and self._dt_cover is not None:
+            self._dt_cover = None  # no contacts to watch for the 'auto' control
         params = self.law.params()
         law_id = int(params.law)
         self._size_rolling_history(params.has_rolling)

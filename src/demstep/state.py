@@ -118,7 +118,9 @@ class Pairs(NamedTuple):
     force buffers ``force_buf``/``torque_buf`` (chunks, N, 3), and ``geo`` (P, 4), the
     unit normals and distances of the first pass of the pair loop. ``roll`` (P, 8): the
     rolling and twisting resistance history (columns: :data:`demstep.kernels.dem.ROLL_M`
-    ...), (0, 8) when the law has none."""
+    ...), (0, 8) when the law has none. ``cover`` (P,): the largest overlap [L] the last
+    certified 'auto' time step covered each pair at (0: not covered; from the record of
+    the contacts it covered, carried over by rebuilds), (0,) when not tracked."""
 
     i: np.ndarray
     j: np.ndarray
@@ -131,8 +133,9 @@ class Pairs(NamedTuple):
     torque_buf: np.ndarray
     geo: np.ndarray
     roll: np.ndarray
+    cover: np.ndarray
 
-    STATE = ("i", "j", "shear", "dashpot", "shear_energy", "roll")
+    STATE = ("i", "j", "shear", "dashpot", "shear_energy", "roll", "cover")
 
     @classmethod
     def empty(cls, n: int) -> "Pairs":
@@ -140,7 +143,7 @@ class Pairs(NamedTuple):
         return cls(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), z3, z3.copy(),
                    np.zeros(0), np.zeros(2, dtype=np.int64), np.array([[0, n]], dtype=np.int64),
                    np.zeros((1, n, 3)), np.zeros((1, n, 3)), np.empty((0, 4)),
-                   np.zeros((0, ROLL_WIDTH)))
+                   np.zeros((0, ROLL_WIDTH)), np.zeros(0))
 
 
 class Bonds(NamedTuple):
@@ -195,7 +198,7 @@ class Walls(NamedTuple):
     loaded ``areas`` [L^2], touching ``contacts`` and their summed ``k_sum`` [M/T^2];
     ``box_lo``/``box_hi`` (3,): the axis-aligned walls bounding the specimen (-1: none).
     The particle-wall list: particle ``p``, wall ``wall`` and each pair's history
-    ``shear``, ``dashpot``, ``shear_energy``, ``roll`` (as :class:`Pairs`)."""
+    ``shear``, ``dashpot``, ``shear_energy``, ``roll`` and ``cover`` (as :class:`Pairs`)."""
 
     point: np.ndarray
     normal: np.ndarray
@@ -218,9 +221,10 @@ class Walls(NamedTuple):
     dashpot: np.ndarray
     shear_energy: np.ndarray
     roll: np.ndarray
+    cover: np.ndarray
 
     STATE = ("point", "vel", "motion", "servo", "force", "force_prev", "disp_prev", "ref",
-             "k_sum", "p", "wall", "shear", "dashpot", "shear_energy", "roll")
+             "k_sum", "p", "wall", "shear", "dashpot", "shear_energy", "roll", "cover")
 
 
 class Box(NamedTuple):
@@ -241,8 +245,10 @@ class Box(NamedTuple):
 
 class Ledger(NamedTuple):
     """The energy ledger's arrays, laid out by :mod:`demstep.energy`: accumulated terms
-    ``acc`` and state terms ``energy``; ``counters`` (3,): particle-particle contacts,
-    particle-wall contacts, the largest jump |v| dt / r of the last step."""
+    ``acc`` and state terms ``energy``; ``counters`` (4,): particle-particle contacts,
+    particle-wall contacts, the largest jump |v| dt / r of the last step, and the
+    contacts counted closed beyond their cover since the engine last reset it
+    (:func:`demstep.kernels.dem.advance`)."""
 
     acc: np.ndarray
     energy: np.ndarray

@@ -43,7 +43,7 @@ from demstep.energy import (  # the ledger's layout is the energy module's
 ROLL_M, ROLL_TWIST, ROLL_VISCOUS, ROLL_ENERGY = 0, 3, 4, 7
 
 # stop reasons returned by advance()
-STOP_DONE, STOP_REBUILD, STOP_NONFINITE, STOP_RUNAWAY, STOP_JUMP = range(5)
+STOP_DONE, STOP_REBUILD, STOP_NONFINITE, STOP_RUNAWAY, STOP_JUMP, STOP_UNCOVERED = range(6)
 
 # wall motions
 WALL_FIXED, WALL_VELOCITY, WALL_SERVO = 0, 1, 2
@@ -358,7 +358,8 @@ law_block = njit(_law_block)
 
 
 def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
-               ft, fd, etan, store_dashpot, chunks, spans, force_buf, torque_buf, box_sums, geo):
+               ft, fd, etan, store_dashpot, chunks, spans, force_buf, torque_buf, box_sums, geo,
+               cover):
     """Forces of all Verlet pairs (compiled twice: parallel and serial), history ``ft``,
     ``fd``, ``etan`` (see :func:`contact_response`). The pairs are cut into chunks
     (``chunks``: pair-index boundaries, one chunk per thread); chunk c accumulates the
@@ -366,7 +367,7 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     ``force_buf[c]``/``torque_buf[c]`` (N, 3): no two threads write the same memory.
     Chunk c touches particles ``spans[c, 0]`` to ``spans[c, 1] - 1`` only; it zeroes
     that range of its buffers first. Returns (strain_n, strain_t, friction, dashpot,
-    contacts). ``box_sums`` (4, 3) receives per axis the virial sum F_on_j,k d_k (Love
+    contacts, uncovered). ``box_sums`` (4, 3) receives per axis the virial sum F_on_j,k d_k (Love
     stress times volume), the boundary sum F_on_j,k n_img,k over pairs crossing a
     periodic boundary (times a change of box length: the work done on the contacts),
     the number of crossing contacts and the sum of their k_n. ``box_rate`` (3,): rate of
@@ -374,7 +375,10 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     v_j - n_img dL/dt. ``store_dashpot`` False (a law without dashpots, ``fd`` all
     zero) skips reading and writing ``fd``. ``geo`` (P, 4) or (0, 4): when it has a
     row per pair, it receives the unit normal and the centre distance of every pair
-    (the rolling-resistance loop reads them).
+    (the rolling-resistance loop reads them). ``cover`` (P,) or (0,): when it has a row
+    per pair, the largest overlap [L] the last certified time step covered each pair at
+    (0: not covered; see :meth:`demstep.engine.Simulation._still_certified`), and the
+    pairs whose overlap exceeds it are counted (the last return value).
 
     A chunk runs in blocks of PAIR_BLOCK pairs, in three passes whose work stays in
     the L1 cache: (1) gather: each pair's geometry, contact-point relative velocity
@@ -391,6 +395,7 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     d_fric = 0.0
     d_dash = 0.0
     n_contacts = 0
+    n_uncovered = 0
     vir0 = 0.0
     vir1 = 0.0
     vir2 = 0.0
@@ -406,6 +411,7 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     needs_m_star = params.beta_n > 0.0 or params.beta_t > 0.0
     needs_r_star = law != LAW_LINEAR
     store_geo = geo.shape[0] > 0
+    track_cover = cover.shape[0] == pi.shape[0]
     len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
     periodic = any_periodic(periodic_len)
     rate0, rate1, rate2 = box_rate[0], box_rate[1], box_rate[2]
@@ -533,9 +539,12 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
                 vir0 += fx * nx * dist
                 vir1 += fy * ny * dist
                 vir2 += fz * nz * dist
-                touching = s[S_DELTA * B + b] > 0.0
+                delta = s[S_DELTA * B + b]
+                touching = delta > 0.0
                 if touching:
                     n_contacts += 1
+                if track_cover and delta > cover[k]:
+                    n_uncovered += 1
                 if periodic:
                     n0, n1, n2 = s[S_N0 * B + b], s[S_N1 * B + b], s[S_N2 * B + b]
                     cr0 += fx * n0
@@ -564,7 +573,7 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     box_sums[3, 0] = kc0
     box_sums[3, 1] = kc1
     box_sums[3, 2] = kc2
-    return e_n, e_t, d_fric, d_dash, n_contacts
+    return e_n, e_t, d_fric, d_dash, n_contacts, n_uncovered
 
 
 def _reduce_loop(force_buf, torque_buf, spans, force, torque):
@@ -620,18 +629,21 @@ def _particle_boundary(wp, q):
 
 def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu, law,
                params, dt, wft, wfd, wetan, force, torque, wall_force, wall_contacts, wall_k,
-               n_chunks):
+               n_chunks, cover):
     """Particle-wall contacts (compiled twice: parallel and serial), in ``n_chunks`` runs
     of wall pairs cut between particles, so that each run adds to the ``force``/
     ``torque`` rows of its own particles only. ``wall_force`` (W, 3) receives the force
     the particles exert on each wall, ``wall_contacts`` and ``wall_k`` the number of
-    touching particles and the sum of their k_n (per run first, then summed). Returns
-    (strain_n, strain_t, friction, dashpot). Arrays of particles and wall pairs are read
+    touching particles and the sum of their k_n (per run first, then summed). ``cover``
+    as in :func:`_pair_loop` (per wall pair). Returns (strain_n, strain_t, friction,
+    dashpot, uncovered). Arrays of particles and wall pairs are read
     through flat views with unsigned indices (as in :func:`_pair_loop`)."""
     e_n = 0.0
     e_t = 0.0
     d_fric = 0.0
     d_dash = 0.0
+    n_uncovered = 0
+    track_cover = cover.shape[0] == wp.shape[0]
     n_walls = wall_force.shape[0]
     n_pairs = wp.shape[0]
     # per run and wall: force on the wall (3), touching particles, their k_n; a run's
@@ -661,6 +673,8 @@ def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu
             ox, oy, oz = FT[h], FT[h + one], FT[h + two]
             fdx, fdy, fdz = FD[h], FD[h + one], FD[h + two]
             e_old = wetan[q]
+            if track_cover and delta > cover[q]:
+                n_uncovered += 1
             if delta <= 0.0 and e_old == 0.0 and ox == 0.0 and oy == 0.0 and oz == 0.0 \
                     and fdx == 0.0 and fdy == 0.0 and fdz == 0.0:
                 continue
@@ -705,7 +719,7 @@ def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu
                 wall_force[wi, k] += per_run[c, wi, k]
             wall_contacts[wi] += int(per_run[c, wi, 3])
             wall_k[wi] += per_run[c, wi, 4]
-    return e_n, e_t, d_fric, d_dash
+    return e_n, e_t, d_fric, d_dash, n_uncovered
 
 
 @njit
@@ -882,7 +896,10 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
     the columns of the wall ``servo`` (rate in the gain column for BOX_RATE: dL/dt
     [L/T]); ``box.sums`` (6, 3): virial, crossing sum, crossing contacts, their k_n
     sum, the previous crossing sum and the last change of length. ``ledger.counters``
-    (3,): particle-particle contacts, particle-wall contacts, largest jump |v| dt / r."""
+    (4,): particle-particle contacts, particle-wall contacts, largest jump |v| dt / r,
+    and (added to, step after step) the contacts closed beyond the overlap the last
+    certified time step covered them at (``pairs.cover``, ``walls.cover``; none counted
+    when those are empty)."""
     x, v, w, r, m = sph.x, sph.v, sph.w, sph.r, sph.m
     inv_m, force, torque = sph.inv_m, sph.force, sph.torque
     acc, energy, counters = ledger.acc, ledger.energy, ledger.counters
@@ -909,10 +926,10 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         dt_slip = 0.0 if first else dt_prev
         for k in range(3):
             box_rate[k] = 0.0 if first else box_state[5, k] / dt_prev
-        e_n, e_t, d_fric, d_dash, n_pp = pair_forces(
+        e_n, e_t, d_fric, d_dash, n_pp, pp_uncovered = pair_forces(
             x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, law, params,
             dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
-            pairs.chunks, pairs.spans, force_buf, torque_buf, box_sums, pairs.geo)
+            pairs.chunks, pairs.spans, force_buf, torque_buf, box_sums, pairs.geo, pairs.cover)
         # 1b. rolling and twisting resistance of the pairs (a law with it only)
         er_s, er_p, er_v = 0.0, 0.0, 0.0
         if pairs.roll.shape[0] > 0:
@@ -922,10 +939,10 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         if n_chunks > 1:
             reduce_forces(force_buf, torque_buf, pairs.spans, force, torque)
         # 2. particle-wall contact forces
-        we_n, we_t, wd_fric, wd_dash = wall_forces(
+        we_n, we_t, wd_fric, wd_dash, pw_uncovered = wall_forces(
             x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
             law, params, dt_slip, walls.shear, walls.dashpot, walls.shear_energy, force,
-            torque, wall_force, walls.contacts, walls.k_sum, wall_chunks)
+            torque, wall_force, walls.contacts, walls.k_sum, wall_chunks, walls.cover)
         if walls.roll.shape[0] > 0:
             wr_s, wr_p, wr_v = wall_rolling(
                 x, w, r, m, sph.inertia, walls.p, walls.wall, wall_point, wall_normal, law,
@@ -1033,6 +1050,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
             wc += walls.contacts[wi]
         counters[1] = wc
         counters[2] = out[7]
+        counters[3] += pp_uncovered + pw_uncovered
         if first:
             # the energy held at t = 0 is the ledger's initial input
             acc[A_INITIAL] = out[4] + out[5] + e_n + we_n + e_t + we_t + er_s + eb_s
@@ -1051,6 +1069,9 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         # neighbour lists expire after skin / 2 of particle, wall or box motion
         if math.sqrt(out[6]) + boundary_move > 0.5 * ctl.skin:
             return step + 1, STOP_REBUILD
+        # a contact closed beyond the cover of the certified step: the engine checks it
+        if counters[3] > 0:
+            return step + 1, STOP_UNCOVERED
     return n_steps, STOP_DONE
 
 

@@ -24,6 +24,7 @@ one: :func:`top_eigenpair` mixes 1 % of a random vector into any warm start).
 from __future__ import annotations
 
 import functools
+import mmap
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,22 +48,31 @@ LANCZOS_KEEP = 8
 LANCZOS_RETRIES = 2
 #: products per Lanczos run at most
 LANCZOS_MAX_MATVECS = 50_000
+#: a :class:`Workspace` without huge pages maps arrays of this many bytes or more itself
+SMALL_PAGES_MIN = 1 << 22
 
 
 class Workspace:
     """Scratch arrays kept between solves: the Lanczos basis and the operator's buffers.
 
-    Memory the process has not touched yet costs a page fault per page at first write;
-    on a heap fragmented by a running simulation (transparent huge pages unavailable)
-    that was about 1 ms per MB, measured: a warm-started exact estimate of a settling
-    run (1e5 spheres with rotation, 39 products) spent 0.16 of its 0.54 s writing the
-    fresh basis rows. One workspace serves every solve of an exact step (the undamped
-    one and those of the safeguarded iteration) and, kept by the engine, every
-    estimate of a run (the arrays live between estimates: the peak memory does not
-    change, since each estimate needs them anyway)."""
+    Memory the process has not touched yet costs a page fault per page at first write.
+    One workspace serves every solve of an exact step (the undamped one and those of
+    the safeguarded iteration) and, kept by the engine, every estimate of a run (the
+    arrays live between estimates: the peak memory does not change, since each
+    estimate needs them anyway).
 
-    def __init__(self):
+    ``huge_pages`` False (the engine's workspace): arrays of :data:`SMALL_PAGES_MIN`
+    bytes or more are mapped with transparent huge pages refused (madvise
+    MADV_NOHUGEPAGE; numpy asks for them on large arrays). In a running simulation,
+    whose memory is fragmented, the kernel compacted memory to find each 2 MB page at
+    the first write: 2 ms per MB, measured (a settling run of 1e5 spheres: its 'auto'
+    estimates took 0.95 s against 0.67 s with small pages). A fresh process finds huge
+    pages free and solves slightly faster with them (1.8 against 2.0 s, the exact step
+    of a dense 1e5 packing), so one-off solves keep numpy's default."""
+
+    def __init__(self, huge_pages: bool = True):
         self._arrays: dict[str, np.ndarray] = {}
+        self.huge_pages = huge_pages
 
     def array(self, name: str, shape: tuple) -> np.ndarray:
         """The float64 array ``name`` of ``shape``, uninitialised (reused when the last
@@ -70,9 +80,18 @@ class Workspace:
         a = self._arrays.get(name)
         if a is None or a.shape != tuple(shape):
             self._arrays.pop(name, None)
-            a = np.empty(shape)
+            a = self._new(tuple(shape))
             self._arrays[name] = a
         return a
+
+    def _new(self, shape: tuple) -> np.ndarray:
+        nbytes = 8 * int(np.prod(shape))
+        madvise = getattr(mmap, "MADV_NOHUGEPAGE", None)
+        if self.huge_pages or nbytes < SMALL_PAGES_MIN or madvise is None:
+            return np.empty(shape)
+        buf = mmap.mmap(-1, nbytes)
+        buf.madvise(madvise)
+        return np.frombuffer(buf, dtype=np.float64).reshape(shape)
 
     def release(self, *names: str):
         """Forget the arrays ``names`` (their memory goes once nothing else holds them)."""
@@ -80,8 +99,12 @@ class Workspace:
             self._arrays.pop(name, None)
 
 
-#: the arrays of :func:`lanczos_top` in a :class:`Workspace`
-LANCZOS_ARRAYS = ("lanczos_basis", "lanczos_w")
+#: the arrays of :func:`lanczos_top` in a :class:`Workspace` (the basis, the new vector,
+#: the block of top Ritz vectors returned) and the rows of the operator's projections
+#: (:meth:`demstep.timestep.exact.ScaledContactOperator.subspace_start`); blocks of
+#: k x n of more than 32 MB come from the system as fresh pages at every allocation
+#: (glibc maps them anew), measured 2 ms per MB inside a running simulation
+LANCZOS_ARRAYS = ("lanczos_basis", "lanczos_w", "lanczos_block", "subspace_rows")
 
 
 @dataclass
@@ -95,6 +118,7 @@ class Eigenpair:
     residual: float
     matvecs: int = 0
     #: the top Ritz vectors of the last Lanczos basis (k, n), largest first, when asked
+    #: (held in the solver's workspace: the next solve that asks for a block reuses it)
     block: np.ndarray | None = None
 
     @property
@@ -188,7 +212,8 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
         if (estimate <= tol * abs(top) or exhausted or matvecs >= max_matvecs
                 or (top > stop_above and estimate <= stop_tol * abs(top))):
             nb = max(1, min(block, size))
-            Y = np.empty((nb, n))
+            # the block lives in the workspace: valid until the next solve asks for one
+            Y = workspace.array(LANCZOS_ARRAYS[2], (nb, n)) if block else np.empty((1, n))
             tk.combine_rows(V, size, S[:, ::-1][:, :nb], Y)
             y = Y[0].copy()
             return float(top), y / np.sqrt(tk._norm2(y)), matvecs, (Y if block else None)

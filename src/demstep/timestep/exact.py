@@ -249,7 +249,8 @@ class ScaledContactOperator:
         if self.owner_map is not None:
             X = np.stack([self.displacement(y) for y in Y])
         else:
-            X = self.scale[None] * Y.reshape(k, *self.scale.shape)
+            X = self.workspace.array(LANCZOS_ARRAYS[3], (k,) + self.scale.shape)
+            np.multiply(self.scale[None], Y.reshape(k, *self.scale.shape), out=X)
         K_p, C_p = contact_gram(self.contacts, self.rotation, X, self._chunks,
                                 parallel=self.threads > 1)
         d = self.damping
