@@ -60,13 +60,42 @@ def test_pair_list_chunks_and_buffer_overflow(n_threads, axis):
     ncell = np.full(3, max(1, int(5 // reach)), dtype=np.int64)
     inv_cell = ncell / 5.1
     ncell[axis], inv_cell[axis] = 3, 3 / box[axis]
+    ncells = int(np.prod(ncell))
+    scratch = (np.empty(n + 1, np.int64), np.empty(ncells + 1, np.int64), np.empty(n, np.int64),
+               np.empty((n, 3)), np.empty(n))
     args = (x, r, lo, inv_cell, ncell, box, skin, n_threads)
-    pi, pj, needed = _build_pairs(*args, 5)
+
+    def buffers(capacity):
+        return np.empty((n_threads, capacity), np.int32), np.empty((n_threads, capacity), np.int32)
+
+    pi, pj, needed = _build_pairs(*args, 5, *scratch, *buffers(5))
     assert needed > 5 and len(pi) == 0
-    pi, pj, again = _build_pairs(*args, int(needed))
+    pi, pj, again = _build_pairs(*args, int(needed), *scratch, *buffers(int(needed)))
     assert again == 0
     assert set(zip(pi.tolist(), pj.tolist())) == reference.brute_force_pairs(x, r, skin, box)
     assert np.all(np.diff(pi * n + pj) > 0)
+
+
+def test_pair_lists_from_kept_scratch_equal_brute_force():
+    """One NeighbourWork through builds of clouds whose size, extent (number of cells),
+    pair count (the buffers overflow and grow) and thread count change: every list
+    equals brute force, as a build with fresh scratch does."""
+    import numba
+
+    from demstep.kernels.neighbors import NeighbourWork
+
+    work = NeighbourWork()
+    threads = numba.get_num_threads()
+    try:
+        for k, (n, box, chunks) in enumerate([(200, 8.0, 1), (200, 4.0, 2), (350, 12.0, 2),
+                                              (120, 3.0, 1), (350, 5.0, 2)]):
+            numba.set_num_threads(min(chunks, threads))
+            rng, x, r = random_cloud(20 + k, n=n, box=box)
+            pi, pj = build_pair_list(x, r, 0.2, np.zeros(3), expected_pairs=10, work=work)
+            assert set(zip(pi.tolist(), pj.tolist())) == reference.brute_force_pairs(x, r, 0.2)
+            assert np.all(np.diff(pi * n + pj) > 0)
+    finally:
+        numba.set_num_threads(threads)
 
 
 def test_transfer_history_keeps_common_pairs():

@@ -4,8 +4,9 @@
 that another implementation (a GPU one, say) can provide the same operations on the
 bundles of :mod:`demstep.state` without touching the engine. A backend offers:
 
-``build_pair_list(x, r, skin, periodic_len, expected_pairs)`` -> (i, j)
-    the Verlet pairs within r_i + r_j + skin (minimum image), sorted by i;
+``build_pair_list(x, r, skin, periodic_len, expected_pairs, work)`` -> (i, j)
+    the Verlet pairs within r_i + r_j + skin (minimum image), sorted by i; ``work``:
+    the search's scratch kept by the caller between builds (None: its own);
 ``build_wall_list(x, r, point, normal, skin, expected_pairs)`` -> (p, wall)
     the particle-wall candidates within r + skin;
 ``transfer_history(old_i, old_j, new_i, new_j, *history)`` -> history on the new list;

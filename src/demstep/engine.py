@@ -308,6 +308,7 @@ class Simulation:
         self.ledger = EnergyLedger()
         self.counters = np.zeros(4)
         self.pairs = Pairs.empty(n)
+        self._neighbour_work = None  # the pair search's scratch, kept between rebuilds
         self.bonds = Bonds.empty()
         self.step = 0
         self.time = 0.0
@@ -460,8 +461,13 @@ class Simulation:
                           self.x, self.periodic_len)
         built = self._pairs_built
         old, ws = self.pairs, self.wall_state
+        if self._neighbour_work is None:
+            from demstep.kernels.neighbors import NeighbourWork
+
+            self._neighbour_work = NeighbourWork()
         pi, pj = be.build_pair_list(self.x, self.r, self.skin, self.periodic_len,
-                                    expected_pairs=len(old.i) if built else None)
+                                    expected_pairs=len(old.i) if built else None,
+                                    work=self._neighbour_work)
         if bodies.n:  # no contacts within a body
             sb = bodies.sphere_body
             keep = (sb[pi] < 0) | (sb[pi] != sb[pj])
