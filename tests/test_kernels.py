@@ -330,13 +330,27 @@ def test_wall_list_equals_brute_force_and_retries(n_chunks):
     dist = np.einsum("pwk,wk->pw", x[:, None, :] - point[None], normal)
     p_ref, w_ref = np.nonzero(dist < (r + skin)[:, None])  # row-major: sorted by (p, w)
     args = (x, r, point, normal, skin, n_chunks)
-    wp, ww, needed = _build_wall_pairs(*args, 5)
+
+    def buffers(capacity):
+        return np.empty((n_chunks, capacity), np.int32), np.empty((n_chunks, capacity), np.int32)
+
+    wp, ww, needed = _build_wall_pairs(*args, 5, *buffers(5))
     assert len(wp) == 0 and needed > 5
-    wp, ww, needed = _build_wall_pairs(*args, int(needed))
+    wp, ww, needed = _build_wall_pairs(*args, int(needed), *buffers(int(needed)))
     assert needed == 0
     assert np.array_equal(wp, p_ref) and np.array_equal(ww, w_ref)
     wp, ww = build_wall_list(x, r, point, normal, skin, expected_pairs=1)
     assert np.array_equal(wp, p_ref) and np.array_equal(ww, w_ref)
+    # kept buffers, grown by the first build, then reused by a build of fewer pairs
+    from demstep.kernels.neighbors import NeighbourWork
+
+    work = NeighbourWork()
+    for shift in (0.0, 1.5):
+        xs = x + [0.0, 0.0, shift]
+        d = np.einsum("pwk,wk->pw", xs[:, None, :] - point[None], normal)
+        p_ref, w_ref = np.nonzero(d < (r + skin)[:, None])
+        wp, ww = build_wall_list(xs, r, point, normal, skin, expected_pairs=1, work=work)
+        assert np.array_equal(wp, p_ref) and np.array_equal(ww, w_ref)
 
 
 @pytest.mark.parametrize("n", [1, 4095, 70001])

@@ -7,8 +7,8 @@ bundles of :mod:`demstep.state` without touching the engine. A backend offers:
 ``build_pair_list(x, r, skin, periodic_len, expected_pairs, work)`` -> (i, j)
     the Verlet pairs within r_i + r_j + skin (minimum image), sorted by i; ``work``:
     the search's scratch kept by the caller between builds (None: its own);
-``build_wall_list(x, r, point, normal, skin, expected_pairs)`` -> (p, wall)
-    the particle-wall candidates within r + skin;
+``build_wall_list(x, r, point, normal, skin, expected_pairs, work)`` -> (p, wall)
+    the particle-wall candidates within r + skin (``work`` as above);
 ``transfer_history(old_i, old_j, new_i, new_j, *history)`` -> history on the new list;
 ``pair_chunks(i, j, n, n_chunks)`` -> (chunks, spans): the work split of the pair loop;
 ``advance(n_steps, controls, spheres, bodies, pairs, bonds, walls, box, ledger, law, params)``

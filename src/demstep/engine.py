@@ -489,7 +489,8 @@ class Simulation:
                                   roll=roll, cover=cover)
         self._chunks_for = None
         wp, ww = be.build_wall_list(self.x, self.r, ws.point, ws.normal, self.skin,
-                                    expected_pairs=len(ws.p) if built else None)
+                                    expected_pairs=len(ws.p) if built else None,
+                                    work=self._neighbour_work)
         wshear, wdash, wenergy = be.transfer_history(ws.p, ws.wall, wp, ww, ws.shear,
                                                      ws.dashpot, ws.shear_energy)
         wroll, wcover = ws.roll, ws.cover

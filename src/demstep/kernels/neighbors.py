@@ -339,14 +339,13 @@ def _crowding_error(x, r, lo, cell, ncell) -> InputError:
 
 
 @njit(parallel=True)
-def _build_wall_pairs(x, r, wall_point, wall_normal, skin, n_chunks, capacity):
+def _build_wall_pairs(x, r, wall_point, wall_normal, skin, n_chunks, capacity, buf_p, buf_w):
     """(particle, wall) pairs within reach, sorted by (particle, wall): ``n_chunks``
-    runs of particles searched in parallel into buffers of ``capacity`` pairs each,
-    then joined; (empty, empty, needed) when a buffer was too small."""
+    runs of particles searched in parallel into the buffers ``buf_p``, ``buf_w``
+    (n_chunks, capacity) of int32, then joined; (empty, empty, needed) when a buffer was
+    too small."""
     n = x.shape[0]
     nw = wall_point.shape[0]
-    buf_p = np.empty((n_chunks, capacity), dtype=np.int64)
-    buf_w = np.empty((n_chunks, capacity), dtype=np.int64)
     found = np.zeros(n_chunks, dtype=np.int64)
     for t in prange(n_chunks):
         m = 0
@@ -377,19 +376,25 @@ def _build_wall_pairs(x, r, wall_point, wall_normal, skin, n_chunks, capacity):
     return wp, ww, 0
 
 
-def build_wall_list(x, r, wall_point, wall_normal, skin: float, expected_pairs: int | None = None):
-    """Particle-wall candidate pairs (particle, wall) sorted by (particle, wall)."""
+def build_wall_list(x, r, wall_point, wall_normal, skin: float, expected_pairs: int | None = None,
+                    work=None):
+    """Particle-wall candidate pairs (particle, wall) sorted by (particle, wall);
+    ``work`` (:class:`NeighbourWork`) keeps the search's buffers between builds."""
     n_walls = len(wall_point)
     if n_walls == 0:
         return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     n_chunks = numba.get_num_threads()
     expected = len(r) if expected_pairs is None else int(expected_pairs)
     capacity = min((len(r) // n_chunks + 1) * n_walls, int(2 * expected / n_chunks) + 1024)
+    work = work if work is not None else NeighbourWork()
     args = (x, r, wall_point, wall_normal, float(skin), n_chunks)
-    wp, ww, needed = _build_wall_pairs(*args, capacity)
-    if needed:
-        wp, ww, needed = _build_wall_pairs(*args, int(needed))
-    return wp, ww
+    while True:
+        buf_p = work.array("wall_p", (n_chunks, capacity), np.int32, grow=True, spare=True)
+        buf_w = work.array("wall_w", (n_chunks, capacity), np.int32, grow=True, spare=True)
+        wp, ww, needed = _build_wall_pairs(*args, buf_p.shape[1], buf_p, buf_w)
+        if not needed:
+            return wp, ww
+        capacity = int(needed)
 
 
 @njit(inline="always")
