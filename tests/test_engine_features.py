@@ -175,3 +175,26 @@ def test_threaded_kernels_follow_the_serial_ones(rolling):
         assert serial.ledger.rolling > 0 and threaded.ledger.energy[E_STRAIN_R] > 0
         assert np.allclose(threaded.torque, serial.torque, rtol=1e-7,
                            atol=1e-9 * np.abs(serial.torque).max())
+
+
+def test_neighbour_scratch_kept_only_while_rebuilds_come_often():
+    """The pair search's scratch stays with the engine from one rebuild to the next
+    when rebuilds come within KEEP_SCRATCH_STEPS steps of each other; a rebuild after
+    a longer quiet spell (a dense, quasi-static run) lets it go (memory held for
+    nothing), and the lists are the same either way."""
+    from demstep.kernels.neighbors import build_pair_list
+
+    rng = np.random.default_rng(4)
+    x = rng.uniform(0, 10, (300, 3))
+    sim = Simulation(Particles.from_density(x, rng.uniform(0.3, 0.5, 300), 1.0),
+                     LinearSpring(k_n=1e3), timestep=TimeStep.fixed(1e-3))
+    sim.prepare()
+    held = []
+    for step in (10, 10 + Simulation.KEEP_SCRATCH_STEPS,
+                 11 + 2 * Simulation.KEEP_SCRATCH_STEPS, 20 + 2 * Simulation.KEEP_SCRATCH_STEPS):
+        sim.step = step
+        sim._rebuild()
+        held.append(sim._neighbour_work is not None)
+        pi, pj = build_pair_list(sim.x, sim.r, sim.skin, sim.periodic_len)
+        assert np.array_equal(sim.pairs.i, pi) and np.array_equal(sim.pairs.j, pj)
+    assert held == [True, True, False, True]

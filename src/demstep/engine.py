@@ -309,6 +309,7 @@ class Simulation:
         self.counters = np.zeros(4)
         self.pairs = Pairs.empty(n)
         self._neighbour_work = None  # the pair search's scratch, kept between rebuilds
+        self._last_rebuild = 0  # the step of the last rebuild
         self.bonds = Bonds.empty()
         self.step = 0
         self.time = 0.0
@@ -424,6 +425,10 @@ class Simulation:
     #: row of cells and between rows; those between layers may be a layer apart)
     ORDER_WARN_CLOSE = 0.2
 
+    #: the neighbour search keeps its scratch (:class:`~demstep.kernels.neighbors.NeighbourWork`)
+    #: for the next rebuild when this one comes at most this many steps after the last
+    KEEP_SCRATCH_STEPS = 100
+
     def _check_order(self, pi, pj):
         """Warn (once, at the first pair list of N/2 pairs or more) when the particles
         are in random order: every pair's data is gathered by index, and a packing in
@@ -465,9 +470,18 @@ class Simulation:
             from demstep.kernels.neighbors import NeighbourWork
 
             self._neighbour_work = NeighbourWork()
+        work = self._neighbour_work
+        # the scratch is kept only while rebuilds come often (not after the first build;
+        # a dense, quasi-static run rebuilds rarely: there it would be memory held for
+        # nothing, and it was 100 MB more at the peak of a dense 1e6 run)
+        if not built or self.step - self._last_rebuild > self.KEEP_SCRATCH_STEPS:
+            self._neighbour_work = None
+        self._last_rebuild = self.step
         pi, pj = be.build_pair_list(self.x, self.r, self.skin, self.periodic_len,
-                                    expected_pairs=len(old.i) if built else None,
-                                    work=self._neighbour_work)
+                                    expected_pairs=len(old.i) if built else None, work=work)
+        wp, ww = be.build_wall_list(self.x, self.r, ws.point, ws.normal, self.skin,
+                                    expected_pairs=len(ws.p) if built else None, work=work)
+        del work  # (dropped now when not kept: before the history is carried over)
         if bodies.n:  # no contacts within a body
             sb = bodies.sphere_body
             keep = (sb[pi] < 0) | (sb[pi] != sb[pj])
@@ -488,9 +502,6 @@ class Simulation:
         self.pairs = old._replace(i=pi, j=pj, shear=shear, dashpot=dashpot, shear_energy=energy,
                                   roll=roll, cover=cover)
         self._chunks_for = None
-        wp, ww = be.build_wall_list(self.x, self.r, ws.point, ws.normal, self.skin,
-                                    expected_pairs=len(ws.p) if built else None,
-                                    work=self._neighbour_work)
         wshear, wdash, wenergy = be.transfer_history(ws.p, ws.wall, wp, ww, ws.shear,
                                                      ws.dashpot, ws.shear_energy)
         wroll, wcover = ws.roll, ws.cover
