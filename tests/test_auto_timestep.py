@@ -188,7 +188,7 @@ def test_the_pair_loops_cover_follows_the_record_through_rebuilds(law):
     rebuild of the lists, is never more generous than the record of the contacts the
     last estimate covered (a pair left out of the record: 0; in it: its overlap, or any
     with the linear law)."""
-    from demstep.engine import _cover_of
+    from demstep.timestep.certificate import cover_limits
 
     sim = settling_simulation(law, 0.9)
     nonlinear = isinstance(law, HertzMindlin)
@@ -201,7 +201,7 @@ def test_the_pair_loops_cover_follows_the_record_through_rebuilds(law):
                                   (s.wall_state.p * nw + s.wall_state.wall,
                                    s.wall_state.cover, "walls")):
             assert len(cover) == len(keys)
-            expect = _cover_of(keys, *rec.get(name, (np.zeros(0, np.int64), np.zeros(0))),
+            expect = cover_limits(keys, *rec.get(name, (np.zeros(0, np.int64), np.zeros(0))),
                                nonlinear)
             assert np.all(cover <= expect)
             assert np.all((cover == 0) | (cover == expect))
@@ -219,7 +219,7 @@ def test_a_restart_continues_the_auto_run_bit_for_bit_and_reads_older_checkpoint
     state: a run restarted from its state continues bit for bit. A checkpoint from
     before the cover was tracked (no cover arrays, three counters) still loads; its
     covers are rebuilt from the record of the covered contacts."""
-    from demstep.engine import _cover_of
+    from demstep.timestep.certificate import cover_limits
 
     law = HertzMindlin(youngs_modulus=5e6, poisson_ratio=0.3, mu=0.4, restitution=0.5)
     first = settling_simulation(law, 0.9)
@@ -239,7 +239,7 @@ def test_a_restart_continues_the_auto_run_bit_for_bit_and_reads_older_checkpoint
     third = settling_simulation(law, 0.9)
     third.load_state_dict(older)
     keys = third.pairs.i * len(third.r) + third.pairs.j
-    assert np.array_equal(third.pairs.cover, _cover_of(keys, *third._dt_cover["pairs"], True))
+    assert np.array_equal(third.pairs.cover, cover_limits(keys, *third._dt_cover["pairs"], True))
     assert np.all(third.pairs.cover >= state["pairs.cover"])  # the record: at least as much
     third.run(steps=400)
     assert np.all(np.isfinite(third.x)) and third.dt <= third.critical_dt("exact") * (1 + 1e-9)

@@ -77,14 +77,14 @@ def test_pair_list_chunks_and_buffer_overflow(n_threads, axis):
 
 
 def test_pair_lists_from_kept_scratch_equal_brute_force():
-    """One NeighbourWork through builds of clouds whose size, extent (number of cells),
+    """One Workspace through builds of clouds whose size, extent (number of cells),
     pair count (the buffers overflow and grow) and thread count change: every list
     equals brute force, as a build with fresh scratch does."""
     import numba
 
-    from demstep.kernels.neighbors import NeighbourWork
+    from demstep.scratch import Workspace
 
-    work = NeighbourWork()
+    work = Workspace()
     threads = numba.get_num_threads()
     try:
         for k, (n, box, chunks) in enumerate([(200, 8.0, 1), (200, 4.0, 2), (350, 12.0, 2),
@@ -342,9 +342,9 @@ def test_wall_list_equals_brute_force_and_retries(n_chunks):
     wp, ww = build_wall_list(x, r, point, normal, skin, expected_pairs=1)
     assert np.array_equal(wp, p_ref) and np.array_equal(ww, w_ref)
     # kept buffers, grown by the first build, then reused by a build of fewer pairs
-    from demstep.kernels.neighbors import NeighbourWork
+    from demstep.scratch import Workspace
 
-    work = NeighbourWork()
+    work = Workspace()
     for shift in (0.0, 1.5):
         xs = x + [0.0, 0.0, shift]
         d = np.einsum("pwk,wk->pw", xs[:, None, :] - point[None], normal)

@@ -184,7 +184,7 @@ def test_uncovered_masks_equal_a_numpy_search():
     wall lists) flag exactly the touching contacts missing from the cover, or, for a
     non-linear law, covered at a smaller overlap, as np.searchsorted finds them."""
     from demstep.kernels.neighbors import build_pair_list, build_wall_list
-    from demstep.timestep.certificate import uncovered_pairs, uncovered_walls
+    from demstep.timestep.certificate import cover_limits, uncovered_pairs, uncovered_walls
 
     rng = np.random.default_rng(3)
     n = 400
@@ -216,3 +216,5 @@ def test_uncovered_masks_equal_a_numpy_search():
                 got = uncovered_walls(x, r, wp, ww, point, normal, 3, known, assumed, check)
             assert np.array_equal(got, expect), (name, check)
             assert got.sum() > 0
+            # the per-contact limits the pair loops compare with say the same
+            assert np.array_equal(on & (delta > cover_limits(keys_all, known, assumed, check)), expect)

@@ -164,18 +164,6 @@ def _as3(a, n=None):
 _NO_COVER = (np.zeros(0, dtype=np.int64), np.zeros(0))
 
 
-def _cover_of(keys, known, assumed, nonlinear: bool) -> np.ndarray:
-    """Per pair of sorted ``keys``: the overlap ``assumed`` for it among the sorted
-    ``known`` keys (any, +inf, unless ``nonlinear``), 0 when it is not among them."""
-    known = np.asarray(known, dtype=np.int64)
-    if len(known) == 0:
-        return np.zeros(len(keys))
-    at = np.minimum(np.searchsorted(known, keys), len(known) - 1)
-    found = known[at] == keys
-    value = np.asarray(assumed, dtype=np.float64)[at] if nonlinear else np.inf
-    return np.where(found, value, 0.0)
-
-
 class Simulation:
     """An explicit DEM simulation of disks (2D) or spheres (3D).
 
@@ -425,7 +413,7 @@ class Simulation:
     #: row of cells and between rows; those between layers may be a layer apart)
     ORDER_WARN_CLOSE = 0.2
 
-    #: the neighbour search keeps its scratch (:class:`~demstep.kernels.neighbors.NeighbourWork`)
+    #: the neighbour search keeps its scratch (:class:`~demstep.scratch.Workspace`)
     #: for the next rebuild when this one comes at most this many steps after the last
     KEEP_SCRATCH_STEPS = 100
 
@@ -467,9 +455,9 @@ class Simulation:
         built = self._pairs_built
         old, ws = self.pairs, self.wall_state
         if self._neighbour_work is None:
-            from demstep.kernels.neighbors import NeighbourWork
+            from demstep.scratch import Workspace
 
-            self._neighbour_work = NeighbourWork()
+            self._neighbour_work = Workspace()
         work = self._neighbour_work
         # the scratch is kept only while rebuilds come often (not after the first build;
         # a dense, quasi-static run rebuilds rarely: there it would be memory held for
@@ -710,10 +698,10 @@ class Simulation:
 
     def _solver_workspace(self):
         """The time-step analysis' scratch arrays (Lanczos basis, product buffers), kept
-        from one estimate to the next (:class:`demstep.timestep.eigen.Workspace`)."""
+        from one estimate to the next (:class:`demstep.scratch.Workspace`)."""
         ws = getattr(self, "_dt_workspace", None)
         if ws is None:
-            from demstep.timestep.eigen import Workspace
+            from demstep.scratch import Workspace
 
             ws = self._dt_workspace = Workspace(huge_pages=False)
         return ws
@@ -1075,12 +1063,14 @@ class Simulation:
             self.pairs = self.pairs._replace(cover=np.zeros(0))
             self.wall_state = self.wall_state._replace(cover=np.zeros(0))
         else:
+            from demstep.timestep.certificate import cover_limits
+
             nonlinear = self.law.law_id != 0
             ws = self.wall_state
-            self.pairs = self.pairs._replace(cover=_cover_of(
+            self.pairs = self.pairs._replace(cover=cover_limits(
                 self.pairs.i * len(self.r) + self.pairs.j, *cover.get("pairs", _NO_COVER),
                 nonlinear))
-            self.wall_state = ws._replace(cover=_cover_of(
+            self.wall_state = ws._replace(cover=cover_limits(
                 ws.p * max(1, len(self.walls)) + ws.wall, *cover.get("walls", _NO_COVER),
                 nonlinear))
         if reset:

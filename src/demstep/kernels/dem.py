@@ -378,7 +378,7 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     (the rolling-resistance loop reads them). ``cover`` (P,) or (0,): when it has a row
     per pair, the largest overlap [L] the last certified time step covered each pair at
     (0: not covered; see :meth:`demstep.engine.Simulation._still_certified`), and the
-    pairs whose overlap exceeds it are counted (the last return value).
+    touching pairs whose overlap exceeds it are counted (the last return value).
 
     A chunk runs in blocks of PAIR_BLOCK pairs, in three passes whose work stays in
     the L1 cache: (1) gather: each pair's geometry, contact-point relative velocity
@@ -543,7 +543,7 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
                 touching = delta > 0.0
                 if touching:
                     n_contacts += 1
-                if track_cover and delta > cover[k]:
+                if track_cover and touching and delta > cover[k]:
                     n_uncovered += 1
                 if periodic:
                     n0, n1, n2 = s[S_N0 * B + b], s[S_N1 * B + b], s[S_N2 * B + b]
@@ -673,7 +673,7 @@ def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu
             ox, oy, oz = FT[h], FT[h + one], FT[h + two]
             fdx, fdy, fdz = FD[h], FD[h + one], FD[h + two]
             e_old = wetan[q]
-            if track_cover and delta > cover[q]:
+            if track_cover and delta > 0.0 and delta > cover[q]:
                 n_uncovered += 1
             if delta <= 0.0 and e_old == 0.0 and ox == 0.0 and oy == 0.0 and oz == 0.0 \
                     and fdx == 0.0 and fdy == 0.0 and fdz == 0.0:

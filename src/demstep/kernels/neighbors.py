@@ -14,6 +14,7 @@ import numpy as np
 from demstep._numba import njit, prange
 from demstep.contact.geometry import any_periodic, image_count
 from demstep.errors import InputError
+from demstep.scratch import Workspace
 
 
 @njit(parallel=True)
@@ -63,7 +64,7 @@ def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capac
     to per-chunk buffers of ``capacity``; then a counting sort into rows i < j, each row sorted.
     Returns (pi, pj, needed): ``needed`` > 0 (pi, pj empty) when a buffer overflowed,
     -1 when a cell holds more than :data:`MAX_CELL_FILL` times its volume in spheres
-    (found before the pairs are searched). Scratch (:class:`NeighbourWork`): ``cell_of``
+    (found before the pairs are searched). Scratch (:class:`~demstep.scratch.Workspace`): ``cell_of``
     (N + 1,), ``start`` (ncells + 1,), ``members`` (N,), ``xs`` (N, 3), ``rs`` (N,), the
     buffers ``buf_a``, ``buf_b`` (n_threads, capacity) of int32 particle indices."""
     n = x.shape[0]
@@ -232,7 +233,7 @@ def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None 
     """Verlet pairs (pi, pj), i < j, sorted by (i, j). ``x`` (N, 3); ``periodic_len``
     (3,) box lengths, 0 for non-periodic axes (periodic boxes start at 0);
     ``expected_pairs`` (e.g. the previous list's length) sizes the work buffers;
-    ``work`` (:class:`NeighbourWork`) keeps the scratch from one build to the next."""
+    ``work`` (:class:`~demstep.scratch.Workspace`) keeps the scratch from one build to the next."""
     # cells a hair wider than the longest reach: rounding cannot split a pair in reach
     # over two cells that are not neighbours
     reach = (2.0 * float(r.max()) + skin) * (1.0 + 1e-9)
@@ -269,7 +270,7 @@ def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None 
     n_threads = numba.get_num_threads()
     expected = 4 * len(r) if expected_pairs is None else int(expected_pairs)
     capacity = int(1.5 * expected / n_threads) + 1024
-    work = work if work is not None else NeighbourWork()
+    work = work if work is not None else Workspace()
     n, ncells = len(r), int(np.prod(ncell))
     if n >= 2**31:
         raise InputError(f"particles: at most 2**31 - 1 per simulation, got {n}")
@@ -287,40 +288,6 @@ def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None 
         if not needed:
             return pi, pj
         capacity = int(needed)  # a thread's buffer was too small: again with what it needed
-
-
-class NeighbourWork:
-    """Scratch arrays of the pair search kept from one rebuild to the next (the engine
-    keeps one): a fresh array costs a page fault per page at its first write, and the
-    search's scratch at 1e6 spheres (some 200 MB) was half the time of a build,
-    measured (53 -> 29 ms on two threads with the memory reused; 1.06x -> 1.62x from
-    one thread to two: the kernel's page faults do not run in parallel). Arrays whose
-    size changes from build to build (``grow``) grow by a quarter when they must grow;
-    ``spare`` ones come longer than asked along their last axis when there is room
-    (the buffers of the pairs found use all of it); the others keep their size."""
-
-    GROWTH = 1.25
-
-    def __init__(self):
-        self._flat: dict[str, np.ndarray] = {}
-
-    def array(self, name: str, shape: tuple, dtype, grow: bool = False,
-              spare: bool = False) -> np.ndarray:
-        """The array ``name`` of ``shape`` and ``dtype`` (uninitialised), in memory kept
-        from the last call of that name when it is large enough."""
-        size = int(np.prod(shape))
-        flat = self._flat.get(name)
-        if flat is None or flat.size < size or flat.dtype != dtype or (
-                not grow and flat.size != size):
-            grown = int(self.GROWTH * size) + 64 if grow else size
-            flat = self._flat[name] = np.empty(grown, dtype=dtype)
-        if spare:
-            lead = int(np.prod(shape[:-1]))
-            last = flat.size // max(lead, 1)
-            return flat[:lead * last].reshape(tuple(shape[:-1]) + (last,))
-        return flat[:size].reshape(shape)
-
-
 
 
 def _crowding_error(x, r, lo, cell, ncell) -> InputError:
@@ -379,14 +346,14 @@ def _build_wall_pairs(x, r, wall_point, wall_normal, skin, n_chunks, capacity, b
 def build_wall_list(x, r, wall_point, wall_normal, skin: float, expected_pairs: int | None = None,
                     work=None):
     """Particle-wall candidate pairs (particle, wall) sorted by (particle, wall);
-    ``work`` (:class:`NeighbourWork`) keeps the search's buffers between builds."""
+    ``work`` (:class:`~demstep.scratch.Workspace`) keeps the search's buffers between builds."""
     n_walls = len(wall_point)
     if n_walls == 0:
         return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     n_chunks = numba.get_num_threads()
     expected = len(r) if expected_pairs is None else int(expected_pairs)
     capacity = min((len(r) // n_chunks + 1) * n_walls, int(2 * expected / n_chunks) + 1024)
-    work = work if work is not None else NeighbourWork()
+    work = work if work is not None else Workspace()
     args = (x, r, wall_point, wall_normal, float(skin), n_chunks)
     while True:
         buf_p = work.array("wall_p", (n_chunks, capacity), np.int32, grow=True, spare=True)

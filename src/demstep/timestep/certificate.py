@@ -91,6 +91,21 @@ def _drift_sums(x, i, j, normal_ref, f_k, f_c, periodic_len, n_particles):
     return sum_k.max() if n_particles else 0.0, sum_c.max() if n_particles else 0.0
 
 
+def cover_limits(keys, known, assumed, nonlinear: bool) -> np.ndarray:
+    """The record of covered contacts (sorted ``known`` keys, the overlaps ``assumed``
+    for them) per contact of sorted ``keys``: the largest overlap it is covered at (any,
+    +inf, unless ``nonlinear``), 0 when it is not in the record: a touching contact is
+    uncovered when its overlap exceeds it, as :func:`uncovered_pairs` finds by a merge
+    (the engine's pair loops compare with these limits at every step)."""
+    known = np.asarray(known, dtype=np.int64)
+    if len(known) == 0:
+        return np.zeros(len(keys))
+    at = np.minimum(np.searchsorted(known, keys), len(known) - 1)
+    found = known[at] == keys
+    value = np.asarray(assumed, dtype=np.float64)[at] if nonlinear else np.inf
+    return np.where(found, value, 0.0)
+
+
 @njit(inline="always")
 def _not_covered(known, assumed, pos, key, delta, check_overlap):
     """One step of the merge of a sorted contact list with the sorted ``known`` keys

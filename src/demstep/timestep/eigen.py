@@ -24,13 +24,14 @@ one: :func:`top_eigenpair` mixes 1 % of a random vector into any warm start).
 from __future__ import annotations
 
 import functools
-import mmap
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+
+from demstep.scratch import Workspace
 
 #: systems up to this many DOFs are solved densely (exact to rounding); above, Lanczos
 #: on the matrix-free operator is faster (a dense eigh is O(n^3))
@@ -48,55 +49,6 @@ LANCZOS_KEEP = 8
 LANCZOS_RETRIES = 2
 #: products per Lanczos run at most
 LANCZOS_MAX_MATVECS = 50_000
-#: a :class:`Workspace` without huge pages maps arrays of this many bytes or more itself
-SMALL_PAGES_MIN = 1 << 22
-
-
-class Workspace:
-    """Scratch arrays kept between solves: the Lanczos basis and the operator's buffers.
-
-    Memory the process has not touched yet costs a page fault per page at first write.
-    One workspace serves every solve of an exact step (the undamped one and those of
-    the safeguarded iteration) and, kept by the engine, every estimate of a run (the
-    arrays live between estimates: the peak memory does not change, since each
-    estimate needs them anyway).
-
-    ``huge_pages`` False (the engine's workspace): arrays of :data:`SMALL_PAGES_MIN`
-    bytes or more are mapped with transparent huge pages refused (madvise
-    MADV_NOHUGEPAGE; numpy asks for them on large arrays). In a running simulation,
-    whose memory is fragmented, the kernel compacted memory to find each 2 MB page at
-    the first write: 2 ms per MB, measured (a settling run of 1e5 spheres: its 'auto'
-    estimates took 0.95 s against 0.67 s with small pages). A fresh process finds huge
-    pages free and solves slightly faster with them (1.8 against 2.0 s, the exact step
-    of a dense 1e5 packing), so one-off solves keep numpy's default."""
-
-    def __init__(self, huge_pages: bool = True):
-        self._arrays: dict[str, np.ndarray] = {}
-        self.huge_pages = huge_pages
-
-    def array(self, name: str, shape: tuple) -> np.ndarray:
-        """The float64 array ``name`` of ``shape``, uninitialised (reused when the last
-        one of that name had the same shape)."""
-        a = self._arrays.get(name)
-        if a is None or a.shape != tuple(shape):
-            self._arrays.pop(name, None)
-            a = self._new(tuple(shape))
-            self._arrays[name] = a
-        return a
-
-    def _new(self, shape: tuple) -> np.ndarray:
-        nbytes = 8 * int(np.prod(shape))
-        madvise = getattr(mmap, "MADV_NOHUGEPAGE", None)
-        if self.huge_pages or nbytes < SMALL_PAGES_MIN or madvise is None:
-            return np.empty(shape)
-        buf = mmap.mmap(-1, nbytes)
-        buf.madvise(madvise)
-        return np.frombuffer(buf, dtype=np.float64).reshape(shape)
-
-    def release(self, *names: str):
-        """Forget the arrays ``names`` (their memory goes once nothing else holds them)."""
-        for name in names:
-            self._arrays.pop(name, None)
 
 
 #: the arrays of :func:`lanczos_top` in a :class:`Workspace` (the basis, the new vector,

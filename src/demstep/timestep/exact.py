@@ -115,7 +115,7 @@ class ScaledContactOperator:
     (:class:`~demstep.contacts.ContactSet`). ``pencil(sigma)`` is the operator
     (1 + sigma a2) K^ + sigma C^_d; the mass-proportional part sigma a1 I of
     A(sigma) = sigma C^ + K^ is a shift added by the caller. Its buffers and the
-    eigensolver's basis live in ``workspace`` (:class:`~demstep.timestep.eigen.Workspace`;
+    eigensolver's basis live in ``workspace`` (:class:`~demstep.scratch.Workspace`;
     a new one when not given), which successive operators of the same assembly size
     may share (one at a time: every product overwrites the buffers)."""
 
