@@ -23,8 +23,9 @@ HERE = Path(__file__).resolve().parent
 CASE = r"""
 import json, sys, time
 import numpy as np
-import numba
 sys.path.insert(0, sys.argv[5])
+import demstep  # before numba.set_num_threads: demstep chooses the threading layer
+import numba
 from peers import demstep_simulation, make_problem
 from demstep.engine import TimeStep
 

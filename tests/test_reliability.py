@@ -528,6 +528,34 @@ def test_unwritable_cache_folder_falls_back_with_one_warning(tmp_path):
     assert proc.stderr.count("no writable cache location") == 1, proc.stderr
 
 
+
+def test_threads_on_tbb_warn_once_unless_chosen(monkeypatch):
+    """numba's threads on TBB (numba chose it before demstep was imported): one
+    warning naming the fix; none when the user chose TBB, none on one thread, none
+    on OpenMP."""
+    import warnings
+
+    import numba
+
+    import demstep._numba as nm
+
+    def warnings_for(layer, chosen="default", threads=2):
+        monkeypatch.setattr(nm, "_LAYER_WARNED", False)
+        monkeypatch.setattr(numba, "threading_layer", lambda: layer)
+        monkeypatch.setattr(numba, "get_num_threads", lambda: threads)
+        monkeypatch.setattr(numba.config, "THREADING_LAYER", chosen)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            nm.warn_slow_threading_layer()
+            nm.warn_slow_threading_layer()
+        return [str(w.message) for w in caught]
+
+    told = warnings_for("tbb")
+    assert len(told) == 1 and "NUMBA_THREADING_LAYER=omp" in told[0]
+    assert warnings_for("tbb", chosen="tbb") == []
+    assert warnings_for("tbb", threads=1) == []
+    assert warnings_for("omp") == []
+
 # =========================================================== 11. signals
 def send_at(step, *signals):
     def on_chunk(sim):

@@ -50,6 +50,7 @@ from typing import Callable
 
 import numpy as np
 
+from demstep._numba import warn_slow_threading_layer
 from demstep.backend import get_backend
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
 from demstep.contact.laws import ContactLaw, LinearSpring
@@ -1258,6 +1259,8 @@ class Simulation:
         self.wall_mu[:] = [params.mu_wall if w.friction is None else w.friction for w in self.walls]
         done = 0
         parallel = self._parallel()
+        if parallel:
+            warn_slow_threading_layer()
         damped = self.damping.local > 0.0 or self.damping.viscous > 0.0
         dashpot = params.has_dashpots
         next_check = self.step + check_every

@@ -11,6 +11,7 @@ time-step estimates (:mod:`demstep.timestep.eigen`) and one for its neighbour se
 
 from __future__ import annotations
 
+import math
 import mmap
 
 import numpy as np
@@ -47,7 +48,7 @@ class Workspace:
               spare: bool = False) -> np.ndarray:
         """The array ``name`` of ``shape`` and ``dtype``, uninitialised."""
         shape = tuple(int(s) for s in shape)
-        size = int(np.prod(shape))
+        size = math.prod(shape)
         flat = self._flat.get(name)
         if flat is None or flat.size < size or flat.dtype != dtype or (
                 not grow and flat.size != size):
@@ -55,7 +56,7 @@ class Workspace:
             flat = self._flat[name] = self._new(
                 int(self.GROWTH * size) + 64 if grow else size, np.dtype(dtype))
         if spare:
-            lead = int(np.prod(shape[:-1]))
+            lead = math.prod(shape[:-1])
             last = flat.size // max(lead, 1)
             return flat[:lead * last].reshape(shape[:-1] + (last,))
         return flat[:size].reshape(shape)
