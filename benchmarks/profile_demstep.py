@@ -67,8 +67,9 @@ def main(argv=None):
         "local_damping": sim.damping.local, "global_damping": sim.damping.viscous,
         "first": False, "acc_out": np.empty(8), "box_sums": np.zeros((4, 3)),
         "store_dashpot": params.has_dashpots, "store_damping": False,
-        "chunks": chunks, "spans": spans, "force_buf": force_buf, "torque_buf": torque_buf,
+        "chunks": chunks, "spans": spans, "force_band": force_buf, "torque_band": torque_buf,
         "geo": geo, "n_chunks": len(chunks) - 1, "sphere_body": sim.bodies.sphere_body,
+        "cover": np.zeros(0),  # (a fixed step: no cover tracked)
     }
 
     def arg(name):

@@ -119,6 +119,25 @@ def overlapping_pairs(seed):
     return x, v, w, r, m, pi, pj, ft, fd, etan
 
 
+def chunk_buffers(pi, pj, n, n_chunks):
+    """The pair loop's chunks, spans, particle forces and torques and band buffers, all
+    NaN (rows a chunk must zero first: NaN must not leak out)."""
+    chunks, spans = dem.pair_chunks(pi, pj, n, n_chunks)
+    own_hi = np.append(spans[1:, 0], n)
+    rows = int(np.max(spans[:, 1] - own_hi, initial=0)) + 3  # (the engine's are longer too)
+    f, t = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+    fbuf = np.full((n_chunks, rows if n_chunks > 1 else 0, 3), np.nan)
+    return chunks, spans, f, t, fbuf, fbuf.copy()
+
+
+def reduced(kernel, fbuf, tbuf, spans, f, t):
+    """The particle forces and torques once the bands are added (several chunks)."""
+    if len(spans) > 1:
+        (dem.reduce_forces_serial if kernel == "serial" else dem.reduce_forces)(
+            fbuf, tbuf, spans, f, t)
+    return f, t
+
+
 @pytest.mark.parametrize("kernel", ["serial", "parallel"])
 def test_pair_forces_equal_numpy_reference(kernel):
     x, v, w, r, m, pi, pj, ft, fd, etan = overlapping_pairs(5)
@@ -129,9 +148,7 @@ def test_pair_forces_equal_numpy_reference(kernel):
     ref = reference.linear_pair_forces(x, v, w, r, m, np.stack([pi, pj], 1), 1000.0, 800.0,
                                        0.4, 3.0, 2.0, dt, ft.copy(), fd.copy(), etan.copy())
     n_chunks = 1 if kernel == "serial" else 3
-    chunks, spans = dem.pair_chunks(pi, pj, len(r), n_chunks)
-    # rows outside a chunk's span are neither zeroed nor read: NaN must not leak out
-    fbuf, tbuf = np.full((n_chunks, len(r), 3), np.nan), np.full((n_chunks, len(r), 3), np.nan)
+    chunks, spans, f, t, fbuf, tbuf = chunk_buffers(pi, pj, len(r), n_chunks)
     sums = np.zeros((4, 3))
     fn = dem.pair_forces_serial if kernel == "serial" else dem.pair_forces
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
@@ -140,7 +157,7 @@ def test_pair_forces_equal_numpy_reference(kernel):
     cover = np.choose(np.arange(P) % 3, [np.zeros(P), np.full(P, np.inf), 0.5 * np.abs(delta)])
     e_n, e_t, fric, dash, nc, uncovered = fn(
         x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0, params, dt, ft2, fd2, et2,
-        True, chunks, spans, fbuf, tbuf, sums, np.empty((P, 4)), cover)
+        True, chunks, spans, f, t, fbuf, tbuf, sums, np.empty((P, 4)), cover)
     assert uncovered == np.count_nonzero(delta > cover) > 0
     assert nc == np.count_nonzero(delta > 0)
     force, new_t, new_fd, new_et, ref_en, ref_fric, ref_dash, arm_i, arm_j, n = ref
@@ -156,9 +173,8 @@ def test_pair_forces_equal_numpy_reference(kernel):
     assert nc == touching.sum()
     # the virial: sum of F_on_j d over pairs
     assert np.allclose(sums[0], np.sum(force * (x[pj] - x[pi]), axis=0), rtol=1e-10)
-    # per-particle sums against np.add.at, after reducing the chunk buffers
-    f, t = np.zeros((len(r), 3)), np.zeros((len(r), 3))
-    (dem.reduce_forces_serial if kernel == "serial" else dem.reduce_forces)(fbuf, tbuf, spans, f, t)
+    # per-particle sums against np.add.at, once the chunks' bands are added
+    f, t = reduced(kernel, fbuf, tbuf, spans, f, t)
     f_ref, t_ref = reference.gather(np.stack([pi, pj], 1), force, n, arm_i, arm_j, len(r))
     assert np.allclose(f, f_ref, rtol=1e-10, atol=1e-10)
     assert np.allclose(t, t_ref, rtol=1e-10, atol=1e-10)
@@ -185,14 +201,13 @@ def test_hertz_pair_forces_equal_numpy_reference(kernel):
         np.linalg.norm(new_t, axis=1), 0.4 * np.linalg.norm(force - new_t - new_fd, axis=1))
     assert 0 < sliding.sum() < touching.sum()  # both sticking and sliding contacts
     n_chunks = 1 if kernel == "serial" else 3
-    chunks, spans = dem.pair_chunks(pi, pj, len(r), n_chunks)
-    fbuf, tbuf = np.full((n_chunks, len(r), 3), np.nan), np.full((n_chunks, len(r), 3), np.nan)
+    chunks, spans, f, t, fbuf, tbuf = chunk_buffers(pi, pj, len(r), n_chunks)
     sums = np.zeros((4, 3))
     fn = dem.pair_forces_serial if kernel == "serial" else dem.pair_forces
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
     e_n, e_t, fric, dash, nc, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
                                   LAW_HERTZ, params, dt, ft2, fd2, et2, True, chunks, spans,
-                                  fbuf, tbuf, sums, np.empty((P, 4)), np.zeros(0))
+                                  f, t, fbuf, tbuf, sums, np.empty((P, 4)), np.zeros(0))
     tol = dict(rtol=1e-10, atol=1e-12)
     assert np.allclose(ft2, new_t, **tol)
     assert np.allclose(fd2, new_fd, **tol)
@@ -203,8 +218,7 @@ def test_hertz_pair_forces_equal_numpy_reference(kernel):
     assert dash == pytest.approx(ref_dash.sum(), rel=1e-9)
     assert nc == touching.sum()
     assert np.allclose(sums[0], np.sum(force * (x[pj] - x[pi]), axis=0), rtol=1e-10)
-    f, t = np.zeros((len(r), 3)), np.zeros((len(r), 3))
-    (dem.reduce_forces_serial if kernel == "serial" else dem.reduce_forces)(fbuf, tbuf, spans, f, t)
+    f, t = reduced(kernel, fbuf, tbuf, spans, f, t)
     f_ref, t_ref = reference.gather(np.stack([pi, pj], 1), force, n, arm_i, arm_j, len(r))
     assert np.allclose(f, f_ref, rtol=1e-10, atol=1e-10)
     assert np.allclose(t, t_ref, rtol=1e-10, atol=1e-10)
@@ -219,13 +233,14 @@ def test_pair_forces_without_dashpot_skip_its_history():
     results = []
     for store in (True, False):
         ft2, fd2, et2 = ft.copy(), np.zeros((P, 3)), etan.copy()
-        fbuf, tbuf = np.zeros((1, len(r), 3)), np.zeros((1, len(r), 3))
+        f, t = np.zeros((len(r), 3)), np.zeros((len(r), 3))
         out = dem.pair_forces_serial(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
                                      params, 1e-3, ft2, fd2, et2, store, np.array([0, P]),
-                                     np.array([[0, len(r)]]), fbuf, tbuf, np.zeros((4, 3)),
-                                     np.empty((P, 4)), np.zeros(0))
+                                     np.array([[0, len(r)]]), f, t, np.zeros((1, 0, 3)),
+                                     np.zeros((1, 0, 3)), np.zeros((4, 3)), np.empty((P, 4)),
+                                     np.zeros(0))
         assert not fd2.any()
-        results.append((out, ft2, et2, fbuf, tbuf))
+        results.append((out, ft2, et2, f, t))
     (o1, *a1), (o2, *a2) = results
     assert o1 == o2
     assert all(np.array_equal(p, q) for p, q in zip(a1, a2))
@@ -288,30 +303,36 @@ def test_pure_python_kernels_match_compiled():
 
 @pytest.mark.parametrize("n_chunks", [1, 2, 3, 5])
 def test_pair_chunk_spans_cover_every_particle(n_chunks):
-    """Each chunk's pairs lie in its span, the spans cover all particles and start in
-    order (the reduction copies each chunk's own range and adds the earlier chunks'
-    reach); the reduction equals a plain sum over the spans."""
+    """Chunks start at a particle's first pair, so every i of a chunk's pairs is its own
+    (the own ranges tile the particles in order) and its j lie in its span; about equal
+    numbers of pairs each. The reduction adds each band (the span past the own range)
+    to the particles it holds, in chunk order, and nothing else."""
     rng, x, r = random_cloud(11, n=200, box=5.0)
     pi, pj = build_pair_list(x, r, 0.2, np.zeros(3))
     n = len(r) + 7  # particles past the last pair's j
     chunks, spans = dem.pair_chunks(pi, pj, n, n_chunks)
-    covered = np.zeros(n, dtype=bool)
-    assert spans[0, 0] == 0 and np.all(np.diff(spans[:, 0]) >= 0)
-    fbuf = np.full((n_chunks, n, 3), np.nan)
-    tbuf = np.full((n_chunks, n, 3), np.nan)
-    expected_f, expected_t = np.zeros((n, 3)), np.zeros((n, 3))
+    own_hi = np.append(spans[1:, 0], n)
+    assert spans[0, 0] == 0 and np.all(own_hi >= spans[:, 0])
+    assert chunks[0] == 0 and chunks[-1] == len(pi) and np.all(np.diff(chunks) >= 0)
+    assert np.all(pi[chunks[1:-1]] != pi[chunks[1:-1] - 1])  # cut at particle starts
+    assert np.diff(chunks).max() - np.diff(chunks).min() <= 2 * np.bincount(pi).max()
+    rows = int(np.max(spans[:, 1] - own_hi, initial=0))
+    f0, t0 = rng.normal(0, 1, (n, 3)), rng.normal(0, 1, (n, 3))
+    fbuf, tbuf = np.full((n_chunks, rows + 2, 3), np.nan), np.full((n_chunks, rows + 2, 3), np.nan)
+    expected_f, expected_t = f0.copy(), t0.copy()
     for c in range(n_chunks):
         lo, hi = spans[c]
         a, b = chunks[c], chunks[c + 1]
-        assert np.all((pi[a:b] >= lo) & (pj[a:b] < hi))
-        covered[lo:hi] = True
-        fbuf[c, lo:hi] = rng.normal(0, 1, (hi - lo, 3))
-        tbuf[c, lo:hi] = rng.normal(0, 1, (hi - lo, 3))
-        expected_f[lo:hi] += fbuf[c, lo:hi]
-        expected_t[lo:hi] += tbuf[c, lo:hi]
-    assert covered.all()
+        assert np.all((pi[a:b] >= lo) & (pi[a:b] < own_hi[c]) & (pj[a:b] < hi))
+        band = max(hi - own_hi[c], 0)
+        fbuf[c, :band] = rng.normal(0, 1, (band, 3))
+        tbuf[c, :band] = rng.normal(0, 1, (band, 3))
+        expected_f[own_hi[c]:own_hi[c] + band] += fbuf[c, :band]
+        expected_t[own_hi[c]:own_hi[c] + band] += tbuf[c, :band]
+    if n_chunks > 1:
+        assert rows > 0  # the bands are exercised
     for reduce in (dem.reduce_forces_serial, dem.reduce_forces):
-        f, t = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+        f, t = f0.copy(), t0.copy()
         reduce(fbuf, tbuf, spans, f, t)
         assert np.allclose(f, expected_f, rtol=1e-14, atol=1e-14)
         assert np.allclose(t, expected_t, rtol=1e-14, atol=1e-14)
@@ -380,13 +401,12 @@ def test_pair_blocks_any_chunking_equal_numpy_reference(n_chunks):
     ref = reference.linear_pair_forces(x, v, w, r, m, np.stack([pi, pj], 1), 1000.0, 800.0,
                                        0.4, 3.0, 2.0, dt, ft.copy(), fd.copy(), etan.copy())
     force, new_t, new_fd, new_et, ref_en, ref_fric, ref_dash, arm_i, arm_j, n = ref
-    chunks, spans = dem.pair_chunks(pi, pj, len(r), n_chunks)
-    fbuf, tbuf = np.full((n_chunks, len(r), 3), np.nan), np.full((n_chunks, len(r), 3), np.nan)
+    chunks, spans, f, t, fbuf, tbuf = chunk_buffers(pi, pj, len(r), n_chunks)
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
     fn = dem.pair_forces_serial if n_chunks == 1 else dem.pair_forces
     e_n, e_t, fric, dash, nc, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
-                                  law.params(), dt, ft2, fd2, et2, True, chunks, spans, fbuf,
-                                  tbuf, np.zeros((4, 3)), np.empty((0, 4)), np.zeros(0))
+                                  law.params(), dt, ft2, fd2, et2, True, chunks, spans, f, t,
+                                  fbuf, tbuf, np.zeros((4, 3)), np.empty((0, 4)), np.zeros(0))
     tol = dict(rtol=1e-10, atol=1e-12)
     assert np.allclose(ft2, new_t, **tol) and np.allclose(fd2, new_fd, **tol)
     assert np.allclose(et2, new_et, **tol)
@@ -395,11 +415,7 @@ def test_pair_blocks_any_chunking_equal_numpy_reference(n_chunks):
     assert fric == pytest.approx(ref_fric.sum(), rel=1e-9)
     assert dash == pytest.approx(ref_dash.sum(), rel=1e-9)
     assert nc == (~apart).sum()
-    f, t = np.zeros((len(r), 3)), np.zeros((len(r), 3))
-    if n_chunks == 1:
-        f, t = fbuf[0], tbuf[0]
-    else:
-        dem.reduce_forces(fbuf, tbuf, spans, f, t)
+    f, t = reduced("parallel", fbuf, tbuf, spans, f, t)
     f_ref, t_ref = reference.gather(np.stack([pi, pj], 1), force, n, arm_i, arm_j, len(r))
     assert np.allclose(f, f_ref, rtol=1e-10, atol=1e-10)
     assert np.allclose(t, t_ref, rtol=1e-10, atol=1e-10)

@@ -1334,11 +1334,13 @@ class Simulation:
     PARALLEL_MIN_PARTICLES = 5000
 
     def _work_space(self, parallel: bool) -> Pairs:
-        """The pair list with its work space: chunks (one per thread, equal numbers of
-        pairs), the particle range of each chunk's buffer (:func:`dem.pair_chunks`), the
-        force/torque buffers (chunks, N, 3) and, for rolling resistance, the pair geometry
-        (P, 4); rebuilt when the pair list or the thread count changes. The geometry keeps
-        its memory across rebuilds (fresh pages cost a fault each)."""
+        """The pair list with its work space: chunks (one per thread, about equal numbers
+        of pairs), the particle range of each (:func:`dem.pair_chunks`), the band
+        buffers (chunks, rows, 3) for the forces and torques a chunk adds to particles
+        beyond its own (:func:`dem._pair_loop`) and, for rolling resistance, the pair
+        geometry (P, 4); rebuilt when the pair list or the thread count changes. The
+        band buffers and the geometry keep their memory across rebuilds while it is
+        large enough (fresh pages cost a fault each)."""
         import numba
 
         n_chunks = numba.get_num_threads() if parallel else 1
@@ -1346,10 +1348,13 @@ class Simulation:
             return self.pairs
         pairs = self.pairs
         n_pairs = len(pairs.i)
-        chunks, spans = self.backend.pair_chunks(pairs.i, pairs.j, len(self.r), n_chunks)
-        shape = (n_chunks, len(self.r), 3)
+        n = len(self.r)
+        chunks, spans = self.backend.pair_chunks(pairs.i, pairs.j, n, n_chunks)
+        own_hi = np.append(spans[1:, 0], n)
+        rows = int(np.max(spans[:, 1] - own_hi, initial=0))
         force_buf, torque_buf = pairs.force_buf, pairs.torque_buf
-        if force_buf.shape != shape:
+        if force_buf.shape[0] != n_chunks or force_buf.shape[1] < rows:
+            shape = (n_chunks, int(1.25 * rows) + 64 if n_chunks > 1 else 0, 3)
             force_buf = np.zeros(shape)
             torque_buf = np.zeros(shape)
         # the pair geometry is kept for the rolling-resistance loop only

@@ -114,8 +114,10 @@ class Pairs(NamedTuple):
     """The Verlet pair list, P pairs (i < j in index, sorted by i) with their history:
     tangential spring force on j ``shear`` (P, 3) [M L/T^2], dashpot force on j
     ``dashpot`` (P, 3), stored tangential energy ``shear_energy`` (P,) [M L^2/T^2].
-    Work space: pair ``chunks`` (one per thread) and the particle ``spans`` of their
-    force buffers ``force_buf``/``torque_buf`` (chunks, N, 3), and ``geo`` (P, 4), the
+    Work space: pair ``chunks`` (one per thread, cut at particle starts), their
+    particle ``spans``, the band buffers ``force_buf``/``torque_buf`` (chunks, rows, 3)
+    for what a chunk adds to particles past its own (see
+    :func:`demstep.kernels.dem._pair_loop`; no rows with one chunk), and ``geo`` (P, 4), the
     unit normals and distances of the first pass of the pair loop. ``roll`` (P, 8): the
     rolling and twisting resistance history (columns: :data:`demstep.kernels.dem.ROLL_M`
     ...), (0, 8) when the law has none. ``cover`` (P,): the largest overlap [L] the last
@@ -142,7 +144,7 @@ class Pairs(NamedTuple):
         z3 = np.zeros((0, 3))
         return cls(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), z3, z3.copy(),
                    np.zeros(0), np.zeros(2, dtype=np.int64), np.array([[0, n]], dtype=np.int64),
-                   np.zeros((1, n, 3)), np.zeros((1, n, 3)), np.empty((0, 4)),
+                   np.zeros((1, 0, 3)), np.zeros((1, 0, 3)), np.empty((0, 4)),
                    np.zeros((0, ROLL_WIDTH)), np.zeros(0))
 
 

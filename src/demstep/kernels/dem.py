@@ -217,18 +217,20 @@ def _rolling_contact(law, params, h, nx, ny, nz, delta, r_star, inertia_i, m_i, 
 
 
 def _rolling_loop(w, r, m, inertia, inv_m, pi, pj, geo, law, params, dt, roll, chunks,
-                  torque_buf):
+                  spans, torque, torque_band):
     """Rolling and twisting resistance of all Verlet pairs (compiled twice), after the
     pair loop of the same step: reads its unit normals and distances ``geo``, adds the
-    moments to the chunks' torque buffers (j +M, i -M; the chunks and spans of
-    :func:`_pair_loop`), updates the history ``roll`` (P, ROLL_WIDTH). A fixed particle
-    (``inv_m`` 0) counts as a wall in the equivalent inertia. Returns (stored energy,
-    plastic dissipation, viscous dissipation)."""
+    moments (j +M, i -M) to ``torque`` and the chunks' bands ``torque_band`` as
+    :func:`_pair_loop` does, updates the history ``roll`` (P, ROLL_WIDTH). A fixed
+    particle (``inv_m`` 0) counts as a wall in the equivalent inertia. Returns (stored
+    energy, plastic dissipation, viscous dissipation)."""
     e_s = 0.0
     d_p = 0.0
     d_v = 0.0
-    for c in prange(chunks.shape[0] - 1):
-        tb = torque_buf[c]
+    n_chunks = chunks.shape[0] - 1
+    for c in prange(n_chunks):
+        own_hi = spans[c + 1, 0] if c + 1 < n_chunks else torque.shape[0]
+        tb = torque_band[c]
         for k in range(chunks[c], chunks[c + 1]):
             i = pi[k]
             j = pj[k]
@@ -242,12 +244,17 @@ def _rolling_loop(w, r, m, inertia, inv_m, pi, pj, geo, law, params, dt, roll, c
                 w[j, 2] - w[i, 2], dt)
             if not touched:
                 continue
-            tb[j, 0] += mx
-            tb[j, 1] += my
-            tb[j, 2] += mz
-            tb[i, 0] -= mx
-            tb[i, 1] -= my
-            tb[i, 2] -= mz
+            if j < own_hi:
+                torque[j, 0] += mx
+                torque[j, 1] += my
+                torque[j, 2] += mz
+            else:
+                tb[j - own_hi, 0] += mx
+                tb[j - own_hi, 1] += my
+                tb[j - own_hi, 2] += mz
+            torque[i, 0] -= mx
+            torque[i, 1] -= my
+            torque[i, 2] -= mz
             e_s += e_new
             d_p += c_p
             d_v += c_v
@@ -288,14 +295,20 @@ def _wall_rolling_loop(x, w, r, m, inertia, wp, ww, wall_point, wall_normal, law
 
 
 def pair_chunks(pi, pj, n_particles: int, n_chunks: int):
-    """Cut a pair list sorted by i into ``n_chunks`` runs of equal numbers of pairs
-    (boundaries (n_chunks + 1,)) and give the particle range [lo, hi) of each chunk's
-    force buffer (spans (n_chunks, 2)). Chunk c owns the particles from its first
-    pair's i (0 for the first chunk) up to the next chunk's first i (N for the last);
-    its span is that range, stretched to the largest j of its pairs. The spans cover
-    every particle; a chunk's span reaches only into later chunks' ranges."""
+    """Cut a pair list sorted by i into ``n_chunks`` runs of about equal numbers of
+    pairs, each starting at a particle's first pair (boundaries (n_chunks + 1,)), and
+    give each chunk's particle range [lo, hi) (spans (n_chunks, 2)). Chunk c owns the
+    particles from its first pair's i (0 for the first chunk) up to the next chunk's
+    first i (N for the last): every i of its pairs is its own. Its span is that range,
+    stretched to the largest j of its pairs; the part beyond its own range (its
+    *band*, in later chunks' ranges) is where the pair loop writes into a band buffer
+    instead of the particles' forces. The spans cover every particle."""
     n_pairs = len(pi)
     chunks = np.linspace(0, n_pairs, n_chunks + 1).astype(np.int64)
+    if n_pairs:
+        inner = chunks[1:-1].copy()
+        chunks[1:-1] = np.searchsorted(pi, pi[np.minimum(inner, n_pairs - 1)], side="left")
+        chunks[1:-1][inner >= n_pairs] = n_pairs
     owned = np.array([0] + [pi[a] if a < n_pairs else n_particles for a in chunks[1:-1]]
                      + [n_particles], dtype=np.int64)
     spans = np.empty((n_chunks, 2), dtype=np.int64)
@@ -358,15 +371,17 @@ law_block = njit(_law_block)
 
 
 def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
-               ft, fd, etan, store_dashpot, chunks, spans, force_buf, torque_buf, box_sums, geo,
-               cover):
+               ft, fd, etan, store_dashpot, chunks, spans, force, torque, force_band,
+               torque_band, box_sums, geo, cover):
     """Forces of all Verlet pairs (compiled twice: parallel and serial), history ``ft``,
     ``fd``, ``etan`` (see :func:`contact_response`). The pairs are cut into chunks
-    (``chunks``: pair-index boundaries, one chunk per thread); chunk c accumulates the
-    force (on j +F, on i -F) and torque (-a n x F on each) of its pairs into
-    ``force_buf[c]``/``torque_buf[c]`` (N, 3): no two threads write the same memory.
-    Chunk c touches particles ``spans[c, 0]`` to ``spans[c, 1] - 1`` only; it zeroes
-    that range of its buffers first. Returns (strain_n, strain_t, friction, dashpot,
+    (``chunks``: pair-index boundaries at particle starts, one chunk per thread;
+    :func:`pair_chunks`); chunk c adds the force (on j +F, on i -F) and torque (-a n x F
+    on each) of its pairs to the ``force``/``torque`` rows (N, 3) of the particles it
+    owns, which it zeroes first, and those of particles beyond (its band: up to
+    ``spans[c, 1]``) to ``force_band[c]``/``torque_band[c]`` (rows from the first
+    particle past its own), which :func:`_reduce_loop` adds once every chunk is done:
+    no two threads write the same memory, and with one chunk there is no band. Returns (strain_n, strain_t, friction, dashpot,
     contacts, uncovered). ``box_sums`` (4, 3) receives per axis the virial sum F_on_j,k d_k (Love
     stress times volume), the boundary sum F_on_j,k n_img,k over pairs crossing a
     periodic boundary (times a change of box length: the work done on the contacts),
@@ -425,10 +440,18 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     # the chunks' scratch, allocated once (a thread's own allocation landed anywhere:
     # two threads' blocks sharing cache lines made 2 of 5 runs 1.4x slower)
     scratch = np.empty((chunks.shape[0] - 1, PAIR_ROWS * PAIR_BLOCK + 8))
-    for c in prange(chunks.shape[0] - 1):
-        FB = force_buf[c].reshape(-1)
-        TB = torque_buf[c].reshape(-1)
-        for p in range(three * _U(spans[c, 0]), three * _U(spans[c, 1])):
+    F = force.reshape(-1)
+    T = torque.reshape(-1)
+    n_chunks = chunks.shape[0] - 1
+    for c in prange(n_chunks):
+        own_hi = _U(spans[c + 1, 0] if c + 1 < n_chunks else force.shape[0])
+        band_start = three * own_hi
+        FB = force_band[c].reshape(-1)
+        TB = torque_band[c].reshape(-1)
+        for p in range(three * _U(spans[c, 0]), band_start):
+            F[p] = 0.0
+            T[p] = 0.0
+        for p in range(three * (_U(max(spans[c, 1], own_hi)) - own_hi)):
             FB[p] = 0.0
             TB[p] = 0.0
         s = scratch[c]
@@ -518,19 +541,28 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
                 fx, fy, fz = s[S_FX * B + b], s[S_FY * B + b], s[S_FZ * B + b]
                 nx, ny, nz = s[S_NX * B + b], s[S_NY * B + b], s[S_NZ * B + b]
                 a_i, a_j = s[S_AI * B + b], s[S_AJ * B + b]
-                FB[q] += fx
-                FB[q + one] += fy
-                FB[q + two] += fz
-                FB[a] -= fx
-                FB[a + one] -= fy
-                FB[a + two] -= fz
                 cx, cy, cz = ny * fz - nz * fy, nz * fx - nx * fz, nx * fy - ny * fx
-                TB[a] -= a_i * cx
-                TB[a + one] -= a_i * cy
-                TB[a + two] -= a_i * cz
-                TB[q] -= a_j * cx
-                TB[q + one] -= a_j * cy
-                TB[q + two] -= a_j * cz
+                F[a] -= fx
+                F[a + one] -= fy
+                F[a + two] -= fz
+                T[a] -= a_i * cx
+                T[a + one] -= a_i * cy
+                T[a + two] -= a_i * cz
+                if q < band_start:
+                    F[q] += fx
+                    F[q + one] += fy
+                    F[q + two] += fz
+                    T[q] -= a_j * cx
+                    T[q + one] -= a_j * cy
+                    T[q + two] -= a_j * cz
+                else:
+                    q -= band_start
+                    FB[q] += fx
+                    FB[q + one] += fy
+                    FB[q + two] += fz
+                    TB[q] -= a_j * cx
+                    TB[q + one] -= a_j * cy
+                    TB[q + two] -= a_j * cz
                 e_n += s[S_EN * B + b]
                 e_t += c_et
                 d_fric += s[S_FRIC * B + b]
@@ -576,24 +608,22 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     return e_n, e_t, d_fric, d_dash, n_contacts, n_uncovered
 
 
-def _reduce_loop(force_buf, torque_buf, spans, force, torque):
-    """Sum the per-chunk buffers into the particle forces and torques (chunk c holds
-    particles ``spans[c, 0]`` to ``spans[c, 1] - 1``; see :func:`pair_chunks`). Each
-    chunk's own range is copied from its buffer, then the short bands where earlier
-    chunks reach in are added: every buffer row is read once."""
+def _reduce_loop(force_band, torque_band, spans, force, torque):
+    """Add the chunks' band buffers (:func:`_pair_loop`) to the particle forces and
+    torques: chunk c's band holds particles ``spans[c + 1, 0]`` (the first past its
+    own) to ``spans[c, 1] - 1``. Each chunk's own range receives the bands of the
+    earlier chunks that reach into it, in chunk order (the sums do not depend on the
+    threads)."""
     n_chunks = spans.shape[0]
     for c in prange(n_chunks):
         lo = spans[c, 0]
         hi = spans[c + 1, 0] if c + 1 < n_chunks else force.shape[0]
-        for p in range(lo, hi):
-            for k in range(3):
-                force[p, k] = force_buf[c, p, k]
-                torque[p, k] = torque_buf[c, p, k]
         for c2 in range(c):
+            start = spans[c2 + 1, 0]
             for p in range(lo, min(hi, spans[c2, 1])):
                 for k in range(3):
-                    force[p, k] += force_buf[c2, p, k]
-                    torque[p, k] += torque_buf[c2, p, k]
+                    force[p, k] += force_band[c2, p - start, k]
+                    torque[p, k] += torque_band[c2, p - start, k]
 
 
 @njit
@@ -917,10 +947,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
     extents = np.empty(3)
     nw = wall_point.shape[0]
     n_chunks = pairs.force_buf.shape[0]
-    # one chunk: the pair loop writes the particles' forces and torques directly
-    n_particles = force.shape[0]
-    force_buf = force.reshape((1, n_particles, 3)) if n_chunks == 1 else pairs.force_buf
-    torque_buf = torque.reshape((1, n_particles, 3)) if n_chunks == 1 else pairs.torque_buf
+    force_band, torque_band = pairs.force_buf, pairs.torque_buf
     for step in range(n_steps):
         # 1. pair contact forces; the slip increment of step n is x(t) - x(t - dt_prev)
         dt_slip = 0.0 if first else dt_prev
@@ -929,15 +956,16 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         e_n, e_t, d_fric, d_dash, n_pp, pp_uncovered = pair_forces(
             x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, law, params,
             dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
-            pairs.chunks, pairs.spans, force_buf, torque_buf, box_sums, pairs.geo, pairs.cover)
+            pairs.chunks, pairs.spans, force, torque, force_band, torque_band, box_sums,
+            pairs.geo, pairs.cover)
         # 1b. rolling and twisting resistance of the pairs (a law with it only)
         er_s, er_p, er_v = 0.0, 0.0, 0.0
         if pairs.roll.shape[0] > 0:
             er_s, er_p, er_v = rolling_forces(
                 w, r, m, sph.inertia, inv_m, pairs.i, pairs.j, pairs.geo, law, params,
-                dt_slip, pairs.roll, pairs.chunks, torque_buf)
+                dt_slip, pairs.roll, pairs.chunks, pairs.spans, torque, torque_band)
         if n_chunks > 1:
-            reduce_forces(force_buf, torque_buf, pairs.spans, force, torque)
+            reduce_forces(force_band, torque_band, pairs.spans, force, torque)
         # 2. particle-wall contact forces
         we_n, we_t, wd_fric, wd_dash, pw_uncovered = wall_forces(
             x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
