@@ -87,14 +87,15 @@ def _random_unit(n: int) -> np.ndarray:
 
 
 def start_vector(n: int, warm: np.ndarray | None = None, mix: float = WARM_START_MIX) -> np.ndarray:
-    """A reproducible start vector: the fixed pseudo-random one, or ``warm`` with
-    ``mix`` (1 %) of it mixed in (so that no eigen-direction is missing from the start)."""
-    rand = _random_unit(n)
+    """A reproducible start vector: the fixed pseudo-random one (read-only), or ``warm``
+    with ``mix`` (1 %) of it mixed in (so that no eigen-direction is missing from the
+    start)."""
+    rand = _random_unit(n)  # (read-only: shared, not copied)
     if warm is None or warm.shape != (n,) or not np.all(np.isfinite(warm)):
-        return rand.copy()
+        return rand
     norm = np.linalg.norm(warm)
     if norm == 0:
-        return rand.copy()
+        return rand
     return warm / norm + mix * rand
 
 
@@ -133,7 +134,7 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
     if max_matvecs is None:
         max_matvecs = LANCZOS_MAX_MATVECS
     workspace = workspace if workspace is not None else Workspace()
-    V = workspace.array(LANCZOS_ARRAYS[0], (m + 1, n))
+    V = workspace.array(LANCZOS_ARRAYS[0], (m, n))
     T = np.zeros((m + 1, m + 1))
     norm = np.sqrt(tk._norm2(v0))
     tk.scale_into(v0, 1.0 / norm, V[0])
@@ -167,19 +168,21 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
             # the block lives in the workspace: valid until the next solve asks for one
             Y = workspace.array(LANCZOS_ARRAYS[2], (nb, n)) if block else np.empty((1, n))
             tk.combine_rows(V, size, S[:, ::-1][:, :nb], Y)
-            y = Y[0].copy()
-            return float(top), y / np.sqrt(tk._norm2(y)), matvecs, (Y if block else None)
-        tk.scale_into(w, 1.0 / beta, V[size])
+            y = Y[0].copy() if block else Y[0]  # (no second vector when Y is not kept)
+            tk.scale_into(y, 1.0 / np.sqrt(tk._norm2(y)), y)
+            return float(top), y, matvecs, (Y if block else None)
         T[size, j] = T[j, size] = beta
         if size == m:
             # thick restart: keep the top ``keep`` Ritz vectors and the residual vector
+            # (written after them, straight from w: the basis needs no row m)
             tk.combine_rows(V, m, S[:, -keep:], V)
-            V[keep] = V[m]
+            tk.scale_into(w, 1.0 / beta, V[keep])
             T[:] = 0.0
             T[np.arange(keep), np.arange(keep)] = theta[-keep:]
             T[:keep, keep] = T[keep, :keep] = beta * S[m - 1, -keep:]
             j = kept = keep
         else:
+            tk.scale_into(w, 1.0 / beta, V[size])
             j = size
 
 
@@ -218,8 +221,8 @@ def top_eigenpair(A, v0: np.ndarray | None = None, dense_limit: int = DENSE_LIMI
     if into is None:
         def into(x, out):
             out[:] = np.ravel(A @ x)
-    Ay = np.empty(n)
     if solver == "arpack":
+        Ay = np.empty(n)
         vals, vecs = spla.eigsh(A, k=1, which="LA", tol=tol, v0=start, ncv=min(n - 1, 32),
                                 maxiter=100 * n)
         y = vecs[:, 0] / np.linalg.norm(vecs[:, 0])
@@ -229,9 +232,11 @@ def top_eigenpair(A, v0: np.ndarray | None = None, dense_limit: int = DENSE_LIMI
     if solver != "lanczos":
         raise ValueError(f"solver: lanczos or arpack, got {solver!r}")
     matvecs = 0
+    workspace = workspace if workspace is not None else Workspace()
     for _ in range(LANCZOS_RETRIES):
         ritz, y, used, Y = lanczos_top(into, start, tol=tol, stop_above=stop_above,
                                        stop_tol=stop_tol, block=block, workspace=workspace)
+        Ay = workspace.array(LANCZOS_ARRAYS[1], (n,))  # (Lanczos' scratch vector, free now)
         into(y, Ay)
         matvecs += used + 1
         theta, residual = _rayleigh_residual(y, Ay)
