@@ -637,9 +637,12 @@ class Simulation:
     def _reach_speed(self, horizon: float) -> np.ndarray:
         """Per particle, |v| + h |a| [L/T] (a from the last contact and applied forces and
         gravity; zero for fixed particles)."""
-        acc = np.linalg.norm((self.force + self.applied_force) * self.inv_m[:, None]
-                             + self.gravity * (self.inv_m[:, None] > 0), axis=1)
-        return np.linalg.norm(self.v, axis=1) + horizon * acc
+        from demstep.kernels.integration import reach_speed
+
+        out = np.empty(len(self.r))
+        reach_speed(self.v, self.force, self.applied_force, self.inv_m,
+                    np.ascontiguousarray(self.gravity, dtype=np.float64), float(horizon), out)
+        return out
 
     @staticmethod
     def _coefficients(law_id, params, delta, r_star, m_star):

@@ -38,3 +38,19 @@ def store_step_terms(out, w_body, w_app, d_local, d_global, ke_t, ke_r, disp2, j
     out[5] = ke_r
     out[6] = disp2
     out[7] = math.sqrt(jump2) * dt
+
+
+@njit
+def reach_speed(v, force, applied, inv_m, gravity, horizon, out):
+    """out[p] = |v_p| + h |a_p| [L/T] with a_p = (F_p + F_app,p) / m_p + g (zero for a
+    fixed particle, inv_m 0): the speed a particle can reach within the horizon h [T]
+    (the 'auto' step's reach, :meth:`demstep.engine.Simulation.contact_set`)."""
+    for p in range(v.shape[0]):
+        im = inv_m[p]
+        vv = 0.0
+        aa = 0.0
+        for k in range(3):
+            vv += v[p, k] * v[p, k]
+            a = (force[p, k] + applied[p, k]) * im + (gravity[k] if im > 0.0 else 0.0)
+            aa += a * a
+        out[p] = math.sqrt(vv) + horizon * math.sqrt(aa)

@@ -231,8 +231,9 @@ class ScaledContactOperator:
     def rayleigh_terms(self, q: np.ndarray):
         """(k_q, c_q): q.K^ q and q.C^ q for a unit vector q (C^ with a1 and a2), summed
         over the contacts in one pass (Delta.D Delta per contact)."""
-        kq, cq = contact_quadratic_forms(self.contacts, self.rotation, self.displacement(q),
-                                         self._chunks, parallel=self.threads > 1)
+        u = self.displacement(q, self.workspace.array("operator_mode", self.scale.shape))
+        kq, cq = contact_quadratic_forms(self.contacts, self.rotation, u, self._chunks,
+                                         parallel=self.threads > 1)
         return kq, cq + self.damping.mass + self.damping.stiffness * kq
 
     def subspace_start(self, Y: np.ndarray):
@@ -318,12 +319,13 @@ class ScaledContactOperator:
         return (trans / total, rot / total,
                 energy / e_sum if e_sum > 0 else energy)
 
-    def displacement(self, q: np.ndarray) -> np.ndarray:
+    def displacement(self, q: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """The physical mode shape of every sphere (N, nd) [L; rad for rotations]: M^-1/2 q
-        (with bodies, the members move with their bodies)."""
+        (with bodies, the members move with their bodies); into ``out`` (N, nd) when
+        given, without bodies."""
         if self.owner_map is not None:
             return self.owner_map.expand(q.reshape(-1, self.nd), self.particles.n)
-        return self.scale * q.reshape(self.scale.shape)
+        return np.multiply(self.scale, q.reshape(self.scale.shape), out=out)
 
 
 class _Pencil(spla.LinearOperator):
