@@ -58,8 +58,8 @@ def main(argv=None):
     params = sim.law.params()
     parallel = sim._parallel()
     pairs = sim._work_space(parallel)
-    chunks, spans, force_buf, torque_buf, geo = (pairs.chunks, pairs.spans, pairs.force_buf,
-                                                 pairs.torque_buf, pairs.geo)
+    chunks, spans, force_band, torque_band, geo = (pairs.chunks, pairs.spans, pairs.force_band,
+                                                   pairs.torque_band, pairs.geo)
     names = {
         "periodic_len": sim.periodic_len, "law": int(params.law),
         "params": params, "box_rate": np.zeros(3),
@@ -67,7 +67,8 @@ def main(argv=None):
         "local_damping": sim.damping.local, "global_damping": sim.damping.viscous,
         "first": False, "acc_out": np.empty(8), "box_sums": np.zeros((4, 3)),
         "store_dashpot": params.has_dashpots, "store_damping": False,
-        "chunks": chunks, "spans": spans, "force_band": force_buf, "torque_band": torque_buf,
+        "chunks": chunks, "spans": spans, "force_band": force_band,
+        "torque_band": torque_band,
         "geo": geo, "n_chunks": len(chunks) - 1, "sphere_body": sim.bodies.sphere_body,
         "cover": np.zeros(0),  # (a fixed step: no cover tracked)
     }

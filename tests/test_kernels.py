@@ -439,3 +439,41 @@ def test_reach_speed_equals_numpy():
     assert np.allclose(out, ref, rtol=1e-14, atol=0)
     assert np.allclose(out[::7], np.linalg.norm(v[::7], axis=1) + 0.25 * np.linalg.norm(
         (f + fa)[::7] * 0.0, axis=1))
+
+
+def test_rolling_loop_in_chunks_equals_one_chunk():
+    """The rolling and twisting moments summed in three chunks (own rows directly, the
+    rest through the bands and the reduction) equal one chunk's, and so do the history
+    and the energies."""
+    x, v, w, r, m, pi, pj, ft, fd, etan = overlapping_pairs(8)
+    P = len(pi)
+    law = LinearSpring(k_n=1000.0, k_s=800.0, mu=0.4, rolling_convention="beta",
+                       rolling_stiffness=0.3, twisting_stiffness=0.2, rolling_friction=0.05,
+                       twisting_friction=0.05, rolling_damping=0.3)
+    params = law.params()
+    inertia = 0.4 * m * r**2
+    geo = np.empty((P, 4))
+    dem.pair_forces_serial(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0, params,
+                           1e-3, ft.copy(), fd.copy(), etan.copy(), True, np.array([0, P]),
+                           np.array([[0, len(r)]]), np.zeros((len(r), 3)),
+                           np.zeros((len(r), 3)), np.zeros((1, 0, 3)), np.zeros((1, 0, 3)),
+                           np.zeros((4, 3)), geo, np.zeros(0))
+    roll0 = np.random.default_rng(2).normal(0, 1e-3, (P, 8))
+    results = []
+    for n_chunks in (1, 3):
+        chunks, spans, f, t, fbuf, tbuf = chunk_buffers(pi, pj, len(r), n_chunks)
+        t[:] = 0.0
+        if n_chunks > 1:
+            tbuf[:] = 0.0  # (the pair loop zeroes the bands; here the rolling loop alone)
+        roll = roll0.copy()
+        fn = dem.rolling_forces_serial if n_chunks == 1 else dem.rolling_forces
+        out = fn(w, r, m, inertia, 1.0 / m, pi, pj, geo, 0, params, 1e-3, roll, chunks, spans,
+                 t, tbuf)
+        if n_chunks > 1:
+            dem.reduce_forces(fbuf * 0.0, tbuf, spans, np.zeros((len(r), 3)), t)
+            assert np.abs(tbuf).max() > 0  # some moments went through a band
+        results.append((np.array(out), roll, t))
+    (o1, h1, t1), (o3, h3, t3) = results
+    assert np.abs(t1).max() > 0
+    assert np.allclose(o1, o3, rtol=1e-12) and np.array_equal(h1, h3)
+    assert np.allclose(t1, t3, rtol=1e-12, atol=1e-15)

@@ -1355,18 +1355,18 @@ class Simulation:
         chunks, spans = self.backend.pair_chunks(pairs.i, pairs.j, n, n_chunks)
         own_hi = np.append(spans[1:, 0], n)
         rows = int(np.max(spans[:, 1] - own_hi, initial=0))
-        force_buf, torque_buf = pairs.force_buf, pairs.torque_buf
-        if force_buf.shape[0] != n_chunks or force_buf.shape[1] < rows:
+        force_band, torque_band = pairs.force_band, pairs.torque_band
+        if force_band.shape[0] != n_chunks or force_band.shape[1] < rows:
             shape = (n_chunks, int(1.25 * rows) + 64 if n_chunks > 1 else 0, 3)
-            force_buf = np.zeros(shape)
-            torque_buf = np.zeros(shape)
+            force_band = np.zeros(shape)
+            torque_band = np.zeros(shape)
         # the pair geometry is kept for the rolling-resistance loop only
         n_geo = n_pairs if pairs.roll.shape[0] > 0 else 0
         if len(self._geo_store) < n_geo:
             self._geo_store = np.empty((int(1.25 * n_geo) + 64, 4))
         self._chunks_for = n_chunks
-        return pairs._replace(chunks=chunks, spans=spans, force_buf=force_buf,
-                              torque_buf=torque_buf, geo=self._geo_store[:n_geo])
+        return pairs._replace(chunks=chunks, spans=spans, force_band=force_band,
+                              torque_band=torque_band, geo=self._geo_store[:n_geo])
 
     def contact_forces(self):
         """Pairs in contact now: (i, j) (C, 2), the force on j (C, 3) [M L/T^2] (elastic at

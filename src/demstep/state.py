@@ -115,7 +115,7 @@ class Pairs(NamedTuple):
     tangential spring force on j ``shear`` (P, 3) [M L/T^2], dashpot force on j
     ``dashpot`` (P, 3), stored tangential energy ``shear_energy`` (P,) [M L^2/T^2].
     Work space: pair ``chunks`` (one per thread, cut at particle starts), their
-    particle ``spans``, the band buffers ``force_buf``/``torque_buf`` (chunks, rows, 3)
+    particle ``spans``, the band buffers ``force_band``/``torque_band`` (chunks, rows, 3)
     for what a chunk adds to particles past its own (see
     :func:`demstep.kernels.dem._pair_loop`; no rows with one chunk), and ``geo`` (P, 4), the
     unit normals and distances of the first pass of the pair loop. ``roll`` (P, 8): the
@@ -131,8 +131,8 @@ class Pairs(NamedTuple):
     shear_energy: np.ndarray
     chunks: np.ndarray
     spans: np.ndarray
-    force_buf: np.ndarray
-    torque_buf: np.ndarray
+    force_band: np.ndarray
+    torque_band: np.ndarray
     geo: np.ndarray
     roll: np.ndarray
     cover: np.ndarray

@@ -381,9 +381,10 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     owns, which it zeroes first, and those of particles beyond (its band: up to
     ``spans[c, 1]``) to ``force_band[c]``/``torque_band[c]`` (rows from the first
     particle past its own), which :func:`_reduce_loop` adds once every chunk is done:
-    no two threads write the same memory, and with one chunk there is no band. Returns (strain_n, strain_t, friction, dashpot,
-    contacts, uncovered). ``box_sums`` (4, 3) receives per axis the virial sum F_on_j,k d_k (Love
-    stress times volume), the boundary sum F_on_j,k n_img,k over pairs crossing a
+    no two threads write the same memory, and with one chunk there is no band. Returns
+    (strain_n, strain_t, friction, dashpot, contacts, uncovered). ``box_sums`` (4, 3)
+    receives per axis the virial sum F_on_j,k d_k (Love stress times volume), the
+    boundary sum F_on_j,k n_img,k over pairs crossing a
     periodic boundary (times a change of box length: the work done on the contacts),
     the number of crossing contacts and the sum of their k_n. ``box_rate`` (3,): rate of
     change of the periodic lengths; the image of j across a boundary moves with
@@ -939,15 +940,15 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
     dt = ctl.dt
     dt_prev = ctl.dt_prev
     first = ctl.first
-    wall_chunks = pairs.force_buf.shape[0] if ctl.parallel else 1
+    wall_chunks = pairs.force_band.shape[0] if ctl.parallel else 1
     out = np.empty(8)
     out_bodies = np.empty(8)
     box_sums = np.zeros((4, 3))
     box_rate = np.zeros(3)
     extents = np.empty(3)
     nw = wall_point.shape[0]
-    n_chunks = pairs.force_buf.shape[0]
-    force_band, torque_band = pairs.force_buf, pairs.torque_buf
+    n_chunks = pairs.force_band.shape[0]
+    force_band, torque_band = pairs.force_band, pairs.torque_band
     for step in range(n_steps):
         # 1. pair contact forces; the slip increment of step n is x(t) - x(t - dt_prev)
         dt_slip = 0.0 if first else dt_prev
