@@ -549,6 +549,9 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
                 T[a] -= a_i * cx
                 T[a + one] -= a_i * cy
                 T[a + two] -= a_i * cz
+                # j's rows: its own particle's, or in the band past the chunk's range
+                # (written out twice: choosing the array in a variable cost 25-30 % of
+                # the whole loop, measured on dense 1e5, one thread)
                 if q < band_start:
                     F[q] += fx
                     F[q + one] += fy
