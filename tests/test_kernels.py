@@ -123,8 +123,7 @@ def chunk_buffers(pi, pj, n, n_chunks):
     """The pair loop's chunks, spans, particle forces and torques and band buffers, all
     NaN (rows a chunk must zero first: NaN must not leak out)."""
     chunks, spans = dem.pair_chunks(pi, pj, n, n_chunks)
-    own_hi = np.append(spans[1:, 0], n)
-    rows = int(np.max(spans[:, 1] - own_hi, initial=0)) + 3  # (the engine's are longer too)
+    rows = dem.band_rows(spans, n) + 3  # (the engine's are longer too)
     f, t = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
     fbuf = np.full((n_chunks, rows if n_chunks > 1 else 0, 3), np.nan)
     return chunks, spans, f, t, fbuf, fbuf.copy()
@@ -317,6 +316,7 @@ def test_pair_chunk_spans_cover_every_particle(n_chunks):
     assert np.all(pi[chunks[1:-1]] != pi[chunks[1:-1] - 1])  # cut at particle starts
     assert np.diff(chunks).max() - np.diff(chunks).min() <= 2 * np.bincount(pi).max()
     rows = int(np.max(spans[:, 1] - own_hi, initial=0))
+    assert dem.band_rows(spans, n) == rows
     f0, t0 = rng.normal(0, 1, (n, 3)), rng.normal(0, 1, (n, 3))
     fbuf, tbuf = np.full((n_chunks, rows + 2, 3), np.nan), np.full((n_chunks, rows + 2, 3), np.nan)
     expected_f, expected_t = f0.copy(), t0.copy()

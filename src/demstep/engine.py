@@ -1353,8 +1353,7 @@ class Simulation:
         n_pairs = len(pairs.i)
         n = len(self.r)
         chunks, spans = self.backend.pair_chunks(pairs.i, pairs.j, n, n_chunks)
-        own_hi = np.append(spans[1:, 0], n)
-        rows = int(np.max(spans[:, 1] - own_hi, initial=0))
+        rows = dem.band_rows(spans, n)
         force_band, torque_band = pairs.force_band, pairs.torque_band
         if force_band.shape[0] != n_chunks or force_band.shape[1] < rows:
             shape = (n_chunks, int(1.25 * rows) + 64 if n_chunks > 1 else 0, 3)

@@ -319,6 +319,14 @@ def pair_chunks(pi, pj, n_particles: int, n_chunks: int):
     return chunks, spans
 
 
+def band_rows(spans, n_particles: int) -> int:
+    """The rows a band buffer needs (:func:`_pair_loop`): the most particles any chunk
+    reaches past its own range (chunk c owns up to ``spans[c + 1, 0]``, the last one up
+    to N; its span ends at ``spans[c, 1]``)."""
+    own_hi = np.append(spans[1:, 0], n_particles)
+    return int(np.max(spans[:, 1] - own_hi, initial=0))
+
+
 #: pairs per block of the pair loop (:func:`_pair_loop`): the block's scratch,
 #: PAIR_ROWS x PAIR_BLOCK doubles (18 KB), stays in the L1 cache
 PAIR_BLOCK = 64
