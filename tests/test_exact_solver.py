@@ -178,6 +178,30 @@ def test_lanczos_returns_the_top_ritz_block():
     assert abs(Y[0] @ y) == pytest.approx(1.0, abs=1e-12)
 
 
+def test_start_vector_written_into_a_buffer_matches_the_new_one():
+    """The start written into a caller's buffer (the Lanczos scratch vector): the warm
+    vector normalised plus the mixed random one, as the allocating form gives it; the
+    random vector itself for no, a zero or a non-finite warm vector (the buffer then
+    holds a writable copy of it)."""
+    from demstep.timestep.eigen import _random_unit, start_vector
+
+    n = 1000
+    warm = np.random.default_rng(4).standard_normal(n) * 7.0
+    out = np.full(n, np.nan)
+    got = start_vector(n, warm, 1e-2, out=out)
+    assert got is out
+    np.testing.assert_allclose(out, warm / np.linalg.norm(warm) + 1e-2 * _random_unit(n),
+                               rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(start_vector(n, warm, 1e-2), out, rtol=1e-14, atol=1e-15)
+    bad = warm.copy()
+    bad[5] = np.inf
+    for w in (None, np.zeros(n), bad, warm[:10]):
+        out[:] = np.nan
+        assert start_vector(n, w) is _random_unit(n)
+        np.testing.assert_array_equal(start_vector(n, w, out=out), _random_unit(n))
+        assert out.flags.writeable
+
+
 @pytest.mark.parametrize("dim,seed", [(2, 1), (3, 2), (3, 3)])
 def test_loose_intermediate_solves_give_the_tight_result(dim, seed):
     """Sparse path (dense_limit=0) on small damped assemblies: loose intermediate solves

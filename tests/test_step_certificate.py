@@ -218,3 +218,29 @@ def test_uncovered_masks_equal_a_numpy_search():
             assert got.sum() > 0
             # the per-contact limits the pair loops compare with say the same
             assert np.array_equal(on & (delta > cover_limits(keys_all, known, assumed, check)), expect)
+
+
+@pytest.mark.parametrize("n_known", [0, 1, 300])
+def test_merge_cover_equals_a_sort_of_both_records(n_known):
+    """Extending the cover record by a merge: the same keys (sorted, each once) and
+    overlaps (the larger of the two for a key in both) as a sort of the concatenated
+    records with a maximum per key, the form it replaces; new keys at both ends, in
+    between, and keys already known."""
+    from demstep.timestep.certificate import merge_cover
+
+    rng = np.random.default_rng(n_known)
+    universe = rng.choice(10_000, 400, replace=False)
+    known = np.sort(universe[:n_known])
+    assumed = rng.uniform(0.0, 1.0, n_known)
+    keys = np.concatenate([universe[300:], known[::7][:20], [0, 10_001]])
+    keys = np.unique(keys)[rng.permutation(len(np.unique(keys)))]  # unique, any order
+    overlaps = rng.uniform(0.0, 1.0, len(keys))
+    before = assumed.copy()
+    merged, values = merge_cover(known, assumed, keys, overlaps)
+    expect, inverse = np.unique(np.concatenate([known, keys]), return_inverse=True)
+    expect_values = np.full(len(expect), -np.inf)
+    np.maximum.at(expect_values, inverse, np.concatenate([assumed, overlaps]))
+    np.testing.assert_array_equal(merged, expect)
+    np.testing.assert_array_equal(values, expect_values)
+    assert merged.dtype == np.int64
+    np.testing.assert_array_equal(assumed, before)  # the record itself is not changed

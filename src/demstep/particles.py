@@ -56,6 +56,16 @@ class Particles:
             raise InputError(f"fixed: expected {len(self.r)} flags, got {self.fixed.shape[0]}")
 
     @classmethod
+    def checked_already(cls, x, r, m, inertia, fixed) -> "Particles":
+        """Particles of float64 arrays (and a bool ``fixed``) that were validated when
+        they entered (a simulation's own state), taken as they are: no copies, no
+        checks (1.5 ms at 1e5 particles, per time-step estimate of an 'auto' run)."""
+        particles = object.__new__(cls)
+        particles.x, particles.r, particles.m = x, r, m
+        particles.inertia, particles.fixed = inertia, fixed
+        return particles
+
+    @classmethod
     def from_density(cls, x, r, density: float, fixed=None) -> "Particles":
         """Particles of uniform ``density`` [M/L^3 in 3D, M/L^2 in 2D]."""
         x = np.asarray(x, dtype=np.float64)

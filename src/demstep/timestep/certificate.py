@@ -106,6 +106,24 @@ def cover_limits(keys, known, assumed, nonlinear: bool) -> np.ndarray:
     return np.where(found, value, 0.0)
 
 
+def merge_cover(known, assumed, keys, overlaps):
+    """The record of covered contacts (sorted unique ``known`` keys, overlaps
+    ``assumed``) extended by the contacts ``keys`` (unique) at ``overlaps``: (sorted
+    keys, overlaps), the larger one for a key in both. A merge (a copy of the record),
+    not a sort of it: the record has every covered contact, the extension a few."""
+    known = np.asarray(known, dtype=np.int64)
+    assumed = np.array(assumed, dtype=np.float64)  # (a copy: raised in place)
+    order = np.argsort(keys, kind="stable")
+    keys = np.asarray(keys, dtype=np.int64)[order]
+    overlaps = np.asarray(overlaps, dtype=np.float64)[order]
+    at = np.searchsorted(known, keys)
+    found = known[np.minimum(at, len(known) - 1)] == keys if len(known) else np.zeros(
+        len(keys), dtype=bool)
+    assumed[at[found]] = np.maximum(assumed[at[found]], overlaps[found])
+    new = ~found
+    return np.insert(known, at[new], keys[new]), np.insert(assumed, at[new], overlaps[new])
+
+
 @njit(inline="always")
 def _not_covered(known, assumed, pos, key, delta, check_overlap):
     """One step of the merge of a sorted contact list with the sorted ``known`` keys

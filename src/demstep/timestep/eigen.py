@@ -51,12 +51,13 @@ LANCZOS_RETRIES = 2
 LANCZOS_MAX_MATVECS = 50_000
 
 
-#: the arrays of :func:`lanczos_top` in a :class:`Workspace` (the basis, the new vector,
-#: the block of top Ritz vectors returned) and the rows of the operator's projections
+#: the arrays of :func:`lanczos_top` in a :class:`Workspace` (the basis, which also
+#: holds the block of top Ritz vectors returned, and the new vector, which also holds
+#: the start) and the rows of the operator's projections
 #: (:meth:`demstep.timestep.exact.ScaledContactOperator.subspace_start`); blocks of
 #: k x n of more than 32 MB come from the system as fresh pages at every allocation
 #: (glibc maps them anew), measured 2 ms per MB inside a running simulation
-LANCZOS_ARRAYS = ("lanczos_basis", "lanczos_w", "lanczos_block", "subspace_rows")
+LANCZOS_ARRAYS = ("lanczos_basis", "lanczos_w", "subspace_rows")
 
 
 @dataclass
@@ -86,17 +87,32 @@ def _random_unit(n: int) -> np.ndarray:
     return rand
 
 
-def start_vector(n: int, warm: np.ndarray | None = None, mix: float = WARM_START_MIX) -> np.ndarray:
-    """A reproducible start vector: the fixed pseudo-random one (read-only), or ``warm``
-    with ``mix`` (1 %) of it mixed in (so that no eigen-direction is missing from the
-    start)."""
+def start_vector(n: int, warm: np.ndarray | None = None, mix: float = WARM_START_MIX,
+                 out: np.ndarray | None = None) -> np.ndarray:
+    """A reproducible start vector: the fixed pseudo-random one (read-only, unless
+    written into ``out``), or ``warm`` with ``mix`` (1 %) of it mixed in (so that no
+    eigen-direction is missing from the start); into ``out`` (n,) when given."""
     rand = _random_unit(n)  # (read-only: shared, not copied)
-    if warm is None or warm.shape != (n,) or not np.all(np.isfinite(warm)):
-        return rand
-    norm = np.linalg.norm(warm)
-    if norm == 0:
-        return rand
-    return warm / norm + mix * rand
+    norm = 0.0
+    if warm is not None and np.shape(warm) == (n,):
+        warm = np.ascontiguousarray(warm, dtype=np.float64)
+        norm = np.sqrt(_squared_norm(warm))  # (not finite when an element is not)
+    if not 0.0 < norm < np.inf:
+        if out is None:
+            return rand
+        out[:] = rand
+        return out
+    if out is None:
+        return warm / norm + mix * rand
+    np.multiply(warm, 1.0 / norm, out=out)
+    return scipy.linalg.blas.daxpy(rand, out, a=mix)  # (in place: out += mix rand)
+
+
+def _squared_norm(x: np.ndarray) -> float:
+    """|x|^2 by the compiled kernel (inf or nan when x has a non-finite element)."""
+    from demstep.kernels.timestep_kernels import _norm2
+
+    return float(_norm2(x))
 
 
 def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LANCZOS_BASIS,
@@ -136,8 +152,8 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
     workspace = workspace if workspace is not None else Workspace()
     V = workspace.array(LANCZOS_ARRAYS[0], (m, n))
     T = np.zeros((m + 1, m + 1))
-    norm = np.sqrt(tk._norm2(v0))
-    tk.scale_into(v0, 1.0 / norm, V[0])
+    tk.scale_into(v0, 1.0 / np.sqrt(tk._norm2(v0)), V[0])
+    # (v0 may be the scratch vector w itself: it is read before the first product)
     w = workspace.array(LANCZOS_ARRAYS[1], (n,))
     h = np.empty(m + 1)
     h2 = np.empty(m + 2)
@@ -165,8 +181,9 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
         if (estimate <= tol * abs(top) or exhausted or matvecs >= max_matvecs
                 or (top > stop_above and estimate <= stop_tol * abs(top))):
             nb = max(1, min(block, size))
-            # the block lives in the workspace: valid until the next solve asks for one
-            Y = workspace.array(LANCZOS_ARRAYS[2], (nb, n)) if block else np.empty((1, n))
+            # the block overwrites the first rows of the basis (no new memory, and none
+            # touched for the first time): valid until the next solve
+            Y = V[:nb] if block else np.empty((1, n))
             tk.combine_rows(V, size, S[:, ::-1][:, :nb], Y)
             y = Y[0].copy() if block else Y[0]  # (no second vector when Y is not kept)
             tk.scale_into(y, 1.0 / np.sqrt(tk._norm2(y)), y)
@@ -216,12 +233,12 @@ def top_eigenpair(A, v0: np.ndarray | None = None, dense_limit: int = DENSE_LIMI
         return Eigenpair(float(w[0]), y, float(np.linalg.norm(M @ y - w[0] * y)))
     from demstep.kernels.timestep_kernels import _rayleigh_residual
 
-    start = start_vector(n, v0, mix)
     into = getattr(A, "matvec_into", None)
     if into is None:
         def into(x, out):
             out[:] = np.ravel(A @ x)
     if solver == "arpack":
+        start = start_vector(n, v0, mix)
         Ay = np.empty(n)
         vals, vecs = spla.eigsh(A, k=1, which="LA", tol=tol, v0=start, ncv=min(n - 1, 32),
                                 maxiter=100 * n)
@@ -233,6 +250,8 @@ def top_eigenpair(A, v0: np.ndarray | None = None, dense_limit: int = DENSE_LIMI
         raise ValueError(f"solver: lanczos or arpack, got {solver!r}")
     matvecs = 0
     workspace = workspace if workspace is not None else Workspace()
+    # the start goes into Lanczos' scratch vector (read before its first product)
+    start = start_vector(n, v0, mix, out=workspace.array(LANCZOS_ARRAYS[1], (n,)))
     for _ in range(LANCZOS_RETRIES):
         ritz, y, used, Y = lanczos_top(into, start, tol=tol, stop_above=stop_above,
                                        stop_tol=stop_tol, block=block, workspace=workspace)

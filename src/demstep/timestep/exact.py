@@ -250,7 +250,7 @@ class ScaledContactOperator:
         if self.owner_map is not None:
             X = np.stack([self.displacement(y) for y in Y])
         else:
-            X = self.workspace.array(LANCZOS_ARRAYS[3], (k,) + self.scale.shape)
+            X = self.workspace.array(LANCZOS_ARRAYS[2], (k,) + self.scale.shape)
             np.multiply(self.scale[None], Y.reshape(k, *self.scale.shape), out=X)
         K_p, C_p = contact_gram(self.contacts, self.rotation, X, self._chunks,
                                 parallel=self.threads > 1)
@@ -269,7 +269,8 @@ class ScaledContactOperator:
 
         z = np.empty((1, Y.shape[1]))
         combine_rows(Y, k, u[:, None], z)
-        return z[0] / np.linalg.norm(z[0])
+        z /= np.linalg.norm(z[0])
+        return z[0]
 
     def damping_bound(self) -> float:
         """An upper bound on lambda_max(C^) [1/T] (C^ with a1, a2 and the dashpots, rolling
