@@ -71,7 +71,8 @@ class Eigenpair:
     residual: float
     matvecs: int = 0
     #: the top Ritz vectors of the last Lanczos basis (k, n), largest first, when asked
-    #: (held in the solver's workspace: the next solve that asks for a block reuses it)
+    #: (the first rows of the basis in the solver's workspace: the next solve overwrites
+    #: them)
     block: np.ndarray | None = None
 
     @property
