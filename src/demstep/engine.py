@@ -192,6 +192,12 @@ class Simulation:
     source_index : the input row of each particle when the caller put them in another
         order (:func:`demstep.packings.spatial_order`: ``demstep run`` does so for a
         particle file); messages and outputs name particles by it (:meth:`particle_id`)
+    sort_every : re-sort the particles in memory along their rows of cells
+        (:func:`demstep.packings.spatial_order`) at the first neighbour-list rebuild
+        at least this many steps after the last sort, and at the first build (None:
+        never; ``demstep run``: every 1000 steps by default). The indices of ``x``,
+        ``v``, ... then change (:meth:`reorder`); ``source_index`` keeps each
+        particle's input row
 
     The state lives in the bundles of :mod:`demstep.state` (``spheres``, ``bodies``,
     ``pairs``, ``wall_state``, ``box``, and the ``ledger``); the familiar names (``x``,
@@ -207,7 +213,7 @@ class Simulation:
                  checkpoint_dir: str | os.PathLike | None = None, rotation: bool = True,
                  parallel: bool | None = None, backend: str = "cpu", clumps=None,
                  clump_velocities=None, clump_angular_velocities=None, clump_fixed=None,
-                 source_index=None):
+                 source_index=None, sort_every: int | None = None):
         bodies = None
         if clumps is not None:
             from demstep.clumps import with_members
@@ -235,6 +241,12 @@ class Simulation:
                 raise InputError(f"source_index: expected {particles.n} rows, got "
                                  f"{source_index.shape}")
             self.source_index = source_index
+        if sort_every is not None and (isinstance(sort_every, bool) or not isinstance(
+                sort_every, (int, np.integer)) or sort_every < 1):
+            raise InputError(f"sort_every: expected a number of steps >= 1 or None, got "
+                             f"{sort_every!r}")
+        self.sort_every = None if sort_every is None else int(sort_every)
+        self._last_sort = 0  # the step of the last sort (sort_every)
         self.law = law if law is not None else LinearSpring()
         self.law.validate()
         self.damping = damping if damping is not None else Damping()
@@ -454,6 +466,9 @@ class Simulation:
             place_members(bodies.x, bodies.q, bodies.start, bodies.member, bodies.offset,
                           self.x, self.periodic_len)
         built = self._pairs_built
+        if self.sort_every is not None and (
+                not built or self.step - self._last_sort >= self.sort_every):
+            self._sort_particles()
         old, ws = self.pairs, self.wall_state
         if self._neighbour_work is None:
             from demstep.scratch import Workspace
@@ -505,6 +520,106 @@ class Simulation:
         self.box.ref[:] = self.box.length
         self._pairs_built = True
         self.n_rebuilds = getattr(self, "n_rebuilds", 0) + 1
+
+    def _sort_particles(self):
+        """Put the particles in spatial order (rows of cells of side 2 r_max, as
+        ``demstep run`` orders a particle file) when they are not in it already."""
+        from demstep.packings import spatial_order
+
+        self._last_sort = self.step
+        order = spatial_order(self.x[:, :self.dim], 2.0 * float(self.r.max()))
+        if np.any(order != np.arange(len(order))):
+            self.reorder(order)
+            self.n_sorts = getattr(self, "n_sorts", 0) + 1
+
+    def reorder(self, order) -> None:
+        """Renumber the particles: new particle k is old particle ``order[k]`` (a
+        permutation of 0..N-1). Everything that names particles follows: the state of
+        every particle, ``fixed``, ``particles``, ``source_index`` (composed, so that
+        messages and outputs keep naming particles by their input row), the clumps'
+        members, the pair and wall lists with their history, the bonds, and the 'auto'
+        step's cover, critical mode and certificate. A pair or bond whose ends swap
+        keeps i < j: what it stores as acting on j (tangential spring and dashpot
+        forces, rolling, viscous and bending moments, bond shear) changes sign; what
+        acts along the normal (normal force, twisting moment) does not, the normal
+        turning with it. Index arrays and views the caller holds are not renumbered."""
+        n = len(self.r)
+        order = np.asarray(order)
+        if (order.shape != (n,) or not np.issubdtype(order.dtype, np.integer)
+                or not np.array_equal(np.sort(order), np.arange(n))):
+            raise InputError(f"order: expected a permutation of 0..{n - 1}, got "
+                             f"{order.dtype} of shape {order.shape}")
+        order = order.astype(np.int64)
+        inv = np.empty(n, dtype=np.int64)
+        inv[order] = np.arange(n)
+        self.spheres = Spheres(*(np.ascontiguousarray(a[order]) for a in self.spheres))
+        self.fixed = self.fixed[order]
+        self.particles = self.particles.take(order)
+        self.source_index = order if self.source_index is None else self.source_index[order]
+        bodies = self.bodies
+        self.bodies = bodies._replace(member=inv[bodies.member],
+                                      sphere_body=bodies.sphere_body[order])
+        self.pairs = self._renumbered_pairs(self.pairs, inv)
+        ws = self.wall_state
+        p = inv[ws.p]
+        rows = np.lexsort((ws.wall, p))
+        self.wall_state = ws._replace(p=p[rows], wall=ws.wall[rows], **{
+            f: getattr(ws, f)[rows] if len(getattr(ws, f)) else getattr(ws, f)
+            for f in ("shear", "dashpot", "shear_energy", "roll", "cover")})
+        bonds = self.bonds
+        if bonds.n:
+            i, j = inv[bonds.i], inv[bonds.j]
+            sign = np.where(i > j, -1.0, 1.0)[:, None]
+            self.bonds = bonds._replace(i=np.minimum(i, j), j=np.maximum(i, j),
+                                        shear=bonds.shear * sign, bend=bonds.bend * sign)
+        self._renumber_timestep_state(order, inv)
+        self._chunks_for = None
+
+    @staticmethod
+    def _renumbered_pairs(pairs: Pairs, inv: np.ndarray) -> Pairs:
+        """The pair list with particle p renamed inv[p], i < j kept (history on j
+        negated where the ends swap) and sorted by (i, j) again."""
+        i, j = inv[pairs.i], inv[pairs.j]
+        swap = i > j
+        lo, hi = np.where(swap, j, i), np.where(swap, i, j)
+        sign = np.where(swap, -1.0, 1.0)[:, None]
+        rows = np.lexsort((hi, lo))
+        roll = pairs.roll
+        if len(roll):
+            roll = roll.copy()
+            for col in (dem.ROLL_M, dem.ROLL_VISCOUS):  # moments on j (3); twist along n
+                roll[:, col:col + 3] *= sign
+            roll = roll[rows]
+        return pairs._replace(i=lo[rows], j=hi[rows], shear=(pairs.shear * sign)[rows],
+                              dashpot=(pairs.dashpot * sign)[rows],
+                              shear_energy=pairs.shear_energy[rows], roll=roll,
+                              cover=pairs.cover[rows] if len(pairs.cover) else pairs.cover)
+
+    def _renumber_timestep_state(self, order: np.ndarray, inv: np.ndarray):
+        """:meth:`reorder` for the 'auto' control: the cover's keys, the certificate's
+        pairs (their normals keep their direction from pair_i to pair_j) and the
+        critical mode (a warm start: dropped with clumps, whose modes are per body)."""
+        n = len(order)
+        cover = self.__dict__.get("_cover_record")
+        if cover:
+            renamed = {}
+            for name, (keys, assumed) in cover.items():
+                if name == "pairs":
+                    a, b = inv[keys // n], inv[keys % n]
+                    keys = np.minimum(a, b) * n + np.maximum(a, b)
+                else:
+                    n_walls = max(1, len(self.walls))
+                    keys = inv[keys // n_walls] * n_walls + keys % n_walls
+                rows = np.argsort(keys, kind="stable")
+                renamed[name] = (keys[rows], np.asarray(assumed)[rows])
+            self._cover_record = renamed
+        cert = getattr(self, "_dt_cert", None)
+        if cert is not None and len(cert.pair_i):
+            cert.pair_i, cert.pair_j = inv[cert.pair_i], inv[cert.pair_j]
+        mode = getattr(self, "_dt_mode", None)
+        if mode is not None:
+            self._dt_mode = (None if self.bodies.n or mode.size % n
+                             else mode.reshape(n, -1)[order].reshape(-1))
 
     # ------------------------------------------------------------- time step
     @property
@@ -944,6 +1059,9 @@ class Simulation:
             float(self._time_ref[0]), self._time_ref[1],
             np.nan if self._time_ref[2] is None else self._time_ref[2]])
         out.update(self.timestep_state())
+        if self.source_index is not None:  # the order of the arrays (sorted in a run)
+            out["source_index"] = self.source_index
+        out["last_sort"] = np.array([self._last_sort])
         return out
 
     def load_state_dict(self, data: dict, source: str = "state"):
@@ -962,6 +1080,7 @@ class Simulation:
         missing = [k for k in needed if k not in data]
         if missing:
             raise InputError(f"{source}: a damaged checkpoint (array {missing[0]!r} missing)")
+        self._order_as(data.get("source_index"), source)
         if data["r"].shape != self.r.shape or not np.array_equal(data["r"], self.r):
             raise InputError(f"{source}: the checkpoint's particles do not match the simulation")
         if data["wall_state.point"].shape != self.wall_state.point.shape:
@@ -990,6 +1109,7 @@ class Simulation:
         step, time, dt, dt_prev, first, max_err, next_dt, dt_est, t_step, t_time, t_dt = \
             np.asarray(data["scalars"], dtype=np.float64)
         self.step = int(step)
+        self._last_sort = int(np.asarray(data.get("last_sort", [step]))[0])
         self.time = float(time)
         self.dt = None if np.isnan(dt) else float(dt)
         self.dt_prev = float(dt_prev)
@@ -1007,6 +1127,24 @@ class Simulation:
         for t in self._triggers:  # the next multiple of each interval, as in an unbroken run
             t.next_step = (self.step // t.every + 1) * t.every
         return self
+
+    def _order_as(self, source_index, source: str):
+        """Renumber the particles as a checkpoint's (its ``source_index``: the input row
+        of each of its particles; a run that sorted them saved them in another order
+        than this Simulation, built from the case, has)."""
+        if source_index is None:
+            return
+        target = np.asarray(source_index)
+        current = (np.arange(len(self.r)) if self.source_index is None
+                   else np.asarray(self.source_index))
+        if target.shape != current.shape or not np.issubdtype(target.dtype, np.integer) \
+                or not np.array_equal(np.sort(target), np.sort(current)):
+            raise InputError(f"{source}: the checkpoint's particles do not match the simulation")
+        if np.array_equal(target, current):
+            return
+        position = np.empty(int(current.max()) + 1, dtype=np.int64)
+        position[current] = np.arange(len(current))
+        self.reorder(position[target])
 
     def timestep_state(self) -> dict:
         """Arrays of the 'auto' time-step control that a restart needs to continue bit for

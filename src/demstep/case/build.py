@@ -256,7 +256,8 @@ def _build_simulation(case: Case, checkpoint_dir):
         energy=EnergyMonitor(eps=en.eps, every=en.every, action=en.action, floor=en.floor),
         jump_limit=case.numerics.jump_limit, runaway_factor=case.numerics.runaway_factor,
         checkpoint_dir=checkpoint_dir, rotation=case.rotation, clumps=clumps,
-        clump_fixed=clump_fixed, source_index=source_index)
+        clump_fixed=clump_fixed, source_index=source_index,
+        sort_every=case.numerics.sort_every or None)
     if case.mass_scaling != 1.0:
         sim.scale_mass(case.mass_scaling)
     check_initial_state(sim, case.numerics.max_initial_overlap)

@@ -98,7 +98,11 @@ not checked; default: automatic).
 ``runaway_factor`` (divergence when kinetic energy exceeds this multiple of the energy
 supplied; 0 disables), ``max_initial_overlap`` (the largest overlap of two particles at
 the start, as a fraction of the smaller radius; default 0.05; pairs of fixed particles
-are exempt; coincident centres are always an error).
+are exempt; coincident centres are always an error), ``sort_every`` [steps] (the
+particles are put in spatial order in memory again at the first neighbour-list rebuild
+this many steps after the last sort, as particles that travel scatter their neighbours
+in memory; default 1000; 0: never; outputs name particles by their input row whatever
+their order).
 
 ``[[stages]]`` (at least one), run in order: ``name``, and exactly one of ``steps``,
 ``duration`` [T] or ``until_kinetic_below`` [M L^2/T^2] (checked every
@@ -386,6 +390,7 @@ class NumericsSection(_Section):
     jump_limit: Positive = 0.25
     runaway_factor: NonNegative = 10.0
     max_initial_overlap: NonNegative = MAX_INITIAL_OVERLAP
+    sort_every: NonNegativeInt = 1000
 
 
 class BoxAxisMotion(_Section):
