@@ -545,16 +545,30 @@ class Simulation:
         turning with it. Index arrays and views the caller holds are not renumbered."""
         n = len(self.r)
         order = np.asarray(order)
-        if (order.shape != (n,) or not np.issubdtype(order.dtype, np.integer)
-                or not np.array_equal(np.sort(order), np.arange(n))):
+        seen = np.zeros(n, dtype=bool)
+        if order.shape == (n,) and np.issubdtype(order.dtype, np.integer) and (
+                n == 0 or (order.min() >= 0 and order.max() < n)):
+            seen[order] = True
+        if not seen.all():
             raise InputError(f"order: expected a permutation of 0..{n - 1}, got "
                              f"{order.dtype} of shape {order.shape}")
         order = order.astype(np.int64)
         inv = np.empty(n, dtype=np.int64)
         inv[order] = np.arange(n)
-        self.spheres = Spheres(*(np.ascontiguousarray(a[order]) for a in self.spheres))
+        # the particles' arrays permuted in place through one scratch array (fresh
+        # memory for all of them cost half the time in page faults: 21 ms at 1e5)
+        if getattr(self, "_sort_work", None) is None:
+            from demstep.scratch import Workspace
+
+            self._sort_work = Workspace()
+        for a in self.spheres:
+            scratch = self._sort_work.array("rows", a.shape, a.dtype, grow=True)
+            np.take(a, order, axis=0, out=scratch)
+            a[...] = scratch
         self.fixed = self.fixed[order]
-        self.particles = self.particles.take(order)
+        p = self.particles
+        self.particles = Particles.checked_already(p.x[order], p.r[order], p.m[order],
+                                                   p.inertia[order], p.fixed[order])
         self.source_index = order if self.source_index is None else self.source_index[order]
         bodies = self.bodies
         self.bodies = bodies._replace(member=inv[bodies.member],
