@@ -258,6 +258,14 @@ def _mixed_box(timestep=None, sort_every=None, seed=7, gravity=(0, 0, -9.81)):
     return sim
 
 
+def _shuffled_box(sort_every=None, seed=3, **kw):
+    """:func:`_mixed_box` as if built from particles in a random order."""
+    sim = _mixed_box(sort_every=sort_every, **kw)
+    sim.reorder(np.random.default_rng(seed).permutation(len(sim.r)))
+    sim.source_index = None
+    return sim
+
+
 def test_a_renumbered_simulation_runs_on_as_the_original():
     """reorder() by a random permutation mid-run (about half the pairs and bonds swap
     their ends): the run goes on as the unrenumbered one, particle by particle, to
@@ -301,24 +309,38 @@ def test_reorder_rejects_what_is_not_a_permutation():
 
 def test_sorting_during_a_run_keeps_neighbours_close_and_the_run_unchanged():
     """sort_every: particles given in random order are sorted at the first build (the
-    pairs close in memory), again later as they move; the run is the unsorted one's
-    to rounding and each particle keeps its input row in ``source_index``."""
-    shuffle = np.random.default_rng(3).permutation(216)
+    pairs close in memory); scrambled again mid-run, at the first rebuild ``sort_every``
+    steps after the last sort. A sort that would not bring the pairs closer is not
+    done. The run is the unsorted one's to rounding, each particle named by its input
+    row in ``source_index``."""
+    scramble = np.random.default_rng(5).permutation(216)
 
-    def shuffled(sort_every):
-        sim = _mixed_box(sort_every=sort_every)
-        sim.reorder(shuffle)  # (a simulation built from particles in random order)
-        sim.source_index = None
-        return sim
+    def by_row(sim, a):
+        out = np.empty_like(a)
+        out[sim.source_index] = a
+        return out
 
-    plain, sorted_ = shuffled(None), shuffled(50)
-    plain.run(steps=600)
-    sorted_.run(steps=600)
-    assert getattr(sorted_, "n_sorts", 0) >= 2
-    assert np.median(np.abs(sorted_.pj - sorted_.pi)) < 0.25 * np.median(np.abs(plain.pj - plain.pi))
-    rows = sorted_.source_index
-    np.testing.assert_array_equal(np.sort(rows), np.arange(216))
-    np.testing.assert_allclose(sorted_.x, plain.x[rows], rtol=0, atol=1e-12)
+    def spread(sim):
+        return np.median(sim.pj - sim.pi)
+
+    plain, sorted_ = _shuffled_box(None), _shuffled_box(50)
+    plain.run(steps=300)
+    sorted_.run(steps=300)
+    # sorted at the first build; looked at again at a later rebuild: nothing to gain
+    assert sorted_.n_sorts == 1 and sorted_._last_sort > 0
+    tidy = spread(sorted_)
+    assert tidy < 0.25 * spread(plain)
+    for sim in (plain, sorted_):
+        sim.reorder(scramble)
+    assert spread(sorted_) > 4 * tidy
+    rebuilds = sorted_.n_rebuilds
+    sorted_.run(steps=300)
+    plain.run(steps=300)
+    assert sorted_.n_rebuilds > rebuilds and sorted_.n_sorts == 2
+    assert spread(sorted_) < 0.25 * spread(plain)
+    np.testing.assert_array_equal(np.sort(sorted_.source_index), np.arange(216))
+    np.testing.assert_allclose(by_row(sorted_, sorted_.x), by_row(plain, plain.x), rtol=0,
+                               atol=1e-12)
     np.testing.assert_allclose(sorted_.ledger.acc, plain.ledger.acc, rtol=1e-10, atol=1e-12)
 
 
@@ -328,13 +350,13 @@ def test_a_checkpoint_of_a_sorted_run_restarts_bit_for_bit(tmp_path):
     unbroken run (its later sorts at the same steps)."""
     from demstep.io.checkpoint import load_checkpoint, save_checkpoint
 
-    whole = _mixed_box(sort_every=100)
+    whole = _shuffled_box(sort_every=100)
     whole.run(steps=700)
-    part = _mixed_box(sort_every=100)
+    part = _shuffled_box(sort_every=100)
     part.run(steps=350)
     assert part.n_sorts >= 1 and not np.array_equal(part.source_index, np.arange(216))
     path = save_checkpoint(part, tmp_path / "c.npz")
-    fresh = _mixed_box(sort_every=100)
+    fresh = _shuffled_box(sort_every=100)  # (built in the input order again)
     load_checkpoint(fresh, path)
     np.testing.assert_array_equal(fresh.source_index, part.source_index)
     fresh.run(steps=350)
