@@ -287,6 +287,20 @@ def test_heavy_initial_overlap_refused_unless_allowed(tmp_path, capsys):
     assert sim.particles.n == 2
 
 
+def test_sort_every_read_from_the_case_and_checked(tmp_path, capsys):
+    """numerics.sort_every: the engine's re-sorting interval (default 1000, 0: never); a
+    negative or fractional value is refused in one line naming the key."""
+    rows = ["0,0,0,0.4", "0.79,0,0,0.4"]
+    assert build_simulation(load_case(pair_case(tmp_path, rows))).sort_every == 1000
+    never = pair_case(tmp_path, rows, numerics="[numerics]\nsort_every = 0")
+    assert build_simulation(load_case(never)).sort_every is None
+    for bad in ("-1", "2.5", '"often"'):
+        case = pair_case(tmp_path, rows, numerics=f"[numerics]\nsort_every = {bad}")
+        code, _, err = cli(["run", case, "--out", tmp_path / "out"], capsys)
+        assert_one_line_error(code, err, "numerics.sort_every")
+        assert not (tmp_path / "out").exists()
+
+
 def test_small_overlaps_and_fixed_pairs_accepted(tmp_path):
     small_overlap = pair_case(tmp_path, ["0,0,0,0.4", "0.79,0,0,0.4"])  # 2.5 % of r
     assert build_simulation(load_case(small_overlap)).particles.n == 2
