@@ -192,12 +192,13 @@ class Simulation:
     source_index : the input row of each particle when the caller put them in another
         order (:func:`demstep.packings.spatial_order`: ``demstep run`` does so for a
         particle file); messages and outputs name particles by it (:meth:`particle_id`)
-    sort_every : re-sort the particles in memory along their rows of cells
-        (:func:`demstep.packings.spatial_order`) at the first neighbour-list rebuild
-        at least this many steps after the last sort, and at the first build (None:
-        never; ``demstep run``: every 1000 steps by default). The indices of ``x``,
-        ``v``, ... then change (:meth:`reorder`); ``source_index`` keeps each
-        particle's input row
+    sort_every : look at the particles' order in memory at the first build of the
+        neighbour lists and again at the first rebuild at least this many steps after
+        the last look, and re-sort them along rows of cells
+        (:func:`demstep.packings.spatial_order`) when that brings the pairs' ends closer
+        in memory (:data:`SORT_GAIN`) (None: never; ``demstep run``: every 1000 steps by
+        default). The indices of ``x``, ``v``, ... then change (:meth:`reorder`);
+        ``source_index`` keeps each particle's input row
 
     The state lives in the bundles of :mod:`demstep.state` (``spheres``, ``bodies``,
     ``pairs``, ``wall_state``, ``box``, and the ``ledger``); the familiar names (``x``,
@@ -572,14 +573,11 @@ class Simulation:
         inv[order] = np.arange(n)
         # the particles' arrays permuted in place through one scratch array (fresh
         # memory for all of them cost half the time in page faults: 21 ms at 1e5)
-        if getattr(self, "_sort_work", None) is None:
-            from demstep.scratch import Workspace
-
-            self._sort_work = Workspace()
+        scratch = np.empty(max(a.size for a in self.spheres))
         for a in self.spheres:
-            scratch = self._sort_work.array("rows", a.shape, a.dtype, grow=True)
-            np.take(a, order, axis=0, out=scratch)
-            a[...] = scratch
+            rows = scratch[:a.size].reshape(a.shape)
+            np.take(a, order, axis=0, out=rows)
+            a[...] = rows
         self.fixed = self.fixed[order]
         p = self.particles
         self.particles = Particles.checked_already(p.x[order], p.r[order], p.m[order],
