@@ -79,12 +79,15 @@ def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capac
         xs[m, 0], xs[m, 1], xs[m, 2] = x[q, 0], x[q, 1], x[q, 2]
         rs[m] = r[q]
     limit = MAX_CELL_FILL / (inv_cell[0] * inv_cell[1] * inv_cell[2] * (4.0 / 3.0 * np.pi))
-    for c in range(ncells):
+    crowded = 0
+    for c in prange(ncells):
         solid = 0.0
         for m in range(start[c], start[c + 1]):
             solid += rs[m] ** 3
         if solid > limit:
-            return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64), -1
+            crowded += 1
+    if crowded:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64), -1
     # runs of cells holding about equal numbers of particles
     bounds = np.empty(n_threads + 1, dtype=np.int64)
     bounds[0] = 0
