@@ -378,6 +378,209 @@ def _law_block(law, params, count, dt, store_dashpot, needs_m_star, needs_r_star
 law_block = njit(_law_block)
 
 
+def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
+                ft, fd, etan, store_dashpot, chunks, spans, force, torque, force_band,
+                torque_band, geo, cover, s):
+    """The pairs of chunk ``c`` of :func:`_pair_loop` (``chunks[c]`` to
+    ``chunks[c + 1]``; scratch ``s``), compiled once and called by the serial and the
+    threaded driver alike: the same loop compiled inside a prange body ran 12 % slower
+    per pair (dense 1e5: 15.45 against 13.80 ms on one thread), most of what two
+    threads lost against two processes. Returns the chunk's sums: (strain_n,
+    strain_t, friction, dashpot, contacts, uncovered, virial (3), crossing sums (3),
+    crossing contacts (3), their k_n (3))."""
+    e_n = 0.0
+    e_t = 0.0
+    d_fric = 0.0
+    d_dash = 0.0
+    n_contacts = 0
+    n_uncovered = 0
+    vir0 = 0.0
+    vir1 = 0.0
+    vir2 = 0.0
+    cr0 = 0.0
+    cr1 = 0.0
+    cr2 = 0.0
+    nc0 = 0
+    nc1 = 0
+    nc2 = 0
+    kc0 = 0.0
+    kc1 = 0.0
+    kc2 = 0.0
+    needs_m_star = params.beta_n > 0.0 or params.beta_t > 0.0
+    needs_r_star = law != LAW_LINEAR
+    store_geo = geo.shape[0] > 0
+    track_cover = cover.shape[0] == pi.shape[0]
+    len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
+    periodic = any_periodic(periodic_len)
+    rate0, rate1, rate2 = box_rate[0], box_rate[1], box_rate[2]
+    X = x.reshape(-1)
+    V = v.reshape(-1)
+    W = w.reshape(-1)
+    FT = ft.reshape(-1)
+    FD = fd.reshape(-1)
+    one, two, three = _U(1), _U(2), _U(3)
+    B = PAIR_BLOCK
+    F = force.reshape(-1)
+    T = torque.reshape(-1)
+    n_chunks = chunks.shape[0] - 1
+    own_hi = _U(spans[c + 1, 0] if c + 1 < n_chunks else force.shape[0])
+    band_start = three * own_hi
+    FB = force_band[c].reshape(-1)
+    TB = torque_band[c].reshape(-1)
+    for p in range(three * _U(spans[c, 0]), band_start):
+        F[p] = 0.0
+        T[p] = 0.0
+    for p in range(three * (_U(max(spans[c, 1], own_hi)) - own_hi)):
+        FB[p] = 0.0
+        TB[p] = 0.0
+    for k0 in range(chunks[c], chunks[c + 1], PAIR_BLOCK):
+        # (1) gather the block's pairs
+        count = min(PAIR_BLOCK, chunks[c + 1] - k0)
+        for b in range(count):
+            k = k0 + b
+            i = _U(pi[k])
+            j = _U(pj[k])
+            a = three * i
+            q = three * j
+            r_i = r[i]
+            r_j = r[j]
+            d0, d1, d2, dist, delta, a_i, a_j, n0, n1, n2 = pair_geometry(
+                X[a], X[a + one], X[a + two], X[q], X[q + one], X[q + two], r_i, r_j,
+                len0, len1, len2, periodic)
+            inv_dist = 1.0 / dist
+            nx, ny, nz = d0 * inv_dist, d1 * inv_dist, d2 * inv_dist
+            if store_geo:
+                geo[k, 0] = nx
+                geo[k, 1] = ny
+                geo[k, 2] = nz
+                geo[k, 3] = dist
+            h = three * _U(k)
+            ox, oy, oz = FT[h], FT[h + one], FT[h + two]
+            fdx, fdy, fdz = 0.0, 0.0, 0.0
+            if store_dashpot:
+                fdx, fdy, fdz = FD[h], FD[h + one], FD[h + two]
+            e_old = etan[k]
+            # contact-point velocities: v + omega x b, b_i = a_i n, b_j = -a_j n;
+            # j's periodic image moves with the box
+            vix = V[a] + a_i * (W[a + one] * nz - W[a + two] * ny)
+            viy = V[a + one] + a_i * (W[a + two] * nx - W[a] * nz)
+            viz = V[a + two] + a_i * (W[a] * ny - W[a + one] * nx)
+            vjx = V[q] - a_j * (W[q + one] * nz - W[q + two] * ny) - n0 * rate0
+            vjy = V[q + one] - a_j * (W[q + two] * nx - W[q] * nz) - n1 * rate1
+            vjz = V[q + two] - a_j * (W[q] * ny - W[q + one] * nx) - n2 * rate2
+            s[S_NX * B + b] = nx
+            s[S_NY * B + b] = ny
+            s[S_NZ * B + b] = nz
+            s[S_DIST * B + b] = dist
+            s[S_DELTA * B + b] = delta
+            s[S_AI * B + b] = a_i
+            s[S_AJ * B + b] = a_j
+            if periodic:
+                s[S_N0 * B + b] = n0
+                s[S_N1 * B + b] = n1
+                s[S_N2 * B + b] = n2
+            s[S_VX * B + b] = vjx - vix
+            s[S_VY * B + b] = vjy - viy
+            s[S_VZ * B + b] = vjz - viz
+            s[S_OX * B + b] = ox
+            s[S_OY * B + b] = oy
+            s[S_OZ * B + b] = oz
+            s[S_EOLD * B + b] = e_old
+            if store_dashpot:
+                s[S_FDX * B + b] = fdx
+                s[S_FDY * B + b] = fdy
+                s[S_FDZ * B + b] = fdz
+            # effective mass and radius only where the law reads them (restitution
+            # dashpots; Hertz)
+            if needs_m_star:
+                inv_sum = inv_m[i] + inv_m[j]
+                s[S_MSTAR * B + b] = 1.0 / inv_sum if inv_sum > 0.0 else m[i]
+            if needs_r_star:
+                s[S_RSTAR * B + b] = r_i * r_j / (r_i + r_j)
+        # (2) the law, vectorised
+        law_block(law, params, count, dt, store_dashpot, needs_m_star, needs_r_star, s)
+        # (3) scatter
+        for b in range(count):
+            k = k0 + b
+            i = _U(pi[k])
+            j = _U(pj[k])
+            a = three * i
+            q = three * j
+            h = three * _U(k)
+            FT[h] = s[S_TX * B + b]
+            FT[h + one] = s[S_TY * B + b]
+            FT[h + two] = s[S_TZ * B + b]
+            if store_dashpot:
+                FD[h] = s[S_NDX * B + b]
+                FD[h + one] = s[S_NDY * B + b]
+                FD[h + two] = s[S_NDZ * B + b]
+            c_et = s[S_ET * B + b]
+            etan[k] = c_et
+            fx, fy, fz = s[S_FX * B + b], s[S_FY * B + b], s[S_FZ * B + b]
+            nx, ny, nz = s[S_NX * B + b], s[S_NY * B + b], s[S_NZ * B + b]
+            a_i, a_j = s[S_AI * B + b], s[S_AJ * B + b]
+            cx, cy, cz = ny * fz - nz * fy, nz * fx - nx * fz, nx * fy - ny * fx
+            F[a] -= fx
+            F[a + one] -= fy
+            F[a + two] -= fz
+            T[a] -= a_i * cx
+            T[a + one] -= a_i * cy
+            T[a + two] -= a_i * cz
+            # j's rows: its own particle's, or in the band past the chunk's range
+            # (written out twice: choosing the array in a variable cost 25-30 % of
+            # the whole loop, measured on dense 1e5, one thread)
+            if q < band_start:
+                F[q] += fx
+                F[q + one] += fy
+                F[q + two] += fz
+                T[q] -= a_j * cx
+                T[q + one] -= a_j * cy
+                T[q + two] -= a_j * cz
+            else:
+                q -= band_start
+                FB[q] += fx
+                FB[q + one] += fy
+                FB[q + two] += fz
+                TB[q] -= a_j * cx
+                TB[q + one] -= a_j * cy
+                TB[q + two] -= a_j * cz
+            e_n += s[S_EN * B + b]
+            e_t += c_et
+            d_fric += s[S_FRIC * B + b]
+            d_dash += s[S_DASH * B + b]
+            dist = s[S_DIST * B + b]
+            vir0 += fx * nx * dist
+            vir1 += fy * ny * dist
+            vir2 += fz * nz * dist
+            delta = s[S_DELTA * B + b]
+            touching = delta > 0.0
+            if touching:
+                n_contacts += 1
+            if track_cover and touching and delta > cover[k]:
+                n_uncovered += 1
+            if periodic:
+                n0, n1, n2 = s[S_N0 * B + b], s[S_N1 * B + b], s[S_N2 * B + b]
+                cr0 += fx * n0
+                cr1 += fy * n1
+                cr2 += fz * n2
+                if touching:
+                    c_kn = s[S_KN * B + b]
+                    if n0 != 0.0:
+                        nc0 += 1
+                        kc0 += c_kn
+                    if n1 != 0.0:
+                        nc1 += 1
+                        kc1 += c_kn
+                    if n2 != 0.0:
+                        nc2 += 1
+                        kc2 += c_kn
+    return (e_n, e_t, d_fric, d_dash, n_contacts, n_uncovered, vir0, vir1, vir2, cr0, cr1,
+            cr2, nc0, nc1, nc2, kc0, kc1, kc2)
+
+
+pair_chunk = njit(fastmath=CONTRACT)(_pair_chunk)
+
+
 def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
                ft, fd, etan, store_dashpot, chunks, spans, force, torque, force_band,
                torque_band, box_sums, geo, cover):
@@ -432,179 +635,33 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     kc0 = 0.0
     kc1 = 0.0
     kc2 = 0.0
-    needs_m_star = params.beta_n > 0.0 or params.beta_t > 0.0
-    needs_r_star = law != LAW_LINEAR
-    store_geo = geo.shape[0] > 0
-    track_cover = cover.shape[0] == pi.shape[0]
-    len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
-    periodic = any_periodic(periodic_len)
-    rate0, rate1, rate2 = box_rate[0], box_rate[1], box_rate[2]
-    X = x.reshape(-1)
-    V = v.reshape(-1)
-    W = w.reshape(-1)
-    FT = ft.reshape(-1)
-    FD = fd.reshape(-1)
-    one, two, three = _U(1), _U(2), _U(3)
-    B = PAIR_BLOCK
     # the chunks' scratch, allocated once (a thread's own allocation landed anywhere:
     # two threads' blocks sharing cache lines made 2 of 5 runs 1.4x slower)
     scratch = np.empty((chunks.shape[0] - 1, PAIR_ROWS * PAIR_BLOCK + 8))
-    F = force.reshape(-1)
-    T = torque.reshape(-1)
-    n_chunks = chunks.shape[0] - 1
-    for c in prange(n_chunks):
-        own_hi = _U(spans[c + 1, 0] if c + 1 < n_chunks else force.shape[0])
-        band_start = three * own_hi
-        FB = force_band[c].reshape(-1)
-        TB = torque_band[c].reshape(-1)
-        for p in range(three * _U(spans[c, 0]), band_start):
-            F[p] = 0.0
-            T[p] = 0.0
-        for p in range(three * (_U(max(spans[c, 1], own_hi)) - own_hi)):
-            FB[p] = 0.0
-            TB[p] = 0.0
-        s = scratch[c]
-        for k0 in range(chunks[c], chunks[c + 1], PAIR_BLOCK):
-            # (1) gather the block's pairs
-            count = min(PAIR_BLOCK, chunks[c + 1] - k0)
-            for b in range(count):
-                k = k0 + b
-                i = _U(pi[k])
-                j = _U(pj[k])
-                a = three * i
-                q = three * j
-                r_i = r[i]
-                r_j = r[j]
-                d0, d1, d2, dist, delta, a_i, a_j, n0, n1, n2 = pair_geometry(
-                    X[a], X[a + one], X[a + two], X[q], X[q + one], X[q + two], r_i, r_j,
-                    len0, len1, len2, periodic)
-                inv_dist = 1.0 / dist
-                nx, ny, nz = d0 * inv_dist, d1 * inv_dist, d2 * inv_dist
-                if store_geo:
-                    geo[k, 0] = nx
-                    geo[k, 1] = ny
-                    geo[k, 2] = nz
-                    geo[k, 3] = dist
-                h = three * _U(k)
-                ox, oy, oz = FT[h], FT[h + one], FT[h + two]
-                fdx, fdy, fdz = 0.0, 0.0, 0.0
-                if store_dashpot:
-                    fdx, fdy, fdz = FD[h], FD[h + one], FD[h + two]
-                e_old = etan[k]
-                # contact-point velocities: v + omega x b, b_i = a_i n, b_j = -a_j n;
-                # j's periodic image moves with the box
-                vix = V[a] + a_i * (W[a + one] * nz - W[a + two] * ny)
-                viy = V[a + one] + a_i * (W[a + two] * nx - W[a] * nz)
-                viz = V[a + two] + a_i * (W[a] * ny - W[a + one] * nx)
-                vjx = V[q] - a_j * (W[q + one] * nz - W[q + two] * ny) - n0 * rate0
-                vjy = V[q + one] - a_j * (W[q + two] * nx - W[q] * nz) - n1 * rate1
-                vjz = V[q + two] - a_j * (W[q] * ny - W[q + one] * nx) - n2 * rate2
-                s[S_NX * B + b] = nx
-                s[S_NY * B + b] = ny
-                s[S_NZ * B + b] = nz
-                s[S_DIST * B + b] = dist
-                s[S_DELTA * B + b] = delta
-                s[S_AI * B + b] = a_i
-                s[S_AJ * B + b] = a_j
-                if periodic:
-                    s[S_N0 * B + b] = n0
-                    s[S_N1 * B + b] = n1
-                    s[S_N2 * B + b] = n2
-                s[S_VX * B + b] = vjx - vix
-                s[S_VY * B + b] = vjy - viy
-                s[S_VZ * B + b] = vjz - viz
-                s[S_OX * B + b] = ox
-                s[S_OY * B + b] = oy
-                s[S_OZ * B + b] = oz
-                s[S_EOLD * B + b] = e_old
-                if store_dashpot:
-                    s[S_FDX * B + b] = fdx
-                    s[S_FDY * B + b] = fdy
-                    s[S_FDZ * B + b] = fdz
-                # effective mass and radius only where the law reads them (restitution
-                # dashpots; Hertz)
-                if needs_m_star:
-                    inv_sum = inv_m[i] + inv_m[j]
-                    s[S_MSTAR * B + b] = 1.0 / inv_sum if inv_sum > 0.0 else m[i]
-                if needs_r_star:
-                    s[S_RSTAR * B + b] = r_i * r_j / (r_i + r_j)
-            # (2) the law, vectorised
-            law_block(law, params, count, dt, store_dashpot, needs_m_star, needs_r_star, s)
-            # (3) scatter
-            for b in range(count):
-                k = k0 + b
-                i = _U(pi[k])
-                j = _U(pj[k])
-                a = three * i
-                q = three * j
-                h = three * _U(k)
-                FT[h] = s[S_TX * B + b]
-                FT[h + one] = s[S_TY * B + b]
-                FT[h + two] = s[S_TZ * B + b]
-                if store_dashpot:
-                    FD[h] = s[S_NDX * B + b]
-                    FD[h + one] = s[S_NDY * B + b]
-                    FD[h + two] = s[S_NDZ * B + b]
-                c_et = s[S_ET * B + b]
-                etan[k] = c_et
-                fx, fy, fz = s[S_FX * B + b], s[S_FY * B + b], s[S_FZ * B + b]
-                nx, ny, nz = s[S_NX * B + b], s[S_NY * B + b], s[S_NZ * B + b]
-                a_i, a_j = s[S_AI * B + b], s[S_AJ * B + b]
-                cx, cy, cz = ny * fz - nz * fy, nz * fx - nx * fz, nx * fy - ny * fx
-                F[a] -= fx
-                F[a + one] -= fy
-                F[a + two] -= fz
-                T[a] -= a_i * cx
-                T[a + one] -= a_i * cy
-                T[a + two] -= a_i * cz
-                # j's rows: its own particle's, or in the band past the chunk's range
-                # (written out twice: choosing the array in a variable cost 25-30 % of
-                # the whole loop, measured on dense 1e5, one thread)
-                if q < band_start:
-                    F[q] += fx
-                    F[q + one] += fy
-                    F[q + two] += fz
-                    T[q] -= a_j * cx
-                    T[q + one] -= a_j * cy
-                    T[q + two] -= a_j * cz
-                else:
-                    q -= band_start
-                    FB[q] += fx
-                    FB[q + one] += fy
-                    FB[q + two] += fz
-                    TB[q] -= a_j * cx
-                    TB[q + one] -= a_j * cy
-                    TB[q + two] -= a_j * cz
-                e_n += s[S_EN * B + b]
-                e_t += c_et
-                d_fric += s[S_FRIC * B + b]
-                d_dash += s[S_DASH * B + b]
-                dist = s[S_DIST * B + b]
-                vir0 += fx * nx * dist
-                vir1 += fy * ny * dist
-                vir2 += fz * nz * dist
-                delta = s[S_DELTA * B + b]
-                touching = delta > 0.0
-                if touching:
-                    n_contacts += 1
-                if track_cover and touching and delta > cover[k]:
-                    n_uncovered += 1
-                if periodic:
-                    n0, n1, n2 = s[S_N0 * B + b], s[S_N1 * B + b], s[S_N2 * B + b]
-                    cr0 += fx * n0
-                    cr1 += fy * n1
-                    cr2 += fz * n2
-                    if touching:
-                        c_kn = s[S_KN * B + b]
-                        if n0 != 0.0:
-                            nc0 += 1
-                            kc0 += c_kn
-                        if n1 != 0.0:
-                            nc1 += 1
-                            kc1 += c_kn
-                        if n2 != 0.0:
-                            nc2 += 1
-                            kc2 += c_kn
+    for c in prange(chunks.shape[0] - 1):
+        (c_en, c_et, c_fric, c_dash, c_nc, c_nu, c_v0, c_v1, c_v2, c_r0, c_r1, c_r2, c_n0, c_n1,
+         c_n2, c_k0, c_k1, c_k2) = pair_chunk(
+            c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt, ft, fd,
+            etan, store_dashpot, chunks, spans, force, torque, force_band, torque_band, geo,
+            cover, scratch[c])
+        e_n += c_en
+        e_t += c_et
+        d_fric += c_fric
+        d_dash += c_dash
+        n_contacts += c_nc
+        n_uncovered += c_nu
+        vir0 += c_v0
+        vir1 += c_v1
+        vir2 += c_v2
+        cr0 += c_r0
+        cr1 += c_r1
+        cr2 += c_r2
+        nc0 += c_n0
+        nc1 += c_n1
+        nc2 += c_n2
+        kc0 += c_k0
+        kc1 += c_k1
+        kc2 += c_k2
     box_sums[0, 0] = vir0
     box_sums[0, 1] = vir1
     box_sums[0, 2] = vir2
