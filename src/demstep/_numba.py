@@ -91,13 +91,14 @@ def with_globals(func, name: str, overrides: dict):
     return copy
 
 
-def compile_parallel_and_serial(func, **options):
+def compile_parallel_and_serial(func, serial_globals: dict | None = None, **options):
     """Two compiled versions of one loop driver: threaded (prange) and serial, both
-    with ``options`` (e.g. ``fastmath=CONTRACT``) on top of the package's.
+    with ``options`` (e.g. ``fastmath=CONTRACT``) on top of the package's; in the serial
+    one the global names ``serial_globals`` resolve to other objects.
 
     The serial one is compiled from a copy of the function with its own qualified name,
     so the two never share an on-disk cache entry."""
-    serial = with_globals(func, func.__name__ + "_serial", {})
+    serial = with_globals(func, func.__name__ + "_serial", serial_globals or {})
     serial.__qualname__ = func.__qualname__ + "_serial"
     return njit(parallel=True, **options)(func), njit(**options)(serial)
 

@@ -380,9 +380,9 @@ law_block = njit(_law_block)
 
 def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
                 ft, fd, etan, store_dashpot, chunks, spans, force, torque, force_band,
-                torque_band, geo, cover, s):
+                torque_band, geo, cover):
     """The pairs of chunk ``c`` of :func:`_pair_loop` (``chunks[c]`` to
-    ``chunks[c + 1]``; scratch ``s``), compiled once and called by the serial and the
+    ``chunks[c + 1]``), compiled once and called by the serial and the
     threaded driver alike: the same loop compiled inside a prange body ran 12 % slower
     per pair (dense 1e5: 15.45 against 13.80 ms on one thread), most of what two
     threads lost against two processes. Returns the chunk's sums: (strain_n,
@@ -423,6 +423,11 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, pa
     F = force.reshape(-1)
     T = torque.reshape(-1)
     n_chunks = chunks.shape[0] - 1
+    # the block's scratch, the chunk's own allocation: the compiler knows it aliases
+    # no argument (with a row of one array of the driver's, the pair loop ran 13-17 %
+    # slower on two threads, dense 1e5); a cache line of margin on each side, since
+    # another thread's allocation may lie next to it
+    s = np.empty(PAIR_ROWS * PAIR_BLOCK + 16)[8:8 + PAIR_ROWS * PAIR_BLOCK]
     own_hi = _U(spans[c + 1, 0] if c + 1 < n_chunks else force.shape[0])
     band_start = three * own_hi
     FB = force_band[c].reshape(-1)
@@ -579,6 +584,8 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, pa
 
 
 pair_chunk = njit(fastmath=CONTRACT)(_pair_chunk)
+#: the same, inlined into the serial driver (called, it ran 2-3 % slower there)
+pair_chunk_inline = njit(fastmath=CONTRACT, inline="always")(_pair_chunk)
 
 
 def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
@@ -635,15 +642,12 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     kc0 = 0.0
     kc1 = 0.0
     kc2 = 0.0
-    # the chunks' scratch, allocated once (a thread's own allocation landed anywhere:
-    # two threads' blocks sharing cache lines made 2 of 5 runs 1.4x slower)
-    scratch = np.empty((chunks.shape[0] - 1, PAIR_ROWS * PAIR_BLOCK + 8))
     for c in prange(chunks.shape[0] - 1):
         (c_en, c_et, c_fric, c_dash, c_nc, c_nu, c_v0, c_v1, c_v2, c_r0, c_r1, c_r2, c_n0, c_n1,
          c_n2, c_k0, c_k1, c_k2) = pair_chunk(
             c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt, ft, fd,
             etan, store_dashpot, chunks, spans, force, torque, force_band, torque_band, geo,
-            cover, scratch[c])
+            cover)
         e_n += c_en
         e_t += c_et
         d_fric += c_fric
@@ -973,7 +977,8 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
 # systems and for sweeps that run one simulation per core
 # the pair loop's gather and scatter passes fuse multiply-adds (FMA; measured 1.11x on
 # a dense packing); the law itself (law_block) is compiled without
-pair_forces, pair_forces_serial = compile_parallel_and_serial(_pair_loop, fastmath=CONTRACT)
+pair_forces, pair_forces_serial = compile_parallel_and_serial(
+    _pair_loop, serial_globals={"pair_chunk": pair_chunk_inline}, fastmath=CONTRACT)
 reduce_forces, reduce_forces_serial = compile_parallel_and_serial(_reduce_loop)
 integrate, integrate_serial = compile_parallel_and_serial(_integrate_loop, fastmath=CONTRACT)
 wall_forces, wall_forces_serial = compile_parallel_and_serial(_wall_loop)
