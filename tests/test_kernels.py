@@ -246,9 +246,17 @@ def test_pair_forces_without_dashpot_skip_its_history():
     assert o1[4] > 0 and np.abs(a1[2]).max() > 0  # contacts did push
 
 
-@pytest.mark.parametrize("store_damping", [True, False])
-@pytest.mark.parametrize("kernel", ["serial", "parallel"])
+INTEGRATORS = {"serial": dem.integrate_serial, "parallel": dem.integrate,
+               "plain_serial": dem.integrate_plain_serial, "plain": dem.integrate_plain}
+
+
+@pytest.mark.parametrize("kernel, store_damping",
+                         [(k, s) for k in INTEGRATORS for s in (True, False)
+                          if not (k.startswith("plain") and s)])
 def test_integrate_equals_numpy_leapfrog(kernel, store_damping):
+    """The undamped leapfrog step after the first, by the integrator that takes any step
+    and by its copy for plain steps (which the engine calls only without damping
+    history), each serial and threaded."""
     rng, x, r = random_cloud(9, n=50)
     v = rng.normal(0, 1, (50, 3))
     w = rng.normal(0, 1, (50, 3))
@@ -261,7 +269,7 @@ def test_integrate_equals_numpy_leapfrog(kernel, store_damping):
     x_ref, v_ref, w_ref = reference.leapfrog(x, v, w, m, inertia, force, torque, g, dt)
     out = np.zeros(8)
     xx, vv, ww = x.copy(), v.copy(), w.copy()
-    (dem.integrate_serial if kernel == "serial" else dem.integrate)(
+    INTEGRATORS[kernel](
         xx, vv, ww, m, inertia, 1 / m, 1 / inertia, r, force, torque, np.zeros((50, 3)), g, dt, dt,
         0.0, 0.0, np.zeros((50, 6)), np.zeros((50, 6)), x.copy(), False, store_damping, out,
         np.full(50, -1))
