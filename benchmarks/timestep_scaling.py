@@ -18,7 +18,7 @@ the analysis alone; contact detection (scipy cKDTree) is timed separately.
 
     python benchmarks/timestep_scaling.py [--json] [--sizes 1000,10000,100000]
         [--packings loose,dense,fcc] [--cases element,exact,exact-damped] [--cli 1000000]
-        [--compare OLD_SRC] [--threads 2,1]
+        [--compare OLD_SRC] [--threads 2,1] [--tols 1e-10,1e-6]
 
 ``--compare OLD_SRC`` runs every case also with the package sources in OLD_SRC (a
 ``src`` folder of another version, e.g. from ``git archive``), interleaved with the
@@ -48,6 +48,7 @@ from demstep.timestep.estimates import element_coupled_dt, element_paper_dt, nod
 from demstep.timestep.exact import exact_critical_step
 
 n, packing, what, repeat = int(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
+tol = float(sys.argv[5])
 if packing == "fcc":
     side = max(2, round((n / 4) ** (1 / 3)))
     x = lattice("fcc", 0.5).block(side)
@@ -64,14 +65,14 @@ if what == "exact-damped":
     c = replace(c, c_n=2 * beta * np.sqrt(m_star * c.k_n), c_t=2 * beta * np.sqrt(m_star * c.k_s))
 fn = {"element": lambda: (element_coupled_dt(p, c, True), element_paper_dt(p, c, True),
                           nodal_dt(p, c, True)),
-      "exact": lambda: exact_critical_step(p, c, True),
-      "exact-damped": lambda: exact_critical_step(p, c, True)}[what]
+      "exact": lambda: exact_critical_step(p, c, True, tol=tol),
+      "exact-damped": lambda: exact_critical_step(p, c, True, tol=tol)}[what]
 times = []
 for _ in range(repeat):
     t = time.perf_counter(); res = fn(); times.append(time.perf_counter() - t)
 extra = {}
 if what.startswith("exact"):
-    extra = {"dt": res.dt, "dt_undamped": res.dt_undamped, "iterations": res.iterations,
+    extra = {"dt": res.dt, "dt_undamped": res.dt_undamped, "iterations": res.iterations, "tol": tol,
              "matvecs": getattr(res, "matvecs", None)}
 import numba
 extra["threads"] = numba.get_num_threads()
@@ -94,15 +95,15 @@ write_liggghts_dump(path, x + 0.5, r, m=m, box=[(0.0, float(side))] * 3, periodi
 """
 
 
-def run_case(n, packing, what, repeat, src=None, threads=None):
+def run_case(n, packing, what, repeat, src=None, threads=None, tol=1e-10):
     """One case in a fresh process; ``src``: PYTHONPATH of another version's sources,
-    ``threads``: NUMBA_NUM_THREADS."""
+    ``threads``: NUMBA_NUM_THREADS, ``tol``: the exact solver's relative residual."""
     env = dict(os.environ)
     if src:
         env["PYTHONPATH"] = src
     if threads:
         env["NUMBA_NUM_THREADS"] = str(threads)
-    out = subprocess.run([sys.executable, "-c", CASE, str(n), packing, what, str(repeat)],
+    out = subprocess.run([sys.executable, "-c", CASE, str(n), packing, what, str(repeat), str(tol)],
                          capture_output=True, text=True, check=True, env=env)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -142,6 +143,8 @@ def main():
     ap.add_argument("--compare", default="", help="sources (a src folder) of a version to "
                     "run interleaved with this one")
     ap.add_argument("--threads", default="", help="numba thread counts for this version")
+    ap.add_argument("--tols", default="1e-10", help="relative residuals of the exact solver, "
+                    "each a case of its own (default 1e-10, the package's; 'auto' runs use 1e-6)")
     args = ap.parse_args()
     sizes = [int(s) for s in args.sizes.split(",") if s]
     threads = [int(t) for t in args.threads.split(",") if t] or [None]
@@ -151,16 +154,17 @@ def main():
     results = []
     for packing in args.packings.split(","):
         for n in sizes:
-            for what in args.cases.split(","):
+            for what, tol in ((w, float(t)) for w in args.cases.split(",")
+                              for t in (args.tols.split(",") if w.startswith("exact") else "1")):
                 for label, src, n_threads in variants:
                     res = run_case(n, packing, what, args.repeat if n < 1_000_000 else 1, src,
-                                   n_threads)
+                                   n_threads, tol)
                     res["version"] = label
                     results.append(res)
                     if not args.json:
                         extra = f"  dt {res['dt']:.10g}" if "dt" in res else ""
                         if res.get("matvecs"):
-                            extra += f"  products {res['matvecs']}"
+                            extra += f"  products {res['matvecs']}  tol {res['tol']:g}"
                         print(f"{label:8s} {res['threads']}t {packing:6s} {what:13s} "
                               f"N={res['n']:>8d} contacts/sphere "
                               f"{res['contacts_per_sphere']:5.2f} "

@@ -96,6 +96,8 @@ def test_bad_files(tmp_path, capsys, content, needle):
     (["dt"], "exactly one"),
     (["dt", "--lattice", "hex", "--mass-split", "zoned"], "zoned"),
     (["dt", "--lattice", "fcc", "--methods", "exact,magic"], "unknown method 'magic'"),
+    (["dt", "--lattice", "fcc", "--exact-tol", "0.5"], "exact-tol: must be in (0, 0.01], got 0.5"),
+    (["dt", "--lattice", "fcc", "--exact-tol", "0"], "exact-tol"),
 ])
 def test_bad_options(capsys, argv, needle):
     code, out, err = run(argv, capsys)
@@ -111,3 +113,20 @@ def test_unreadable_file_subprocess(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.startswith("demstep: error:") and "Traceback" not in proc.stderr
     assert proc.stderr.count("\n") == 1
+
+
+def test_exact_tol_certified_and_close(capsys):
+    """A looser exact solve (FCC block of 4,000 spheres, a clustered top spectrum) still
+    certifies: its step is below the tight solve's and within 4 x tol of it; the
+    report says which residual it used."""
+    argv = ["dt", "--lattice", "fcc", "--size", "10", "--kn", "1e6", "--methods", "exact",
+            "--json", "--top", "0"]
+    steps = {}
+    for tol in (None, "1e-5"):
+        code, out, err = run(argv + ([] if tol is None else ["--exact-tol", tol]), capsys)
+        assert code == 0, err
+        data = json.loads(out)
+        steps[tol] = data["estimates"][0]["dt"]
+        assert any("relative residual of 1e-05" in n for n in data["notes"]) == (tol is not None)
+    # the looser bound gives a smaller step (the option reached the solver), not by much
+    assert steps[None] * (1 - 4e-5) <= steps["1e-5"] < steps[None]

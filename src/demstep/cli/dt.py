@@ -32,6 +32,8 @@ BYTES_PER_PARTICLE = 4000
 INPUT_FORMATS = ("auto", "csv", "liggghts", "yade", "case", "checkpoint")
 #: image formats of --plot (matplotlib)
 PLOT_FORMATS = (".png", ".pdf", ".svg")
+#: the loosest residual ``--exact-tol`` takes (the step would lie up to ~4 % low)
+MAX_EXACT_TOL = 0.01
 
 
 def add_dt_parser(sub):
@@ -130,6 +132,10 @@ def add_dt_parser(sub):
     ana.add_argument("--mass-split", choices=("uniform", "zoned"), default="uniform",
                      help="element mass split for element-paper (default uniform)")
     ana.add_argument("--methods", help="comma-separated subset of methods to compute")
+    ana.add_argument("--exact-tol", type=number("exact-tol", 0, strict=True), default=None,
+                     metavar="TOL", help="relative residual at which the exact solver stops "
+                     "(default 1e-10, at most 0.01); the step is certified at any tolerance "
+                     "and lies at most about 4 x TOL below the critical one")
     ana.add_argument("--impact-velocity", type=number("impact-velocity", 0, strict=True),
                      default=None, help="Hertz time: the impact velocity [L/T] (default: twice "
                      "the largest particle speed in the file, as LIGGGHTS)")
@@ -356,6 +362,8 @@ def cmd_dt(args) -> int:
 
     if args.top < 0:
         raise InputError(f"top: must be >= 0, got {args.top}")
+    if args.exact_tol is not None and args.exact_tol > MAX_EXACT_TOL:
+        raise InputError(f"exact-tol: must be in (0, {MAX_EXACT_TOL:g}], got {args.exact_tol:g}")
     methods = None if args.methods is None else [m.strip() for m in args.methods.split(",")]
     data = load_input(args)
     rotation = data.rotation if args.rotation is None else (args.rotation and data.rotation)
@@ -364,7 +372,8 @@ def cmd_dt(args) -> int:
     report = estimate_time_steps(data.particles, data.contacts, rotation=rotation,
                                  mass_split=args.mass_split, damping=data.damping,
                                  methods=methods, lattice=data.lattice, density=data.density,
-                                 materials=data.materials, bodies=data.bodies)
+                                 materials=data.materials, bodies=data.bodies,
+                                 exact_tol=args.exact_tol)
     report.notes[:0] = data.notes
     danger = critical_mode_report(report, data, args.top)
     if args.json:

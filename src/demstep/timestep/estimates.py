@@ -297,7 +297,8 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
                         mass_split: str = "uniform", damping=None, methods=None,
                         lattice=None, density: float | None = None,
                         materials: Materials | None = None, rayleigh=None,
-                        v0: np.ndarray | None = None, bodies=None) -> TimeStepReport:
+                        v0: np.ndarray | None = None, bodies=None,
+                        exact_tol: float | None = None) -> TimeStepReport:
     """Every estimate for ``particles`` with ``contacts`` (their stiffnesses and dashpots).
 
     ``damping``: :class:`GlobalDamping` (or ``rayleigh`` = (a1, a2), the same thing).
@@ -305,7 +306,10 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     ``exact-periodic`` (uniform coefficients taken from the contacts). ``materials``
     adds the material rules. ``element-coupled`` always uses the uniform split, whose
     partition makes it a rigorous bound; ``element-paper`` uses ``mass_split``.
-    ``v0`` warm-starts the exact eigensolver. ``bodies``
+    ``v0`` warm-starts the exact eigensolver; ``exact_tol`` is its relative residual
+    (None: :data:`~demstep.timestep.eigen.EIGSH_TOL`, 1e-10; the step is certified at any
+    tolerance, from an upper bound on the largest root, and lies at most about
+    4 ``exact_tol`` below the critical one). ``bodies``
     (:class:`~demstep.timestep.bodies.RigidBodies`): clumps (``element-paper`` and
     ``exact-periodic`` are not defined for them; m_min is the lightest free sphere or
     body).
@@ -354,8 +358,13 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     if "exact" in methods or "exact-undamped" in methods:
         from demstep.timestep.exact import exact_critical_step
 
-        exact = exact_critical_step(particles, contacts, rotation, d, v0=v0, bodies=bodies)
+        options = {} if exact_tol is None else {"tol": exact_tol}
+        exact = exact_critical_step(particles, contacts, rotation, d, v0=v0, bodies=bodies,
+                                    **options)
         report.exact = exact
+        if exact_tol is not None:
+            report.notes.append(f"exact: solved to a relative residual of {exact_tol:g} (the "
+                                "step certified, at most about 4x that below the critical one)")
     compute = {
         "exact": lambda: exact.dt,
         "exact-undamped": lambda: exact.dt_undamped,
