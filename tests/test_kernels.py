@@ -485,3 +485,48 @@ def test_rolling_loop_in_chunks_equals_one_chunk():
     assert np.abs(t1).max() > 0
     assert np.allclose(o1, o3, rtol=1e-12) and np.array_equal(h1, h3)
     assert np.allclose(t1, t3, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+@pytest.mark.parametrize("dashpot", [False, True])
+@pytest.mark.parametrize("periodic", [False, True])
+def test_pair_loop_for_a_law_and_box_equals_the_general_one(parallel, dashpot, periodic):
+    """The pair loops compiled for a law's dashpot history and a box (the engine's) give
+    the general loop's forces, history, sums and counts to the bit, pairs through a
+    periodic boundary included; called for another law or box, they refuse."""
+    rng, x, r = random_cloud(8, n=150, box=4.0)
+    box = np.array([4.0, 0.0, 0.0]) if periodic else np.zeros(3)
+    pi, pj = build_pair_list(x, r, 0.1, box)
+    n, P = len(r), len(pi)
+    if periodic:
+        assert np.any(np.abs(x[pj, 0] - x[pi, 0]) > 2.0)  # some pairs cross the boundary
+    v, w = rng.normal(0, 1, (n, 3)), rng.normal(0, 1, (n, 3))
+    m = rng.uniform(0.5, 2, n)
+    law = LinearSpring(k_n=1000.0, k_s=800.0, mu=0.4, restitution=0.6 if dashpot else None)
+    params = law.params()
+    assert params.has_dashpots == dashpot
+    ft0, fd0 = rng.normal(0, 1, (P, 3)), rng.normal(0, 0.5, (P, 3)) * dashpot
+    n_chunks = 3 if parallel else 1
+
+    def call(fn, store_dashpot=dashpot):
+        chunks, spans, f, t, fbuf, tbuf = chunk_buffers(pi, pj, n, n_chunks)
+        ft, fd, et = ft0.copy(), fd0.copy(), np.sum(ft0**2, axis=1) / 1600.0
+        sums = np.zeros((4, 3))
+        cover = np.full(P, 0.01)
+        out = fn(x, v, w, r, m, 1.0 / m, pi, pj, box, np.array([0.1, 0.0, 0.0]), 0, params,
+                 1e-3, ft, fd, et, store_dashpot, chunks, spans, f, t, fbuf, tbuf, sums,
+                 np.empty((0, 4)), cover)
+        f, t = reduced("parallel" if parallel else "serial", fbuf, tbuf, spans, f, t)
+        return out, [ft, fd, et, sums, f, t]
+
+    general, g_arrays = call(dem.pair_forces if parallel else dem.pair_forces_serial)
+    special_loop = dem.pair_loop_for(parallel, dashpot, periodic)
+    special, s_arrays = call(special_loop)
+    assert special == general and general[4] > 0 and general[5] > 0
+    assert all(np.array_equal(a, b) for a, b in zip(g_arrays, s_arrays))
+    if periodic:
+        assert g_arrays[3][2, 0] > 0  # contacts through the boundary were counted
+    with pytest.raises(ValueError, match="another kind of law"):
+        call(special_loop, store_dashpot=not dashpot)
+    with pytest.raises(ValueError, match="another kind of box"):
+        call(dem.pair_loop_for(parallel, dashpot, not periodic))

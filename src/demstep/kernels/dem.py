@@ -378,6 +378,13 @@ def _law_block(law, params, count, dt, store_dashpot, needs_m_star, needs_r_star
 law_block = njit(_law_block)
 
 
+#: what a compiled pair loop knows before it runs (:func:`pair_loop_for`): -1 the
+#: general loop, which tests it at run time; 0 or 1 a copy compiled for a law without
+#: or with dashpot history, a box without or with periodic axes
+_PAIR_DASHPOT = -1
+_PAIR_PERIODIC = -1
+
+
 def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
                 ft, fd, etan, store_dashpot, chunks, spans, force, torque, force_band,
                 torque_band, geo, cover):
@@ -387,7 +394,15 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, pa
     per pair (dense 1e5: 15.45 against 13.80 ms on one thread), most of what two
     threads lost against two processes. Returns the chunk's sums: (strain_n,
     strain_t, friction, dashpot, contacts, uncovered, virial (3), crossing sums (3),
-    crossing contacts (3), their k_n (3))."""
+    crossing contacts (3), their k_n (3)).
+
+    In the copies :func:`pair_loop_for` compiles, whether the law keeps dashpot history
+    and whether the box is periodic are constants, and the branches on them are gone
+    from the gather and scatter loops (dense 1e5, one thread: 8-10 % less time per
+    pair); its driver refuses a call that does not match them."""
+    periodic = any_periodic(periodic_len) if _PAIR_PERIODIC < 0 else _PAIR_PERIODIC == 1
+    if _PAIR_DASHPOT >= 0:
+        store_dashpot = _PAIR_DASHPOT == 1
     e_n = 0.0
     e_t = 0.0
     d_fric = 0.0
@@ -411,7 +426,6 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, pa
     store_geo = geo.shape[0] > 0
     track_cover = cover.shape[0] == pi.shape[0]
     len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
-    periodic = any_periodic(periodic_len)
     rate0, rate1, rate2 = box_rate[0], box_rate[1], box_rate[2]
     X = x.reshape(-1)
     V = v.reshape(-1)
@@ -624,6 +638,11 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     arrays are read through flat views with unsigned indices (no negative-index
     wrap-around per access). Measured at 1e5 spheres, 1 thread, against the one-pass
     loop: see benchmarks/RESULTS.md; the results are the same to the bit."""
+    # a copy compiled for a kind of law and box (pair_loop_for) takes no other
+    if _PAIR_PERIODIC >= 0 and any_periodic(periodic_len) != (_PAIR_PERIODIC == 1):
+        raise ValueError("pair loop: compiled for another kind of box")
+    if _PAIR_DASHPOT >= 0 and store_dashpot != (_PAIR_DASHPOT == 1):
+        raise ValueError("pair loop: compiled for another kind of law")
     e_n = 0.0
     e_t = 0.0
     d_fric = 0.0
@@ -1003,6 +1022,31 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
 # a dense packing); the law itself (law_block) is compiled without
 pair_forces, pair_forces_serial = compile_parallel_and_serial(
     _pair_loop, serial_globals={"pair_chunk": pair_chunk_inline}, fastmath=CONTRACT)
+
+#: the pair loops compiled for a kind of law and box, by (parallel, dashpot, periodic)
+_PAIR_LOOPS = {}
+
+
+def pair_loop_for(parallel: bool, dashpot: bool, periodic: bool):
+    """The pair loop (:func:`_pair_loop`, threaded or serial) compiled for a law with or
+    without dashpot history (``store_dashpot``) and a box with or without periodic axes:
+    a copy of its own (its own on-disk cache entry) that refuses other calls. The
+    engine's step calls these; :data:`pair_forces` and :data:`pair_forces_serial` are
+    the general loops."""
+    key = (bool(parallel), bool(dashpot), bool(periodic))
+    loop = _PAIR_LOOPS.get(key)
+    if loop is None:
+        name = "_pair_chunk_{}{}".format(*(int(f) for f in key[1:]))
+        chunk = _with_globals(_pair_chunk, name, {"_PAIR_DASHPOT": int(dashpot),
+                                                  "_PAIR_PERIODIC": int(periodic)})
+        called = njit(fastmath=CONTRACT, inline="never" if parallel else "always")(chunk)
+        driver = _with_globals(_pair_loop, "_pair_loop_{}_{}{}".format(
+            "parallel" if parallel else "serial", *(int(f) for f in key[1:])),
+            {"pair_chunk": called, "_PAIR_DASHPOT": int(dashpot),
+             "_PAIR_PERIODIC": int(periodic)})
+        loop = _PAIR_LOOPS[key] = njit(parallel=bool(parallel), fastmath=CONTRACT)(driver)
+    return loop
+
 reduce_forces, reduce_forces_serial = compile_parallel_and_serial(_reduce_loop)
 integrate, integrate_serial = compile_parallel_and_serial(_integrate_loop, fastmath=CONTRACT)
 integrate_plain, integrate_plain_serial = compile_parallel_and_serial(
@@ -1239,23 +1283,27 @@ def _no_bodies(*args):
 _STEPS = {}
 
 
-def step_kernel(parallel: bool, rolling: bool, bonds: bool, bodies: bool):
+def step_kernel(parallel: bool, rolling: bool, bonds: bool, bodies: bool,
+                dashpot: bool = True, periodic: bool = True):
     """The compiled step (:func:`_advance`) with the threaded or the serial loops and
     only the features a run uses: a law without rolling resistance, a run without
-    bonds or clumps does not compile (or load) their loops. Each version has its own
-    name, so its own on-disk cache entry."""
-    key = (bool(parallel), bool(rolling), bool(bonds), bool(bodies))
+    bonds or clumps does not compile (or load) their loops; the pair loop is the one
+    compiled for the law's dashpot history and the box (:func:`pair_loop_for`). Each
+    version has its own name, so its own on-disk cache entry."""
+    key = (bool(parallel), bool(rolling), bool(bonds), bool(bodies), bool(dashpot),
+           bool(periodic))
     kernel = _STEPS.get(key)
     if kernel is None:
         overrides = {} if parallel else dict(_SERIAL_LOOPS)
+        overrides["pair_forces"] = pair_loop_for(parallel, dashpot, periodic)
         if not rolling:
             overrides.update(rolling_forces=_no_rolling, wall_rolling=_no_rolling)
         if not bonds:
             overrides["bond_forces"] = _no_bonds
         if not bodies:
             overrides["body_step"] = _no_bodies
-        name = "advance_{}_{}{}{}".format("parallel" if parallel else "serial",
-                                          *(int(f) for f in key[1:]))
+        name = "advance_{}_{}{}{}{}{}".format("parallel" if parallel else "serial",
+                                              *(int(f) for f in key[1:]))
         kernel = _STEPS[key] = njit(_with_globals(_advance, name, overrides))
     return kernel
 
@@ -1264,5 +1312,6 @@ def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, pa
     """:func:`_advance` compiled for this call's loops (threaded when ``ctl.parallel``)
     and features (rolling history, bonds, rigid bodies present)."""
     run = step_kernel(ctl.parallel, pairs.roll.shape[0] > 0 or walls.roll.shape[0] > 0,
-                      bonds.i.shape[0] > 0, bodies.m.shape[0] > 0)
+                      bonds.i.shape[0] > 0, bodies.m.shape[0] > 0, ctl.store_dashpot,
+                      bool(any_periodic(box.length)))
     return run(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params)
