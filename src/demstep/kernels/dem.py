@@ -1036,7 +1036,8 @@ def pair_loop_for(parallel: bool, dashpot: bool, periodic: bool):
     key = (bool(parallel), bool(dashpot), bool(periodic))
     loop = _PAIR_LOOPS.get(key)
     if loop is None:
-        name = "_pair_chunk_{}{}".format(*(int(f) for f in key[1:]))
+        name = "_pair_chunk_{}_{}{}".format("called" if parallel else "inlined",
+                                            *(int(f) for f in key[1:]))
         chunk = _with_globals(_pair_chunk, name, {"_PAIR_DASHPOT": int(dashpot),
                                                   "_PAIR_PERIODIC": int(periodic)})
         called = njit(fastmath=CONTRACT, inline="never" if parallel else "always")(chunk)
@@ -1310,7 +1311,8 @@ def step_kernel(parallel: bool, rolling: bool, bonds: bool, bodies: bool,
 
 def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params):
     """:func:`_advance` compiled for this call's loops (threaded when ``ctl.parallel``)
-    and features (rolling history, bonds, rigid bodies present)."""
+    and features (rolling history, bonds, rigid bodies present), with the pair loop for
+    its law's dashpot history and its box (periodic axes or none)."""
     run = step_kernel(ctl.parallel, pairs.roll.shape[0] > 0 or walls.roll.shape[0] > 0,
                       bonds.i.shape[0] > 0, bodies.m.shape[0] > 0, ctl.store_dashpot,
                       bool(any_periodic(box.length)))
