@@ -392,9 +392,10 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, pa
     ``chunks[c + 1]``), compiled once and called by the serial and the
     threaded driver alike: the same loop compiled inside a prange body ran 12 % slower
     per pair (dense 1e5: 15.45 against 13.80 ms on one thread), most of what two
-    threads lost against two processes. Returns the chunk's sums: (strain_n,
-    strain_t, friction, dashpot, contacts, uncovered, virial (3), crossing sums (3),
-    crossing contacts (3), their k_n (3)).
+    threads lost against two processes. Returns the chunk's PAIR_SUMS sums, all as
+    floats (the counts exact below 2^53): strain_n, strain_t, friction, dashpot,
+    contacts, uncovered, then the rows of ``box_sums``: virial (3), crossing sums (3),
+    crossing contacts (3), their k_n (3).
 
     In the copies :func:`pair_loop_for` compiles, whether the law keeps dashpot history
     and whether the box is periodic are constants, and the branches on them are gone
@@ -593,8 +594,13 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, pa
                     if n2 != 0.0:
                         nc2 += 1
                         kc2 += c_kn
-    return (e_n, e_t, d_fric, d_dash, n_contacts, n_uncovered, vir0, vir1, vir2, cr0, cr1,
-            cr2, nc0, nc1, nc2, kc0, kc1, kc2)
+    return (e_n, e_t, d_fric, d_dash, float(n_contacts), float(n_uncovered), vir0, vir1, vir2,
+            cr0, cr1, cr2, float(nc0), float(nc1), float(nc2), kc0, kc1, kc2)
+
+
+#: the sums a chunk of the pair loop returns (:func:`_pair_chunk`): six, then the
+#: four rows of three of ``box_sums``
+PAIR_SUMS = 18
 
 
 pair_chunk = njit(fastmath=CONTRACT)(_pair_chunk)
@@ -643,61 +649,22 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
         raise ValueError("pair loop: compiled for another kind of box")
     if _PAIR_DASHPOT >= 0 and store_dashpot != (_PAIR_DASHPOT == 1):
         raise ValueError("pair loop: compiled for another kind of law")
-    e_n = 0.0
-    e_t = 0.0
-    d_fric = 0.0
-    d_dash = 0.0
-    n_contacts = 0
-    n_uncovered = 0
-    vir0 = 0.0
-    vir1 = 0.0
-    vir2 = 0.0
-    cr0 = 0.0
-    cr1 = 0.0
-    cr2 = 0.0
-    nc0 = 0
-    nc1 = 0
-    nc2 = 0
-    kc0 = 0.0
-    kc1 = 0.0
-    kc2 = 0.0
-    for c in prange(chunks.shape[0] - 1):
-        (c_en, c_et, c_fric, c_dash, c_nc, c_nu, c_v0, c_v1, c_v2, c_r0, c_r1, c_r2, c_n0, c_n1,
-         c_n2, c_k0, c_k1, c_k2) = pair_chunk(
-            c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt, ft, fd,
-            etan, store_dashpot, chunks, spans, force, torque, force_band, torque_band, geo,
-            cover)
-        e_n += c_en
-        e_t += c_et
-        d_fric += c_fric
-        d_dash += c_dash
-        n_contacts += c_nc
-        n_uncovered += c_nu
-        vir0 += c_v0
-        vir1 += c_v1
-        vir2 += c_v2
-        cr0 += c_r0
-        cr1 += c_r1
-        cr2 += c_r2
-        nc0 += c_n0
-        nc1 += c_n1
-        nc2 += c_n2
-        kc0 += c_k0
-        kc1 += c_k1
-        kc2 += c_k2
-    box_sums[0, 0] = vir0
-    box_sums[0, 1] = vir1
-    box_sums[0, 2] = vir2
-    box_sums[1, 0] = cr0
-    box_sums[1, 1] = cr1
-    box_sums[1, 2] = cr2
-    box_sums[2, 0] = nc0
-    box_sums[2, 1] = nc1
-    box_sums[2, 2] = nc2
-    box_sums[3, 0] = kc0
-    box_sums[3, 1] = kc1
-    box_sums[3, 2] = kc2
-    return e_n, e_t, d_fric, d_dash, n_contacts, n_uncovered
+    n_chunks = chunks.shape[0] - 1
+    sums = np.zeros((max(n_chunks, 1), PAIR_SUMS))
+    for c in prange(n_chunks):
+        got = pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params,
+                         dt, ft, fd, etan, store_dashpot, chunks, spans, force, torque,
+                         force_band, torque_band, geo, cover)
+        for q in range(PAIR_SUMS):
+            sums[c, q] = got[q]
+    # the chunks' sums added in chunk order: the same whatever the threads did
+    for c in range(1, n_chunks):
+        for q in range(PAIR_SUMS):
+            sums[0, q] += sums[c, q]
+    for row in range(4):
+        for k in range(3):
+            box_sums[row, k] = sums[0, 6 + 3 * row + k]
+    return sums[0, 0], sums[0, 1], sums[0, 2], sums[0, 3], int(sums[0, 4]), int(sums[0, 5])
 
 
 def _reduce_loop(force_band, torque_band, spans, force, torque):
