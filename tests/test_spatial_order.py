@@ -459,3 +459,13 @@ def test_a_renumbered_periodic_2d_simulation_runs_on_as_the_original():
     assert across.any()
     np.testing.assert_allclose(b.x, a.x[order], rtol=0, atol=1e-12)
     np.testing.assert_allclose(b.w, a.w[order], rtol=0, atol=1e-12)
+
+
+def test_inverse_order_names_each_old_particle_by_its_new_index():
+    from demstep.packings import inverse_order
+
+    order = np.random.default_rng(3).permutation(57)
+    inverse = inverse_order(order)
+    assert np.array_equal(inverse[order], np.arange(57))
+    assert np.array_equal(order[inverse], np.arange(57))
+    assert inverse_order(np.zeros(0, dtype=np.int64)).shape == (0,)

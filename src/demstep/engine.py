@@ -59,7 +59,8 @@ from demstep.energy import A_ROLLING, E_STRAIN_R, EnergyBalanceError, EnergyLedg
 from demstep.errors import InputError, SimulationDiverged
 from demstep.kernels import dem
 from demstep.particles import Particles
-from demstep.state import ROLL_WIDTH, Bodies, Bonds, Box, Controls, Ledger, Pairs, Spheres, Walls
+from demstep.state import (CONTACT_HISTORY, ROLL_WIDTH, Bodies, Bonds, Box, Controls, Ledger,
+                            Pairs, Spheres, Walls)
 from demstep.walls import Wall
 
 log = logging.getLogger("demstep")
@@ -143,6 +144,13 @@ class TimeStep:
 def _sorted_keys(keys, values):
     order = np.argsort(keys, kind="stable")
     return keys[order], values[order]
+
+
+def _ends_in_order(i, j):
+    """Pairs or bonds renamed (i, j) put back in i < j order: (lo, hi, sign), ``sign``
+    (P, 1) -1 where the ends swapped (what a pair stores as acting on j changes sign)."""
+    swap = i > j
+    return np.where(swap, j, i), np.where(swap, i, j), np.where(swap, -1.0, 1.0)[:, None]
 
 
 @dataclass
@@ -533,15 +541,14 @@ class Simulation:
         """At a rebuild (the new lists built): put the particles in spatial order (rows
         of cells of side 2 r_max, as ``demstep run`` orders a particle file) when that
         brings the pairs closer in memory by :data:`SORT_GAIN`."""
-        from demstep.packings import spatial_order
+        from demstep.packings import inverse_order, spatial_order
 
         self._last_sort = self.step
         pi, pj = self.pairs.i, self.pairs.j
         if len(pi) == 0:  # (nothing to gather: the order does not matter)
             return
         order = spatial_order(self.x[:, :self.dim], 2.0 * float(self.r.max()))
-        inv = np.empty(len(order), dtype=np.int64)
-        inv[order] = np.arange(len(order))
+        inv = inverse_order(order)
         now = float(np.mean(np.log2(1.0 + (pj - pi))))
         sorted_ = float(np.mean(np.log2(1.0 + np.abs(inv[pj] - inv[pi]))))
         if sorted_ <= now - self.SORT_GAIN:
@@ -568,9 +575,10 @@ class Simulation:
         if not seen.all():
             raise InputError(f"order: expected a permutation of 0..{n - 1}, got "
                              f"{order.dtype} of shape {order.shape}")
+        from demstep.packings import inverse_order
+
         order = order.astype(np.int64)
-        inv = np.empty(n, dtype=np.int64)
-        inv[order] = np.arange(n)
+        inv = inverse_order(order)
         # the particles' arrays permuted in place through one scratch array (fresh
         # memory for all of them cost half the time in page faults: 21 ms at 1e5)
         scratch = np.empty(max(a.size for a in self.spheres))
@@ -592,13 +600,12 @@ class Simulation:
         rows = np.lexsort((ws.wall, p))
         self.wall_state = ws._replace(p=p[rows], wall=ws.wall[rows], **{
             f: getattr(ws, f)[rows] if len(getattr(ws, f)) else getattr(ws, f)
-            for f in ("shear", "dashpot", "shear_energy", "roll", "cover")})
+            for f in CONTACT_HISTORY})
         bonds = self.bonds
         if bonds.n:
-            i, j = inv[bonds.i], inv[bonds.j]
-            sign = np.where(i > j, -1.0, 1.0)[:, None]
-            self.bonds = bonds._replace(i=np.minimum(i, j), j=np.maximum(i, j),
-                                        shear=bonds.shear * sign, bend=bonds.bend * sign)
+            i, j, sign = _ends_in_order(inv[bonds.i], inv[bonds.j])
+            self.bonds = bonds._replace(i=i, j=j, shear=bonds.shear * sign,
+                                        bend=bonds.bend * sign)
         self._renumber_timestep_state(order, inv)
         self._chunks_for = None
 
@@ -606,10 +613,7 @@ class Simulation:
     def _renumbered_pairs(pairs: Pairs, inv: np.ndarray) -> Pairs:
         """The pair list with particle p renamed inv[p], i < j kept (history on j
         negated where the ends swap) and sorted by (i, j) again."""
-        i, j = inv[pairs.i], inv[pairs.j]
-        swap = i > j
-        lo, hi = np.where(swap, j, i), np.where(swap, i, j)
-        sign = np.where(swap, -1.0, 1.0)[:, None]
+        lo, hi, sign = _ends_in_order(inv[pairs.i], inv[pairs.j])
         rows = np.lexsort((hi, lo))
         roll = pairs.roll
         if len(roll):
@@ -622,6 +626,21 @@ class Simulation:
                               shear_energy=pairs.shear_energy[rows], roll=roll,
                               cover=pairs.cover[rows] if len(pairs.cover) else pairs.cover)
 
+    def _pair_keys(self, i, j):
+        """The keys of the pairs (i, j), i < j, in the 'auto' step's record of covered
+        contacts: i N + j."""
+        return i * len(self.r) + j
+
+    @property
+    def _walls_per_key(self) -> int:
+        """The base of the particle-wall keys (:meth:`_wall_keys`): the number of walls."""
+        return max(1, len(self.walls))
+
+    def _wall_keys(self, p, w):
+        """The keys of the particle-wall contacts (p, w) in the record of covered
+        contacts: p W + w."""
+        return p * self._walls_per_key + w
+
     def _renumber_timestep_state(self, order: np.ndarray, inv: np.ndarray):
         """:meth:`reorder` for the 'auto' control: the cover's keys, the certificate's
         pairs (their normals keep their direction from pair_i to pair_j) and the
@@ -633,10 +652,10 @@ class Simulation:
             for name, (keys, assumed) in cover.items():
                 if name == "pairs":
                     a, b = inv[keys // n], inv[keys % n]
-                    keys = np.minimum(a, b) * n + np.maximum(a, b)
+                    keys = self._pair_keys(np.minimum(a, b), np.maximum(a, b))
                 else:
-                    n_walls = max(1, len(self.walls))
-                    keys = inv[keys // n_walls] * n_walls + keys % n_walls
+                    base = self._walls_per_key
+                    keys = self._wall_keys(inv[keys // base], keys % base)
                 rows = np.argsort(keys, kind="stable")
                 renamed[name] = (keys[rows], np.asarray(assumed)[rows])
             self._cover_record = renamed
@@ -722,7 +741,7 @@ class Simulation:
             parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
                                     c_n=cn, c_t=ct))
             if cover is not None:
-                cover["pairs"] = _sorted_keys(i * len(self.r) + j, delta_eval)
+                cover["pairs"] = _sorted_keys(self._pair_keys(i, j), delta_eval)
         if len(self.wp):
             _, dist, delta, _ = wall_geometry_arrays(self.x, self.r, self.wp, self.ww,
                                                      self.wall_point, self.wall_normal)
@@ -745,7 +764,7 @@ class Simulation:
             parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim],
                                     arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct))
             if cover is not None:
-                cover["walls"] = _sorted_keys(p * max(1, len(self.walls)) + wi, delta_eval)
+                cover["walls"] = _sorted_keys(self._wall_keys(p, wi), delta_eval)
         return self._with_rolling_and_bonds(parts, params)
 
     def _with_rolling_and_bonds(self, parts, params) -> ContactSet:
@@ -1169,9 +1188,10 @@ class Simulation:
             raise InputError(f"{source}: the checkpoint's particles do not match the simulation")
         if np.array_equal(target, current):
             return
-        position = np.empty(int(current.max()) + 1, dtype=np.int64)
-        position[current] = np.arange(len(current))
-        self.reorder(position[target])
+        from demstep.packings import inverse_order
+
+        # (input rows are a permutation of 0..N-1: where each row is now)
+        self.reorder(inverse_order(current)[target])
 
     def timestep_state(self) -> dict:
         """Arrays of the 'auto' time-step control that a restart needs to continue bit for
@@ -1219,7 +1239,7 @@ class Simulation:
                                     known, assumed, nonlinear)
         known, assumed = cover.get("walls", none)
         wall_mask = uncovered_walls(self.x, self.r, self.wp, self.ww, self.wall_point,
-                                    self.wall_normal, max(1, len(self.walls)),
+                                    self.wall_normal, self._walls_per_key,
                                     np.asarray(known, dtype=np.int64),
                                     np.asarray(assumed, dtype=np.float64), nonlinear)
         return pair_mask, wall_mask
@@ -1252,10 +1272,10 @@ class Simulation:
             nonlinear = self.law.law_id != 0
             ws = self.wall_state
             self.pairs = self.pairs._replace(cover=cover_limits(
-                self.pairs.i * len(self.r) + self.pairs.j, *cover.get("pairs", _NO_COVER),
+                self._pair_keys(self.pairs.i, self.pairs.j), *cover.get("pairs", _NO_COVER),
                 nonlinear))
             self.wall_state = ws._replace(cover=cover_limits(
-                ws.p * max(1, len(self.walls)) + ws.wall, *cover.get("walls", _NO_COVER),
+                self._wall_keys(ws.p, ws.wall), *cover.get("walls", _NO_COVER),
                 nonlinear))
         if reset:
             self.counters[3] = 0.0
@@ -1338,11 +1358,11 @@ class Simulation:
                 continue
             if name == "pairs":
                 i, j = self.pi[mask], self.pj[mask]
-                keys = i * len(self.r) + j
+                keys = self._pair_keys(i, j)
                 delta = pair_geometry_arrays(self.x, self.r, i, j, self.periodic_len)[2]
             else:
                 p, w = self.wp[mask], self.ww[mask]
-                keys = p * max(1, len(self.walls)) + w
+                keys = self._wall_keys(p, w)
                 delta = wall_geometry_arrays(self.x, self.r, p, w, self.wall_point,
                                              self.wall_normal)[2]
             known, assumed = cover.get(name, (np.zeros(0, dtype=np.int64), np.zeros(0)))

@@ -142,3 +142,12 @@ def spatial_order(x: np.ndarray, cell: float) -> np.ndarray:
         raise InputError(f"cell: must be finite and > 0, got {cell!r}")
     cells = np.floor((x - x.min(axis=0)) / cell)
     return np.lexsort(tuple(cells[:, k] for k in range(x.shape[1])))  # last key first
+
+
+def inverse_order(order) -> np.ndarray:
+    """The new index of each old particle of a renumbering in which new particle k is
+    old particle ``order[k]`` (a permutation of 0..N-1)."""
+    order = np.asarray(order)
+    inverse = np.empty(len(order), dtype=np.int64)
+    inverse[order] = np.arange(len(order))
+    return inverse

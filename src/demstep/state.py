@@ -110,6 +110,11 @@ class Bodies(NamedTuple):
         return len(self.m)
 
 
+#: the per-contact history of the pair and the particle-wall lists (:class:`Pairs`,
+#: :class:`Walls`), one row per listed contact
+CONTACT_HISTORY = ("shear", "dashpot", "shear_energy", "roll", "cover")
+
+
 class Pairs(NamedTuple):
     """The Verlet pair list, P pairs (i < j in index, sorted by i) with their history:
     tangential spring force on j ``shear`` (P, 3) [M L/T^2], dashpot force on j
@@ -137,7 +142,7 @@ class Pairs(NamedTuple):
     roll: np.ndarray
     cover: np.ndarray
 
-    STATE = ("i", "j", "shear", "dashpot", "shear_energy", "roll", "cover")
+    STATE = ("i", "j") + CONTACT_HISTORY
 
     @classmethod
     def empty(cls, n: int) -> "Pairs":
@@ -226,7 +231,7 @@ class Walls(NamedTuple):
     cover: np.ndarray
 
     STATE = ("point", "vel", "motion", "servo", "force", "force_prev", "disp_prev", "ref",
-             "k_sum", "p", "wall", "shear", "dashpot", "shear_energy", "roll", "cover")
+             "k_sum", "p", "wall") + CONTACT_HISTORY
 
 
 class Box(NamedTuple):

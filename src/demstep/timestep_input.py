@@ -538,12 +538,11 @@ def _put_in_spatial_order(data: AnalysisInput) -> None:
     file's rows in any message so far) in spatial order, the file's row of each kept in
     ``ids`` for the reports: the products of the exact step gather by index (1e5 dense
     spheres in random order: 5.0 s against 1.6 s in spatial order)."""
-    from demstep.packings import spatial_order
+    from demstep.packings import inverse_order, spatial_order
 
     p = data.particles
     order = spatial_order(p.x, 2.0 * float(p.r.max()))
-    new_index = np.empty(p.n, dtype=np.int64)
-    new_index[order] = np.arange(p.n)
+    new_index = inverse_order(order)
     data.particles = p.take(order)
     data.contacts = data.contacts.renumbered(new_index)
     data.types = data.types[order]

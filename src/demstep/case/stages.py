@@ -74,9 +74,9 @@ def create_bonds(sim, case: Case) -> None:
                 and ((pairs >= 0) & (pairs < n)).all()):
             # the file's rows -> the reordered particles (invalid rows are left for
             # add_bonds to name as they are in the file)
-            inverse = np.empty(n, dtype=np.int64)
-            inverse[sim.source_index] = np.arange(n)
-            pairs = inverse[pairs]
+            from demstep.packings import inverse_order
+
+            pairs = inverse_order(sim.source_index)[pairs]
     try:
         sim.add_bonds(params, pairs)
     except InputError as exc:

@@ -1221,8 +1221,9 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
     return n_steps, STOP_DONE
 
 
-#: the loops each compiled version of :func:`_advance` calls, by the names it uses
-_SERIAL_LOOPS = {"pair_forces": pair_forces_serial, "rolling_forces": rolling_forces_serial,
+#: the serial loops each serial version of :func:`_advance` calls, by the names it uses
+#: (its pair loop comes from :func:`pair_loop_for`)
+_SERIAL_LOOPS = {"rolling_forces": rolling_forces_serial,
                  "reduce_forces": reduce_forces_serial, "wall_forces": wall_forces_serial,
                  "wall_rolling": wall_rolling_serial, "integrate": integrate_serial,
                  "integrate_plain": integrate_plain_serial,
