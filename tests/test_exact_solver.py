@@ -158,6 +158,66 @@ def test_blocked_vector_operations_match_numpy(monkeypatch, n, local, rows):
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("n", [7, 16384 * 3 + 5])
+def test_second_pass_skipped_exactly_when_semi_orthogonal(monkeypatch, n):
+    """The second Gram-Schmidt pass is skipped when every cosine of w (after the first
+    pass) with the rows is at most ``semi``: just above the largest cosine, w keeps its
+    components and h2 is zero; just below, the pass runs as with ``semi`` 0; serial and
+    threaded alike."""
+    from demstep.kernels import timestep_kernels as tk
+
+    rng = np.random.default_rng(n)
+    V = np.linalg.qr(rng.standard_normal((n, 6)))[0].T.copy()
+    w0 = rng.standard_normal(n) + 3.0 * V[3] + 1e-3 * V[1]
+    local, rows = np.array([2, 3]), np.array([0, 1, 2, 3])
+    w1 = w0 - V[local].T @ (V[local] @ w0)
+    h2_ref = V[rows] @ w1
+    cosine = np.max(np.abs(h2_ref)) / np.linalg.norm(w1)
+    w2 = w1 - V[rows].T @ h2_ref
+    for threshold in (10**9, 1):  # serial, then threaded
+        monkeypatch.setattr(tk, "PARALLEL_MIN_DOFS", threshold)
+        for semi, skipped in ((cosine * (1 + 1e-6), True), (cosine * (1 - 1e-6), False)):
+            w, h, h2 = w0.copy(), np.empty(6), np.empty(7)
+            beta2 = tk.lanczos_orthogonalize(V, local, rows, w, h, h2, semi)
+            expect = w1 if skipped else w2
+            np.testing.assert_allclose(w, expect, rtol=1e-12, atol=1e-12)
+            assert beta2 == pytest.approx(expect @ expect, rel=1e-12)
+            if skipped:
+                np.testing.assert_array_equal(h2[:4], 0.0)
+            else:
+                np.testing.assert_allclose(h2[:4], h2_ref, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("tol", [1e-6, 1e-10])
+def test_lanczos_basis_stays_semi_orthogonal_to_the_kept_vectors(monkeypatch, tol):
+    """Every new Lanczos vector is at most min(sqrt(eps), 0.1 tol) from orthogonal to
+    the rows it is checked against (the kept Ritz vectors and its predecessors), with
+    the second pass skipped for most of them, and the top eigenpair is still found."""
+    from demstep.kernels import timestep_kernels as tk
+    from demstep.timestep import eigen
+
+    A, w = spectrum_matrix(600, [1.0, 1.0 - 1e-4, 0.999], 3)
+    semi = min(eigen.LANCZOS_SEMI, eigen.LANCZOS_SEMI_PER_TOL * tol)
+    kernel = tk.lanczos_orthogonalize
+    worst, skipped, calls = [], [0], [0]
+
+    def checked(V, local, rows, w_, h, h2, semi_):
+        assert semi_ == semi
+        beta2 = kernel(V, local, rows, w_, h, h2, semi_)
+        calls[0] += 1
+        skipped[0] += not h2[:len(rows)].any()
+        worst.append(np.max(np.abs(V[rows] @ w_)) / np.sqrt(beta2))
+        return beta2
+
+    monkeypatch.setattr(tk, "lanczos_orthogonalize", checked)
+    start = np.random.default_rng(1).standard_normal(600)
+    theta, y, _, _ = lanczos_top(lambda x, out: np.matmul(A, x, out=out), start, tol=tol,
+                                 basis=12, keep=4)
+    assert max(worst) <= semi * (1 + 1e-6)
+    assert skipped[0] > calls[0] // 2
+    assert theta == pytest.approx(w[-1], rel=10 * tol)
+
+
 def test_lanczos_stops_once_above_a_threshold():
     A, w = spectrum_matrix(300, [1.0, 0.99], 2)
     start = np.random.default_rng(1).standard_normal(300)

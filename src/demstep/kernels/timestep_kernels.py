@@ -711,18 +711,20 @@ def _sum_blocks(part, count, out):
         out[a] = s
 
 
-def _lanczos_orthogonalize(V, local, rows, w, h, h2):
+def _lanczos_orthogonalize(V, local, rows, w, h, h2, semi):
     """Orthogonalise the new Lanczos vector w: a classical Gram-Schmidt pass against the
     rows ``local`` of V (h = V[local] w, w -= V[local]^T h), then one against the rows
-    ``rows`` (h2 likewise); returns |w|^2 after both. Three sweeps over blocks of
-    :data:`VECTOR_BLOCK` elements: the first pass' dots; its subtraction with the
-    second pass' dots (w's block is still in cache); the second subtraction with the
-    norm."""
+    ``rows`` (h2 likewise) when it is needed; returns |w|^2 after both. The second
+    pass' coefficients are cosines of w with unit rows times |w|: when every one is at
+    most ``semi`` |w| (w semi-orthogonal to those rows), the subtraction is skipped and
+    h2[:len(rows)] is set to zero. Sweeps over blocks of :data:`VECTOR_BLOCK` elements:
+    the first pass' dots; its subtraction with the second pass' dots and |w|^2 (w's
+    block is still in cache); when needed, the second subtraction with the norm."""
     n = w.shape[0]
     nb = (n + VECTOR_BLOCK - 1) // VECTOR_BLOCK
     nl = local.shape[0]
     nr = rows.shape[0]
-    part = np.empty((nb, max(nl, nr, 1)))
+    part = np.empty((nb, max(nl, nr + 1)))
     for b in prange(nb):
         lo = b * VECTOR_BLOCK
         _block_dots(V, local, w, lo, min(n, lo + VECTOR_BLOCK), part[b])
@@ -732,7 +734,18 @@ def _lanczos_orthogonalize(V, local, rows, w, h, h2):
         hi = min(n, lo + VECTOR_BLOCK)
         _block_subtract(V, local, h, w, lo, hi)
         _block_dots(V, rows, w, lo, hi, part[b])
-    _sum_blocks(part, nr, h2)
+        s = 0.0
+        for p in range(lo, hi):
+            s += w[p] * w[p]
+        part[b, nr] = s
+    _sum_blocks(part, nr + 1, h2)
+    largest = 0.0
+    for a in range(nr):
+        largest = max(largest, abs(h2[a]))
+    if largest * largest <= semi * semi * h2[nr]:
+        for a in range(nr):
+            h2[a] = 0.0
+        return h2[nr]
     for b in prange(nb):
         lo = b * VECTOR_BLOCK
         hi = min(n, lo + VECTOR_BLOCK)
@@ -749,12 +762,12 @@ _lanczos_orthogonalize_parallel, _lanczos_orthogonalize_serial = \
     compile_parallel_and_serial(_lanczos_orthogonalize)
 
 
-def lanczos_orthogonalize(V, local, rows, w, h, h2) -> float:
+def lanczos_orthogonalize(V, local, rows, w, h, h2, semi: float = 0.0) -> float:
     """:func:`_lanczos_orthogonalize` (h2 needs one slot more than ``rows``), on
     several threads for vectors of :data:`PARALLEL_MIN_DOFS` elements or more."""
     kernel = (_lanczos_orthogonalize_parallel if w.shape[0] >= PARALLEL_MIN_DOFS
               else _lanczos_orthogonalize_serial)
-    return kernel(V, local, rows, w, h, h2)
+    return kernel(V, local, rows, w, h, h2, semi)
 
 
 #: elements per block of :func:`combine_rows`: its k partial sums of one block stay in
