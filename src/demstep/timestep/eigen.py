@@ -161,7 +161,7 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
     keep = max(1, min(keep, m // 2))
     if max_matvecs is None:
         max_matvecs = LANCZOS_MAX_MATVECS
-    workspace = workspace if workspace is not None else Workspace(huge_pages=False)
+    workspace = workspace if workspace is not None else Workspace()
     V = workspace.array(LANCZOS_ARRAYS[0], (m, n))
     T = np.zeros((m + 1, m + 1))
     tk.scale_into(v0, 1.0 / np.sqrt(tk._norm2(v0)), V[0])
@@ -261,7 +261,7 @@ def top_eigenpair(A, v0: np.ndarray | None = None, dense_limit: int = DENSE_LIMI
     if solver != "lanczos":
         raise ValueError(f"solver: lanczos or arpack, got {solver!r}")
     matvecs = 0
-    workspace = workspace if workspace is not None else Workspace(huge_pages=False)
+    workspace = workspace if workspace is not None else Workspace()
     # the start goes into Lanczos' scratch vector (read before its first product)
     start = start_vector(n, v0, mix, out=workspace.array(LANCZOS_ARRAYS[1], (n,)))
     for _ in range(LANCZOS_RETRIES):

@@ -135,7 +135,7 @@ class ScaledContactOperator:
         self.nd = dofs_per_particle(particles.dim, rotation)
         self.scale = inverse_sqrt_mass(particles, rotation).reshape(particles.n, self.nd)
         self.size = particles.n * self.nd
-        self.workspace = workspace if workspace is not None else Workspace(huge_pages=False)
+        self.workspace = workspace if workspace is not None else Workspace()
         self._work = self.workspace.array("operator_work", self.scale.shape)
         self.bodies = bodies if bodies is not None and bodies.n else None
         self.owner_map = None
