@@ -137,3 +137,18 @@ def test_inverse_sqrt_mass_zero_on_fixed():
     p, _ = random_polydisperse(2, 3, n=8, fixed=True)
     s = inverse_sqrt_mass(p, True).reshape(p.n, 6)
     assert np.all(s[p.fixed] == 0) and np.all(s[~p.fixed] > 0)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("rotation", [True, False])
+def test_inverse_sqrt_mass_is_the_lumped_mass_to_the_minus_half(dim, rotation):
+    """Per DOF 1 / sqrt of the lumped mass (masses on translations, inertias on
+    rotations), zero on the fixed particles; written into a given array alike."""
+    p, _ = random_polydisperse(3, dim, n=12, fixed=True)
+    expect = 1.0 / np.sqrt(lumped_mass(p, rotation))
+    nd = len(expect) // p.n
+    expect[np.repeat(p.fixed, nd)] = 0.0
+    np.testing.assert_array_equal(inverse_sqrt_mass(p, rotation), expect)
+    out = np.full(len(expect), np.nan)
+    assert inverse_sqrt_mass(p, rotation, out) is out
+    np.testing.assert_array_equal(out, expect)

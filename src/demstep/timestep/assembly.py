@@ -24,12 +24,20 @@ def lumped_mass(particles: Particles, rotation: bool) -> np.ndarray:
     return np.stack(cols, axis=1).reshape(-1)
 
 
-def inverse_sqrt_mass(particles: Particles, rotation: bool) -> np.ndarray:
-    """M^-1/2 per DOF, zero on fixed particles (infinite mass)."""
-    s = 1.0 / np.sqrt(lumped_mass(particles, rotation))
-    nd = dofs_per_particle(particles.dim, rotation)
-    s[np.repeat(particles.fixed, nd)] = 0.0
-    return s
+def inverse_sqrt_mass(particles: Particles, rotation: bool,
+                      out: np.ndarray | None = None) -> np.ndarray:
+    """M^-1/2 per DOF (N * nd,), the diagonal of :func:`lumped_mass` to the power -1/2,
+    zero on fixed particles (infinite mass); into ``out`` (N * nd,) when given (an
+    'auto' run builds it at every estimate: a fresh array of that size costs its page
+    faults, more than the arithmetic). One square root per particle and kind of DOF."""
+    dim = particles.dim
+    nd = dofs_per_particle(dim, rotation)
+    s = np.empty((particles.n, nd)) if out is None else out.reshape(particles.n, nd)
+    s[:, :dim] = (1.0 / np.sqrt(particles.m))[:, None]
+    if nd > dim:
+        s[:, dim:] = (1.0 / np.sqrt(particles.inertia))[:, None]
+    s[particles.fixed] = 0.0
+    return s.reshape(-1) if out is None else out
 
 
 def _bsr_from_blocks(rows, cols, blocks, n_blocks):

@@ -114,8 +114,8 @@ class ScaledContactOperator:
     with rotation the rolling and twisting ones on the relative rotation
     (:class:`~demstep.contacts.ContactSet`). ``pencil(sigma)`` is the operator
     (1 + sigma a2) K^ + sigma C^_d; the mass-proportional part sigma a1 I of
-    A(sigma) = sigma C^ + K^ is a shift added by the caller. Its buffers and the
-    eigensolver's basis live in ``workspace`` (:class:`~demstep.scratch.Workspace`;
+    A(sigma) = sigma C^ + K^ is a shift added by the caller. Its buffers (its scaling
+    M^-1/2 too) and the eigensolver's basis live in ``workspace`` (:class:`~demstep.scratch.Workspace`;
     a new one when not given), which successive operators of the same assembly size
     may share (one at a time: every product overwrites the buffers)."""
 
@@ -133,9 +133,11 @@ class ScaledContactOperator:
         self.rolling = self.rotation and contacts.has_rolling
         self.damping = damping or GlobalDamping()
         self.nd = dofs_per_particle(particles.dim, rotation)
-        self.scale = inverse_sqrt_mass(particles, rotation).reshape(particles.n, self.nd)
         self.size = particles.n * self.nd
         self.workspace = workspace if workspace is not None else Workspace()
+        self.scale = inverse_sqrt_mass(
+            particles, rotation, self.workspace.array("operator_scale", (self.size,))
+        ).reshape(particles.n, self.nd)
         self._work = self.workspace.array("operator_work", self.scale.shape)
         self.bodies = bodies if bodies is not None and bodies.n else None
         self.owner_map = None
