@@ -148,9 +148,13 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
     it the loss of orthogonality made the estimate claim convergence at a true
     residual of 8 % (measured, dense packing); against the top 4 of the 8 kept only,
     the FCC block (1e5 spheres, a cluster of converging Ritz values) gave a Ritz value
-    30x the largest eigenvalue. The projected matrix holds every computed coefficient
-    and is solved densely. The caller checks the result with an explicit residual
-    (:func:`top_eigenpair`). The basis lives in ``workspace`` when given.
+    30x the largest eigenvalue. That second pass subtracts only when the vector is
+    not semi-orthogonal to those rows: when its cosines with all of them are at most
+    ``semi`` (None: min(:data:`LANCZOS_SEMI`, :data:`LANCZOS_SEMI_PER_TOL` ``tol``)),
+    its dots were the whole cost (most vectors, measured). The projected matrix holds
+    every computed coefficient and is solved densely. The caller checks the result with
+    an explicit residual (:func:`top_eigenpair`). The basis lives in ``workspace`` when
+    given.
     """
     from demstep.kernels import timestep_kernels as tk
 
