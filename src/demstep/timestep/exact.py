@@ -115,9 +115,10 @@ class ScaledContactOperator:
     (:class:`~demstep.contacts.ContactSet`). ``pencil(sigma)`` is the operator
     (1 + sigma a2) K^ + sigma C^_d; the mass-proportional part sigma a1 I of
     A(sigma) = sigma C^ + K^ is a shift added by the caller. Its buffers (its scaling
-    M^-1/2 too) and the eigensolver's basis live in ``workspace`` (:class:`~demstep.scratch.Workspace`;
-    a new one when not given), which successive operators of the same assembly size
-    may share (one at a time: every product overwrites the buffers)."""
+    M^-1/2 too) and the eigensolver's basis live in ``workspace``
+    (:class:`~demstep.scratch.Workspace`; a new one when not given), which successive
+    operators of the same assembly size may share (one at a time: a new operator and
+    every product overwrite the buffers)."""
 
     def __init__(self, particles: Particles, contacts: ContactSet, rotation: bool,
                  damping: GlobalDamping | None = None, bodies=None,
