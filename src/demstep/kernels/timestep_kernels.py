@@ -701,6 +701,15 @@ def _block_subtract(V, rows, h, w, lo, hi):
 
 
 @njit(inline="always")
+def _block_squares(w, lo, hi):
+    """|w[lo:hi]|^2."""
+    s = 0.0
+    for p in range(lo, hi):
+        s += w[p] * w[p]
+    return s
+
+
+@njit(inline="always")
 def _sum_blocks(part, count, out):
     """out[a] = sum over the blocks (in order) of part[b, a], a < ``count``."""
     for a in range(count):
@@ -733,10 +742,7 @@ def _lanczos_orthogonalize(V, local, rows, w, h, h2, semi):
         hi = min(n, lo + VECTOR_BLOCK)
         _block_subtract(V, local, h, w, lo, hi)
         _block_dots(V, rows, w, lo, hi, part[b])
-        s = 0.0
-        for p in range(lo, hi):
-            s += w[p] * w[p]
-        part[b, nr] = s
+        part[b, nr] = _block_squares(w, lo, hi)
     _sum_blocks(part, nr + 1, h2)
     largest = 0.0
     for a in range(nr):
@@ -749,10 +755,7 @@ def _lanczos_orthogonalize(V, local, rows, w, h, h2, semi):
         lo = b * VECTOR_BLOCK
         hi = min(n, lo + VECTOR_BLOCK)
         _block_subtract(V, rows, h2, w, lo, hi)
-        s = 0.0
-        for p in range(lo, hi):
-            s += w[p] * w[p]
-        part[b, 0] = s
+        part[b, 0] = _block_squares(w, lo, hi)
     _sum_blocks(part, 1, h2[nr:])
     return h2[nr]
 

@@ -14,14 +14,26 @@ import scipy.sparse as sp
 from demstep.contacts import ContactSet
 from demstep.kernels.timestep_kernels import stiffness_diagonal_kernel
 from demstep.particles import Particles
-from demstep.timestep.elements import coupled_element_blocks, dofs_per_particle, n_rotations
+from demstep.timestep.elements import coupled_element_blocks, dofs_per_particle
+
+
+def _per_dof(particles: Particles, rotation: bool, translation: np.ndarray,
+             rotational: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """(N * nd,): each particle's ``translation`` value on its dim translational DOFs
+    and its ``rotational`` value on its rotations (the DOF layout of the mass matrix);
+    into ``out`` when given."""
+    dim = particles.dim
+    nd = dofs_per_particle(dim, rotation)
+    s = np.empty((particles.n, nd)) if out is None else out.reshape(particles.n, nd)
+    s[:, :dim] = translation[:, None]
+    if nd > dim:
+        s[:, dim:] = rotational[:, None]
+    return s.reshape(-1) if out is None else out
 
 
 def lumped_mass(particles: Particles, rotation: bool) -> np.ndarray:
     """Diagonal of the lumped global mass matrix (N * nd,) [M; M L^2 for rotations]."""
-    dim = particles.dim
-    cols = [particles.m] * dim + [particles.inertia] * n_rotations(dim, rotation)
-    return np.stack(cols, axis=1).reshape(-1)
+    return _per_dof(particles, rotation, particles.m, particles.inertia)
 
 
 def inverse_sqrt_mass(particles: Particles, rotation: bool,
@@ -30,14 +42,10 @@ def inverse_sqrt_mass(particles: Particles, rotation: bool,
     zero on fixed particles (infinite mass); into ``out`` (N * nd,) when given (an
     'auto' run builds it at every estimate: a fresh array of that size costs its page
     faults, more than the arithmetic). One square root per particle and kind of DOF."""
-    dim = particles.dim
-    nd = dofs_per_particle(dim, rotation)
-    s = np.empty((particles.n, nd)) if out is None else out.reshape(particles.n, nd)
-    s[:, :dim] = (1.0 / np.sqrt(particles.m))[:, None]
-    if nd > dim:
-        s[:, dim:] = (1.0 / np.sqrt(particles.inertia))[:, None]
-    s[particles.fixed] = 0.0
-    return s.reshape(-1) if out is None else out
+    s = _per_dof(particles, rotation, 1.0 / np.sqrt(particles.m),
+                 1.0 / np.sqrt(particles.inertia), out)
+    s.reshape(particles.n, -1)[particles.fixed] = 0.0
+    return s
 
 
 def _bsr_from_blocks(rows, cols, blocks, n_blocks):

@@ -128,7 +128,7 @@ def _squared_norm(x: np.ndarray) -> float:
 def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LANCZOS_BASIS,
                 keep: int = LANCZOS_KEEP, max_matvecs: int | None = None,
                 stop_above: float = np.inf, stop_tol: float = 0.0, block: int = 0,
-                workspace: Workspace | None = None, semi: float | None = None):
+                workspace: Workspace | None = None):
     """Largest eigenpair of a symmetric operator by thick-restart Lanczos.
 
     ``matvec(x, out)`` writes A x into ``out``; ``v0`` is the start. Returns
@@ -150,8 +150,8 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
     the FCC block (1e5 spheres, a cluster of converging Ritz values) gave a Ritz value
     30x the largest eigenvalue. That second pass subtracts only when the vector is
     not semi-orthogonal to those rows: when its cosines with all of them are at most
-    ``semi`` (None: min(:data:`LANCZOS_SEMI`, :data:`LANCZOS_SEMI_PER_TOL` ``tol``)),
-    its dots were the whole cost (most vectors, measured). The projected matrix holds
+    min(:data:`LANCZOS_SEMI`, :data:`LANCZOS_SEMI_PER_TOL` ``tol``), its dots were the
+    whole cost (most vectors, measured). The projected matrix holds
     every computed coefficient and is solved densely. The caller checks the result with
     an explicit residual (:func:`top_eigenpair`). The basis lives in ``workspace`` when
     given.
@@ -159,8 +159,7 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
     from demstep.kernels import timestep_kernels as tk
 
     n = v0.shape[0]
-    if semi is None:
-        semi = min(LANCZOS_SEMI, LANCZOS_SEMI_PER_TOL * tol)
+    semi = min(LANCZOS_SEMI, LANCZOS_SEMI_PER_TOL * tol)
     m = max(2, min(basis, n))
     keep = max(1, min(keep, m // 2))
     if max_matvecs is None:
