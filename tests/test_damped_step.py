@@ -128,6 +128,37 @@ def test_a_looser_eigen_tolerance_still_certifies(tol):
     assert loose.dt == pytest.approx(dense.dt, rel=20 * tol)
 
 
+def test_a_widened_margin_is_still_accepted(monkeypatch):
+    """When a certifying solve's explicit residual is too large for the margin (the
+    Lanczos estimate said converged; seen in a run, by a hair), the margin widens 4x and
+    the next candidate must be accepted within it (it was not: the acceptance stayed at
+    the first margin's, no candidate a wider margin up could meet it, and the iteration
+    ran out and raised). The result stays a certificate: never above the dense
+    reference, at most the widened margin below it."""
+    from demstep.timestep import exact
+
+    p, c, rng = random_assembly("fcc", 2, False, True)
+    cc = replace(c, c_n=rng.random(c.n), c_t=rng.random(c.n))
+    dense = exact_critical_step(p, cc, True, GlobalDamping(0.1), dense_limit=10**6)
+    solve = exact.top_eigenpair
+    inflated = []
+
+    def first_certifying_solve_too_coarse(A, *args, stop_above=np.inf, **kw):
+        pair = solve(A, *args, stop_above=stop_above, **kw)
+        if np.isfinite(stop_above) and not inflated:
+            # a residual 10x the margin's room: neither the candidate nor the closed form
+            # can be accepted from this solve
+            pair = replace(pair, residual=pair.residual + 10 * exact.CERTIFY_MARGIN * pair.value)
+            inflated.append(pair)
+        return pair
+
+    monkeypatch.setattr(exact, "top_eigenpair", first_certifying_solve_too_coarse)
+    result = exact_critical_step(p, cc, True, GlobalDamping(0.1), dense_limit=0)
+    assert inflated
+    assert result.dt <= dense.dt * (1 + 1e-12)
+    assert result.dt == pytest.approx(dense.dt, rel=2 * 4 * exact.CERTIFY_MARGIN + 1e-9)
+
+
 @pytest.mark.parametrize("beta", [0.01, 0.1, 0.5])
 @pytest.mark.parametrize("a1", [0.0, 0.2])
 def test_proportional_damping_is_eq28_at_the_fastest_mode(beta, a1):

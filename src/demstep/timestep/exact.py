@@ -62,8 +62,9 @@ SIGMA_RTOL = 1e-10
 CERTIFY_MARGIN = 4e-9
 DENSE_CERTIFY_MARGIN = 1e-11
 #: an upper bound (the candidate t or the closed form) is accepted within this of the
-#: iterate, or within twice the first margin when a looser ``tol`` makes that larger
-#: (the candidate itself sits a margin above the iterate)
+#: iterate, or within twice the margin when a looser ``tol`` (or a margin widened after
+#: a certifying solve's residual was too large for it) makes that larger (the candidate
+#: itself sits a margin above the iterate)
 CLOSED_FORM_RTOL = 1e-8
 #: eigen-tolerances of the intermediate solves of the safeguarded iteration: each only
 #: needs a vector good enough for a Rayleigh-functional value, whose error is quadratic
@@ -484,7 +485,12 @@ def _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver) -> 
             # the certifying solve found a larger eigenvalue than the loose solves)
             sigma = new
         else:
-            margin *= 4.0  # the residual was too large for this margin
+            # the residual was too large for this margin: a candidate further up, a
+            # tighter solve, and acceptance within the wider margin (the candidate
+            # itself sits a margin above the iterate: with the first margin's
+            # acceptance it could never be taken, and the iteration ran out)
+            margin *= 4.0
             certify_tol = margin / 4.0
+            accept_rtol = max(accept_rtol, 2.0 * margin)
     return ExactStep(float(2.0 / up), float(dt_undamped), sigma, lam, q, iterations, True, op,
                      matvecs)
