@@ -121,27 +121,33 @@ def test_lanczos_finds_the_top_eigenpair(top, basis, keep):
 @pytest.mark.parametrize("local,rows", [([3], [3]), ([2, 3], [0, 1, 2, 3]),
                                         ([1, 2, 3], [0, 1, 2, 3, 4])])
 def test_blocked_vector_operations_match_numpy(monkeypatch, n, local, rows):
-    """The Lanczos vector kernels against numpy: the two Gram-Schmidt passes (odd and
-    even row counts, a last partial block), the row combination written over the rows
-    it reads (a thick restart) and the scaling; the threaded versions give the same bits
-    as the serial ones (the summation order is the blocks', not the threads')."""
+    """The Lanczos vector kernels against numpy: the two Gram-Schmidt passes against
+    basis vectors stored unnormalised with their factors apart (odd and even row counts,
+    a last partial block, the new vector scaled on the way), the row combination written
+    over the rows it reads (a thick restart) and the scaling; the threaded versions give
+    the same bits as the serial ones (the summation order is the blocks', not the
+    threads')."""
     from demstep.kernels import timestep_kernels as tk
 
     rng = np.random.default_rng(n)
-    V = np.linalg.qr(rng.standard_normal((n, 6)))[0].T.copy()
-    w0 = rng.standard_normal(n) + 3.0 * V[3]
+    Q = np.linalg.qr(rng.standard_normal((n, 6)))[0].T.copy()
+    s = rng.uniform(0.1, 10.0, 6)  # basis vector r = s[r] V[r]
+    V = Q / s[:, None]
+    w_scale = 0.37
+    w0 = rng.standard_normal(n) + 3.0 * Q[3]
     local_a, rows_a = np.array(local, dtype=np.int64), np.array(rows, dtype=np.int64)
-    h_ref = V[local_a] @ w0
-    w1 = w0 - V[local_a].T @ h_ref
-    h2_ref = V[rows_a] @ w1
-    w2 = w1 - V[rows_a].T @ h2_ref
+    u0 = w_scale * w0
+    h_ref = Q[local_a] @ u0
+    w1 = u0 - Q[local_a].T @ h_ref
+    h2_ref = Q[rows_a] @ w1
+    w2 = w1 - Q[rows_a].T @ h2_ref
     S = rng.standard_normal((5, 3))
     results = []
     for threshold in (10**9, 1):  # serial, then threaded
         monkeypatch.setattr(tk, "PARALLEL_MIN_DOFS", threshold)
         w = w0.copy()
         h, h2 = np.empty(6), np.empty(7)
-        beta2 = tk.lanczos_orthogonalize(V, local_a, rows_a, w, h, h2)
+        beta2 = tk.lanczos_orthogonalize(V, s, local_a, rows_a, w, w_scale, h, h2)
         np.testing.assert_allclose(h[:len(local)], h_ref, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(h2[:len(rows)], h2_ref, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(w, w2, rtol=1e-12, atol=1e-12)
@@ -160,25 +166,28 @@ def test_blocked_vector_operations_match_numpy(monkeypatch, n, local, rows):
 
 @pytest.mark.parametrize("n", [7, 16384 * 3 + 5])
 def test_second_pass_skipped_exactly_when_semi_orthogonal(monkeypatch, n):
-    """The second Gram-Schmidt pass is skipped when every cosine of w (after the first
-    pass) with the rows is at most ``semi``: just above the largest cosine, w keeps its
-    components and h2 is zero; just below, the pass runs as with ``semi`` 0; serial and
-    threaded alike."""
+    """The second Gram-Schmidt pass is skipped when every cosine of the new vector
+    (after the first pass) with the basis vectors is at most ``semi``: just above the
+    largest cosine, it keeps its components and h2 is zero; just below, the pass runs
+    as with ``semi`` 0; serial and threaded alike, the basis stored with factors."""
     from demstep.kernels import timestep_kernels as tk
 
     rng = np.random.default_rng(n)
-    V = np.linalg.qr(rng.standard_normal((n, 6)))[0].T.copy()
-    w0 = rng.standard_normal(n) + 3.0 * V[3] + 1e-3 * V[1]
+    Q = np.linalg.qr(rng.standard_normal((n, 6)))[0].T.copy()
+    s = rng.uniform(0.1, 10.0, 6)
+    V = Q / s[:, None]
+    w0 = rng.standard_normal(n) + 3.0 * Q[3] + 1e-3 * Q[1]
+    w_scale = 2.5
     local, rows = np.array([2, 3]), np.array([0, 1, 2, 3])
-    w1 = w0 - V[local].T @ (V[local] @ w0)
-    h2_ref = V[rows] @ w1
+    w1 = w_scale * w0 - Q[local].T @ (Q[local] @ (w_scale * w0))
+    h2_ref = Q[rows] @ w1
     cosine = np.max(np.abs(h2_ref)) / np.linalg.norm(w1)
-    w2 = w1 - V[rows].T @ h2_ref
+    w2 = w1 - Q[rows].T @ h2_ref
     for threshold in (10**9, 1):  # serial, then threaded
         monkeypatch.setattr(tk, "PARALLEL_MIN_DOFS", threshold)
         for semi, skipped in ((cosine * (1 + 1e-6), True), (cosine * (1 - 1e-6), False)):
             w, h, h2 = w0.copy(), np.empty(6), np.empty(7)
-            beta2 = tk.lanczos_orthogonalize(V, local, rows, w, h, h2, semi)
+            beta2 = tk.lanczos_orthogonalize(V, s, local, rows, w, w_scale, h, h2, semi)
             expect = w1 if skipped else w2
             np.testing.assert_allclose(w, expect, rtol=1e-12, atol=1e-12)
             assert beta2 == pytest.approx(expect @ expect, rel=1e-12)
@@ -201,12 +210,15 @@ def test_lanczos_basis_stays_semi_orthogonal_to_the_kept_vectors(monkeypatch, to
     kernel = tk.lanczos_orthogonalize
     worst, skipped, calls = [], [0], [0]
 
-    def checked(V, local, rows, w_, h, h2, semi_):
+    def checked(V, s, local, rows, w_, w_scale, h, h2, semi_):
         assert semi_ == semi
-        beta2 = kernel(V, local, rows, w_, h, h2, semi_)
+        beta2 = kernel(V, s, local, rows, w_, w_scale, h, h2, semi_)
         calls[0] += 1
         skipped[0] += not h2[:len(rows)].any()
-        worst.append(np.max(np.abs(V[rows] @ w_)) / np.sqrt(beta2))
+        basis = s[rows, None] * V[rows]  # the basis vectors (stored with factors apart)
+        # the vector just expanded is a unit Lanczos vector through its factor
+        assert np.linalg.norm(s[local[-1]] * V[local[-1]]) == pytest.approx(1.0, rel=1e-12)
+        worst.append(np.max(np.abs(basis @ w_)) / np.sqrt(beta2))
         return beta2
 
     monkeypatch.setattr(tk, "lanczos_orthogonalize", checked)

@@ -681,23 +681,32 @@ def _block_dots(V, rows, w, lo, hi, out):
 
 
 @njit(inline="always")
-def _block_subtract(V, rows, h, w, lo, hi):
-    """w[lo:hi] -= sum_a h[a] V[rows[a], lo:hi] (two rows per pass)."""
+def _block_subtract(V, rows, g, w, lo, hi, factor):
+    """w[lo:hi] = factor w[lo:hi] - sum_a g[a] V[rows[a], lo:hi] (two rows per pass;
+    ``factor`` 1 leaves w's own part as it is, bit for bit)."""
     nr = rows.shape[0]
+    if nr == 0:
+        for p in range(lo, hi):
+            w[p] *= factor
+        return
     a = 0
+    first = True
     while a + 1 < nr:
         v0 = V[rows[a]]
         v1 = V[rows[a + 1]]
-        h0 = h[a]
-        h1 = h[a + 1]
+        g0 = g[a]
+        g1 = g[a + 1]
+        f = factor if first else 1.0
         for p in range(lo, hi):
-            w[p] -= h0 * v0[p] + h1 * v1[p]
+            w[p] = f * w[p] - (g0 * v0[p] + g1 * v1[p])
+        first = False
         a += 2
     if a < nr:
         v0 = V[rows[a]]
-        h0 = h[a]
+        g0 = g[a]
+        f = factor if first else 1.0
         for p in range(lo, hi):
-            w[p] -= h0 * v0[p]
+            w[p] = f * w[p] - g0 * v0[p]
 
 
 @njit(inline="always")
@@ -719,33 +728,42 @@ def _sum_blocks(part, count, out):
         out[a] = s
 
 
-def _lanczos_orthogonalize(V, local, rows, w, h, h2, semi):
-    """Orthogonalise the new Lanczos vector w: a classical Gram-Schmidt pass against the
-    rows ``local`` of V (h = V[local] w, w -= V[local]^T h), then one against the rows
-    ``rows`` (h2 likewise) when it is needed; returns |w|^2 after both. The second
-    pass' coefficients are cosines of w with unit rows times |w|: when every one is at
-    most ``semi`` |w| (w semi-orthogonal to those rows), the subtraction is skipped and
-    h2[:len(rows)] is set to zero. Sweeps over blocks of :data:`VECTOR_BLOCK` elements:
-    the first pass' dots; its subtraction with the second pass' dots and |w|^2 (w's
-    block is still in cache); when needed, the second subtraction with the norm."""
+def _lanczos_orthogonalize(V, s, local, rows, w, w_scale, h, h2, semi):
+    """Orthogonalise the new Lanczos vector u = ``w_scale`` w, in place in w, against
+    the basis vectors s[r] V[r] (each row of V is stored unnormalised, with its factor
+    in s: no pass over a vector to normalise it): a classical Gram-Schmidt pass against
+    the rows ``local`` (h = their dots with u, u -= their combination by h), then one
+    against the rows ``rows`` (h2 likewise) when it is needed; returns |u|^2 after both
+    (w then holds u). The second pass' coefficients are cosines of u with unit vectors
+    times |u|: when every one is at most ``semi`` |u| (u semi-orthogonal to those
+    rows), the subtraction is skipped and h2[:len(rows)] is set to zero. Sweeps over
+    blocks of :data:`VECTOR_BLOCK` elements: the first pass' dots; its subtraction
+    (with the scaling by ``w_scale``), the second pass' dots and |u|^2 (the block is
+    still in cache); when needed, the second subtraction with the norm."""
     n = w.shape[0]
     nb = (n + VECTOR_BLOCK - 1) // VECTOR_BLOCK
     nl = local.shape[0]
     nr = rows.shape[0]
     part = np.empty((nb, max(nl, nr + 1)))
+    g = np.empty(max(nl, nr))
     for b in prange(nb):
         lo = b * VECTOR_BLOCK
         _block_dots(V, local, w, lo, min(n, lo + VECTOR_BLOCK), part[b])
     _sum_blocks(part, nl, h)
+    for a in range(nl):
+        h[a] *= w_scale * s[local[a]]
+        g[a] = h[a] * s[local[a]]
     for b in prange(nb):
         lo = b * VECTOR_BLOCK
         hi = min(n, lo + VECTOR_BLOCK)
-        _block_subtract(V, local, h, w, lo, hi)
+        _block_subtract(V, local, g, w, lo, hi, w_scale)
         _block_dots(V, rows, w, lo, hi, part[b])
         part[b, nr] = _block_squares(w, lo, hi)
     _sum_blocks(part, nr + 1, h2)
     largest = 0.0
     for a in range(nr):
+        h2[a] *= s[rows[a]]
+        g[a] = h2[a] * s[rows[a]]
         largest = max(largest, abs(h2[a]))
     if largest * largest <= semi * semi * h2[nr]:
         for a in range(nr):
@@ -754,7 +772,7 @@ def _lanczos_orthogonalize(V, local, rows, w, h, h2, semi):
     for b in prange(nb):
         lo = b * VECTOR_BLOCK
         hi = min(n, lo + VECTOR_BLOCK)
-        _block_subtract(V, rows, h2, w, lo, hi)
+        _block_subtract(V, rows, g, w, lo, hi, 1.0)
         part[b, 0] = _block_squares(w, lo, hi)
     _sum_blocks(part, 1, h2[nr:])
     return h2[nr]
@@ -764,12 +782,13 @@ _lanczos_orthogonalize_parallel, _lanczos_orthogonalize_serial = \
     compile_parallel_and_serial(_lanczos_orthogonalize)
 
 
-def lanczos_orthogonalize(V, local, rows, w, h, h2, semi: float = 0.0) -> float:
+def lanczos_orthogonalize(V, s, local, rows, w, w_scale: float, h, h2,
+                          semi: float = 0.0) -> float:
     """:func:`_lanczos_orthogonalize` (h2 needs one slot more than ``rows``), on
     several threads for vectors of :data:`PARALLEL_MIN_DOFS` elements or more."""
     kernel = (_lanczos_orthogonalize_parallel if w.shape[0] >= PARALLEL_MIN_DOFS
               else _lanczos_orthogonalize_serial)
-    return kernel(V, local, rows, w, h, h2, semi)
+    return kernel(V, s, local, rows, w, float(w_scale), h, h2, semi)
 
 
 #: elements per block of :func:`combine_rows`: its k partial sums of one block stay in

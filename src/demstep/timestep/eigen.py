@@ -166,6 +166,10 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
         max_matvecs = LANCZOS_MAX_MATVECS
     workspace = workspace if workspace is not None else Workspace()
     V = workspace.array(LANCZOS_ARRAYS[0], (m, n))
+    # basis vector r is s[r] V[r]: a product writes straight into the next row, which
+    # the orthogonalisation turns into the new vector in place, and 1/beta goes into s
+    # (no pass over a vector just to normalise it)
+    s = np.ones(m)
     T = np.zeros((m + 1, m + 1))
     tk.scale_into(v0, 1.0 / np.sqrt(tk._norm2(v0)), V[0])
     # (v0 may be the scratch vector w itself: it is read before the first product)
@@ -176,18 +180,20 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
     kept = 0    # V[:kept] are the Ritz vectors kept at the last restart
     matvecs = 0
     while True:
-        matvec(V[j], w)
+        size = j + 1
+        # the new vector: the next row, or (the basis full) the scratch vector
+        new = V[size] if size < m else w
+        matvec(V[j], new)
         matvecs += 1
         lo = 0 if j == kept else j - 1
         local = np.arange(lo, j + 1, dtype=np.int64)
         rows = local if lo == 0 else np.concatenate((np.arange(kept, dtype=np.int64), local))
         nr = len(rows)
-        beta2 = tk.lanczos_orthogonalize(V, local, rows, w, h, h2, semi)
+        beta2 = tk.lanczos_orthogonalize(V, s, local, rows, new, s[j], h, h2, semi)
         T[rows, j] = h2[:nr]
         T[local, j] += h[:len(local)]
         T[j, rows] = T[rows, j]
         beta = np.sqrt(beta2)
-        size = j + 1
         theta, S = scipy.linalg.eigh(T[:size, :size])
         top = theta[-1]
         estimate = beta * abs(S[size - 1, -1])
@@ -199,22 +205,23 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
             # the block overwrites the first rows of the basis (no new memory, and none
             # touched for the first time): valid until the next solve
             Y = V[:nb] if block else np.empty((1, n))
-            tk.combine_rows(V, size, S[:, ::-1][:, :nb], Y)
+            tk.combine_rows(V, size, s[:size, None] * S[:, ::-1][:, :nb], Y)
             y = Y[0].copy() if block else Y[0]  # (no second vector when Y is not kept)
             tk.scale_into(y, 1.0 / np.sqrt(tk._norm2(y)), y)
             return float(top), y, matvecs, (Y if block else None)
         T[size, j] = T[j, size] = beta
         if size == m:
             # thick restart: keep the top ``keep`` Ritz vectors and the residual vector
-            # (written after them, straight from w: the basis needs no row m)
-            tk.combine_rows(V, m, S[:, -keep:], V)
+            # (written after them from the scratch vector: the basis needs no row m)
+            tk.combine_rows(V, m, s[:, None] * S[:, -keep:], V)
             tk.scale_into(w, 1.0 / beta, V[keep])
+            s[:] = 1.0
             T[:] = 0.0
             T[np.arange(keep), np.arange(keep)] = theta[-keep:]
             T[:keep, keep] = T[keep, :keep] = beta * S[m - 1, -keep:]
             j = kept = keep
         else:
-            tk.scale_into(w, 1.0 / beta, V[size])
+            s[size] = 1.0 / beta
             j = size
 
 
