@@ -76,6 +76,29 @@ def test_pair_list_chunks_and_buffer_overflow(n_threads, axis):
     assert np.all(np.diff(pi * n + pj) > 0)
 
 
+@pytest.mark.parametrize("n,side", [(50, 4), (30_000, 40)])
+def test_binning_is_a_stable_sort_by_cell(n, side):
+    """The counting sort of the particles by cell against numpy's stable argsort by
+    cell: the same members, cell starts and cells, with a few cells and with 64,000,
+    empty cells included."""
+    from demstep.kernels.neighbors import _bin
+
+    rng = np.random.default_rng(n)
+    x = rng.uniform(0.0, 1.0, (n, 3)) ** 2  # crowded near 0: many empty cells too
+    ncell = np.full(3, side, dtype=np.int64)
+    lo, inv_cell = np.zeros(3), np.full(3, float(side))
+    ncells = side ** 3
+    cell_of, start, members = np.empty(n + 1, np.int64), np.empty(ncells + 1, np.int64), \
+        np.empty(n, np.int64)
+    start[:] = -7  # garbage: zeroed first
+    _bin(x, lo, inv_cell, ncell, cell_of, start, members)
+    idx = np.minimum((x * side).astype(np.int64), side - 1)
+    cell = (idx[:, 0] * side + idx[:, 1]) * side + idx[:, 2]
+    np.testing.assert_array_equal(cell_of[:n], cell)
+    np.testing.assert_array_equal(members, np.argsort(cell, kind="stable"))
+    np.testing.assert_array_equal(start, np.searchsorted(np.sort(cell), np.arange(ncells + 1)))
+
+
 def test_pair_lists_from_kept_scratch_equal_brute_force():
     """One Workspace through builds of clouds whose size, extent (number of cells),
     pair count (the buffers overflow and grow) and thread count change: every list

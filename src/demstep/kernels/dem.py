@@ -294,6 +294,35 @@ def _wall_rolling_loop(x, w, r, m, inertia, wp, ww, wall_point, wall_normal, law
     return e_s, d_p, d_v
 
 
+@njit
+def _pair_chunks(pi, pj, n_particles, chunks, spans):
+    """:func:`pair_chunks` into ``chunks`` (n_chunks + 1,) and ``spans`` (n_chunks, 2)."""
+    n_pairs = pi.shape[0]
+    n_chunks = spans.shape[0]
+    for c in range(n_chunks + 1):
+        chunks[c] = (n_pairs * c) // n_chunks
+    for c in range(1, n_chunks):
+        a = chunks[c]
+        if a >= n_pairs:
+            chunks[c] = n_pairs
+            continue
+        # back to the first pair of that particle's row (rows are contiguous)
+        while a > 0 and pi[a - 1] == pi[a]:
+            a -= 1
+        chunks[c] = max(a, chunks[c - 1])
+    for c in range(n_chunks):
+        a, b = chunks[c], chunks[c + 1]
+        own_lo = 0 if c == 0 else (pi[a] if a < n_pairs else n_particles)
+        own_hi = n_particles
+        if c + 1 < n_chunks:
+            own_hi = pi[b] if b < n_pairs else n_particles
+        reach = 0
+        for k in range(a, b):
+            reach = max(reach, pj[k] + 1)
+        spans[c, 0] = own_lo
+        spans[c, 1] = max(own_hi, reach)
+
+
 def pair_chunks(pi, pj, n_particles: int, n_chunks: int):
     """Cut a pair list sorted by i into ``n_chunks`` runs of about equal numbers of
     pairs, each starting at a particle's first pair (boundaries (n_chunks + 1,)), and
@@ -302,20 +331,11 @@ def pair_chunks(pi, pj, n_particles: int, n_chunks: int):
     first i (N for the last): every i of its pairs is its own. Its span is that range,
     stretched to the largest j of its pairs; the part beyond its own range (its
     *band*, in later chunks' ranges) is where the pair loop writes into a band buffer
-    instead of the particles' forces. The spans cover every particle."""
-    n_pairs = len(pi)
-    chunks = np.linspace(0, n_pairs, n_chunks + 1).astype(np.int64)
-    if n_pairs:
-        inner = chunks[1:-1].copy()
-        chunks[1:-1] = np.searchsorted(pi, pi[np.minimum(inner, n_pairs - 1)], side="left")
-        chunks[1:-1][inner >= n_pairs] = n_pairs
-    owned = np.array([0] + [pi[a] if a < n_pairs else n_particles for a in chunks[1:-1]]
-                     + [n_particles], dtype=np.int64)
+    instead of the particles' forces. The spans cover every particle. Compiled: after
+    every rebuild of the lists (numpy took 80 us of Python per call at 1e5 particles)."""
+    chunks = np.empty(n_chunks + 1, dtype=np.int64)
     spans = np.empty((n_chunks, 2), dtype=np.int64)
-    for c in range(n_chunks):
-        a, b = chunks[c], chunks[c + 1]
-        reach = pj[a:b].max() + 1 if a < b else 0
-        spans[c] = owned[c], max(owned[c + 1], reach)
+    _pair_chunks(pi, pj, int(n_particles), chunks, spans)
     return chunks, spans
 
 

@@ -5,7 +5,7 @@ import math
 
 from numba import uint64 as _U
 
-from demstep._numba import njit
+from demstep._numba import njit, prange
 
 
 @njit(inline="always")
@@ -54,3 +54,12 @@ def reach_speed(v, force, applied, inv_m, gravity, horizon, out):
             a = (force[p, k] + applied[p, k]) * im + (gravity[k] if im > 0.0 else 0.0)
             aa += a * a
         out[p] = math.sqrt(vv) + horizon * math.sqrt(aa)
+
+
+@njit(parallel=True)
+def copy_positions(x, out):
+    """out[:] = x for (N, 3) positions, on numba's threads (the positions at a rebuild of
+    the lists: numpy copied them on one thread, 0.1-0.15 ms at 1e5 particles)."""
+    for p in prange(x.shape[0]):
+        for k in range(3):
+            out[p, k] = x[p, k]
