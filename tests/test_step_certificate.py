@@ -146,8 +146,8 @@ def test_a_kept_certificate_is_within_its_tolerance_of_a_new_solve():
     kept = []
     refresh = sim._refreshed_estimate
 
-    def recorded(horizon):
-        value = refresh(horizon)
+    def recorded(horizon, prepared=None):
+        value = refresh(horizon, prepared)
         if value is not None:
             kept.append((value, sim.critical_dt("exact", horizon=horizon)))
         return value
@@ -159,6 +159,36 @@ def test_a_kept_certificate_is_within_its_tolerance_of_a_new_solve():
     for value, crit in kept:
         assert value <= crit * (1 + 1e-9)
         assert value >= crit / (1 + sim.AUTO_REFRESH_RTOL)
+
+
+def test_a_refused_refresh_hands_its_contact_set_to_the_new_estimate(monkeypatch):
+    """A scheduled estimate whose refresh is refused (here: no tolerance at all) builds
+    the contact set once, not once for the refresh and once more for the new solve; the
+    new estimate and its cover are those of a contact set built afresh."""
+    sim = quiet_packing()
+    sim.run(steps=150)
+    monkeypatch.setattr(sim, "AUTO_REFRESH_RTOL", 0.0)
+    build = sim.contact_set
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(args)
+        return build(*args, **kwargs)
+
+    monkeypatch.setattr(sim, "contact_set", counted)
+    refreshes = getattr(sim, "n_dt_refreshes", 0)
+    sim._choose_dt(force=True)
+    assert len(calls) == 1
+    assert getattr(sim, "n_dt_refreshes", 0) == refreshes  # refused: a new solve
+    cover = {}
+    build(sim.dt_horizon, cover)
+    assert set(cover) == set(sim._dt_cover)
+    for key, (keys, overlaps) in cover.items():
+        np.testing.assert_array_equal(sim._dt_cover[key][0], keys)
+        np.testing.assert_array_equal(sim._dt_cover[key][1], overlaps)
+    # (both certified steps of solves at AUTO_EXACT_TOL: within ~4 tol of the exact one)
+    fresh = sim.critical_dt("exact", horizon=sim.dt_horizon, tol=sim.AUTO_EXACT_TOL)
+    assert sim.dt_estimate == pytest.approx(fresh, rel=10 * sim.AUTO_EXACT_TOL)
 
 
 def test_normals_turned_too_far_force_a_new_estimate():

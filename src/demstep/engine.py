@@ -826,7 +826,7 @@ class Simulation:
 
     def critical_dt(self, method: str = "exact", rotation: bool = True,
                     horizon: float | None = None, tol: float | None = None,
-                    _record: bool = False) -> float | None:
+                    _record: bool = False, _contacts=None) -> float | None:
         """Critical step [T] by ``method`` ('exact' or 'element-coupled') of the contacts
         closed now, or with ``horizon`` [T] of every contact that can close within it
         (:meth:`contact_set`), with the law's dashpots and the global viscous damping
@@ -834,14 +834,19 @@ class Simulation:
         The exact solver is warm-started from the last critical mode; ``tol``: its
         relative residual (None: :data:`demstep.timestep.eigen.EIGSH_TOL`; a looser one
         certifies a step up to about 4 ``tol`` below the critical one, sooner).
-        (``_record``: the 'auto' control keeps the contacts covered and the mode.)"""
+        (``_record``: the 'auto' control keeps the contacts covered and the mode;
+        ``_contacts``: (ContactSet, cover) of :meth:`contact_set` with this ``horizon``
+        at this state, already built.)"""
         from demstep.timestep.estimates import element_coupled_dt
         from demstep.timestep.exact import exact_critical_step
 
         if method not in ("exact", "element-coupled"):
             raise InputError(f"method: must be exact or element-coupled, got {method!r}")
-        cover = {}
-        contacts = self.contact_set(horizon, cover)
+        if _contacts is not None:
+            contacts, cover = _contacts
+        else:
+            cover = {}
+            contacts = self.contact_set(horizon, cover)
         if _record:
             self._dt_cover = cover
             self._dt_cert = None
@@ -958,11 +963,13 @@ class Simulation:
             horizon = int(ts.every) * (self.dt if self.dt is not None else ts.safety * fallback)
             self.dt_horizon = horizon
             estimate = None
+            prepared = {}  # the contact set a refresh built, for the new estimate
             if scheduled and self.dt is not None:
-                estimate = self._refreshed_estimate(horizon)
+                estimate = self._refreshed_estimate(horizon, prepared)
             if estimate is None and self._pairs_built:
                 estimate = self.critical_dt(ts.method, horizon=horizon,
-                                            tol=self.AUTO_EXACT_TOL, _record=True)
+                                            tol=self.AUTO_EXACT_TOL, _record=True,
+                                            _contacts=prepared.get("contacts"))
             if estimate is None:
                 estimate = fallback
             self.dt_estimate = estimate
@@ -987,10 +994,12 @@ class Simulation:
     #: lower bound on the root (so dt is at most this far below a new solve's)
     AUTO_REFRESH_RTOL = 1e-2
 
-    def _refreshed_estimate(self, horizon: float) -> float | None:
+    def _refreshed_estimate(self, horizon: float, prepared: dict | None = None) -> float | None:
         """The critical step [T] the last certificate still gives, when it is within
         :data:`AUTO_REFRESH_RTOL` of the best a new estimate could give (every closed
-        contact covered, the drift followed, the exact method); else None."""
+        contact covered, the drift followed, the exact method); else None. The contact
+        set it builds (with its cover) goes into ``prepared`` ('contacts'): a new
+        estimate of the same state takes it instead of building it again."""
         cert = getattr(self, "_dt_cert", None)
         mode = getattr(self, "_dt_mode", None)
         if (cert is None or not cert.bounded or mode is None or self.timestep.method != "exact"
@@ -1000,7 +1009,10 @@ class Simulation:
         if masks is None or masks[0].any() or masks[1].any():
             return None
         sigma_up = cert.smallest_sigma(cert.drift(self.x, self.periodic_len))
-        contacts = self.contact_set(horizon)
+        cover = {}
+        contacts = self.contact_set(horizon, cover)
+        if prepared is not None:
+            prepared["contacts"] = (contacts, cover)
         if contacts.n == 0:
             return None
         from demstep.timestep.exact import ScaledContactOperator
