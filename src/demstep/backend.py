@@ -11,6 +11,7 @@ bundles of :mod:`demstep.state` without touching the engine. A backend offers:
     the particle-wall candidates within r + skin (``work`` as above);
 ``transfer_history(old_i, old_j, new_i, new_j, *history)`` -> history on the new list;
 ``pair_chunks(i, j, n, n_chunks)`` -> (chunks, spans): the work split of the pair loop;
+``copy_positions(x, out)``: out[:] = x, the positions (N, 3) at a build of the lists;
 ``advance(n_steps, controls, spheres, bodies, pairs, bonds, walls, box, ledger, law, params)``
     -> (steps done, stop reason): whole steps in the documented order;
 ``pair_contact_forces(x, r, i, j, periodic_len, law, params, shear, dashpot, force, normal)``
@@ -30,12 +31,13 @@ class CPUBackend:
     name = "cpu"
 
     def __init__(self):
-        from demstep.kernels import dem, neighbors
+        from demstep.kernels import dem, integration, neighbors
 
         self.build_pair_list = neighbors.build_pair_list
         self.build_wall_list = neighbors.build_wall_list
         self.transfer_history = neighbors.transfer_history
         self.pair_chunks = dem.pair_chunks
+        self.copy_positions = integration.copy_positions
         self.advance = dem.advance
         self.pair_contact_forces = dem.pair_contact_forces
 

@@ -524,9 +524,7 @@ class Simulation:
         if self.sort_every is not None and (
                 not built or self.step - self._last_sort >= self.sort_every):
             self._sort_particles()
-        from demstep.kernels.integration import copy_positions
-
-        copy_positions(self.x, self.x_ref)
+        be.copy_positions(self.x, self.x_ref)
         self.wall_state.ref[:] = self.wall_state.point
         self.box.ref[:] = self.box.length
         self._pairs_built = True
