@@ -146,11 +146,11 @@ def test_a_kept_certificate_is_within_its_tolerance_of_a_new_solve():
     kept = []
     refresh = sim._refreshed_estimate
 
-    def recorded(horizon, prepared=None):
-        value = refresh(horizon, prepared)
+    def recorded(horizon):
+        value, prepared = refresh(horizon)
         if value is not None:
             kept.append((value, sim.critical_dt("exact", horizon=horizon)))
-        return value
+        return value, prepared
 
     sim._refreshed_estimate = recorded
     sim.run(steps=1000)

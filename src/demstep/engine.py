@@ -58,6 +58,7 @@ from demstep.contacts import ContactSet, with_rolling
 from demstep.energy import A_ROLLING, E_STRAIN_R, EnergyBalanceError, EnergyLedger, EnergyMonitor
 from demstep.errors import InputError, SimulationDiverged
 from demstep.kernels import dem
+from demstep.packings import SPATIAL_ORDER_MIN, inverse_order, spatial_order
 from demstep.particles import Particles
 from demstep.state import (CONTACT_HISTORY, ROLL_WIDTH, Bodies, Bonds, Box, Controls, Ledger,
                             Pairs, Spheres, Walls)
@@ -443,8 +444,6 @@ class Simulation:
         """Warn (once, at the first pair list of N/2 pairs or more) when the particles
         are in random order: every pair's data is gathered by index, and a packing in
         random order runs 2.5x slower than in spatial order (benchmarks/RESULTS.md)."""
-        from demstep.packings import SPATIAL_ORDER_MIN
-
         n = len(self.r)
         if n < SPATIAL_ORDER_MIN:
             self._order_checked = True
@@ -541,8 +540,6 @@ class Simulation:
         """At a rebuild (the new lists built): put the particles in spatial order (rows
         of cells of side 2 r_max, as ``demstep run`` orders a particle file) when that
         brings the pairs closer in memory by :data:`SORT_GAIN`."""
-        from demstep.packings import inverse_order, spatial_order
-
         self._last_sort = self.step
         pi, pj = self.pairs.i, self.pairs.j
         if len(pi) == 0:  # (nothing to gather: the order does not matter)
@@ -575,8 +572,6 @@ class Simulation:
         if not seen.all():
             raise InputError(f"order: expected a permutation of 0..{n - 1}, got "
                              f"{order.dtype} of shape {order.shape}")
-        from demstep.packings import inverse_order
-
         order = order.astype(np.int64)
         inv = inverse_order(order)
         # the particles' arrays permuted in place through one scratch array (fresh
@@ -961,13 +956,13 @@ class Simulation:
             horizon = int(ts.every) * (self.dt if self.dt is not None else ts.safety * fallback)
             self.dt_horizon = horizon
             estimate = None
-            prepared = {}  # the contact set a refresh built, for the new estimate
+            prepared = None  # the contact set a refused refresh built, for the new estimate
             if scheduled and self.dt is not None:
-                estimate = self._refreshed_estimate(horizon, prepared)
+                estimate, prepared = self._refreshed_estimate(horizon)
             if estimate is None and self._pairs_built:
                 estimate = self.critical_dt(ts.method, horizon=horizon,
                                             tol=self.AUTO_EXACT_TOL, _record=True,
-                                            _contacts=prepared.get("contacts"))
+                                            _contacts=prepared)
             if estimate is None:
                 estimate = fallback
             self.dt_estimate = estimate
@@ -992,27 +987,27 @@ class Simulation:
     #: lower bound on the root (so dt is at most this far below a new solve's)
     AUTO_REFRESH_RTOL = 1e-2
 
-    def _refreshed_estimate(self, horizon: float, prepared: dict | None = None) -> float | None:
-        """The critical step [T] the last certificate still gives, when it is within
-        :data:`AUTO_REFRESH_RTOL` of the best a new estimate could give (every closed
-        contact covered, the drift followed, the exact method); else None. The contact
-        set it builds (with its cover) goes into ``prepared`` ('contacts'): a new
-        estimate of the same state takes it instead of building it again."""
+    def _refreshed_estimate(self, horizon: float):
+        """(dt, prepared): the critical step [T] the last certificate still gives, when
+        it is within :data:`AUTO_REFRESH_RTOL` of the best a new estimate could give
+        (every closed contact covered, the drift followed, the exact method), else None;
+        and the (ContactSet, cover) it built for ``horizon``, if it got that far (None
+        otherwise), for a new estimate of the same state to take instead of building
+        it again."""
         cert = getattr(self, "_dt_cert", None)
         mode = getattr(self, "_dt_mode", None)
         if (cert is None or not cert.bounded or mode is None or self.timestep.method != "exact"
                 or not self._pairs_built):
-            return None
+            return None, None
         masks = self._uncovered()
         if masks is None or masks[0].any() or masks[1].any():
-            return None
+            return None, None
         sigma_up = cert.smallest_sigma(cert.drift(self.x, self.periodic_len))
         cover = {}
         contacts = self.contact_set(horizon, cover)
-        if prepared is not None:
-            prepared["contacts"] = (contacts, cover)
+        prepared = (contacts, cover)
         if contacts.n == 0:
-            return None
+            return None, prepared
         from demstep.timestep.exact import ScaledContactOperator
         from demstep.timestep.stability import damped_sigma
 
@@ -1020,12 +1015,12 @@ class Simulation:
                                    self._global_damping(), None,
                                    workspace=self._solver_workspace())
         if op.size != mode.size:
-            return None
+            return None, prepared
         sigma_lo = float(damped_sigma(*op.rayleigh_terms(mode / np.linalg.norm(mode))))
         if sigma_up > sigma_lo * (1.0 + self.AUTO_REFRESH_RTOL):
-            return None
+            return None, prepared
         self.n_dt_refreshes = getattr(self, "n_dt_refreshes", 0) + 1
-        return 2.0 / sigma_up
+        return 2.0 / sigma_up, prepared
 
     def _size_rolling_history(self, rolling: bool):
         """Rolling-resistance history rows for every pair and wall pair while the law
@@ -1200,8 +1195,6 @@ class Simulation:
             raise InputError(f"{source}: the checkpoint's particles do not match the simulation")
         if np.array_equal(target, current):
             return
-        from demstep.packings import inverse_order
-
         # (input rows are a permutation of 0..N-1: where each row is now)
         self.reorder(inverse_order(current)[target])
 

@@ -683,12 +683,9 @@ def _block_dots(V, rows, w, lo, hi, out):
 @njit(inline="always")
 def _block_subtract(V, rows, g, w, lo, hi, factor):
     """w[lo:hi] = factor w[lo:hi] - sum_a g[a] V[rows[a], lo:hi] (two rows per pass;
-    ``factor`` 1 leaves w's own part as it is, bit for bit)."""
+    ``factor`` applied in the first; 1 leaves w's own part as it is, bit for bit);
+    ``rows`` not empty (the Lanczos vector's own row at least)."""
     nr = rows.shape[0]
-    if nr == 0:
-        for p in range(lo, hi):
-            w[p] *= factor
-        return
     a = 0
     first = True
     while a + 1 < nr:
