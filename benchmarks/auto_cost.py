@@ -66,7 +66,10 @@ print(json.dumps({"problem": problem, "n": len(x), "steps": steps, "threads": th
                   "fraction": (spent["choose_dt"] + spent["covered"]) / total,
                   "dt": sim.dt, "dt_estimate": sim.dt_estimate, "contacts": sim.n_contacts,
                   "refreshes": getattr(sim, "n_dt_refreshes", 0),
-                  "extensions": getattr(sim, "n_dt_extensions", 0)}))
+                  "extensions": getattr(sim, "n_dt_extensions", 0),
+                  "solves": (getattr(sim, "n_dt_solves", 0)  # None: code before the counter
+                             if hasattr(sim, "_element_estimate") else None),
+                  "element": getattr(sim, "n_dt_element", 0)}))
 """
 
 
@@ -90,7 +93,9 @@ def main():
         if not args.json:
             print(f"{problem:7s} N={r['n']} {r['steps']} steps: run {r['total_s']:.1f} s, estimates "
                   f"{r['choose_dt']:.2f} s ({r['estimates']}), coverage checks {r['covered']:.2f} s "
-                  f"({r['checks']}): {100 * r['fraction']:.1f} % of the run; certificates kept "
+                  f"({r['checks']}): {100 * r['fraction']:.1f} % of the run; exact solves "
+                  f"{r['solves'] if r['solves'] is not None else '?'}, element bounds enough "
+                  f"{r['element']}, certificates kept "
                   f"{r['refreshes']}, extended {r['extensions']}; kernels loaded from numba's "
                   f"cache in the run {r['kernel_loads_s']:.2f} s ({r['kernel_loads']})",
                   flush=True)

@@ -243,3 +243,44 @@ def test_a_restart_continues_the_auto_run_bit_for_bit_and_reads_older_checkpoint
     assert np.all(third.pairs.cover >= state["pairs.cover"])  # the record: at least as much
     third.run(steps=400)
     assert np.all(np.isfinite(third.x)) and third.dt <= third.critical_dt("exact") * (1 + 1e-9)
+
+
+def falling_grid(every=100):
+    """48 spheres on a loose grid (no neighbours at the start: the first dt is the
+    densest packing's bound) falling onto the floor of a box: layers land one after the
+    other, contacts close outside every earlier estimate's cover, and dt grows by the
+    growth cap from that first bound."""
+    g = np.stack(np.meshgrid(np.arange(4), np.arange(4), np.arange(3), indexing="ij"), -1)
+    x = 0.75 + 1.5 * g.reshape(-1, 3).astype(float)
+    p = Particles.from_density(x, np.full(len(x), 0.5), 1.0)
+    law = LinearSpring(k_n=1e4, k_s=5e3, mu=0.4, restitution=0.5, restitution_tangential=0.5)
+    return Simulation(p, law, walls=box_walls([0, 0, 0], [6, 6, 20]), gravity=[0, 0, -9.81],
+                      timestep=TimeStep.auto(safety=0.8, method="exact", every=every))
+
+
+def test_estimates_that_cannot_change_dt_skip_the_exact_solve(monkeypatch):
+    """While the growth cap holds dt below safety x a certified bound (the kept
+    certificate's, or the coupled element bound of the contacts), an exact solve could
+    not change dt: the run skips it, until dt reaches safety x the exact step. The dt
+    history is that of the same run solving at every estimate, with fewer solves, and
+    never above the exact step of the contacts closed at any time."""
+    def run(skip):
+        sim = falling_grid()
+        if not skip:
+            monkeypatch.setattr(sim, "_estimate_cannot_change_dt", lambda *a, **k: False)
+        history = []
+        sim.every(10, lambda s: history.append((s.step, s.dt, s.critical_dt("exact"))))
+        sim.run(steps=5000)
+        return sim, history
+
+    fast, fast_history = run(True)
+    full, full_history = run(False)
+    assert full.n_dt_element == 0
+    assert fast.n_dt_estimates == full.n_dt_estimates > 40
+    assert fast.n_dt_element >= 2 and fast.n_dt_refreshes >= full.n_dt_refreshes + 2
+    assert 1 <= fast.n_dt_solves <= full.n_dt_solves - 4
+    assert [h[:2] for h in fast_history] == [h[:2] for h in full_history]
+    ratio = [dt / crit for _, dt, crit in fast_history if crit is not None]
+    assert len(ratio) > 300 and fast.n_contacts > 40
+    assert max(ratio) <= 1 + 1e-9
+    assert max(ratio) > 0.75  # at the end the exact step decides dt (safety 0.8)

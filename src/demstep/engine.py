@@ -98,7 +98,11 @@ class TimeStep:
       certificate follows contacts that close outside it and the turning of the
       normals (:mod:`demstep.timestep.certificate`); a scheduled 'exact' estimate keeps
       it, without a new solve, while it is within ``Simulation.AUTO_REFRESH_RTOL``
-      (1 %) of the last critical mode's Rayleigh quotient.
+      (1 %) of the last critical mode's Rayleigh quotient. No exact solve either where
+      it could not change dt: while the growth cap (or, for an estimate forced by a
+      new contact, the rule that it only lowers dt) holds dt at or below ``safety`` x
+      the kept certificate's step or the contacts' coupled element bound, that bound
+      is the estimate (both are lower bounds on the exact step).
     """
 
     mode: str = "alpha"
@@ -325,7 +329,9 @@ class Simulation:
         self.step = 0
         self.time = 0.0
         self.dt = None
-        self.dt_estimate = None  # last critical-step estimate [T]
+        self.dt_estimate = None  # the certified step of the last 'auto' estimate [T]
+        self.n_dt_solves = 0  # 'auto' estimates by an exact solve
+        self.n_dt_element = 0  # 'exact' estimates the coupled element bound decided
         self.dt_prev = 0.0
         self._time_ref = (0, 0.0, None)  # (step, time, dt) when dt last changed
         self._first = True
@@ -852,11 +858,7 @@ class Simulation:
         if method == "element-coupled":
             dt = element_coupled_dt(p, contacts, rotation, damping=damping, bodies=bodies)
             if _record:
-                from demstep.timestep.exact import ScaledContactOperator
-
-                op = ScaledContactOperator(p, contacts, rotation, damping, bodies,
-                                           workspace=self._solver_workspace())
-                self._record_certificate(2.0 / dt, op.damping_bound(), contacts, bodies)
+                self._record_element_certificate(dt, p, contacts, rotation, damping, bodies)
             return dt
         mode = getattr(self, "_dt_mode", None)
         extra = {} if tol is None else {"tol": float(tol)}
@@ -956,13 +958,18 @@ class Simulation:
             horizon = int(ts.every) * (self.dt if self.dt is not None else ts.safety * fallback)
             self.dt_horizon = horizon
             estimate = None
-            prepared = None  # the contact set a refused refresh built, for the new estimate
+            prepared = None  # the contact set a refused shortcut built, for the new estimate
             if scheduled and self.dt is not None:
                 estimate, prepared = self._refreshed_estimate(horizon)
+            if (estimate is None and self._pairs_built and self.dt is not None
+                    and ts.method == "exact"):
+                estimate, prepared = self._element_estimate(horizon, scheduled, prepared)
             if estimate is None and self._pairs_built:
                 estimate = self.critical_dt(ts.method, horizon=horizon,
                                             tol=self.AUTO_EXACT_TOL, _record=True,
                                             _contacts=prepared)
+                if estimate is not None and ts.method == "exact":
+                    self.n_dt_solves += 1
             if estimate is None:
                 estimate = fallback
             self.dt_estimate = estimate
@@ -988,21 +995,26 @@ class Simulation:
     AUTO_REFRESH_RTOL = 1e-2
 
     def _refreshed_estimate(self, horizon: float):
-        """(dt, prepared): the critical step [T] the last certificate still gives, when
-        it is within :data:`AUTO_REFRESH_RTOL` of the best a new estimate could give
-        (every closed contact covered, the drift followed, the exact method), else None;
-        and the (ContactSet, cover) it built for ``horizon``, if it got that far (None
-        otherwise), for a new estimate of the same state to take instead of building
-        it again."""
+        """(dt, prepared): the critical step [T] the last certificate still gives (every
+        closed contact covered, the drift followed), when a new estimate could not give
+        a different dt: the growth cap already holds dt below ``safety`` x that step, or
+        (the exact method) it is within :data:`AUTO_REFRESH_RTOL` of the best a new
+        estimate could give; else None. And the (ContactSet, cover) it built for
+        ``horizon``, if it got that far (None otherwise), for a new estimate of the same
+        state to take instead of building it again."""
         cert = getattr(self, "_dt_cert", None)
-        mode = getattr(self, "_dt_mode", None)
-        if (cert is None or not cert.bounded or mode is None or self.timestep.method != "exact"
-                or not self._pairs_built):
+        if cert is None or not cert.bounded or not self._pairs_built:
             return None, None
         masks = self._uncovered()
         if masks is None or masks[0].any() or masks[1].any():
             return None, None
         sigma_up = cert.smallest_sigma(cert.drift(self.x, self.periodic_len))
+        if self._estimate_cannot_change_dt(2.0 / sigma_up, scheduled=True):
+            self.n_dt_refreshes = getattr(self, "n_dt_refreshes", 0) + 1
+            return 2.0 / sigma_up, None
+        mode = getattr(self, "_dt_mode", None)
+        if mode is None or self.timestep.method != "exact":
+            return None, None
         cover = {}
         contacts = self.contact_set(horizon, cover)
         prepared = (contacts, cover)
@@ -1021,6 +1033,48 @@ class Simulation:
             return None, prepared
         self.n_dt_refreshes = getattr(self, "n_dt_refreshes", 0) + 1
         return 2.0 / sigma_up, prepared
+
+    def _estimate_cannot_change_dt(self, estimate: float, scheduled: bool) -> bool:
+        """Whether a certified step ``estimate`` [T] (a lower bound on the critical one)
+        already decides dt, so that the exact step, at least as large, would give the
+        same: the growth cap (a ``scheduled`` estimate) or the rule that a forced one
+        only lowers dt holds dt at or below ``safety`` x ``estimate``."""
+        ts = self.timestep
+        return ts.safety * estimate >= self.dt * ((1.0 + ts.growth) if scheduled else 1.0)
+
+    def _element_estimate(self, horizon: float, scheduled: bool, prepared=None):
+        """(dt, prepared) for an 'exact' estimate that may not need its solve: the
+        coupled element bound [T] of every contact that can close within ``horizon`` (a
+        rigorous lower bound on the exact step, from one pass over the contacts) when
+        it already decides dt (:meth:`_estimate_cannot_change_dt`); it is then recorded
+        as the certificate in the solve's place. Else None, and the (ContactSet, cover)
+        built (or the ``prepared`` one taken) for the exact solve."""
+        from demstep.timestep.estimates import element_coupled_dt
+
+        if prepared is None:
+            cover = {}
+            prepared = (self.contact_set(horizon, cover), cover)
+        contacts, cover = prepared
+        if contacts.n == 0:
+            return None, prepared
+        p = self.particles_now(check=False)
+        damping = self._global_damping()
+        bodies = self.rigid_bodies()
+        dt = element_coupled_dt(p, contacts, self.rotation, damping=damping, bodies=bodies)
+        if not self._estimate_cannot_change_dt(dt, scheduled):
+            return None, prepared
+        self._dt_cover = cover
+        self._record_element_certificate(dt, p, contacts, self.rotation, damping, bodies)
+        self.n_dt_element += 1
+        return dt, None
+
+    def _record_element_certificate(self, dt, particles, contacts, rotation, damping, bodies):
+        """The certificate of a coupled element bound ``dt`` [T] of ``contacts``."""
+        from demstep.timestep.exact import ScaledContactOperator
+
+        op = ScaledContactOperator(particles, contacts, rotation, damping, bodies,
+                                   workspace=self._solver_workspace())
+        self._record_certificate(2.0 / dt, op.damping_bound(), contacts, bodies)
 
     def _size_rolling_history(self, rolling: bool):
         """Rolling-resistance history rows for every pair and wall pair while the law

@@ -2,8 +2,10 @@
 
 Columns, in order:
 
-* ``step``, ``time`` [T], ``dt`` [T] (the step in use), ``dt_estimate`` [T] (the last
-  critical-step estimate of ``TimeStep(mode='auto')``; NaN otherwise);
+* ``step``, ``time`` [T], ``dt`` [T] (the step in use), ``dt_estimate`` [T] (the
+  certified step of the last estimate of ``TimeStep(mode='auto')``, a lower bound on
+  the critical step: the exact one, or a cheaper bound where the growth cap made the
+  exact solve unable to change dt; NaN otherwise);
 * every term of the energy ledger [M L^2/T^2] (:meth:`EnergyLedger.as_dict`), which
   ends with ``energy_error`` (the normalized difference of the paper's eq. 22);
 * ``energy_alarm``: 1 when the energy monitor's last check (every ``energy.every``
