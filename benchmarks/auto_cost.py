@@ -6,9 +6,12 @@ The peer problems of ``peers.py`` (``dense``: a pre-compressed FCC block in a bo
 ``TimeStep.auto(safety=0.8, method="exact", every=500)``; the time spent choosing dt
 (the estimates, warm-started from the last critical mode) and checking that every
 closed contact was covered is measured against the whole run. One process per case.
+An estimate solves only where the solve can change dt (no kept certificate or cheaper
+bound decides it); ``--solve-always`` makes every estimate an exact solve, the cost of
+a run whose dt follows the exact step all along.
 
     python benchmarks/auto_cost.py [--n 100000] [--steps 2000] [--threads 1] [--repeat 3]
-                                   [--json]
+                                   [--solve-always] [--json]
 
 With ``--repeat`` R the problems run R times, interleaved (dense, settle, dense, ...);
 each run is printed and, per problem, the median of the fractions.
@@ -38,6 +41,9 @@ problem, n, steps, threads = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), in
 numba.set_num_threads(threads)
 x, spec = make_problem(problem, n)
 sim = demstep_simulation(x, spec, TimeStep.auto(safety=0.8, method="exact", every=500))
+if sys.argv[6] == "1":  # every estimate an exact solve: no kept certificate, no element bound
+    sim.AUTO_REFRESH_RTOL = -1.0
+    sim._estimate_cannot_change_dt = lambda *a, **k: False
 spent = {"choose_dt": 0.0, "covered": 0.0, "estimates": 0, "checks": 0}  # checks: coverage and extensions
 choose, still = sim._choose_dt, sim._still_certified
 
@@ -80,13 +86,18 @@ def main():
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--problems", default="dense,settle")
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--solve-always", action="store_true",
+                    help="an exact solve at every estimate (the shortcuts off: no kept "
+                         "certificate, no element bound): the cost where dt is the exact "
+                         "step's all along")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     rows = []
     problems = args.problems.split(",")
     for problem in problems * max(1, args.repeat):
         out = subprocess.run([sys.executable, "-c", CASE, problem, str(args.n), str(args.steps),
-                              str(args.threads), str(HERE)], capture_output=True, text=True,
+                              str(args.threads), str(HERE), str(int(args.solve_always))],
+                             capture_output=True, text=True,
                              check=True)
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
         r = rows[-1]

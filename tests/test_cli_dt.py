@@ -96,7 +96,7 @@ def test_bad_files(tmp_path, capsys, content, needle):
     (["dt"], "exactly one"),
     (["dt", "--lattice", "hex", "--mass-split", "zoned"], "zoned"),
     (["dt", "--lattice", "fcc", "--methods", "exact,magic"], "unknown method 'magic'"),
-    (["dt", "--lattice", "fcc", "--exact-tol", "0.5"], "exact-tol: must be in (0, 0.01], got 0.5"),
+    (["dt", "--lattice", "fcc", "--exact-tol", "0.5"], "exact-tol: must be in (0, 0.001], got 0.5"),
     (["dt", "--lattice", "fcc", "--exact-tol", "0"], "exact-tol"),
 ])
 def test_bad_options(capsys, argv, needle):

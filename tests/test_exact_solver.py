@@ -337,3 +337,36 @@ def test_a_workspace_without_huge_pages_refuses_them():
     assert eligible(b)
     small = Workspace(huge_pages=False).array("w", (SMALL_PAGES_MIN // 16,))
     assert isinstance(small.base, (np.ndarray, type(None)))  # numpy's own allocation
+
+
+@pytest.mark.parametrize("damped", [False, True])
+@pytest.mark.parametrize("tol", [1e-4, 1e-5, 1e-6])
+def test_a_warm_start_on_a_cluster_member_still_bounds_the_top(damped, tol):
+    """The top of an FCC block's spectrum is a cluster (relative gaps 1.4 % here). A
+    previous mode given as ``v0`` that is the cluster's second eigenvector made Lanczos
+    stop on it: the "certified" step was 0.7 % above the critical one at 1e-4 and 1e-5,
+    damped or not. The certifying solves start from the fixed random vector: the step
+    stays below the dense path's at every tolerance."""
+    from demstep.timestep_input import ContactModel, from_lattice
+
+    model = ContactModel(k_n=1e6, k_t=5e5)
+    inp = from_lattice("fcc", 5, 1.0, 1000.0, model)
+    contacts = inp.contacts
+    damping = None
+    if damped:
+        contacts = replace(contacts, c_n=np.full(contacts.n, 2.0), c_t=np.full(contacts.n, 1.0))
+        damping = GlobalDamping(mass=0.5)
+    op = ScaledContactOperator(inp.particles, contacts, False, damping)
+    w, V = scipy.linalg.eigh(op.dense_pencil(0.0))
+    assert (w[-1] - w[-2]) / w[-1] > 1e-2  # a gap the loose tolerances cannot resolve
+    reference = exact_critical_step(inp.particles, contacts, False, damping,
+                                    dense_limit=10**4)  # the dense path
+    assert reference.matvecs == 0
+    # the wrong start: the second eigenvector (undamped), or the damped iteration's
+    # vector moved onto it
+    for v0 in (V[:, -2], V[:, -3]):
+        step = exact_critical_step(inp.particles, contacts, False, damping, v0=v0,
+                                   dense_limit=0, tol=tol)
+        assert step.matvecs > 0
+        assert step.dt <= reference.dt * (1 + 1e-12)
+        assert step.dt >= reference.dt * (1 - 8 * tol)

@@ -17,8 +17,15 @@ upper bound. With the Ritz vector y (|y| = 1) and the residual r = A y - theta y
 eigenvalue lies within |r| of theta (Bauer-Fike for symmetric matrices), so
 ``theta + |r|`` bounds the eigenvalue the solver converged to. The bound is on the top
 of the spectrum when Lanczos has found the largest eigenvalue, which it does from a
-start vector with a component along it (a random start, or a warm start mixed with
-one: :func:`top_eigenpair` mixes 1 % of a random vector into any warm start).
+random start: every direction has a share of it, and the iteration brings out the
+top ones first. A warm start (a previous mode) is no such start: where the top of the
+spectrum is a cluster (regular packings), Lanczos stops on the cluster's eigenvector
+the start sits on once its residual is small, whatever random share was mixed in
+(measured below the top by up to 1.4 %: :data:`demstep.timestep.exact.CHAIN_MIX`).
+The solves that certify a step therefore start from the fixed random vector; warm
+starts serve the solves that certify nothing. From the random start, the bound held
+at every tolerance up to 1e-3 on every assembly measured; at 1e-2 one FCC block
+stopped 0.6 % below the top.
 """
 
 from __future__ import annotations

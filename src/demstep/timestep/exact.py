@@ -77,13 +77,18 @@ LOOSE_TOL = 1e-6
 #: this (relative); the iterate is then within ~TIGHT_SWITCH^2 of sigma_max
 TIGHT_SWITCH = 1e-4
 #: random share mixed into the warm starts (the previous iterate's vector) of the
-#: intermediate solves and of the certifying solves; the first solve (from the
-#: caller's ``v0``) mixes in eigen.WARM_START_MIX. A certifying solve must bring the
-#: residual from about CERTIFY_MIX down to its tolerance (5 decades), so it explores
-#: the spectrum beyond the warm start, as the 1 % mix of every solve did before; the
-#: intermediate solves certify nothing
+#: intermediate solves, which certify nothing. Every solve that certifies (the undamped
+#: one, and the damped iteration's certifying ones) starts from the fixed random
+#: vector instead: a warm start sits on one eigenvector of a cluster, and Lanczos
+#: stops on it as soon as its residual is small, before the random share has brought
+#: out a larger eigenvalue of the cluster. Measured (benchmarks/RESULTS.md, eleventh
+#: session): on the dense FCC block of 1e5 spheres, warm starts from the previous
+#: critical mode gave a "bound" 1.0e-4 and 1.9e-4 below the largest eigenvalue at
+#: tolerances 1e-4 and 1e-5 (random shares 1e-2 to 0.3 alike); on a 500-sphere block
+#: started from the second eigenvector, 1.4 % below at 1e-4 and 1e-5, and at 1e-6 with
+#: a random share of 1e-4 (the certifying solves' before); cold starts bounded it at
+#: every tolerance up to 1e-3 on all of them, for at most ~20 % more products
 CHAIN_MIX = 1e-6
-CERTIFY_MIX = 1e-4
 #: top Ritz vectors of the undamped solve searched for the damped iteration's start
 START_BLOCK = 4
 #: contacts from which the products run on several threads (when numba has them). Each
@@ -382,7 +387,8 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
                         solver: str = "lanczos", bodies=None,
                         workspace: Workspace | None = None) -> ExactStep:
     """Exact (and certified) critical step, with contact dashpots and global damping when
-    present; ``v0`` warm-starts the eigensolver (a previous ``mode``).
+    present; ``v0`` (a previous ``mode``) is a start the damped iteration tries (the
+    solves that certify start from the fixed random vector: :data:`CHAIN_MIX`).
 
     ``tol``: relative residual of the undamped solve (the certifying damped solves use
     max(tol, CERTIFY_MARGIN / 4)); ``loose_tol``: that of the intermediate solves of
@@ -410,7 +416,8 @@ def _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver) -> 
     if contacts.n == 0 and not op.damping.mass:
         raise InputError("contacts: the assembly has no contacts")
     damped = contacts.damped or op.damping.active
-    top = op.top(0.0, v0=v0, dense_limit=dense_limit, tol=tol, solver=solver,
+    # the undamped solve certifies dt_undamped: from the fixed random start (CHAIN_MIX)
+    top = op.top(0.0, dense_limit=dense_limit, tol=tol, solver=solver,
                  block=START_BLOCK if damped else 0)
     matvecs = top.matvecs
     lam = top.value
@@ -467,10 +474,11 @@ def _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver) -> 
         # Lambda_C >= lambda_max(C^) from the (rigorous) element bounds of K and C_d, so
         # the root of s^2 = U + (s - t) Lambda_C is one. Lanczos stops early once its
         # Ritz value (a lower bound) shows that t is below sigma_max, with a vector as
-        # good as an intermediate solve's: then it was a step of the iteration.
+        # good as an intermediate solve's: then it was a step of the iteration. The
+        # solve starts from the fixed random vector, not from q (CHAIN_MIX).
         t = sigma * (1.0 + margin)
-        top = op.top(t, v0=q, dense_limit=dense_limit, tol=certify_tol, solver=solver,
-                     mix=CERTIFY_MIX, stop_above=t * t - a1 * t, stop_tol=loose_tol)
+        top = op.top(t, dense_limit=dense_limit, tol=certify_tol, solver=solver,
+                     stop_above=t * t - a1 * t, stop_tol=loose_tol)
         matvecs += top.matvecs
         q = top.vector
         new = float(damped_sigma(*op.rayleigh_terms(q)))
