@@ -830,7 +830,8 @@ class Simulation:
         closed now, or with ``horizon`` [T] of every contact that can close within it
         (:meth:`contact_set`), with the law's dashpots and the global viscous damping
         (the damped step of :mod:`demstep.timestep.damping`); None without contacts.
-        The exact solver is warm-started from the last critical mode; ``tol``: its
+        The damped iteration tries the last critical mode as a start (the solves that
+        certify start cold: demstep.timestep.exact.CHAIN_MIX); ``tol``: its
         relative residual (None: :data:`demstep.timestep.eigen.EIGSH_TOL`; a looser one
         certifies a step up to about 4 ``tol`` below the critical one, sooner).
         (``_record``: the 'auto' control keeps the contacts covered and the mode;
@@ -1254,7 +1255,7 @@ class Simulation:
 
     def timestep_state(self) -> dict:
         """Arrays of the 'auto' time-step control that a restart needs to continue bit for
-        bit (the last critical mode, which warm-starts the solver, and the contacts the
+        bit (the last critical mode, a start of the damped iteration, and the contacts the
         last estimate covered), keyed ``ts_*``."""
         out = {}
         mode = getattr(self, "_dt_mode", None)

@@ -306,9 +306,10 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     ``exact-periodic`` (uniform coefficients taken from the contacts). ``materials``
     adds the material rules. ``element-coupled`` always uses the uniform split, whose
     partition makes it a rigorous bound; ``element-paper`` uses ``mass_split``.
-    ``v0`` warm-starts the exact eigensolver; ``exact_tol`` is its relative residual
-    (None: :data:`~demstep.timestep.eigen.EIGSH_TOL`, 1e-10; the step is certified at any
-    tolerance, from an upper bound on the largest root, and lies at most about
+    ``v0`` is a start the exact damped iteration tries (not its certifying solves);
+    ``exact_tol`` is the solver's relative residual (None:
+    :data:`~demstep.timestep.eigen.EIGSH_TOL`, 1e-10; the step comes from an upper bound
+    on the largest root found (see :mod:`demstep.timestep.eigen`), and lies at most about
     4 ``exact_tol`` below the critical one). ``bodies``
     (:class:`~demstep.timestep.bodies.RigidBodies`): clumps (``element-paper`` and
     ``exact-periodic`` are not defined for them; m_min is the lightest free sphere or
