@@ -837,7 +837,6 @@ class Simulation:
         (``_record``: the 'auto' control keeps the contacts covered and the mode;
         ``_contacts``: (ContactSet, cover) of :meth:`contact_set` with this ``horizon``
         at this state, already built.)"""
-        from demstep.timestep.estimates import element_coupled_dt
         from demstep.timestep.exact import exact_critical_step
 
         if method not in ("exact", "element-coupled"):
@@ -852,15 +851,12 @@ class Simulation:
             self._dt_cert = None
         if contacts.n == 0:
             return None
-        p = self.particles_now(check=False)
         rotation = rotation and self.rotation
+        if method == "element-coupled":
+            return self._element_coupled_dt(contacts, rotation, keep=lambda dt: _record)[0]
+        p = self.particles_now(check=False)
         damping = self._global_damping()
         bodies = self.rigid_bodies()
-        if method == "element-coupled":
-            dt = element_coupled_dt(p, contacts, rotation, damping=damping, bodies=bodies)
-            if _record:
-                self._record_element_certificate(dt, p, contacts, rotation, damping, bodies)
-            return dt
         mode = getattr(self, "_dt_mode", None)
         extra = {} if tol is None else {"tol": float(tol)}
         result = exact_critical_step(p, contacts, rotation, damping, v0=mode, bodies=bodies,
@@ -1050,32 +1046,39 @@ class Simulation:
         it already decides dt (:meth:`_estimate_cannot_change_dt`); it is then recorded
         as the certificate in the solve's place. Else None, and the (ContactSet, cover)
         built (or the ``prepared`` one taken) for the exact solve."""
-        from demstep.timestep.estimates import element_coupled_dt
-
         if prepared is None:
             cover = {}
             prepared = (self.contact_set(horizon, cover), cover)
         contacts, cover = prepared
         if contacts.n == 0:
             return None, prepared
-        p = self.particles_now(check=False)
-        damping = self._global_damping()
-        bodies = self.rigid_bodies()
-        dt = element_coupled_dt(p, contacts, self.rotation, damping=damping, bodies=bodies)
-        if not self._estimate_cannot_change_dt(dt, scheduled):
+        dt, kept = self._element_coupled_dt(
+            contacts, self.rotation,
+            keep=lambda dt: self._estimate_cannot_change_dt(dt, scheduled))
+        if not kept:
             return None, prepared
         self._dt_cover = cover
-        self._record_element_certificate(dt, p, contacts, self.rotation, damping, bodies)
         self.n_dt_element += 1
         return dt, None
 
-    def _record_element_certificate(self, dt, particles, contacts, rotation, damping, bodies):
-        """The certificate of a coupled element bound ``dt`` [T] of ``contacts``."""
+    def _element_coupled_dt(self, contacts, rotation: bool, keep) -> tuple[float, bool]:
+        """(dt, kept): the coupled element bound dt [T] of ``contacts`` now (a rigorous
+        lower bound on their exact step, :func:`demstep.timestep.estimates.element_coupled_dt`),
+        with the global damping and the clumps; recorded as the 'auto' control's
+        certificate when ``kept = keep(dt)`` is true."""
+        from demstep.timestep.estimates import element_coupled_dt
         from demstep.timestep.exact import ScaledContactOperator
 
-        op = ScaledContactOperator(particles, contacts, rotation, damping, bodies,
-                                   workspace=self._solver_workspace())
-        self._record_certificate(2.0 / dt, op.damping_bound(), contacts, bodies)
+        p = self.particles_now(check=False)
+        damping = self._global_damping()
+        bodies = self.rigid_bodies()
+        dt = element_coupled_dt(p, contacts, rotation, damping=damping, bodies=bodies)
+        kept = bool(keep(dt))
+        if kept:
+            op = ScaledContactOperator(p, contacts, rotation, damping, bodies,
+                                       workspace=self._solver_workspace())
+            self._record_certificate(2.0 / dt, op.damping_bound(), contacts, bodies)
+        return dt, kept
 
     def _size_rolling_history(self, rolling: bool):
         """Rolling-resistance history rows for every pair and wall pair while the law
