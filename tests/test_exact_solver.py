@@ -370,3 +370,48 @@ def test_a_warm_start_on_a_cluster_member_still_bounds_the_top(damped, tol):
         assert step.matvecs > 0
         assert step.dt <= reference.dt * (1 + 1e-12)
         assert step.dt >= reference.dt * (1 - 8 * tol)
+
+
+def test_a_loose_undamped_solve_still_certifies_the_damped_step():
+    """``undamped_tol``: a caller that needs only the damped step solves the undamped
+    problem loosely (it only starts the damped iteration). The damped step is the same
+    certified one (below the dense path's, within the certifying margin of it), for
+    fewer products; ``dt_undamped`` is then a looser certified bound (below the dense
+    path's undamped step, within the looser tolerance)."""
+    from demstep.timestep_input import ContactModel, from_lattice
+
+    model = ContactModel(k_n=1e6, k_t=5e5)
+    inp = from_lattice("fcc", 5, 1.0, 1000.0, model)
+    contacts = replace(inp.contacts, c_n=np.full(inp.contacts.n, 2.0),
+                       c_t=np.full(inp.contacts.n, 1.0))
+    damping = GlobalDamping(mass=0.5)
+    reference = exact_critical_step(inp.particles, contacts, True, damping, dense_limit=10**5)
+    assert reference.matvecs == 0
+    tight = exact_critical_step(inp.particles, contacts, True, damping, dense_limit=0)
+    loose = exact_critical_step(inp.particles, contacts, True, damping, dense_limit=0,
+                                undamped_tol=1e-3)
+    for step in (tight, loose):
+        assert step.dt <= reference.dt * (1 + 1e-12)
+        assert step.dt >= reference.dt * (1 - 1e-8)
+        assert step.dt_undamped <= reference.dt_undamped * (1 + 1e-12)
+    assert tight.dt_undamped >= reference.dt_undamped * (1 - 1e-9)
+    assert loose.dt_undamped >= reference.dt_undamped * (1 - 4e-3)
+    assert loose.matvecs < tight.matvecs
+
+
+def test_estimates_solve_the_undamped_problem_tightly_only_when_it_is_listed():
+    """estimate_time_steps: with 'exact-undamped' among the methods the undamped step is
+    the tight one; without it the undamped solve is loose (fewer products) and the
+    damped step the same certified one."""
+    from demstep.timestep.estimates import estimate_time_steps
+    from demstep.timestep_input import ContactModel, from_lattice
+
+    inp = from_lattice("fcc", 5, 1.0, 1000.0, ContactModel(k_n=1e6, k_t=5e5))
+    contacts = replace(inp.contacts, c_n=np.full(inp.contacts.n, 2.0),
+                       c_t=np.full(inp.contacts.n, 1.0))
+    both = estimate_time_steps(inp.particles, contacts, True, methods=["exact", "exact-undamped"])
+    alone = estimate_time_steps(inp.particles, contacts, True, methods=["exact"])
+    tight = exact_critical_step(inp.particles, contacts, True)
+    assert both.exact.dt_undamped == tight.dt_undamped
+    assert alone.exact.matvecs < both.exact.matvecs
+    assert alone.exact.dt == pytest.approx(both.exact.dt, rel=1e-8)

@@ -357,9 +357,12 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     dim = particles.dim
     exact = None
     if "exact" in methods or "exact-undamped" in methods:
-        from demstep.timestep.exact import exact_critical_step
+        from demstep.timestep.exact import FIRST_TOL, exact_critical_step
 
         options = {} if exact_tol is None else {"tol": exact_tol}
+        if "exact-undamped" not in methods:
+            # the undamped solve only starts the damped iteration (FIRST_TOL)
+            options["undamped_tol"] = max(FIRST_TOL, exact_tol or 0.0)
         exact = exact_critical_step(particles, contacts, rotation, d, v0=v0, bodies=bodies,
                                     **options)
         report.exact = exact

@@ -361,9 +361,10 @@ class ExactStep:
     """The exact critical step of an assembly.
 
     ``dt`` [T]: the certified critical step (from an upper bound on sigma_max);
-    ``dt_undamped`` [T]: the same without any damping (certified likewise);
+    ``dt_undamped`` [T]: the same without any damping (certified likewise, to the
+    undamped solve's tolerance: ``undamped_tol`` of :func:`exact_critical_step`);
     ``sigma`` [1/T]: the converged largest root (its Ritz estimate);
-    ``lambda_undamped`` [1/T^2]: the Ritz value of lambda_max(M^-1 K);
+    ``lambda_undamped`` [1/T^2]: the Ritz value of lambda_max(M^-1 K) (same tolerance);
     ``mode`` (size,): the critical mode, unit and mass-scaled (q = M^1/2 u);
     ``iterations``: safeguarded iterations (0 undamped); ``damped``: whether damping
     entered; ``matvecs``: products with the operator (0 on the dense path)."""
@@ -385,7 +386,8 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
                         max_iter: int = 100, tol: float = EIGSH_TOL,
                         loose_tol: float = LOOSE_TOL, threads: int | None = None,
                         solver: str = "lanczos", bodies=None,
-                        workspace: Workspace | None = None) -> ExactStep:
+                        workspace: Workspace | None = None,
+                        undamped_tol: float | None = None) -> ExactStep:
     """Exact (and certified) critical step, with contact dashpots and global damping when
     present; ``v0`` (a previous ``mode``) is a start the damped iteration tries (the
     solves that certify start from the fixed random vector: :data:`CHAIN_MIX`).
@@ -400,25 +402,30 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
     (:class:`demstep.timestep.bodies.RigidBodies`): clumps, six DOFs each;
     ``workspace``: the scratch arrays, kept by a caller that solves again (a run);
     without one, the Lanczos basis is released on return (the result's operator keeps
-    only its product buffers)."""
+    only its product buffers); ``undamped_tol``: when damping enters, the relative
+    residual of the undamped solve (None: ``tol``), for a caller that needs only the
+    damped step: that solve then only starts the damped iteration, and ``dt_undamped``
+    is certified to this looser tolerance (still an upper bound on lambda_max)."""
     op = ScaledContactOperator(particles, contacts, rotation, damping, bodies, threads=threads,
                                workspace=workspace)
     try:
-        return _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver)
+        return _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver,
+                           tol if undamped_tol is None else undamped_tol)
     finally:
         if workspace is None:
             op.workspace.release(*LANCZOS_ARRAYS)
 
 
-def _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver) -> ExactStep:
+def _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver,
+                undamped_tol) -> ExactStep:
     """:func:`exact_critical_step` on the operator ``op`` (its contacts and damping)."""
     contacts = op.contacts
     if contacts.n == 0 and not op.damping.mass:
         raise InputError("contacts: the assembly has no contacts")
     damped = contacts.damped or op.damping.active
     # the undamped solve certifies dt_undamped: from the fixed random start (CHAIN_MIX)
-    top = op.top(0.0, dense_limit=dense_limit, tol=tol, solver=solver,
-                 block=START_BLOCK if damped else 0)
+    top = op.top(0.0, dense_limit=dense_limit, tol=undamped_tol if damped else tol,
+                 solver=solver, block=START_BLOCK if damped else 0)
     matvecs = top.matvecs
     lam = top.value
     dt_undamped = 2.0 / np.sqrt(top.upper) if top.upper > 0 else np.inf
