@@ -219,3 +219,21 @@ def test_element_mass_diagonal_is_eq_19():
     assert np.allclose(paper_element_mass(mass, 3, True)[0],
                        [2, 2, 2, 5, 5, 5, 3, 3, 3, 7, 7, 7])
     assert np.allclose(paper_element_mass(mass, 2, False)[0], [2, 2, 3, 3])
+
+
+def test_optional_contact_fields_keep_shape_checks_and_do_not_alias_input():
+    """Optional per-contact fields: an all-zero array is replaced by fresh zeros, but a
+    wrong length is still an error, and a given array is copied, never shared."""
+    n = np.array([[1.0, 0.0], [0.0, 1.0], [0.6, 0.8]])
+    args = ([0, 1, 2], [1, 2, 3], n, [1.0] * 3, [1.0] * 3, 1.0, 1.0)
+    with pytest.raises(ValueError):
+        ContactSet(*args, c_n=np.zeros(2))
+    given = np.array([0.0, 0.5, 0.0])
+    zeros = np.zeros(3)
+    cs = ContactSet(*args, c_n=given, k_r=zeros, c_w=0.25)
+    given[1] = 7.0
+    zeros[0] = 7.0
+    assert cs.c_n.tolist() == [0.0, 0.5, 0.0]
+    assert cs.k_r.tolist() == [0.0, 0.0, 0.0]
+    assert cs.c_w.tolist() == [0.25] * 3
+    assert cs.damped and not ContactSet(*args, c_t=zeros * 0).damped

@@ -74,10 +74,12 @@ class ContactSet:
         self.wall = np.asarray(self.wall, dtype=np.int64)
         for name in OPTIONAL_FIELDS:
             value = getattr(self, name)
-            # absent: zeros the system hands out untouched (no memory until written:
-            # 6 x 46 MB at 6e6 contacts without dashpots or rolling resistance)
-            setattr(self, name, np.zeros(c) if value is None else
-                    np.broadcast_to(np.asarray(value, dtype=np.float64), (c,)).copy())
+            # absent or all zero: zeros the system hands out untouched (no memory until
+            # written: 6 x 46 MB at 6e6 contacts without dashpots or rolling resistance)
+            if value is not None:
+                value = np.broadcast_to(np.asarray(value, dtype=np.float64), (c,))
+            setattr(self, name, value.copy() if value is not None and value.any()
+                    else np.zeros(c))
 
     #: the per-contact arrays, in constructor order
     FIELDS = ("i", "j", "normal", "arm_i", "arm_j", "k_n", "k_s", "wall", "c_n", "c_t",
