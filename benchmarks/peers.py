@@ -32,8 +32,10 @@ Only the stepping is timed: every code first runs ``--warmup`` steps (numba comp
 or loads its cache, neighbour lists are built), then ``--steps`` steps are timed:
 demstep ``sim.run(steps=...)``, LIGGGHTS the "Loop time" of its second ``run``,
 YADE ``O.run(steps, True)``. Each measurement is its own process; its peak memory is
-the largest sum of the resident set sizes of its process tree (sampled every 20 ms,
-MPI launchers excluded) or the kernel's ru_maxrss of the child, whichever is larger.
+the largest sum of the resident set sizes of its process tree (sampled every 0.1 s,
+MPI launchers excluded) or the kernel's ru_maxrss of the child, whichever is larger;
+a report gives the largest over the runs (``rss_mb``) and each run's
+(``rss_mb_runs``, in order: a first run that compiles numba's cache stands out).
 """
 
 from __future__ import annotations
@@ -621,6 +623,7 @@ def benchmark(args):
         psps = [r["psps"] for r in runs[code]]
         entry = {"code": code, "psps_median": statistics.median(psps),
                  "rss_mb": max(r["rss_mb"] for r in runs[code]),
+                 "rss_mb_runs": [round(r["rss_mb"], 1) for r in runs[code]],
                  "psps_min": min(psps), "psps_max": max(psps), "n": runs[code][0]["n"],
                  "threads": runs[code][0]["threads"], "steps": args.steps,
                  "elapsed_s": [r["elapsed"] for r in runs[code]],
