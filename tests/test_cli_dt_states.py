@@ -252,6 +252,9 @@ def test_where_the_danger_is_and_mode_vtk(tmp_path, capsys):
     data = json.loads(out)
     top = data["critical_mode"]["particles"]
     assert top[0]["index"] == 17 and top[0]["share"] > 0.5 and len(top) == 3
+    # localised: one share above 1/2 bounds the participation number 1/sum(s^2) by 4
+    assert 1.0 <= data["critical_mode"]["participation"] < 4.0
+    assert data["critical_mode"]["listed_share"] == pytest.approx(sum(q["share"] for q in top))
     assert all(c["i"] == 17 or c["j"] == 17 for c in data["critical_mode"]["contacts"])
     mesh = meshio.read(vtu)
     share = mesh.point_data["share"]
@@ -260,6 +263,17 @@ def test_where_the_danger_is_and_mode_vtk(tmp_path, capsys):
     code, out, err = run(["dt", str(f), "--kn", "1e4", "--box", *box_args, "--periodic", "x,y,z"],
                          capsys)
     assert "Where the danger is" in out and "\n         17 " in out
+    # all particles alike: the mode spreads over most of them, shown as such
+    f.write_text("x,y,z,r,m\n" + "\n".join(",".join(repr(float(v)) for v in (*p, 1.001, 4.0))
+                                            for p in x) + "\n")
+    code, out, err = run(["dt", str(f), "--kn", "1e4", "--box", *box_args, "--periodic", "x,y,z",
+                          "--json", "--top", "3"], capsys)
+    spread = json.loads(out)["critical_mode"]
+    assert len(x) / 4 < spread["participation"] <= len(x) * (1 + 1e-9)
+    assert spread["listed_share"] < 0.5
+    code, out, err = run(["dt", str(f), "--kn", "1e4", "--box", *box_args, "--periodic", "x,y,z",
+                          "--top", "3"], capsys)
+    assert f"spreads over about {spread['participation']:.3g} particles" in out
 
 
 def test_case_file_and_checkpoint(tmp_path, capsys):

@@ -402,7 +402,9 @@ def _print(text: str):
 def critical_mode_report(report, data, top: int) -> dict | None:
     """Where the danger is: the particles carrying most of the critical mode (share of
     its kinetic energy, translation and rotation) and the contacts carrying most of its
-    strain energy."""
+    strain energy; how far the mode spreads: its participation number 1 / sum(share^2)
+    over the particles (1: one particle carries it all; N: all carry it alike) and the
+    share the listed particles carry together."""
     if report.exact is None:
         return None
     op = report.exact.operator
@@ -443,15 +445,17 @@ def critical_mode_report(report, data, top: int) -> dict | None:
                  "k_t": float(c.k_s[k]), "c_n": float(c.c_n[k]), "c_t": float(c.c_t[k]),
                  "k_r": float(c.k_r[k]), "k_w": float(c.k_w[k]),
                  "share": float(contact_share[k])} for k in corder]
+    squares = float(np.dot(share, share))
     return {"sigma": report.exact.sigma, "lambda_undamped": report.exact.lambda_undamped,
+            "participation": float(share.sum()) ** 2 / squares if squares > 0 else 0.0,
+            "listed_share": float(share[order].sum()),
             "particles": particles, "contacts": contacts}
 
 
 def format_report(report, danger=None) -> str:
     rot = "with rotation" if report.rotation else "translation only"
-    n_wall = "" 
     lines = [f"{report.dim}D assembly: {report.n_particles} particles, {report.n_contacts} "
-             f"contacts{n_wall}, {rot}; m_min = {report.m_min:.6g}, K_max = {report.k_max:.6g}"]
+             f"contacts, {rot}; m_min = {report.m_min:.6g}, K_max = {report.k_max:.6g}"]
     lines += [f"  {n}" for n in report.notes]
     if report.damped:
         parts = []
@@ -473,14 +477,16 @@ def format_report(report, danger=None) -> str:
     if danger and danger["particles"]:
         lines.append("")
         lines.append("Where the danger is -- the particles carrying most of the critical mode:")
+        lines.append(f"  (it spreads over about {danger['participation']:.3g} particles; those "
+                     f"listed carry {100 * danger['listed_share']:.3g} % of it)")
         lines.append(f"  {'particle':>9}{'radius':>12}{'mass':>12}{'contacts':>9}{'share':>8}"
                      f"{'transl.':>9}{'rotat.':>8}")
         for q in danger["particles"]:
             label = q["index"] if q.get("index") is not None else f"body {q['body']}"
             radius = f"{q['radius']:>12.4g}" if q.get("radius") is not None else f"{'-':>12}"
             lines.append(f"  {label:>9}{radius}{q['mass']:>12.4g}"
-                         f"{q['contacts']:>9}{q['share']:>8.3f}{q['translation']:>9.3f}"
-                         f"{q['rotation']:>8.3f}")
+                         f"{q['contacts']:>9}{_share(q['share'])}{_share(q['translation'], 9)}"
+                         f"{_share(q['rotation'])}")
         lines.append("  and the contacts carrying most of its strain energy:")
         rolling = any(q.get("k_r") or q.get("k_w") for q in danger["contacts"])
         roll_head = f"{'k_r':>11}{'k_w':>11}" if rolling else ""
@@ -490,8 +496,14 @@ def format_report(report, danger=None) -> str:
             other = str(q["j"]) if q["j"] is not None else f"wall {q['wall']}"
             roll = f"{q['k_r']:>11.4g}{q['k_w']:>11.4g}" if rolling else ""
             lines.append(f"  {q['i']:>9}{other:>10}{q['k_n']:>12.4g}{q['k_t']:>12.4g}"
-                         f"{q['c_n']:>11.4g}{q['c_t']:>11.4g}{roll}{q['share']:>8.3f}")
+                         f"{q['c_n']:>11.4g}{q['c_t']:>11.4g}{roll}{_share(q['share'])}")
     return "\n".join(lines)
+
+
+def _share(value: float, width: int = 8) -> str:
+    """A share in [0, 1], three decimals, or three digits when it is below 0.001 (a mode
+    spread over many particles)."""
+    return f"{value:>{width}.3f}" if value == 0.0 or value >= 1e-3 else f"{value:>{width}.2e}"
 
 
 def write_mode_vtk(path, data, report) -> Path:
