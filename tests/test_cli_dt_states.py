@@ -254,6 +254,7 @@ def test_where_the_danger_is_and_mode_vtk(tmp_path, capsys):
     assert top[0]["index"] == 17 and top[0]["share"] > 0.5 and len(top) == 3
     # localised: one share above 1/2 bounds the participation number 1/sum(s^2) by 4
     assert 1.0 <= data["critical_mode"]["participation"] < 4.0
+    assert data["critical_mode"]["lambda_undamped_tol"] == 1e-10  # undamped: the tight solve
     assert data["critical_mode"]["listed_share"] == pytest.approx(sum(q["share"] for q in top))
     assert all(c["i"] == 17 or c["j"] == 17 for c in data["critical_mode"]["contacts"])
     mesh = meshio.read(vtu)

@@ -15,7 +15,8 @@ from demstep.kernels.timestep_kernels import (_chunked_scaled_matvec_parallel,
                                               contact_gram, contact_quadratic_forms)
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
 from demstep.timestep.damping import GlobalDamping
-from demstep.timestep.eigen import lanczos_top, top_eigenpair
+from demstep.errors import InputError
+from demstep.timestep.eigen import EIGSH_TOL, lanczos_top, top_eigenpair
 from demstep.timestep.exact import ScaledContactOperator, exact_critical_step
 
 
@@ -415,3 +416,33 @@ def test_estimates_solve_the_undamped_problem_tightly_only_when_it_is_listed():
     assert both.exact.dt_undamped == tight.dt_undamped
     assert alone.exact.matvecs < both.exact.matvecs
     assert alone.exact.dt == pytest.approx(both.exact.dt, rel=1e-8)
+    # the loose solve is labelled as such: its tolerance recorded, a note
+    assert both.exact.undamped_tol == EIGSH_TOL and alone.exact.undamped_tol == 1e-3
+    assert not any("undamped problem solved only" in n for n in both.notes)
+    assert any("undamped problem solved only to a relative residual of 0.001" in n
+               for n in alone.notes)
+    # exact-undamped alone: the damped step it computes is shown, the 'conservative' reference
+    only = estimate_time_steps(inp.particles, contacts, True, methods=["exact-undamped", "nodal"])
+    assert [e.method for e in only.estimates] == ["exact", "exact-undamped", "nodal"]
+    assert only.estimates[0].dt == both.exact.dt
+    assert only.estimates[2].conservative == (only.estimates[2].dt <= both.exact.dt * (1 + 1e-9))
+
+
+@pytest.mark.parametrize("name,options", [
+    ("tol", {"tol": 1e-2}), ("undamped_tol", {"undamped_tol": 0.5}), ("tol", {"tol": 0.0}),
+    ("undamped_tol", {"undamped_tol": float("nan")}), ("exact_tol", {"exact_tol": 2e-3}),
+])
+def test_a_tolerance_that_certifies_nothing_is_refused(name, options):
+    """Above MAX_CERTIFIED_TOL a solve may stop below the top of a clustered spectrum:
+    the API refuses it (as the CLI does) with an error naming the parameter."""
+    from demstep.timestep.estimates import estimate_time_steps
+    from demstep.timestep_input import ContactModel, from_lattice
+
+    inp = from_lattice("fcc", 3, 1.0, 1000.0, ContactModel(k_n=1e6, k_t=5e5))
+    if name == "exact_tol":
+        call = lambda: estimate_time_steps(inp.particles, inp.contacts, True, **options)
+    else:
+        call = lambda: exact_critical_step(inp.particles, inp.contacts, True,
+                                           GlobalDamping(mass=0.5), **options)
+    with pytest.raises(InputError, match=rf"^{name}: must be in \(0, 0.001\], got"):
+        call()

@@ -863,7 +863,6 @@ class Simulation:
                                      workspace=self._solver_workspace(), **extra)
         if _record:
             self._dt_mode = result.mode
-            self.dt_exact_undamped = result.dt_undamped
             self._record_certificate(2.0 / result.dt, result.operator.damping_bound(),
                                      contacts, bodies)
         return result.dt

@@ -32,10 +32,6 @@ BYTES_PER_PARTICLE = 4000
 INPUT_FORMATS = ("auto", "csv", "liggghts", "yade", "case", "checkpoint")
 #: image formats of --plot (matplotlib)
 PLOT_FORMATS = (".png", ".pdf", ".svg")
-#: the loosest residual ``--exact-tol`` takes: the step lies up to ~0.4 % low (at 1e-2,
-#: Lanczos stopped below the top of an FCC block's clustered spectrum once:
-#: demstep.timestep.eigen)
-MAX_EXACT_TOL = 1e-3
 
 
 def add_dt_parser(sub):
@@ -365,8 +361,11 @@ def cmd_dt(args) -> int:
 
     if args.top < 0:
         raise InputError(f"top: must be >= 0, got {args.top}")
-    if args.exact_tol is not None and args.exact_tol > MAX_EXACT_TOL:
-        raise InputError(f"exact-tol: must be in (0, {MAX_EXACT_TOL:g}], got {args.exact_tol:g}")
+    if args.exact_tol is not None:
+        # the loosest residual that certifies (demstep.timestep.eigen.MAX_CERTIFIED_TOL)
+        from demstep.timestep.eigen import check_certified_tol
+
+        check_certified_tol("exact-tol", args.exact_tol)
     methods = None if args.methods is None else [m.strip() for m in args.methods.split(",")]
     data = load_input(args)
     rotation = data.rotation if args.rotation is None else (args.rotation and data.rotation)
@@ -447,6 +446,7 @@ def critical_mode_report(report, data, top: int) -> dict | None:
                  "share": float(contact_share[k])} for k in corder]
     squares = float(np.dot(share, share))
     return {"sigma": report.exact.sigma, "lambda_undamped": report.exact.lambda_undamped,
+            "lambda_undamped_tol": report.exact.undamped_tol,
             "participation": float(share.sum()) ** 2 / squares if squares > 0 else 0.0,
             "listed_share": float(share[order].sum()),
             "particles": particles, "contacts": contacts}

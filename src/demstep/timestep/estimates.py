@@ -307,10 +307,16 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     adds the material rules. ``element-coupled`` always uses the uniform split, whose
     partition makes it a rigorous bound; ``element-paper`` uses ``mass_split``.
     ``v0`` is a start the exact damped iteration tries (not its certifying solves);
-    ``exact_tol`` is the solver's relative residual (None:
+    ``exact_tol`` is the solver's relative residual, at most
+    :data:`~demstep.timestep.eigen.MAX_CERTIFIED_TOL` (None:
     :data:`~demstep.timestep.eigen.EIGSH_TOL`, 1e-10; the step comes from an upper bound
     on the largest root found (see :mod:`demstep.timestep.eigen`), and lies at most about
-    4 ``exact_tol`` below the critical one). ``bodies``
+    4 ``exact_tol`` below the critical one). With damping and without 'exact-undamped'
+    in ``methods``, the undamped problem is solved only to start the damped iteration,
+    to max(:data:`~demstep.timestep.exact.FIRST_TOL`, ``exact_tol``): ``report.exact``'s
+    ``dt_undamped`` and ``lambda_undamped`` are then that loose solve's (still from an
+    upper bound; its tolerance in ``report.exact.undamped_tol``, and a note says so).
+    ``bodies``
     (:class:`~demstep.timestep.bodies.RigidBodies`): clumps (``element-paper`` and
     ``exact-periodic`` are not defined for them; m_min is the lightest free sphere or
     body).
@@ -335,6 +341,11 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
         methods.remove("exact-periodic")
     if "exact-undamped" in methods and not damped:
         methods.remove("exact-undamped")
+    if "exact-undamped" in methods and "exact" not in methods:
+        # its solve gives the damped step too: shown, it is what 'conservative' is against
+        methods.insert(methods.index("exact-undamped"), "exact")
+        report.notes.append("exact: added (the damped step, the reference of "
+                            "'conservative'; computed with exact-undamped)")
     has_bodies = bodies is not None and bodies.n > 0
     if has_bodies:
         for name in ("element-paper", "exact-periodic"):
@@ -357,18 +368,24 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     dim = particles.dim
     exact = None
     if "exact" in methods or "exact-undamped" in methods:
+        from demstep.timestep.eigen import EIGSH_TOL, check_certified_tol
         from demstep.timestep.exact import FIRST_TOL, exact_critical_step
 
-        options = {} if exact_tol is None else {"tol": exact_tol}
+        options = {} if exact_tol is None else {"tol": check_certified_tol("exact_tol",
+                                                                           exact_tol)}
         if "exact-undamped" not in methods:
             # the undamped solve only starts the damped iteration (FIRST_TOL)
-            options["undamped_tol"] = max(FIRST_TOL, exact_tol or 0.0)
+            options["undamped_tol"] = max(FIRST_TOL, options.get("tol", 0.0))
         exact = exact_critical_step(particles, contacts, rotation, d, v0=v0, bodies=bodies,
                                     **options)
         report.exact = exact
         if exact_tol is not None:
             report.notes.append(f"exact: solved to a relative residual of {exact_tol:g} (the "
                                 "step certified, at most about 4x that below the critical one)")
+        if exact.damped and exact.undamped_tol > options.get("tol", EIGSH_TOL):
+            report.notes.append(f"exact: the undamped problem solved only to a relative "
+                                f"residual of {exact.undamped_tol:g}, to start the damped "
+                                "iteration (list exact-undamped for its step)")
     compute = {
         "exact": lambda: exact.dt,
         "exact-undamped": lambda: exact.dt_undamped,

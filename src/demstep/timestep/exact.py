@@ -50,7 +50,7 @@ from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
 from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.eigen import (DENSE_LIMIT, EIGSH_TOL, LANCZOS_ARRAYS, WARM_START_MIX,
-                                    Eigenpair, Workspace, top_eigenpair)
+                                    Eigenpair, Workspace, check_certified_tol, top_eigenpair)
 from demstep.timestep.elements import dofs_per_particle
 from demstep.timestep.stability import damped_sigma
 
@@ -362,9 +362,11 @@ class ExactStep:
 
     ``dt`` [T]: the certified critical step (from an upper bound on sigma_max);
     ``dt_undamped`` [T]: the same without any damping (certified likewise, to the
-    undamped solve's tolerance: ``undamped_tol`` of :func:`exact_critical_step`);
-    ``sigma`` [1/T]: the converged largest root (its Ritz estimate);
-    ``lambda_undamped`` [1/T^2]: the Ritz value of lambda_max(M^-1 K) (same tolerance);
+    undamped solve's relative residual ``undamped_tol``: looser than the damped step's
+    when :func:`exact_critical_step` was asked so);
+    ``sigma`` [1/T]: the converged largest root (its Ritz estimate, a lower bound: the
+    certified step is ``dt``, not 2 / sigma);
+    ``lambda_undamped`` [1/T^2]: the Ritz value of lambda_max(M^-1 K) (to ``undamped_tol``);
     ``mode`` (size,): the critical mode, unit and mass-scaled (q = M^1/2 u);
     ``iterations``: safeguarded iterations (0 undamped); ``damped``: whether damping
     entered; ``matvecs``: products with the operator (0 on the dense path)."""
@@ -378,6 +380,7 @@ class ExactStep:
     damped: bool
     operator: ScaledContactOperator
     matvecs: int = 0
+    undamped_tol: float = EIGSH_TOL
 
 
 def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bool,
@@ -393,7 +396,8 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
     solves that certify start from the fixed random vector: :data:`CHAIN_MIX`).
 
     ``tol``: relative residual of the undamped solve (the certifying damped solves use
-    max(tol, CERTIFY_MARGIN / 4)); ``loose_tol``: that of the intermediate solves of
+    max(tol, CERTIFY_MARGIN / 4)), in (0, :data:`~demstep.timestep.eigen.MAX_CERTIFIED_TOL`]
+    like ``undamped_tol`` (a looser solve certifies nothing: InputError); ``loose_tol``: that of the intermediate solves of
     the safeguarded iteration (with ``loose_tol <= tol`` every step is a certifying
     one); ``rtol``: the smallest increase of the iterate that counts as progress;
     ``threads``: contact runs summed in parallel in each product (None: numba's threads
@@ -405,12 +409,16 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
     only its product buffers); ``undamped_tol``: when damping enters, the relative
     residual of the undamped solve (None: ``tol``), for a caller that needs only the
     damped step: that solve then only starts the damped iteration, and ``dt_undamped``
-    is certified to this looser tolerance (still an upper bound on lambda_max)."""
+    comes from it (still from an upper bound on lambda_max: below the undamped critical
+    step, by up to about 4 ``undamped_tol``; recorded in :attr:`ExactStep.undamped_tol`)."""
+    tol = check_certified_tol("tol", tol)
+    undamped_tol = tol if undamped_tol is None else check_certified_tol("undamped_tol",
+                                                                        undamped_tol)
     op = ScaledContactOperator(particles, contacts, rotation, damping, bodies, threads=threads,
                                workspace=workspace)
     try:
         return _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver,
-                           tol if undamped_tol is None else undamped_tol)
+                           undamped_tol)
     finally:
         if workspace is None:
             op.workspace.release(*LANCZOS_ARRAYS)
@@ -424,14 +432,16 @@ def _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver,
         raise InputError("contacts: the assembly has no contacts")
     damped = contacts.damped or op.damping.active
     # the undamped solve certifies dt_undamped: from the fixed random start (CHAIN_MIX)
-    top = op.top(0.0, dense_limit=dense_limit, tol=undamped_tol if damped else tol,
-                 solver=solver, block=START_BLOCK if damped else 0)
+    if not damped:
+        undamped_tol = tol
+    top = op.top(0.0, dense_limit=dense_limit, tol=undamped_tol, solver=solver,
+                 block=START_BLOCK if damped else 0)
     matvecs = top.matvecs
     lam = top.value
     dt_undamped = 2.0 / np.sqrt(top.upper) if top.upper > 0 else np.inf
     if not damped:
         return ExactStep(float(dt_undamped), float(dt_undamped), float(np.sqrt(lam)), lam,
-                         top.vector, 0, False, op, matvecs)
+                         top.vector, 0, False, op, matvecs, undamped_tol)
     a1 = op.damping.mass
     lam_c = op.damping_bound()
 
@@ -508,4 +518,4 @@ def _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver,
             certify_tol = margin / 4.0
             accept_rtol = max(accept_rtol, 2.0 * margin)
     return ExactStep(float(2.0 / up), float(dt_undamped), sigma, lam, q, iterations, True, op,
-                     matvecs)
+                     matvecs, undamped_tol)
