@@ -371,3 +371,31 @@ def test_plot_path_checked_before_the_work_and_help_lists_formats(tmp_path, caps
     assert code == 0
     for word in ("CSV", "LIGGGHTS", "LAMMPS", "YADE", "case", "checkpoint"):
         assert word in help_text
+
+
+@pytest.mark.parametrize("width", [8, 9])
+def test_shares_print_with_a_space_before_them(width):
+    """A share column never runs into the one before it (exponent form below 0.001)."""
+    from demstep.cli.dt import _share
+
+    for value in (0.0, 0.5, 1.0, 0.001, 3.64e-4, 1.97e-23):
+        text = _share(value, width)
+        assert len(text) == width and text[0] == " "
+        assert float(text) == pytest.approx(value, rel=0.05, abs=5e-4)
+
+
+def test_a_name_too_long_for_the_file_system_is_refused_before_anything_is_written(
+        tmp_path, capsys, monkeypatch):
+    """A path part longer than NAME_MAX failed half-way before (the report printed, the
+    folders made, the error naming a temporary file): now one line naming the option,
+    exit 2, nothing written."""
+    monkeypatch.chdir(tmp_path)
+    long = "n" * 300
+    code, out, err = run(["dt", "--lattice", "fcc", "--size", "2", "--kn", "1e6",
+                          "--mode-vtk", f"x1/y1/{long}.vtu"], capsys)
+    assert code == 2 and err.startswith("demstep: error: mode-vtk: the name")
+    assert err.count("\n") == 1 and out == ""
+    code, out, err = run(["run", str(EXAMPLES / "hex_biaxial_2d.toml"), "--out", f"a1/{long}",
+                          "--quiet"], capsys)
+    assert code == 2 and err.startswith("demstep: error: out: the name") and "at most 255" in err
+    assert list(tmp_path.iterdir()) == []

@@ -411,10 +411,16 @@ def test_far_particle_runs_and_an_absurd_one_is_refused(tmp_path, capsys):
     code, _, err = cli(["run", case, "--out", tmp_path / "out"], capsys)
     assert code == 0, err
     assert run_json(tmp_path / "out")["status"] == "completed"
-    case = pair_case(tmp_path, ["0,0,0,0.4", "1e300,0,0,0.4"])
+    case = pair_case(tmp_path, ["0,0,0,0.4", "1e12,0,0,0.4"])
     code, _, err = cli(["run", case, "--out", tmp_path / "out2"], capsys)
-    assert_one_line_error(code, err, "particle 1 lies at 1e+300 from the origin")
+    assert_one_line_error(code, err, "particle 1 lies at 1e+12 from the origin")
     assert not (tmp_path / "out2").exists()
+    # beyond any consistent units: refused where the file is read, naming line and column
+    case = pair_case(tmp_path, ["0,0,0,0.4", "1e300,0,0,0.4"])
+    code, _, err = cli(["run", case, "--out", tmp_path / "out3"], capsys)
+    assert_one_line_error(code, err, ":3: column 'x': must be 0 or between 1e-100 and 1e+100",
+                          "got '1e300'")
+    assert not (tmp_path / "out3").exists()
 
 
 # ================================================== 6. checkpoints and folders

@@ -1,4 +1,20 @@
-"""Exceptions that reach the user as one-line messages."""
+"""Exceptions that reach the user as one-line messages, and the range of magnitudes
+every input number must lie in."""
+
+#: numbers beyond these magnitudes (other than 0) are refused, in case files, options
+#: and particle files alike: no consistent set of units needs them, and products of two
+#: of them overflow (or underflow) float64
+MAX_MAGNITUDE = 1.0e100
+MIN_MAGNITUDE = 1.0e-100
+
+
+def magnitude_problem(value: float) -> str | None:
+    """None when ``value`` is 0 or between :data:`MIN_MAGNITUDE` and
+    :data:`MAX_MAGNITUDE` in magnitude; else what is wrong with it."""
+    if value == 0 or MIN_MAGNITUDE <= abs(value) <= MAX_MAGNITUDE:
+        return None
+    return (f"must be 0 or between {MIN_MAGNITUDE:g} and {MAX_MAGNITUDE:g} in magnitude (a "
+            "non-physical magnitude in any consistent units)")
 
 
 class InputError(ValueError):

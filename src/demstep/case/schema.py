@@ -143,17 +143,15 @@ from typing import Annotated, Literal, Union
 import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, ValidationError
 
-from demstep.errors import InputError, missing_file
+# (MIN_MAGNITUDE, MAX_MAGNITUDE: the case files' range, documented above, one for all input)
+from demstep.errors import (MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem,
+                            missing_file)
 
 #: the largest assembly a case file may generate (a guard against typos in ``size``)
 MAX_PARTICLES = 2_000_000
 
 AXES = "xyz"
 
-#: numbers beyond these magnitudes (other than 0) are refused: no consistent set of units
-#: needs them, and products of two of them overflow (or underflow) float64
-MAX_MAGNITUDE = 1.0e100
-MIN_MAGNITUDE = 1.0e-100
 #: default of numerics.max_initial_overlap: the largest initial overlap of two
 #: particles, as a fraction of the smaller radius
 MAX_INITIAL_OVERLAP = 0.05
@@ -163,9 +161,9 @@ MAX_COORDINATE_RADII = 1.0e9
 
 
 def _magnitude(value: float) -> float:
-    if value != 0 and not (MIN_MAGNITUDE <= abs(value) <= MAX_MAGNITUDE):
-        raise ValueError(f"must be 0 or between {MIN_MAGNITUDE:g} and {MAX_MAGNITUDE:g} in "
-                         f"magnitude (a non-physical magnitude in any consistent units)")
+    problem = magnitude_problem(value)
+    if problem:
+        raise ValueError(problem)
     return value
 
 

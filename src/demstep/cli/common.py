@@ -9,7 +9,7 @@ import argparse
 import math
 import sys
 
-from demstep.errors import InputError
+from demstep.errors import InputError, magnitude_problem
 
 
 def positive(name):
@@ -58,8 +58,12 @@ def number(name, minimum=None, strict=False):
             raise argparse.ArgumentTypeError(f"{name}: not a number: {text!r}") from None
         if not math.isfinite(v) or (minimum is not None and (v < minimum or (strict and v == minimum))):
             rel = ">" if strict else ">="
-            raise argparse.ArgumentTypeError(f"{name}: must be a finite number {rel} {minimum:g}, "
+            bound = "" if minimum is None else f" {rel} {minimum:g}"
+            raise argparse.ArgumentTypeError(f"{name}: must be a finite number{bound}, "
                                              f"got {text!r}")
+        problem = magnitude_problem(v)
+        if problem:
+            raise argparse.ArgumentTypeError(f"{name}: {problem}, got {text!r}")
         return v
     return parse
 

@@ -158,12 +158,15 @@ def _check_output_path(option: str, path, suffixes) -> Path:
     nearest existing ancestor is a writable folder)."""
     import os
 
+    from demstep.io.atomic import check_name_lengths
+
     path = Path(path)
     if path.suffix.lower() not in suffixes:
         raise InputError(f"{option}: the file name must end in {', '.join(suffixes)}, "
                          f"got {str(path)!r}")
     if path.is_dir():
         raise InputError(f"{option}: {str(path)!r} is a folder")
+    check_name_lengths(path, option)
     ancestor = path.absolute().parent
     while not ancestor.exists():
         ancestor = ancestor.parent
@@ -503,7 +506,9 @@ def format_report(report, danger=None) -> str:
 def _share(value: float, width: int = 8) -> str:
     """A share in [0, 1], three decimals, or three digits when it is below 0.001 (a mode
     spread over many particles)."""
-    return f"{value:>{width}.3f}" if value == 0.0 or value >= 1e-3 else f"{value:>{width}.2e}"
+    if value == 0.0 or value >= 1e-3:
+        return f"{value:>{width}.3f}"
+    return f"{value:>{width}.{max(0, width - 7)}e}"  # (at least one space before it)
 
 
 def write_mode_vtk(path, data, report) -> Path:

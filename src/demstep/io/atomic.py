@@ -16,6 +16,8 @@ import re
 import secrets
 from pathlib import Path
 
+from demstep.errors import InputError
+
 #: names of the temporary files of :func:`atomic_path` (and of ``tempfile.mkstemp``,
 #: which demstep used before: ``tmpXXXXXXXX<suffix>``)
 TEMP_NAME = re.compile(r"^(\..+\.[0-9a-f]{8}\.tmp|tmp[A-Za-z0-9_]{8}(\.npz)?\.tmp)$")
@@ -33,6 +35,35 @@ def _create_temporary(folder: Path, name: str) -> Path:
         os.close(fd)
         return tmp
     raise FileExistsError(f"cannot create a temporary file for {name} in {folder}")
+
+
+#: characters a temporary name adds to its target's (``.`` + ``.<8 hex>.tmp``)
+TEMP_NAME_EXTRA = 14
+
+
+def check_name_lengths(path, key: str, is_file: bool = True) -> None:
+    """Before anything is written: raise InputError when a part of ``path`` is longer
+    than the file system takes (NAME_MAX bytes; the last part of a file's path with the
+    :data:`TEMP_NAME_EXTRA` characters its temporary name adds) or the whole path longer
+    than PATH_MAX: such a path would fail half-way, after folders were made."""
+    path = Path(path).absolute()
+    probe = path
+    while not probe.exists() and probe.parent != probe:
+        probe = probe.parent
+    try:
+        name_max = os.pathconf(probe, "PC_NAME_MAX")
+        path_max = os.pathconf(probe, "PC_PATH_MAX")
+    except (OSError, ValueError):
+        name_max, path_max = 255, 4096
+    parts = path.parts[1:]
+    for k, part in enumerate(parts):
+        extra = TEMP_NAME_EXTRA if is_file and k == len(parts) - 1 else 0
+        if len(part.encode()) + extra > name_max:
+            raise InputError(f"{key}: the name {part[:40]!r}... is {len(part.encode())} bytes "
+                             f"long; this file system takes at most {name_max - extra}")
+    if len(str(path).encode()) + TEMP_NAME_EXTRA > path_max:
+        raise InputError(f"{key}: the path is {len(str(path).encode())} bytes long; this file "
+                         f"system takes at most {path_max - TEMP_NAME_EXTRA}")
 
 
 @contextlib.contextmanager

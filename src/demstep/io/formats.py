@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from demstep.io.atomic import write_text_atomic
-from demstep.errors import InputError, missing_file
+from demstep.errors import InputError, magnitude_problem, missing_file
 
 #: format names understood by :func:`read_particle_file` / :func:`write_particle_file`
 FORMATS = ("csv", "liggghts", "yade")
@@ -88,6 +88,9 @@ def _number(text: str, path, line: int, column: str) -> float:
         raise InputError(f"{path}:{line}: column {column!r}: not a number: {text!r}") from None
     if not np.isfinite(value):
         raise InputError(f"{path}:{line}: column {column!r}: not finite: {text!r}")
+    problem = magnitude_problem(value)
+    if problem:
+        raise InputError(f"{path}:{line}: column {column!r}: {problem}, got {text!r}")
     return value
 
 

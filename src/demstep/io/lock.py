@@ -16,6 +16,7 @@ import platform
 from pathlib import Path
 
 from demstep.errors import InputError
+from demstep.io.atomic import check_name_lengths
 
 try:  # POSIX
     import fcntl
@@ -129,6 +130,7 @@ def check_folder_creatable(folder, key: str = "out") -> None:
     not writable). Creating it may still fail (a virtual file system such as /proc):
     :func:`make_folder` reports that."""
     folder = Path(folder)
+    check_name_lengths(folder, key, is_file=False)
     try:
         if folder.exists() and not folder.is_dir():
             raise InputError(f"{key}: not a folder, got {str(folder)!r}")

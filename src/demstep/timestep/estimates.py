@@ -330,7 +330,7 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
         raise InputError("damping: give either damping or rayleigh, not both")
     d = _damping(damping if damping is not None else rayleigh)
     damped = contacts.damped or d.active
-    methods = list(METHODS if methods is None else methods)
+    methods = list(dict.fromkeys(METHODS if methods is None else methods))  # (each once)
     for m in methods:
         if m not in METHODS + RULES:
             raise InputError(f"method: unknown method {m!r}; choose from "
@@ -357,6 +357,10 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     else:
         m_min = float(particles.m[~particles.fixed].min())
     k_max = contacts.k_max()
+    if not k_max > 0:
+        raise InputError("contacts: every normal stiffness is 0 (Hertz contacts take theirs "
+                         "from the overlap, and these touch without one: give an overlap, "
+                         "demstep dt --overlap)")
     beta = dashpot_ratio(contacts)
     if contacts.has_rolling and rotation:
         report.notes.append("rolling and twisting resistance: in exact, element-coupled and "
