@@ -98,6 +98,12 @@ def test_bad_files(tmp_path, capsys, content, needle):
     (["dt", "--lattice", "fcc", "--methods", "exact,magic"], "unknown method 'magic'"),
     (["dt", "--lattice", "fcc", "--exact-tol", "0.5"], "exact-tol: must be in (0, 0.001], got 0.5"),
     (["dt", "--lattice", "fcc", "--exact-tol", "0"], "exact-tol"),
+    (["dt", "--lattice", "fcc", "--kn", "1e308"], "kn: must be 0 or between 1e-100 and 1e+100"),
+    (["dt", "--lattice", "fcc", "--kn", "1e6", "--density", "1e-300"], "density: must be 0 or"),
+    (["dt", "--lattice", "fcc", "--kn", "1e6", "--restitution", "nan"],
+     "restitution: must be a finite number, got 'nan'"),
+    (["dt", "--lattice", "fcc", "--size", "2", "--youngs", "1e6", "--poisson", "0.3"],
+     "contacts: every normal stiffness is 0"),
 ])
 def test_bad_options(capsys, argv, needle):
     code, out, err = run(argv, capsys)
