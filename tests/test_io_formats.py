@@ -1,5 +1,7 @@
 """Readers and writers of other codes' particle files: CSV, LIGGGHTS dumps, YADE text."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -169,3 +171,21 @@ def test_snapshot_out_of_range(tmp_path):
         read_liggghts_dump(path, snapshot=3)
     with pytest.raises(InputError, match="no snapshot at TIMESTEP 7"):
         read_liggghts_dump(path, timestep=7)
+
+
+@pytest.mark.parametrize("row,error", [
+    ("1e-150,0,0,1", None),              # a tiny coordinate: harmless, read as given
+    ("1e300,0,0,1", "column 'x': must be 0 or between 1e-100 and 1e+100"),
+    ("0,0,0,1e-200", "column 'r': must be 0 or between 1e-100 and 1e+100"),
+    ("0,0,0,1e101", "column 'r': must be 0 or between 1e-100 and 1e+100"),
+])
+def test_csv_values_beyond_any_units_are_refused_with_their_line(tmp_path, row, error):
+    from demstep.io.formats import read_csv
+
+    f = tmp_path / "p.csv"
+    f.write_text(f"x,y,z,r\n5,5,5,1\n{row}\n")
+    if error is None:
+        assert read_csv(f).x[1, 0] == float(row.split(",")[0])
+        return
+    with pytest.raises(InputError, match=re.escape(f"p.csv:3: {error}")):
+        read_csv(f)

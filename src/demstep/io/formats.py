@@ -81,6 +81,11 @@ class ParticleData:
 
 # --------------------------------------------------------------------- helpers
 
+#: the columns whose values must lie within the magnitudes of
+#: :func:`demstep.errors.magnitude_problem` at both ends (others: only below its largest)
+SIZE_COLUMNS = ("r", "radius", "diameter", "m", "mass")
+
+
 def _number(text: str, path, line: int, column: str) -> float:
     try:
         value = float(text)
@@ -88,7 +93,10 @@ def _number(text: str, path, line: int, column: str) -> float:
         raise InputError(f"{path}:{line}: column {column!r}: not a number: {text!r}") from None
     if not np.isfinite(value):
         raise InputError(f"{path}:{line}: column {column!r}: not finite: {text!r}")
-    problem = magnitude_problem(value)
+    # every value at most MAX_MAGNITUDE; sizes and masses also at least MIN_MAGNITUDE (a
+    # velocity of 1e-150 in a dump of a packing at rest is harmless, a radius is not)
+    check = value if column in SIZE_COLUMNS or abs(value) > 1.0 else 0.0
+    problem = magnitude_problem(check)
     if problem:
         raise InputError(f"{path}:{line}: column {column!r}: {problem}, got {text!r}")
     return value
