@@ -104,6 +104,10 @@ def test_bad_files(tmp_path, capsys, content, needle):
      "restitution: must be a finite number, got 'nan'"),
     (["dt", "--lattice", "fcc", "--size", "2", "--youngs", "1e6", "--poisson", "0.3"],
      "contacts: every normal stiffness is 0"),
+    (["dt", "--lattice", "fcc", "--youngs", "1e6", "--poisson", "0.7", "--overlap", "1e-3"],
+     "error: poisson: must lie in (-1, 0.5), got 0.7"),
+    (["dt", "--lattice", "fcc", "--kn", "1e6", "--mode-vtk", "m.vtu", "--methods", "nodal"],
+     "mode-vtk: the critical mode comes from the exact method"),
 ])
 def test_bad_options(capsys, argv, needle):
     code, out, err = run(argv, capsys)

@@ -62,13 +62,15 @@ class Material:
     poisson: float
     density: float | None = None
 
-    def validate(self, where: str):
+    def validate(self, where: str = ""):
+        """One-line errors naming ``where`` (e.g. "material 2:"; "" for the options)."""
+        where = f"{where} " if where else ""
         if not (math.isfinite(self.youngs) and self.youngs > 0):
-            raise InputError(f"{where} youngs: must be finite and > 0, got {self.youngs!r}")
+            raise InputError(f"{where}youngs: must be finite and > 0, got {self.youngs!r}")
         if not (math.isfinite(self.poisson) and -1.0 < self.poisson < 0.5):
-            raise InputError(f"{where} poisson: must lie in (-1, 0.5), got {self.poisson!r}")
+            raise InputError(f"{where}poisson: must lie in (-1, 0.5), got {self.poisson!r}")
         if self.density is not None and not (math.isfinite(self.density) and self.density > 0):
-            raise InputError(f"{where} density: must be finite and > 0, got {self.density!r}")
+            raise InputError(f"{where}density: must be finite and > 0, got {self.density!r}")
 
 
 @dataclass
@@ -112,7 +114,7 @@ class ContactModel(RollingResistance):
                 raise InputError("youngs: the hertz model needs --youngs and --poisson "
                                  "(or --materials)")
             for t, m in self.materials.items():
-                m.validate(f"material {t}:")
+                m.validate("" if t is None else f"material {t}:")
         for name, v in (("restitution", self.restitution),
                         ("restitution-t", self.restitution_tangential)):
             if v is not None and not (math.isfinite(v) and 0.0 < v <= 1.0):

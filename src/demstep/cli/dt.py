@@ -370,6 +370,9 @@ def cmd_dt(args) -> int:
 
         check_certified_tol("exact-tol", args.exact_tol)
     methods = None if args.methods is None else [m.strip() for m in args.methods.split(",")]
+    if args.mode_vtk and methods is not None and not {"exact", "exact-undamped"} & set(methods):
+        raise InputError(f"mode-vtk: the critical mode comes from the exact method, not in "
+                         f"--methods {args.methods}")
     data = load_input(args)
     rotation = data.rotation if args.rotation is None else (args.rotation and data.rotation)
     if args.rotation and not data.rotation:
