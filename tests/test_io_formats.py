@@ -189,3 +189,12 @@ def test_csv_values_beyond_any_units_are_refused_with_their_line(tmp_path, row, 
         return
     with pytest.raises(InputError, match=re.escape(f"p.csv:3: {error}")):
         read_csv(f)
+
+
+def test_liggghts_box_with_hi_below_lo_is_refused_where_it_is_written(tmp_path):
+    path = tmp_path / "flat.dump"
+    path.write_text("ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n2\nITEM: BOX BOUNDS pp pp pp\n"
+                    "0 1\n5 -5\n0 1\nITEM: ATOMS id x y radius\n1 0.1 0.2 0.05\n2 0.4 0.2 0.05\n")
+    with pytest.raises(InputError, match=re.escape("flat.dump:7: BOX BOUNDS: yhi must exceed "
+                                                   "ylo, got 5 -5")):
+        read_liggghts_dump(path)

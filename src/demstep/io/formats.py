@@ -318,6 +318,9 @@ def _liggghts_snapshots(path) -> list[_Snapshot]:
                 raise InputError(f"{path}:{i + 1}: BOX BOUNDS: expected 'lo hi', got {lines[i].strip()!r}")
             box[a] = [_number(parts[0], path, i + 1, f"box {'xyz'[a]}lo"),
                       _number(parts[1], path, i + 1, f"box {'xyz'[a]}hi")]
+            if not box[a, 1] > box[a, 0]:
+                raise InputError(f"{path}:{i + 1}: BOX BOUNDS: {'xyz'[a]}hi must exceed "
+                                 f"{'xyz'[a]}lo, got {parts[0]} {parts[1]}")
         header = expect(k + 8, "ATOMS")
         columns = header.split()[2:]
         if not columns:
