@@ -768,7 +768,8 @@ def _run_locked(case, sim, out_dir, pos, restart_info, checkpoint, level, quiet,
         else:
             result = runner.run()
         stop.finished = True
-        log.info("%s", result.message)
+        if result.status not in FAILED:  # (a failure was logged as an error already)
+            log.info("%s", result.message)
     except BaseException as exc:
         stop.finished = True
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
