@@ -108,6 +108,13 @@ def test_bad_files(tmp_path, capsys, content, needle):
      "error: poisson: must lie in (-1, 0.5), got 0.7"),
     (["dt", "--lattice", "fcc", "--kn", "1e6", "--mode-vtk", "m.vtu", "--methods", "nodal"],
      "mode-vtk: the critical mode comes from the exact method"),
+    (["dt", "--lattice", "fcc", "--kn", "1e6", "--snapshot", "0"],
+     "snapshot: applies to liggghts files, not to a lattice input, got 0"),
+    (["dt", "--lattice", "fcc", "--kn", "1e6", "--stage", "2"], "stage: applies to case files"),
+    (["dt", "--lattice", "fcc", "--kn", "1e6", "--case", "c.toml"],
+     "case: applies to checkpoint files"),
+    (["dt", "--lattice", "zz", "--paper-table"], "paper-table: reproduces the paper's tables "
+                                                "and takes no input, got --lattice zz"),
 ])
 def test_bad_options(capsys, argv, needle):
     code, out, err = run(argv, capsys)

@@ -300,6 +300,7 @@ def load_input(args):
             raise InputError("periodic: with --lattice, give --periodic without axes")
         if args.wall or args.box:
             raise InputError("wall: --wall and --box apply to files, not to --lattice")
+        _check_source_options(args, "lattice")
         lat = lattice(args.lattice, args.radius)
         check_memory(len(lat.basis) * args.size ** lat.dim, args.max_memory,
                      f"the {args.lattice} lattice of size {args.size}")
@@ -314,6 +315,7 @@ def load_input(args):
     if path.is_dir():
         raise InputError(f"{path}: is a folder, expected a file")
     fmt = _file_format(args)
+    _check_source_options(args, fmt)
     if fmt in ("case", "checkpoint"):
         given = [o for o, v in (("--kn", args.kn), ("--ks", args.ks), ("--youngs", args.youngs),
                                 ("--poisson", args.poisson), ("--materials", args.materials),
@@ -342,6 +344,22 @@ def load_input(args):
                         args.snapshot)
 
 
+#: options that apply to one kind of input only: (option, attribute, default, formats)
+SOURCE_OPTIONS = (("--snapshot", "snapshot", -1, ("liggghts",)),
+                  ("--stage", "stage", 1, ("case",)),
+                  ("--case", "case", None, ("checkpoint",)))
+
+
+def _check_source_options(args, fmt: str):
+    """An option of another kind of input given (``fmt``: the input's format, or
+    "lattice"): one line naming it, instead of ignoring it."""
+    for option, name, default, formats in SOURCE_OPTIONS:
+        value = getattr(args, name)
+        if value != default and fmt not in formats:
+            raise InputError(f"{option[2:]}: applies to {' or '.join(formats)} files, not to "
+                             f"a {fmt} input, got {value!r}")
+
+
 def _estimate_rows(path: Path) -> int:
     """The number of lines of a text file (an upper bound on its particles), counted
     without reading it into memory."""
@@ -354,6 +372,9 @@ def _estimate_rows(path: Path) -> int:
 
 # ----------------------------------------------------------------------- command
 def cmd_dt(args) -> int:
+    if args.paper_table and (args.state is not None or args.lattice is not None):
+        raise InputError("paper-table: reproduces the paper's tables and takes no input, got "
+                         f"{args.state if args.state is not None else '--lattice ' + args.lattice}")
     if args.paper_table:
         from demstep.timestep.paper_table import format_table, paper_table, table_json
 
