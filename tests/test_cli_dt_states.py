@@ -296,6 +296,10 @@ def test_case_file_and_checkpoint(tmp_path, capsys):
     assert data["damped"] and est["exact"]["dt"] < est["exact-undamped"]["dt"]
     code, out, err = run(["dt", str(ck), "--kn", "5"], capsys)
     assert code == 2 and "--kn" in err
+    # a checkpoint without its run state: the error names dt's input, not run's --restart
+    ck.with_suffix(".json").unlink()
+    code, out, err = run(["dt", str(ck)], capsys)
+    assert code == 2 and err.startswith("demstep: error: checkpoint: no run state")
 
 
 @pytest.mark.parametrize("argv,needle", [

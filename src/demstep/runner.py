@@ -116,10 +116,12 @@ def write_state(checkpoint, pos: RunPosition, case: Case, sim, reason: str) -> P
     return _write_text(state_path(checkpoint), json.dumps(data, indent=2) + "\n")
 
 
-def read_state(checkpoint) -> tuple[RunPosition, dict]:
+def read_state(checkpoint, key: str = "restart") -> tuple[RunPosition, dict]:
+    """Where the run that wrote ``checkpoint`` was; errors name the option ``key``
+    (``restart`` for ``demstep run --restart``, ``checkpoint`` for ``demstep dt``)."""
     path = state_path(checkpoint)
     if not path.is_file():
-        raise InputError(f"restart: no run state {path.name} beside the checkpoint {checkpoint}")
+        raise InputError(f"{key}: no run state {path.name} beside the checkpoint {checkpoint}")
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
         if data.get("format") != STATE_FORMAT:
@@ -128,7 +130,7 @@ def read_state(checkpoint) -> tuple[RunPosition, dict]:
                           int(data["stage_start_step"]), float(data["stage_start_time"]),
                           None if data["stage_total"] is None else int(data["stage_total"]))
     except (ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"restart: {path}: not a demstep run state ({exc})") from None
+        raise InputError(f"{key}: {path}: not a demstep run state ({exc})") from None
     return pos, data
 
 

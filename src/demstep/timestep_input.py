@@ -713,7 +713,7 @@ def load_run(checkpoint, case_path=None):
         if not case_path.is_file():
             raise InputError(f"case: no case.toml in the run folder of {checkpoint}: give --case")
     case = load_case(case_path)
-    pos, _ = read_state(checkpoint)
+    pos, _ = read_state(checkpoint, key="checkpoint")
     sim = build_simulation(case)
     started = pos.stage + 1 if pos.stage_step > 0 else pos.stage
     for k in range(min(started, len(case.stages))):
