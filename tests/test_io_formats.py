@@ -198,3 +198,15 @@ def test_liggghts_box_with_hi_below_lo_is_refused_where_it_is_written(tmp_path):
     with pytest.raises(InputError, match=re.escape("flat.dump:7: BOX BOUNDS: yhi must exceed "
                                                    "ylo, got 5 -5")):
         read_liggghts_dump(path)
+
+
+def test_csv_takes_radius_and_mass_for_r_and_m_and_refuses_a_column_twice(tmp_path):
+    from demstep.io.formats import read_csv
+
+    f = tmp_path / "p.csv"
+    f.write_text("id,x,y,z,radius,mass\n7,0,0,0,1.5,2.5\n8,3,0,0,0.5,0.25\n")
+    data = read_csv(f)
+    assert data.r.tolist() == [1.5, 0.5] and data.m.tolist() == [2.5, 0.25]
+    f.write_text("x,y,z,r,radius\n0,0,0,1,2\n")
+    with pytest.raises(InputError, match=re.escape("p.csv:1: column 'r' given twice")):
+        read_csv(f)

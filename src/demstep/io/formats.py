@@ -147,8 +147,13 @@ def _columns(x, r) -> tuple[np.ndarray, np.ndarray]:
 
 # ------------------------------------------------------------------------ CSV
 
+#: column names a CSV may use for demstep's own (as LIGGGHTS and spreadsheets name them)
+CSV_ALIASES = {"radius": "r", "mass": "m"}
+
+
 def read_csv(path) -> ParticleData:
-    """CSV with header x,y[,z],r[,m] (any column order, extra columns ignored)."""
+    """CSV with header x,y[,z],r[,m][,type][,body] (``radius`` and ``mass`` taken for r
+    and m; any column order; other columns ignored, a column given twice refused)."""
     path = Path(path)
     if not path.is_file():
         raise missing_file(path)
@@ -158,7 +163,11 @@ def read_csv(path) -> ParticleData:
             header = next(reader, None)
             if header is None:
                 raise InputError(f"{path}: empty file")
-            header = [h.strip().lower() for h in header]
+            header = [CSV_ALIASES.get(h.strip().lower(), h.strip().lower()) for h in header]
+            twice = [c for c in ("x", "y", "z", "r", "m", "type", "body") if header.count(c) > 1]
+            if twice:
+                raise InputError(f"{path}:1: column {twice[0]!r} given twice (radius/mass "
+                                 f"count as r/m; got {','.join(header)})")
             dim = 3 if "z" in header else 2
             needed = ["x", "y", "r"] if dim == 2 else ["x", "y", "z", "r"]
             missing = [c for c in needed if c not in header]
