@@ -210,3 +210,19 @@ def test_csv_takes_radius_and_mass_for_r_and_m_and_refuses_a_column_twice(tmp_pa
     f.write_text("x,y,z,r,radius\n0,0,0,1,2\n")
     with pytest.raises(InputError, match=re.escape("p.csv:1: column 'r' given twice")):
         read_csv(f)
+
+
+@pytest.mark.parametrize("column,value,error", [
+    ("type", "1.5", "column 'type': expected an integer >= 1, got 1.5"),
+    ("type", "0", "column 'type': expected an integer >= 1, got 0"),
+    ("id", "2.5", "column 'id': expected an integer, got 2.5"),
+])
+def test_liggghts_integer_columns_are_integers(tmp_path, column, value, error):
+    path = tmp_path / "d.dump"
+    row = {"id": "2", "type": "1"}
+    row[column] = value
+    path.write_text("ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n2\nITEM: BOX BOUNDS pp pp pp\n"
+                    "0 1\n0 1\n0 1\nITEM: ATOMS id type x y radius\n1 1 0.1 0.2 0.05\n"
+                    f"{row['id']} {row['type']} 0.4 0.2 0.05\n")
+    with pytest.raises(InputError, match=re.escape(f"d.dump:11: {error}")):
+        read_liggghts_dump(path)

@@ -410,6 +410,15 @@ def read_liggghts_dump(path, snapshot: int = -1, timestep: int | None = None) ->
         x[:, a] = lo + data[nm] * (hi - lo) if s else data[nm]
     r = data[radius_col] * (0.5 if radius_col == "diameter" else 1.0)
     _check_positive(r, path, lines, radius_col, "radius")
+    for name, minimum in (("id", -np.inf), ("type", 1), ("body", -1), ("mol", -np.inf)):
+        if name in data:
+            values = data[name]
+            bad = np.flatnonzero((values != np.round(values)) | (values < minimum))
+            if len(bad):
+                k = bad[0]
+                need = "an integer" if minimum == -np.inf else f"an integer >= {minimum}"
+                raise InputError(f"{path}:{lines[k]}: column {name!r}: expected {need}, "
+                                 f"got {values[k]:g}")
     order = np.argsort(data["id"], kind="stable") if "id" in data else np.arange(len(r))
     if "id" in data:
         ids = data["id"][order]
