@@ -113,6 +113,8 @@ def test_bad_files(tmp_path, capsys, content, needle):
     (["dt", "--lattice", "fcc", "--kn", "1e6", "--stage", "2"], "stage: applies to case files"),
     (["dt", "--lattice", "fcc", "--kn", "1e6", "--case", "c.toml"],
      "case: applies to checkpoint files"),
+    (["dt", "--lattice", "fcc", "--kn", "1e6", "--methods", "hertz-time,exact-undamped"],
+     "methods: none of hertz-time, exact-undamped applies to this input (hertz-time: needs"),
     (["dt", "--lattice", "zz", "--paper-table"], "paper-table: reproduces the paper's tables "
                                                 "and takes no input, got --lattice zz"),
 ])
@@ -147,3 +149,15 @@ def test_exact_tol_certified_and_close(capsys):
         assert any("relative residual of 1e-05" in n for n in data["notes"]) == (tol is not None)
     # the looser bound gives a smaller step (the option reached the solver), not by much
     assert steps[None] * (1 - 4e-5) <= steps["1e-5"] < steps[None]
+
+
+def test_a_method_that_does_not_apply_is_named_in_a_note(capsys):
+    code, out, err = run(["dt", "--lattice", "fcc", "--size", "2", "--kn", "1e6", "--json",
+                          "--methods", "nodal,exact-undamped,rayleigh-time,nodal"], capsys)
+    assert code == 0, err
+    data = json.loads(out)
+    assert [e["method"] for e in data["estimates"]] == ["nodal"]
+    assert "exact-undamped: does not apply here (no damping: exact is the undamped step)" \
+        in data["notes"]
+    assert any(n.startswith("rayleigh-time: does not apply here (needs Hertz materials")
+               for n in data["notes"])

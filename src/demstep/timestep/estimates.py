@@ -46,6 +46,16 @@ METHODS = ("exact", "exact-undamped", "exact-periodic", "element-coupled", "elem
 RULES = ("rayleigh-time",) + tuple(f"rayleigh-{round(100 * f)}%" for f in RAYLEIGH_FRACTIONS) \
     + ("hertz-time",)
 
+#: why a method asked for is not shown (:func:`estimate_time_steps`)
+NOT_APPLICABLE = {
+    "exact-undamped": "no damping: exact is the undamped step",
+    "exact-periodic": "needs a lattice input (--lattice)",
+    "element-paper": "not defined for clumps",
+    "hertz-time": "needs Hertz materials and an impact velocity",
+    **{rule: "needs Hertz materials (--youngs/--poisson or --materials)"
+       for rule in RULES if rule != "hertz-time"},
+}
+
 #: relative slack when calling an estimate conservative (dt_method <= dt_exact)
 CONSERVATIVE_RTOL = 1e-9
 
@@ -330,6 +340,7 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
         raise InputError("damping: give either damping or rayleigh, not both")
     d = _damping(damping if damping is not None else rayleigh)
     damped = contacts.damped or d.active
+    requested = None if methods is None else list(dict.fromkeys(methods))
     methods = list(dict.fromkeys(METHODS if methods is None else methods))  # (each once)
     for m in methods:
         if m not in METHODS + RULES:
@@ -414,6 +425,14 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
         ref = exact.dt
         for e in report.estimates:
             e.conservative = bool(e.dt <= ref * (1.0 + CONSERVATIVE_RTOL))
+    if requested is not None:
+        shown = {e.method for e in report.estimates}
+        for m in requested:
+            if m not in shown and not any(n.startswith(f"{m}:") for n in report.notes):
+                report.notes.append(f"{m}: does not apply here ({NOT_APPLICABLE.get(m, '')})")
+        if not report.estimates:
+            raise InputError(f"methods: none of {', '.join(requested)} applies to this input "
+                             f"({'; '.join(f'{m}: {NOT_APPLICABLE.get(m, m)}' for m in requested)})")
     return report
 
 
