@@ -35,13 +35,15 @@ file, the line and the field at fault.
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from demstep.io.atomic import write_text_atomic
-from demstep.errors import InputError, magnitude_problem, missing_file
+from demstep.errors import (MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem,
+                            missing_file)
 
 #: format names understood by :func:`read_particle_file` / :func:`write_particle_file`
 FORMATS = ("csv", "liggghts", "yade")
@@ -91,14 +93,15 @@ def _number(text: str, path, line: int, column: str) -> float:
         value = float(text)
     except (TypeError, ValueError):
         raise InputError(f"{path}:{line}: column {column!r}: not a number: {text!r}") from None
-    if not np.isfinite(value):
+    if not math.isfinite(value):
         raise InputError(f"{path}:{line}: column {column!r}: not finite: {text!r}")
     # every value at most MAX_MAGNITUDE; sizes and masses also at least MIN_MAGNITUDE (a
-    # velocity of 1e-150 in a dump of a packing at rest is harmless, a radius is not)
-    check = value if column in SIZE_COLUMNS or abs(value) > 1.0 else 0.0
-    problem = magnitude_problem(check)
-    if problem:
-        raise InputError(f"{path}:{line}: column {column!r}: {problem}, got {text!r}")
+    # velocity of 1e-150 in a dump of a packing at rest is harmless, a radius is not).
+    # Called per value of a file: compared inline, the message built only on failure
+    size = abs(value)
+    if size > MAX_MAGNITUDE or (0.0 < size < MIN_MAGNITUDE and column in SIZE_COLUMNS):
+        raise InputError(f"{path}:{line}: column {column!r}: {magnitude_problem(value)}, "
+                         f"got {text!r}")
     return value
 
 
@@ -242,12 +245,21 @@ def _integer_column(data, cols, name, path, lines, minimum):
     -1 for a free sphere) or None."""
     if name not in cols:
         return None
-    values = data[:, cols.index(name)]
-    bad = np.flatnonzero((values != np.round(values)) | (values < minimum))
+    return _check_integers(data[:, cols.index(name)], name, path, lines, minimum)
+
+
+def _check_integers(values, name, path, lines, minimum=None) -> np.ndarray:
+    """``values`` of the column ``name`` (read from ``lines`` of ``path``) as int64 when
+    each is an integer (>= ``minimum`` when given); else an InputError naming the line."""
+    bad = values != np.round(values)
+    if minimum is not None:
+        bad |= values < minimum
+    bad = np.flatnonzero(bad)
     if len(bad):
         k = bad[0]
-        raise InputError(f"{path}:{lines[k]}: column {name!r}: expected an integer >= "
-                         f"{minimum}, got {values[k]:g}")
+        need = "an integer" if minimum is None else f"an integer >= {minimum}"
+        raise InputError(f"{path}:{lines[k]}: column {name!r}: expected {need}, "
+                         f"got {values[k]:g}")
     return values.astype(np.int64)
 
 
@@ -410,15 +422,9 @@ def read_liggghts_dump(path, snapshot: int = -1, timestep: int | None = None) ->
         x[:, a] = lo + data[nm] * (hi - lo) if s else data[nm]
     r = data[radius_col] * (0.5 if radius_col == "diameter" else 1.0)
     _check_positive(r, path, lines, radius_col, "radius")
-    for name, minimum in (("id", -np.inf), ("type", 1), ("body", -1), ("mol", -np.inf)):
+    for name, minimum in (("id", None), ("type", 1), ("body", -1), ("mol", None)):
         if name in data:
-            values = data[name]
-            bad = np.flatnonzero((values != np.round(values)) | (values < minimum))
-            if len(bad):
-                k = bad[0]
-                need = "an integer" if minimum == -np.inf else f"an integer >= {minimum}"
-                raise InputError(f"{path}:{lines[k]}: column {name!r}: expected {need}, "
-                                 f"got {values[k]:g}")
+            _check_integers(data[name], name, path, lines, minimum)
     order = np.argsort(data["id"], kind="stable") if "id" in data else np.arange(len(r))
     if "id" in data:
         ids = data["id"][order]
