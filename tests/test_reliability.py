@@ -131,8 +131,37 @@ def test_folder_lock_excludes_a_second_holder(tmp_path):
         FolderLock(tmp_path).acquire()
     first.release()
     with FolderLock(tmp_path):  # free again
-        pass
-    assert (tmp_path / LOCK_NAME).is_file()
+        assert (tmp_path / LOCK_NAME).is_file()
+    assert not (tmp_path / LOCK_NAME).exists()  # a finished holder leaves no file
+
+
+def test_folder_lock_whose_file_was_deleted_while_waiting_is_taken_anew(tmp_path,
+                                                                        monkeypatch):
+    """The holder deletes the lock file when it releases it. A process that opened the
+    file just before that would lock a deleted file, and a third process would create
+    and lock a new one: two holders. It must notice and open the new file instead."""
+    from demstep.io import lock as lock_module
+
+    first = FolderLock(tmp_path).acquire()
+    real_open = os.open
+    opened = []
+
+    def open_then_holder_releases(*args, **kwargs):
+        fd = real_open(*args, **kwargs)
+        if args and str(args[0]).endswith(LOCK_NAME):
+            opened.append(os.fstat(fd).st_ino)
+            if len(opened) == 1:
+                first.release()  # the holder ends between this open and the flock
+        return fd
+
+    monkeypatch.setattr(lock_module.os, "open", open_then_holder_releases)
+    second = FolderLock(tmp_path).acquire()
+    monkeypatch.undo()
+    assert len(opened) == 2
+    assert os.fstat(second._fd).st_ino == os.stat(tmp_path / LOCK_NAME).st_ino
+    with pytest.raises(InputError, match="in use by another demstep process"):
+        FolderLock(tmp_path).acquire()
+    second.release()
 
 
 def test_folder_lock_on_a_file_system_without_locks(tmp_path, monkeypatch, caplog):
@@ -741,7 +770,7 @@ def test_sweep_folder_is_locked(tmp_path, small, capsys, no_worker_scheduler):
         code, _, err = cli(["sweep", small, "--param", "contact.mu=0.1", "--out", out,
                             "--scheduler", no_worker_scheduler], capsys)
     assert_one_line_error(code, err, "in use by another demstep process")
-    assert [p.name for p in out.iterdir()] == [LOCK_NAME]
+    assert list(out.iterdir()) == []  # nothing written, and the lock file gone with the lock
 
 
 def test_unfinished_run_folder_is_marked(tmp_path):

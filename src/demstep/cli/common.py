@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 
 from demstep.errors import InputError, magnitude_problem
@@ -68,7 +69,17 @@ def number(name, minimum=None, strict=False):
     return parse
 
 
+#: a negative number as an option's value, exponent forms included: argparse (before
+#: Python 3.13) took ``-1e-5`` for an option and said "expected one argument" instead of
+#: passing it to the option's check, which names the option and the value
+NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
+
+
 class Parser(argparse.ArgumentParser):
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = NEGATIVE_NUMBER
+
     def error(self, message):  # one line, exit 2
         self.exit(2, f"demstep: error: {message}\n")
 

@@ -154,11 +154,10 @@ def add_dt_parser(sub):
 
 # ----------------------------------------------------------------------- checks
 def _check_output_path(option: str, path, suffixes) -> Path:
-    """An output path with a known suffix whose folder exists or can be made (its
-    nearest existing ancestor is a writable folder)."""
-    import os
-
+    """An output path with a known suffix whose folder exists or can be made
+    (:func:`~demstep.io.lock.check_folder_creatable`)."""
     from demstep.io.atomic import check_name_lengths
+    from demstep.io.lock import check_folder_creatable
 
     path = Path(path)
     if path.suffix.lower() not in suffixes:
@@ -167,13 +166,7 @@ def _check_output_path(option: str, path, suffixes) -> Path:
     if path.is_dir():
         raise InputError(f"{option}: {str(path)!r} is a folder")
     check_name_lengths(path, option)
-    ancestor = path.absolute().parent
-    while not ancestor.exists():
-        ancestor = ancestor.parent
-    if not ancestor.is_dir():
-        raise InputError(f"{option}: {str(ancestor)!r} is not a folder, cannot write {str(path)!r}")
-    if not os.access(ancestor, os.W_OK):
-        raise InputError(f"{option}: cannot write in {str(ancestor)!r}")
+    check_folder_creatable(path.absolute().parent, option)
     return path
 
 

@@ -2,10 +2,13 @@
 
 A :class:`FolderLock` holds ``fcntl.flock`` on the file ``FOLDER/.demstep.lock``; the
 operating system releases it when the process ends in any way (SIGKILL included), so
-a lock is never stale. The file stays in the folder (deleting a lock file that another
-process may have opened would let two processes hold "the" lock); it holds the process
-id and host of the last holder, for the message a second process gets. On systems
-without ``fcntl`` (Windows) folders are not locked.
+a lock is never stale. The file holds the process id and host of its holder, for the
+message a second process gets. The holder deletes it before unlocking, so a finished
+run leaves no lock file; a process that opened the file and locked it after that
+finds that its file is no longer the one at the path (another inode, or none) and
+starts again, so two processes never both hold "the" lock (the usual protocol for
+deletable lock files). A killed process leaves the file, unlocked: the next one takes
+it. On systems without ``fcntl`` (Windows) folders are not locked.
 """
 
 from __future__ import annotations
@@ -48,23 +51,10 @@ class FolderLock:
         """Take the lock at once or raise InputError naming the process holding it."""
         if self._fd is not None:
             return self
-        try:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
-        except OSError as exc:
-            raise InputError(f"{self.key}: cannot write into {self.folder} "
-                             f"({exc.strerror or exc})") from None
-        if fcntl is not None:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = _read_holder(fd)
-                os.close(fd)
-                raise InputError(f"{self.key}: {self.folder} is in use by another demstep "
-                                 f"process{holder}; wait for it to end or choose another "
-                                 f"folder") from None
-            except OSError as exc:  # a file system without locks (some network mounts)
-                log.warning("%s: cannot lock %s (%s); continuing without a lock", self.key,
-                            self.folder, exc.strerror or exc)
+        while True:
+            fd = self._open_locked()
+            if fd is not None:
+                break
         try:
             os.ftruncate(fd, 0)
             os.pwrite(fd, f"{os.getpid()} {platform.node()}\n".encode(), 0)
@@ -73,10 +63,46 @@ class FolderLock:
         self._fd = fd
         return self
 
+    def _open_locked(self) -> int | None:
+        """The lock file open and locked, or None when the file was deleted (by the
+        holder releasing it) between opening and locking: the caller opens anew."""
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as exc:
+            raise InputError(f"{self.key}: cannot write into {self.folder} "
+                             f"({exc.strerror or exc})") from None
+        if fcntl is None:
+            return fd
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _read_holder(fd)
+            os.close(fd)
+            raise InputError(f"{self.key}: {self.folder} is in use by another demstep "
+                             f"process{holder}; wait for it to end or choose another "
+                             f"folder") from None
+        except OSError as exc:  # a file system without locks (some network mounts)
+            log.warning("%s: cannot lock %s (%s); continuing without a lock", self.key,
+                        self.folder, exc.strerror or exc)
+            return fd
+        try:
+            current = os.stat(self.path).st_ino
+        except FileNotFoundError:
+            current = None
+        if current != os.fstat(fd).st_ino:
+            os.close(fd)
+            return None
+        return fd
+
     def release(self) -> None:
+        """Delete the lock file (while still holding it), then unlock."""
         if self._fd is None:
             return
         fd, self._fd = self._fd, None
+        try:
+            os.unlink(self.path)
+        except OSError:
+            pass  # gone already, or a read-only folder: the lock is released anyway
         try:
             if fcntl is not None:
                 fcntl.flock(fd, fcntl.LOCK_UN)
@@ -138,8 +164,8 @@ def check_folder_creatable(folder, key: str = "out") -> None:
         while not probe.exists() and probe.parent != probe:
             probe = probe.parent
         if probe.exists() and not probe.is_dir():
-            raise InputError(f"{key}: {str(probe)!r} is a file, so {str(folder)!r} cannot "
-                             f"be a folder")
+            raise InputError(f"{key}: {str(probe)!r} is a file, not a folder, so "
+                             f"{str(folder)!r} cannot be made")
         writable = os.access(probe, os.W_OK | os.X_OK)
     except OSError as exc:
         raise InputError(f"{key}: cannot access {str(folder)!r} "
