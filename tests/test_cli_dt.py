@@ -103,6 +103,7 @@ def test_bad_files(tmp_path, capsys, content, needle):
     (["dt", "--lattice", "fcc", "--exact-tol", "-1e-5"],
      "exact-tol: must be a finite number > 0, got '-1e-5'"),
     (["dt", "--lattice", "fcc", "--kn", "-.5E+3"], "kn: must be a finite number > 0, got '-.5E+3'"),
+    (["dt", "--lattice", "fcc", "--kn", "-inf"], "kn: must be a finite number > 0, got '-inf'"),
     (["dt", "--lattice", "fcc", "--kn", "1e308"], "kn: must be 0 or between 1e-100 and 1e+100"),
     (["dt", "--lattice", "fcc", "--kn", "1e6", "--density", "1e-300"], "density: must be 0 or"),
     (["dt", "--lattice", "fcc", "--kn", "1e6", "--restitution", "nan"],

@@ -70,9 +70,10 @@ def number(name, minimum=None, strict=False):
 
 
 #: a negative number as an option's value, exponent forms included: argparse (before
-#: Python 3.13) took ``-1e-5`` for an option and said "expected one argument" instead of
+#: Python 3.13) took ``-1e-5`` (or ``-inf``) for an option and said "expected one argument" instead of
 #: passing it to the option's check, which names the option and the value
-NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
+NEGATIVE_NUMBER = re.compile(r"^-((\d+\.?\d*|\.\d+)(e[+-]?\d+)?|inf|infinity|nan)$",
+                             re.IGNORECASE)
 
 
 class Parser(argparse.ArgumentParser):
