@@ -164,6 +164,34 @@ def test_folder_lock_whose_file_was_deleted_while_waiting_is_taken_anew(tmp_path
     second.release()
 
 
+def test_folder_lock_release_leaves_a_newer_holders_file_alone(tmp_path):
+    """A lock file deleted by hand while its holder runs: a second process makes and
+    locks a new one; when the first ends it must not delete the second's file (a third
+    process would then lock a file of its own beside the second)."""
+    first = FolderLock(tmp_path).acquire()
+    (tmp_path / LOCK_NAME).unlink()
+    second = FolderLock(tmp_path).acquire()
+    first.release()
+    assert (tmp_path / LOCK_NAME).is_file()
+    with pytest.raises(InputError, match="in use by another demstep process"):
+        FolderLock(tmp_path).acquire()
+    second.release()
+    assert not (tmp_path / LOCK_NAME).exists()
+
+
+def test_folder_lock_gives_up_when_its_file_keeps_changing(tmp_path, monkeypatch):
+    """A file system on which the locked file never matches the path (or something
+    replacing the file all the time) ends in a one-line error, not an endless loop."""
+    from demstep.io import lock as lock_module
+
+    monkeypatch.setattr(lock_module, "_is_file_at", lambda fd, path: False)
+    with pytest.raises(InputError, match=f"changed under each of {lock_module.LOCK_ATTEMPTS}"):
+        FolderLock(tmp_path).acquire()
+    monkeypatch.undo()
+    with FolderLock(tmp_path):  # no descriptor left holding the lock
+        pass
+
+
 def test_folder_lock_on_a_file_system_without_locks(tmp_path, monkeypatch, caplog):
     """Some network mounts refuse flock (ENOLCK): the run goes on, with a warning,
     rather than being refused as if another process held the folder."""

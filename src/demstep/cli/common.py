@@ -69,9 +69,9 @@ def number(name, minimum=None, strict=False):
     return parse
 
 
-#: a negative number as an option's value, exponent forms included: argparse (before
-#: Python 3.13) took ``-1e-5`` (or ``-inf``) for an option and said "expected one argument" instead of
-#: passing it to the option's check, which names the option and the value
+#: a negative number as an option's value, exponent forms and -inf included: argparse
+#: (through Python 3.13.0 at least) took ``-1e-5`` for an option and said "expected one
+#: argument" instead of passing it to the option's check, which names option and value
 NEGATIVE_NUMBER = re.compile(r"^-((\d+\.?\d*|\.\d+)(e[+-]?\d+)?|inf|infinity|nan)$",
                              re.IGNORECASE)
 

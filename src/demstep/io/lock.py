@@ -28,6 +28,9 @@ except ImportError:  # pragma: no cover - Windows
 
 #: the lock file in every folder demstep writes a run or a sweep into
 LOCK_NAME = ".demstep.lock"
+#: times :meth:`FolderLock.acquire` opens the lock file anew when it was deleted between
+#: opening and locking (a holder releasing it) before it gives up
+LOCK_ATTEMPTS = 100
 
 log = logging.getLogger("demstep")
 
@@ -51,10 +54,13 @@ class FolderLock:
         """Take the lock at once or raise InputError naming the process holding it."""
         if self._fd is not None:
             return self
-        while True:
+        for _ in range(LOCK_ATTEMPTS):
             fd = self._open_locked()
             if fd is not None:
                 break
+        else:
+            raise InputError(f"{self.key}: cannot lock {self.folder}: its lock file "
+                             f"{LOCK_NAME} changed under each of {LOCK_ATTEMPTS} attempts")
         try:
             os.ftruncate(fd, 0)
             os.pwrite(fd, f"{os.getpid()} {platform.node()}\n".encode(), 0)
@@ -86,10 +92,12 @@ class FolderLock:
                         self.folder, exc.strerror or exc)
             return fd
         try:
-            current = os.stat(self.path).st_ino
-        except FileNotFoundError:
-            current = None
-        if current != os.fstat(fd).st_ino:
+            ours = _is_file_at(fd, self.path)
+        except OSError as exc:
+            os.close(fd)
+            raise InputError(f"{self.key}: cannot lock {self.folder} "
+                             f"({exc.strerror or exc})") from None
+        if not ours:
             os.close(fd)
             return None
         return fd
@@ -99,13 +107,19 @@ class FolderLock:
         if self._fd is None:
             return
         fd, self._fd = self._fd, None
+        if fcntl is None:  # no lock; an open file cannot be deleted there (Windows)
+            os.close(fd)
+            _unlink_quietly(self.path)
+            return
         try:
-            os.unlink(self.path)
+            # only our own file: if it was deleted by hand while we held it, another
+            # process may hold a new one at the path
+            if _is_file_at(fd, self.path):
+                _unlink_quietly(self.path)
         except OSError:
-            pass  # gone already, or a read-only folder: the lock is released anyway
+            pass  # the lock is released below anyway
         try:
-            if fcntl is not None:
-                fcntl.flock(fd, fcntl.LOCK_UN)
+            fcntl.flock(fd, fcntl.LOCK_UN)
         except OSError:
             pass  # closing the file releases the lock anyway
         finally:
@@ -116,6 +130,23 @@ class FolderLock:
 
     def __exit__(self, *exc):
         self.release()
+
+
+def _is_file_at(fd: int, path: Path) -> bool:
+    """Whether the open file ``fd`` is the file at ``path`` (False when none is)."""
+    mine = os.fstat(fd)
+    try:
+        there = os.stat(path)
+    except FileNotFoundError:
+        return False
+    return (mine.st_dev, mine.st_ino) == (there.st_dev, there.st_ino)
+
+
+def _unlink_quietly(path: Path) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass  # gone already, or a read-only folder
 
 
 def _read_holder(fd: int) -> str:
