@@ -365,10 +365,11 @@ def _estimate_rows(path: Path) -> int:
 
 # ----------------------------------------------------------------------- command
 def cmd_dt(args) -> int:
-    if args.paper_table and (args.state is not None or args.lattice is not None):
-        raise InputError("paper-table: reproduces the paper's tables and takes no input, got "
-                         f"{args.state if args.state is not None else '--lattice ' + args.lattice}")
     if args.paper_table:
+        if args.state is not None or args.lattice is not None:
+            given = args.state if args.state is not None else f"--lattice {args.lattice}"
+            raise InputError("paper-table: reproduces the paper's tables and takes no input, "
+                             f"got {given}")
         from demstep.timestep.paper_table import format_table, paper_table, table_json
 
         rows = paper_table()

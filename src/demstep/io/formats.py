@@ -152,6 +152,8 @@ def _columns(x, r) -> tuple[np.ndarray, np.ndarray]:
 
 #: column names a CSV may use for demstep's own (as LIGGGHTS and spreadsheets name them)
 CSV_ALIASES = {"radius": "r", "mass": "m"}
+#: the optional columns a CSV's particles take (the others are ignored)
+CSV_OPTIONAL = ("m", "type", "body")
 
 
 def read_csv(path) -> ParticleData:
@@ -167,7 +169,7 @@ def read_csv(path) -> ParticleData:
             if header is None:
                 raise InputError(f"{path}: empty file")
             header = [CSV_ALIASES.get(h.strip().lower(), h.strip().lower()) for h in header]
-            twice = [c for c in ("x", "y", "z", "r", "m", "type", "body") if header.count(c) > 1]
+            twice = [c for c in ("x", "y", "z", "r") + CSV_OPTIONAL if header.count(c) > 1]
             if twice:
                 raise InputError(f"{path}:1: column {twice[0]!r} given twice (radius/mass "
                                  f"count as r/m; got {','.join(header)})")
@@ -177,7 +179,7 @@ def read_csv(path) -> ParticleData:
             if missing:
                 raise InputError(f"{path}:1: missing column {missing[0]!r} (header must be "
                                  f"x,y,r or x,y,z,r, optional m; got {','.join(header)})")
-            cols = needed + [c for c in ("m", "type", "body") if c in header]
+            cols = needed + [c for c in CSV_OPTIONAL if c in header]
             index = [header.index(c) for c in cols]
             rows, lines = [], []
             for line, row in enumerate(reader, start=2):

@@ -56,6 +56,10 @@ NOT_APPLICABLE = {
        for rule in RULES if rule != "hertz-time"},
 }
 
+def _why_not(method: str) -> str:
+    return NOT_APPLICABLE.get(method, "not computed for this input")
+
+
 #: relative slack when calling an estimate conservative (dt_method <= dt_exact)
 CONSERVATIVE_RTOL = 1e-9
 
@@ -340,8 +344,8 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
         raise InputError("damping: give either damping or rayleigh, not both")
     d = _damping(damping if damping is not None else rayleigh)
     damped = contacts.damped or d.active
-    requested = None if methods is None else list(dict.fromkeys(methods))
-    methods = list(dict.fromkeys(METHODS if methods is None else methods))  # (each once)
+    requested = None if methods is None else list(dict.fromkeys(methods))  # (each once)
+    methods = list(METHODS if requested is None else requested)
     for m in methods:
         if m not in METHODS + RULES:
             raise InputError(f"method: unknown method {m!r}; choose from "
@@ -429,10 +433,10 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
         shown = {e.method for e in report.estimates}
         for m in requested:
             if m not in shown and not any(n.startswith(f"{m}:") for n in report.notes):
-                report.notes.append(f"{m}: does not apply here ({NOT_APPLICABLE.get(m, '')})")
+                report.notes.append(f"{m}: does not apply here ({_why_not(m)})")
         if not report.estimates:
             raise InputError(f"methods: none of {', '.join(requested)} applies to this input "
-                             f"({'; '.join(f'{m}: {NOT_APPLICABLE.get(m, m)}' for m in requested)})")
+                             f"({'; '.join(f'{m}: {_why_not(m)}' for m in requested)})")
     return report
 
 
