@@ -665,6 +665,33 @@ def test_sigterm_exits_143_and_sigint_130(tmp_path):
         assert run_json(out)["status"] == "interrupted" and result.checkpoint.is_file()
 
 
+@pytest.mark.parametrize("exit_now", [True, False])
+def test_signals_after_a_run_stopped_by_one(exit_now):
+    """The command line's run stopped by SIGTERM returns and exits with 143: a second
+    SIGTERM arriving after the run's handlers were removed used to kill the process by
+    the default action (-15, seen once in CI under load). With ``exit_now`` (the command
+    line) signals stay ignored after such a run; the Python API gets its handlers back."""
+    from demstep.runner import StopRequest
+
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        stop = StopRequest(exit_now=exit_now)
+        stop.install()
+        stop.started = True
+        stop._handle(signal.SIGTERM, None)  # stop after this chunk, with a checkpoint
+        stop.finished = True
+        stop.restore()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            assert signal.getsignal(sig) == (signal.SIG_IGN if exit_now else before[sig])
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    finished = StopRequest(exit_now=True)  # a run that ended by itself: handlers back
+    finished.install()
+    finished.restore()
+    assert {sig: signal.getsignal(sig) for sig in before} == before
+
+
 @pytest.mark.parametrize("first,second,gap", [(signal.SIGTERM, signal.SIGINT, 0.0),
                                               (signal.SIGTERM, signal.SIGTERM, 0.02),
                                               (signal.SIGINT, signal.SIGINT, 0.02)])

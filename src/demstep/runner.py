@@ -234,8 +234,13 @@ class StopRequest:
             self._previous[sig] = signal.signal(sig, self._handle)
 
     def restore(self):
+        """The handlers from before :meth:`install`; with ``exit_now`` after a signal
+        stopped the run, signals ignored instead: the process is about to exit with
+        128 + that signal's number, and a second signal arriving now must neither kill
+        it with the default action nor turn the exit into a traceback."""
+        ignore = self.exit_now and self.signal_name is not None
         for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
+            signal.signal(sig, signal.SIG_IGN if ignore else handler)
         self._previous.clear()
 
 
@@ -619,8 +624,9 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
     same value (the default does).
     ``on_chunk(sim)``: called after every chunk.
     ``exit_on_abort``: a second SIGINT/SIGTERM (or the first before any chunk is done)
-    ends the process at once after recording run.json (the command line; see
-    :class:`StopRequest`).
+    ends the process at once after recording run.json, and after a run stopped by a
+    signal, SIGINT and SIGTERM stay ignored while the process exits (the command line;
+    see :class:`StopRequest`).
 
     The folder is locked (:class:`demstep.io.lock.FolderLock`) while the run writes:
     a second run into it fails with an InputError. Raises InputError (before creating

@@ -73,13 +73,6 @@ def cmd_run(args) -> int:
     result = run_case(case, args.out, quiet=args.quiet, log_level=args.log_level,
                       restart=args.restart, max_steps=args.max_steps, overwrite=args.overwrite,
                       allow_changed_case=args.allow_changed_case, exit_on_abort=True)
-    if result.signal is not None:
-        # the process ends because of a signal: another one (Ctrl-C pressed twice) must
-        # not turn the clean exit into a KeyboardInterrupt traceback
-        import signal
-
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, signal.SIG_IGN)
     stream = sys.stdout if result.ok else sys.stderr
     print(f"demstep run: {result.status}: {result.message}", file=stream)
     return result.exit_status
