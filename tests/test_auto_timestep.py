@@ -284,3 +284,42 @@ def test_estimates_that_cannot_change_dt_skip_the_exact_solve(monkeypatch):
     assert len(ratio) > 300 and fast.n_contacts > 40
     assert max(ratio) <= 1 + 1e-9
     assert max(ratio) > 0.75  # at the end the exact step decides dt (safety 0.8)
+
+
+def packed_box(law):
+    """48 spheres packed on a cubic grid in a box, barely overlapping, jostled."""
+    rng = np.random.default_rng(1)
+    g = np.stack(np.meshgrid(np.arange(4), np.arange(4), np.arange(3), indexing="ij"), -1)
+    x = 0.5 + g.reshape(-1, 3).astype(float)
+    p = Particles.from_density(x, np.full(len(x), 0.5005), 1.0)
+    return Simulation(p, law, walls=box_walls([0, 0, 0], [4, 4, 3]),
+                      velocities=rng.normal(0, 1e-3, (len(x), 3)),
+                      timestep=TimeStep.auto(safety=0.8, method="exact", every=100))
+
+
+@pytest.mark.parametrize("change", ["viscous damping", "stiffer law", "friction"])
+def test_a_certificate_holds_only_for_the_law_and_damping_it_was_made_with(change):
+    """A stage that raises the global damping (as ``damping.viscous`` in a case) or a
+    stiffer law set between two runs lowers the critical step: the next run chooses dt
+    anew instead of keeping the certificate of the old ones (which kept dt at 1.25x and
+    1.06x the exact step through every later estimate). A friction change (the analysis
+    counts sliding contacts as sticking) keeps it: no new solve."""
+    law = LinearSpring(k_n=1e4, k_s=5e3, mu=0.5, restitution=0.5)
+    sim = packed_box(law)
+    sim.run(steps=300)
+    solves, cert = sim.n_dt_solves, sim._dt_cert
+    if change == "viscous damping":
+        sim.damping.viscous = 0.8 * 2.0 / sim.critical_dt("exact")
+    elif change == "stiffer law":
+        sim.law = LinearSpring(k_n=2e4, k_s=1e4, mu=0.5, restitution=0.5)
+    else:
+        sim.law.mu = 0.2
+    ratios = []
+    sim.every(10, lambda s: ratios.append(s.dt / s.critical_dt("exact")))
+    sim.run(steps=300)
+    if change == "friction":
+        assert sim.n_dt_solves == solves and sim._dt_cert is cert
+    else:
+        assert sim.n_dt_solves > solves
+    assert len(ratios) == 30 and max(ratios) <= 0.8 * (1 + 1e-9)
+    assert max(ratios) > 0.79  # the exact step decides dt

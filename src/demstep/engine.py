@@ -882,7 +882,20 @@ class Simulation:
 
         inv_I = self.inv_I if self.rotation else np.zeros_like(self.inv_I)
         self._dt_cert = StepCertificate.from_estimate(sigma, lam_c, contacts, self.inv_m, inv_I,
-                                                      bounded=bodies is None)
+                                                      bounded=bodies is None,
+                                                      inputs=self.certificate_inputs())
+
+    def certificate_inputs(self) -> np.ndarray:
+        """What an 'auto' estimate depends on besides the geometry, the masses and the
+        bonds (changing those drops the certificate where they change): the law's kind,
+        springs and dashpots (its parameters, :class:`demstep.contact.laws.LawParams`,
+        without the friction limits, which the analysis does not use: sliding contacts
+        count as sticking ones) and the global viscous damping a1 [1/T]. A certificate
+        made with other inputs certifies nothing now (a stage that changes the damping
+        or the law, a user who sets ``sim.law``): :meth:`prepare` then has dt chosen
+        anew."""
+        params = self.law.params()._replace(mu=0.0, mu_wall=0.0, mu_r=0.0, mu_w=0.0)
+        return np.array(tuple(params) + (float(self.damping.viscous),))
 
     def rigid_bodies(self):
         """The clumps in the form the time-step analysis takes
@@ -1025,7 +1038,8 @@ class Simulation:
         if op.size != mode.size:
             return None, prepared
         sigma_lo = float(damped_sigma(*op.rayleigh_terms(mode / np.linalg.norm(mode))))
-        if sigma_up > sigma_lo * (1.0 + self.AUTO_REFRESH_RTOL):
+        # (sigma_lo > sigma_up: the certificate does not hold; a new estimate is due)
+        if not sigma_lo <= sigma_up <= sigma_lo * (1.0 + self.AUTO_REFRESH_RTOL):
             return None, prepared
         self.n_dt_refreshes = getattr(self, "n_dt_refreshes", 0) + 1
         return 2.0 / sigma_up, prepared
@@ -1487,6 +1501,11 @@ class Simulation:
             self.energy_floor = self._energy_floor()
         if not self._pairs_built:
             self._rebuild()
+        cert = getattr(self, "_dt_cert", None)
+        if (self.timestep.mode == "auto" and cert is not None
+                and not cert.made_with(self.certificate_inputs())):
+            self._dt_cert = None  # made with another law or damping
+            self.dt = None
         if self.dt is None or self.timestep.mode != "auto":
             self._choose_dt(force=True)
 

@@ -236,16 +236,22 @@ class StepCertificate:
     f_k: np.ndarray = field(default_factory=lambda: np.zeros(0))
     f_c: np.ndarray = field(default_factory=lambda: np.zeros(0))
     bounded: bool = True
+    #: what the estimate was made with besides the geometry and the masses
+    #: (:meth:`demstep.engine.Simulation.certificate_inputs`: the law's springs and
+    #: dashpots, the global damping); a certificate holds for those only
+    inputs: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @classmethod
     def from_estimate(cls, sigma: float, lam_c: float, contacts, inv_m, inv_I,
-                      bounded: bool = True) -> "StepCertificate":
+                      bounded: bool = True, inputs=()) -> "StepCertificate":
         """The certificate of an estimate: its certified root ``sigma``, ``lam_c`` and the
         covered ``contacts`` (a ContactSet at the estimate's geometry; pairs have
         ``j`` >= 0; their rolling and twisting springs count in the drift) with the
         particles' inverse masses and inverse moments of inertia (zero for fixed
-        particles, and for rotations when rotation is off)."""
-        cert = cls(float(sigma), float(lam_c), bounded=bounded)
+        particles, and for rotations when rotation is off), made with ``inputs``
+        (:attr:`inputs`)."""
+        cert = cls(float(sigma), float(lam_c), bounded=bounded,
+                   inputs=np.array(inputs, dtype=np.float64).reshape(-1))
         if not bounded or contacts.n == 0:
             return cert
         pair = contacts.j >= 0
@@ -313,7 +319,13 @@ class StepCertificate:
                                      float(self.bounded)]),
                 "ts_cert_pairs": np.stack([self.pair_i, self.pair_j]),
                 "ts_cert_normal": self.normal,
-                "ts_cert_factors": np.stack([self.f_k, self.f_c])}
+                "ts_cert_factors": np.stack([self.f_k, self.f_c]),
+                "ts_cert_inputs": self.inputs}
+
+    def made_with(self, inputs) -> bool:
+        """Whether the estimate was made with these ``inputs`` (:attr:`inputs`; a
+        certificate restored from a checkpoint that did not record them: False)."""
+        return np.array_equal(self.inputs, np.asarray(inputs, dtype=np.float64).reshape(-1))
 
     @classmethod
     def from_state(cls, data: dict) -> "StepCertificate":
@@ -323,8 +335,9 @@ class StepCertificate:
             return cls(values[0], values[1], bounded=False)
         pairs = np.asarray(data["ts_cert_pairs"], dtype=np.int64)
         factors = np.asarray(data["ts_cert_factors"], dtype=np.float64)
+        inputs = np.asarray(data.get("ts_cert_inputs", np.zeros(0)), dtype=np.float64)
         return cls(values[0], values[1], values[2], values[3],
                    np.ascontiguousarray(pairs[0]), np.ascontiguousarray(pairs[1]),
                    np.ascontiguousarray(data["ts_cert_normal"], dtype=np.float64),
                    np.ascontiguousarray(factors[0]), np.ascontiguousarray(factors[1]),
-                   bool(values[4]))
+                   bool(values[4]), inputs.reshape(-1))
