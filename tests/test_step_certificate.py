@@ -28,36 +28,86 @@ def unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+def contacts_now(ref, x, r, bond=None, apart=False):
+    """The elements of the covered ``ref`` at the positions ``x`` now, as the engine has
+    them: the touching pairs (and the bonds, ``bond`` true, touching or not) with their
+    normals and arms from the geometry; pairs apart have no element, or with ``apart``
+    one at their new normal and their estimate's arms (the drift bounds that too: a
+    harder test, which also shows that the drift is needed)."""
+    d = x[ref.j] - x[ref.i]
+    dist = np.linalg.norm(d, axis=1)
+    on = dist < r[ref.i] + r[ref.j]
+    if bond is not None:
+        on |= bond
+    half = 0.5 * (r[ref.i] + r[ref.j] - dist)
+    now = ContactSet(ref.i, ref.j, d / dist[:, None], np.where(on, r[ref.i] - half, ref.arm_i),
+                     np.where(on, r[ref.j] - half, ref.arm_j), ref.k_n, ref.k_s, c_n=ref.c_n,
+                     c_t=ref.c_t)
+    return now if apart else now.subset(on)
+
+
 @pytest.mark.parametrize("dim", [2, 3])
-def test_turned_element_moves_by_less_than_the_bound(dim):
-    """One pair, random radii, masses, stiffnesses and dashpots (k_n != k_t), its normal
-    turned by up to 60 degrees: the spectral norm of the change of its mass-scaled
-    element (dense, from the assembly code) stays below |n' - n| times the turn factor,
-    and comes within a factor 4 of it for some draw (the bound is not vacuous; 3D
-    reaches 0.5 of it, 2D, where the bound is the 3D one restricted to the plane, 0.29)."""
+def test_moved_element_changes_by_less_than_its_drift(dim):
+    """One pair, random radii, masses, stiffnesses and dashpots (k_n != k_t), estimated
+    touching with the radii as arms (as the 'auto' estimates take them), or as a bond
+    with the arms of its geometry; then its normal turned by up to 60 degrees and its
+    centres closer (the arms shorter) or, for the bond, farther apart too: the spectral
+    norm of the change of its mass-scaled element (dense, from the assembly code, at the
+    arms now) stays below the certificate's drift, springs and dashpots alike, and
+    comes within a factor 4 of it for some draw (the bound is not vacuous)."""
     rng = np.random.default_rng(7 + dim)
     ratios = []
-    for _ in range(300):
+    for trial in range(300):
+        bond = trial % 3 == 0
         r = rng.uniform(0.3, 1.5, 2)
-        x = np.zeros((2, dim))
-        p = Particles.from_density(x + [[0] * dim, [1.0] + [0] * (dim - 1)], r,
-                                   rng.uniform(0.5, 3.0))
         n = unit(rng.normal(size=dim))
         n2 = unit(n + rng.uniform(0.01, 1.0) * unit(rng.normal(size=dim)))
+        reach = r.sum()
+        dist, dist2 = reach * rng.uniform(0.9, 1.0), reach * rng.uniform(0.9, 1.0)
+        if bond:
+            dist2 = reach * rng.uniform(0.95, 1.1)
+        x, x2 = np.zeros((2, 3)), np.zeros((2, 3))
+        x[1, :dim], x2[1, :dim] = dist * n, dist2 * n2
+        p = Particles.from_density(x[:, :dim], r, rng.uniform(0.5, 3.0))
         k_n, k_t = rng.uniform(0.1, 10.0, 2)
-        base = ContactSet(np.array([0]), np.array([1]), n[None], r[:1], r[1:],
+        arms = (r - 0.5 * (reach - dist)) if bond else r
+        base = ContactSet(np.array([0]), np.array([1]), n[None], arms[:1], arms[1:],
                           np.array([k_n]), np.array([k_t]), c_n=np.array([k_t]),
                           c_t=np.array([k_n]))
-        turned = ContactSet(base.i, base.j, n2[None], base.arm_i, base.arm_j, base.k_n,
-                            base.k_s)
-        cert = StepCertificate.from_estimate(1.0, 1.0, base, 1.0 / p.m, 1.0 / p.inertia)
-        for coeff, factor in (((base.k_n, base.k_s), cert.f_k), ((base.c_n, base.c_t), cert.f_c)):
-            change = scaled(p, turned, True, coeff) - scaled(p, base, True, coeff)
-            norm = np.abs(np.linalg.eigvalsh(change)).max()
-            ratios.append(norm / (np.linalg.norm(n2 - n) * factor[0]))
+        now = contacts_now(base, x2[:, :dim], r, np.array([bond]))
+        cert = StepCertificate.from_estimate(1.0, 1.0, base, 1.0 / p.m, 1.0 / p.inertia,
+                                             radius=r, bond=np.array([bond]))
+        drift = cert.drift(x2, np.zeros(3))
+        for coeff, bound in (((base.k_n, base.k_s), drift[0]), ((base.c_n, base.c_t), drift[1])):
+            change = scaled(p, now, True, coeff) - scaled(p, base, True, coeff)
+            ratios.append(np.abs(np.linalg.eigvalsh(change)).max() / bound)
     ratios = np.array(ratios)
     assert ratios.max() <= 1.0 + 1e-12
     assert ratios.max() > 0.25
+
+
+def test_a_stretched_bond_needs_the_arm_term():
+    """Two bonded spheres stretched along their axis: the normal does not turn, but the
+    arms (to the middle of the gap) lengthen and lambda_max of the pair rises above the
+    certificate's bound without its drift; the drift, the arm term alone here, covers
+    it."""
+    r = np.array([0.5, 0.6])
+    x = np.array([[0.0, 0, 0], [1.1, 0, 0]])
+    p = Particles.from_density(x, r, 2.0)
+    ref = ContactSet(np.array([0]), np.array([1]), np.array([[1.0, 0, 0]]), r[:1], r[1:],
+                     np.array([3.0]), np.array([2.0]))
+    K = scaled(p, ref, True, (ref.k_n, ref.k_s))
+    lam = np.linalg.eigvalsh(K)[-1]
+    cert = StepCertificate.from_estimate(np.sqrt(lam), 0.0, ref, 1.0 / p.m, 1.0 / p.inertia,
+                                         radius=r, bond=np.array([True]))
+    stretched = x + [[0, 0, 0], [0.05, 0, 0]]
+    now = contacts_now(ref, stretched, r, np.array([True]))
+    assert now.arm_i[0] > r[0] and now.arm_j[0] > r[1]
+    actual = np.linalg.eigvalsh(scaled(p, now, True, (ref.k_n, ref.k_s)))[-1]
+    drift = cert.drift(stretched, np.zeros(3))
+    assert actual > cert.bound(np.sqrt(lam)) * (1 + 1e-9)
+    assert actual <= cert.bound(np.sqrt(lam), drift) * (1 + 1e-12)
+    assert cert.drift(x, np.zeros(3)) == (0.0, 0.0)  # unmoved: nothing
 
 
 def dense_root(K, C):
@@ -74,9 +124,12 @@ def dense_root(K, C):
 
 
 def test_moved_assembly_stays_below_the_drifted_certificate():
-    """40 spheres in a loose heap with dashpots; every particle then moves by up to 4 %
-    of its radius (the same pairs, their normals turned, arms the radii): the dense
-    lambda_max(sigma C' + K') of the moved assembly stays below the certificate's bound
+    """40 spheres in a loose heap with dashpots, estimated with every pair within a
+    quarter radius covered (as the engine covers them: the touching ones at the arms
+    of their geometry, those apart at the radii); every particle then moves by up to 4 %
+    of its radius (the touching pairs now, their normals turned, their arms those of the
+    geometry): the dense lambda_max(sigma C' + K') of the moved assembly stays below the
+    certificate's bound
     with its drift for every sigma above sigma_c, the bound without drift does not
     (the drift term is needed), and a rigid translation drifts by nothing."""
     rng = np.random.default_rng(2)
@@ -86,29 +139,33 @@ def test_moved_assembly_stays_below_the_drifted_certificate():
     found = find_contacts(p, 1.0, contact_tol=0.25)
     assert found.n > 40
     k_n = rng.uniform(1.0, 3.0, found.n)
-    ref = ContactSet(found.i, found.j, found.normal, r[found.i], r[found.j], k_n, 0.4 * k_n,
-                     c_n=0.2 * np.sqrt(k_n), c_t=0.05 * np.sqrt(k_n))
+    dist = np.linalg.norm(x[found.j] - x[found.i], axis=1)
+    half = np.maximum(0.5 * (r[found.i] + r[found.j] - dist), 0.0)  # (apart: the radii)
+    assert np.count_nonzero(half) > 10  # touching pairs, their arms shorter
+    ref = ContactSet(found.i, found.j, found.normal, r[found.i] - half, r[found.j] - half,
+                     k_n, 0.4 * k_n, c_n=0.2 * np.sqrt(k_n), c_t=0.05 * np.sqrt(k_n))
     K = scaled(p, ref, True, (ref.k_n, ref.k_s))
     C = scaled(p, ref, True, (ref.c_n, ref.c_t))
     sigma_c = dense_root(K, C)
     lam_c = np.linalg.eigvalsh(C)[-1]
-    cert = StepCertificate.from_estimate(sigma_c, lam_c, ref, 1.0 / p.m, 1.0 / p.inertia)
+    cert = StepCertificate.from_estimate(sigma_c, lam_c, ref, 1.0 / p.m, 1.0 / p.inertia,
+                                         radius=r)
     pos = np.zeros((40, 3))
     pos[:] = x
     assert max(cert.drift(pos + [1.0, -2.0, 0.5], np.zeros(3))) < 1e-12 * lam_c
     exceeded = 0
     for trial in range(20):
         moved = pos + 0.04 * r[:, None] * unit(rng.normal(size=(40, 3)))
-        d = moved[ref.j] - moved[ref.i]
-        now = ContactSet(ref.i, ref.j, unit(d), ref.arm_i, ref.arm_j, ref.k_n, ref.k_s)
-        K2 = scaled(p, now, True, (ref.k_n, ref.k_s))
-        C2 = scaled(p, now, True, (ref.c_n, ref.c_t))
         drift = cert.drift(moved, np.zeros(3))
         assert drift[0] > 0 and drift[1] > 0
-        for sigma in sigma_c * np.array([1.0, 1.1, 1.5, 3.0]):
-            actual = np.linalg.eigvalsh(sigma * C2 + K2)[-1]
-            assert actual <= cert.bound(sigma, drift) * (1 + 1e-12)
-            exceeded += actual > cert.bound(sigma) * (1 + 1e-12)
+        for apart in (False, True):
+            now = contacts_now(ref, moved, r, apart=apart)
+            K2 = scaled(p, now, True, (now.k_n, now.k_s))
+            C2 = scaled(p, now, True, (now.c_n, now.c_t))
+            for sigma in sigma_c * np.array([1.0, 1.1, 1.5, 3.0]):
+                actual = np.linalg.eigvalsh(sigma * C2 + K2)[-1]
+                assert actual <= cert.bound(sigma, drift) * (1 + 1e-12)
+                exceeded += actual > cert.bound(sigma) * (1 + 1e-12)
     assert exceeded > 0
 
 

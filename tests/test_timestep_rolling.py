@@ -625,37 +625,43 @@ def test_body_elements_with_rolling_match_their_pencils(seed, dim):
 
 # --------------------------------------------------------------- certificate
 def test_turned_pair_with_rolling_moves_by_less_than_the_bound():
-    """One 3D pair with rolling and twisting springs (k_w != k_r) and viscous parts, its
-    normal turned: the spectral norm of the change of its mass-scaled element (dense,
-    independent) stays below |n' - n| times the certificate's turn factor; with
-    isotropic translational springs and stiff rolling springs the factor without the
-    rolling term is exceeded (the term is needed)."""
+    """One 3D pair with rolling and twisting springs (k_w != k_r) and viscous parts,
+    touching, its normal turned at the same distance (its arms unchanged): the spectral
+    norm of the change of its mass-scaled element (dense, independent) stays below the
+    certificate's drift; with isotropic translational springs and stiff rolling springs
+    the drift without the rolling term is exceeded (the term is needed)."""
     rng = np.random.default_rng(11)
     ratios, exceeded = [], 0
     for trial in range(300):
         r = rng.uniform(0.3, 1.5, 2)
-        p = Particles.from_density(np.array([[0.0, 0, 0], [1.0, 0, 0]]), r, rng.uniform(0.5, 3))
         n = rng.normal(size=3)
         n /= np.linalg.norm(n)
         n2 = n + rng.uniform(0.01, 1.0) * rng.normal(size=3) / math.sqrt(3)
         n2 /= np.linalg.norm(n2)
+        dist = 0.97 * r.sum()
+        x, x2 = np.array([[0.0, 0, 0], dist * n]), np.array([[0.0, 0, 0], dist * n2])
+        p = Particles.from_density(x, r, rng.uniform(0.5, 3))
+        arms = r - 0.5 * (r.sum() - dist)
         k = rng.uniform(0.1, 10.0)
         iso = trial % 2 == 0
         k_n, k_t = (k, k) if iso else rng.uniform(0.1, 10.0, 2)
         k_r, k_w = rng.uniform(0.1, 10.0, 2) * (30.0 if iso else 1.0)
-        base = ContactSet([0], [1], n[None], r[:1], r[1:], k_n, k_t, c_n=k_t, c_t=k_n,
+        base = ContactSet([0], [1], n[None], arms[:1], arms[1:], k_n, k_t, c_n=k_t, c_t=k_n,
                           k_r=k_r, k_w=k_w, c_r=0.3 * k_w, c_w=0.2 * k_r)
         turned = replace(base, normal=n2[None])
-        cert = StepCertificate.from_estimate(1.0, 1.0, base, 1.0 / p.m, 1.0 / p.inertia)
+        cert = StepCertificate.from_estimate(1.0, 1.0, base, 1.0 / p.m, 1.0 / p.inertia,
+                                             radius=r)
         plain = StepCertificate.from_estimate(1.0, 1.0, no_rolling(base), 1.0 / p.m,
-                                              1.0 / p.inertia)
+                                              1.0 / p.inertia, radius=r)
         s = scaling(p, True)
-        for viscous, factor, old in ((False, cert.f_k, plain.f_k), (True, cert.f_c, plain.f_c)):
+        for viscous in (False, True):
+            bound = cert.drift(x2, np.zeros(3))[viscous]
+            without = plain.drift(x2, np.zeros(3))[viscous]
             change = s[:, None] * (dense_matrix(p, turned, True, viscous)
                                    - dense_matrix(p, base, True, viscous)) * s[None, :]
             norm = np.abs(np.linalg.eigvalsh(change)).max()
-            ratios.append(norm / (np.linalg.norm(n2 - n) * factor[0]))
-            exceeded += norm > np.linalg.norm(n2 - n) * old[0] * (1 + 1e-12)
+            ratios.append(norm / bound)
+            exceeded += norm > without * (1 + 1e-12)
     assert max(ratios) <= 1.0 + 1e-12
     assert max(ratios) > 0.25
     assert exceeded > 0
@@ -671,8 +677,10 @@ def test_moved_assembly_with_rolling_stays_below_the_drifted_certificate():
     n = found.n
     assert n > 30
     k_n = rng.uniform(1.0, 3.0, n)
-    ref = ContactSet(found.i, found.j, found.normal, r[found.i], r[found.j], k_n, 0.4 * k_n,
-                     c_n=0.2 * np.sqrt(k_n), c_t=0.05 * np.sqrt(k_n),
+    dist = np.linalg.norm(x[found.j] - x[found.i], axis=1)
+    half = np.maximum(0.5 * (r[found.i] + r[found.j] - dist), 0.0)  # (apart: the radii)
+    ref = ContactSet(found.i, found.j, found.normal, r[found.i] - half, r[found.j] - half,
+                     k_n, 0.4 * k_n, c_n=0.2 * np.sqrt(k_n), c_t=0.05 * np.sqrt(k_n),
                      k_r=rng.uniform(0.5, 3.0, n), k_w=rng.uniform(0.0, 0.2, n),
                      c_r=rng.uniform(0.0, 0.3, n), c_w=0.0)
     s = scaling(p, True)
@@ -687,14 +695,20 @@ def test_moved_assembly_with_rolling_stays_below_the_drifted_certificate():
         lo, hi = (mid, hi) if f(mid, K, C) > 0 else (lo, mid)
     sigma_c = hi
     lam_c = np.linalg.eigvalsh(C)[-1]
-    cert = StepCertificate.from_estimate(sigma_c, lam_c, ref, 1.0 / p.m, 1.0 / p.inertia)
+    cert = StepCertificate.from_estimate(sigma_c, lam_c, ref, 1.0 / p.m, 1.0 / p.inertia,
+                                         radius=r)
     plain = StepCertificate.from_estimate(sigma_c, lam_c, no_rolling(ref), 1.0 / p.m,
-                                          1.0 / p.inertia)
-    assert np.all(cert.f_k >= plain.f_k) and np.any(cert.f_k > plain.f_k)
+                                          1.0 / p.inertia, radius=r)
+    assert np.any(cert.factors[:, 6] > 0) and not plain.factors[:, 6:].any()
     for trial in range(10):
         moved = x + 0.05 * r[:, None] * rng.normal(size=(30, 3))
         d = moved[ref.j] - moved[ref.i]
-        now = replace(ref, normal=d / np.linalg.norm(d, axis=1)[:, None])
+        dist = np.linalg.norm(d, axis=1)
+        # touching: the arms of the geometry; apart: kept with the estimate's (harder)
+        half = 0.5 * (r[ref.i] + r[ref.j] - dist)
+        on = half > 0
+        now = replace(ref, normal=d / dist[:, None], arm_i=np.where(on, r[ref.i] - half, ref.arm_i),
+                      arm_j=np.where(on, r[ref.j] - half, ref.arm_j))
         K2 = s[:, None] * dense_matrix(p, now, True) * s[None, :]
         C2 = s[:, None] * dense_matrix(p, now, True, True) * s[None, :]
         drift = cert.drift(moved, np.zeros(3))

@@ -332,6 +332,7 @@ class Simulation:
         self.dt_estimate = None  # the certified step of the last 'auto' estimate [T]
         self.n_dt_solves = 0  # 'auto' estimates by an exact solve
         self.n_dt_element = 0  # 'exact' estimates the coupled element bound decided
+        self.n_dt_refreshes = 0  # 'auto' estimates the last certificate still gave
         self.dt_prev = 0.0
         self._time_ref = (0, 0.0, None)  # (step, time, dt) when dt last changed
         self._first = True
@@ -643,8 +644,8 @@ class Simulation:
         return p * self._walls_per_key + w
 
     def _renumber_timestep_state(self, order: np.ndarray, inv: np.ndarray):
-        """:meth:`reorder` for the 'auto' control: the cover's keys, the certificate's
-        pairs (their normals keep their direction from pair_i to pair_j) and the
+        """:meth:`reorder` for the 'auto' control: the cover's keys, the certificate
+        (:meth:`demstep.timestep.certificate.StepCertificate.renumber`) and the
         critical mode (a warm start: dropped with clumps, whose modes are per body)."""
         n = len(order)
         cover = self.__dict__.get("_cover_record")
@@ -661,8 +662,8 @@ class Simulation:
                 renamed[name] = (keys[rows], np.asarray(assumed)[rows])
             self._cover_record = renamed
         cert = getattr(self, "_dt_cert", None)
-        if cert is not None and len(cert.pair_i):
-            cert.pair_i, cert.pair_j = inv[cert.pair_i], inv[cert.pair_j]
+        if cert is not None:
+            cert.renumber(order, inv)
         mode = getattr(self, "_dt_mode", None)
         if mode is not None:
             self._dt_mode = (None if self.bodies.n or mode.size % n
@@ -707,8 +708,10 @@ class Simulation:
         the distance a particle covers at its current velocity and acceleration (twice:
         a margin for speeding up; servo walls at their speed limit; at most the skin),
         and at least the TimeStep's relative ``overlap`` x R*.
-        Normals are those of the current geometry, arms the radii (the longest a contact
-        can have: they shorten as it closes). ``cover`` (a dict) receives, for 'pairs'
+        Normals are those of the current geometry, arms too for the contacts touching
+        now, the radii for those apart (the arms a contact closes with, at most; how far
+        arms and normals move later the certificate's drift follows,
+        :mod:`demstep.timestep.certificate`). ``cover`` (a dict) receives, for 'pairs'
         and 'walls', the sorted keys of the contacts included and the overlaps their
         coefficients assumed (see :meth:`_contacts_covered`)."""
         dim = self.dim
@@ -737,8 +740,10 @@ class Simulation:
             kn, kt, cn, ct = self._coefficients(law_id, params, delta_eval, r_star, m_star)
             if horizon is None:
                 ai, aj = arm_i, arm_j
-            else:  # the longest arms a contact can have (they shorten as it closes)
-                ai, aj = self.r[i].copy(), self.r[j].copy()
+            else:  # apart: the radii (the arms it will close with, at most)
+                touching = delta[on] > 0.0
+                ai = np.where(touching, arm_i, self.r[i])
+                aj = np.where(touching, arm_j, self.r[j])
             parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
                                     c_n=cn, c_t=ct))
             if cover is not None:
@@ -761,7 +766,7 @@ class Simulation:
                     delta_eval = np.maximum(delta_eval, self.timestep.overlap * self.r[self.wp])
             p, wi, dist = self.wp[on], self.ww[on], dist[on]
             kn, kt, cn, ct = self._coefficients(law_id, params, delta_eval, self.r[p], self.m[p])
-            arm = dist if horizon is None else self.r[p].copy()
+            arm = dist if horizon is None else np.where(delta[on] > 0.0, dist, self.r[p])
             parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim],
                                     arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct))
             if cover is not None:
@@ -881,9 +886,17 @@ class Simulation:
         from demstep.timestep.certificate import StepCertificate
 
         inv_I = self.inv_I if self.rotation else np.zeros_like(self.inv_I)
+        # (contact_set puts the intact bonds last)
+        bond = np.arange(contacts.n) >= contacts.n - int(np.count_nonzero(self.bonds.intact == 1))
         self._dt_cert = StepCertificate.from_estimate(sigma, lam_c, contacts, self.inv_m, inv_I,
                                                       bounded=bodies is None,
-                                                      inputs=self.certificate_inputs())
+                                                      inputs=self.certificate_inputs(),
+                                                      radius=self.r, bond=bond)
+
+    def _drift(self, cert) -> tuple[float, float]:
+        """The drift (D_K, D_C) of the certificate ``cert`` at the state now
+        (:meth:`demstep.timestep.certificate.StepCertificate.drift`)."""
+        return cert.drift(self.x, self.periodic_len, (self.wall_point, self.wall_normal))
 
     def certificate_inputs(self) -> np.ndarray:
         """What an 'auto' estimate depends on besides the geometry, the masses and the
@@ -1017,9 +1030,9 @@ class Simulation:
         masks = self._uncovered()
         if masks is None or masks[0].any() or masks[1].any():
             return None, None
-        sigma_up = cert.smallest_sigma(cert.drift(self.x, self.periodic_len))
+        sigma_up = cert.smallest_sigma(self._drift(cert))
         if self._estimate_cannot_change_dt(2.0 / sigma_up, scheduled=True):
-            self.n_dt_refreshes = getattr(self, "n_dt_refreshes", 0) + 1
+            self.n_dt_refreshes += 1
             return 2.0 / sigma_up, None
         mode = getattr(self, "_dt_mode", None)
         if mode is None or self.timestep.method != "exact":
@@ -1041,7 +1054,7 @@ class Simulation:
         # (sigma_lo > sigma_up: the certificate does not hold; a new estimate is due)
         if not sigma_lo <= sigma_up <= sigma_lo * (1.0 + self.AUTO_REFRESH_RTOL):
             return None, prepared
-        self.n_dt_refreshes = getattr(self, "n_dt_refreshes", 0) + 1
+        self.n_dt_refreshes += 1
         return 2.0 / sigma_up, prepared
 
     def _estimate_cannot_change_dt(self, estimate: float, scheduled: bool) -> bool:
@@ -1393,7 +1406,7 @@ class Simulation:
                 or self.step % self.AUTO_CHECK_EVERY):
             return True
         sigma = 2.0 / self.dt
-        return cert.certifies(sigma, cert.drift(self.x, self.periodic_len))
+        return cert.certifies(sigma, self._drift(cert))
 
     def _contacts_covered(self) -> bool:
         """Whether every contact closed now was part of the last 'auto' estimate, at no
@@ -1423,7 +1436,7 @@ class Simulation:
 
         add_k, add_c = added_contacts_bound(self.particles_now(check=False), added,
                                             self.rotation, self.rigid_bodies())
-        drift = cert.drift(self.x, self.periodic_len)
+        drift = self._drift(cert)
         if sigma * sigma < cert.bound(sigma, drift) + add_k + sigma * add_c:
             return False
         cert.add(add_k, add_c)

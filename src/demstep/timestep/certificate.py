@@ -30,9 +30,18 @@ where
       |E(n') - E(n)| <= |n' - n| l (2 rho max(b_n, b_t) + l |b_n - b_t|),
 
   and a sum of two-particle element matrices has its norm below the largest sum over
-  the elements of one particle (x.E x <= |E| (|x_i|^2 + |x_j|^2) per element). Walls
-  keep their normals (arms are the radii for every covered contact), so only pairs
-  turn.
+  the elements of one particle (x.E x <= |E| (|x_i|^2 + |x_j|^2) per element).
+
+  The arms change too: a contact's shorten as it closes (the estimate took the radii,
+  the longest), a bond's lengthen as it stretches, and lambda_max of an assembly is
+  not monotone in them (measured: shortening 1 % of the arms of random 12-sphere
+  assemblies from the radii raised it by up to 5.6e-5, relative). With the arms a
+  of the estimate and a' now, E(n', a') - E(n, a) = [E(n', a') - E(n, a')] +
+  [E(n, a') - E(n, a)]: the first is bounded as above with l and rho at the arms a'
+  now, the second, L being affine in the arms with |L(a') - L(a)| <= eta,
+  eta^2 = (a_i' - a_i)^2/I_i + (a_j' - a_j)^2/I_j, by
+  |L'^T B L' - L^T B L| <= eta (l(a) + l(a')) max(b_n, b_t). A covered wall contact
+  keeps its normal (walls do not turn) and changes its arm alike (one particle).
 
   Rolling and twisting resistance (3D) adds to E the rotational element
   L_phi^T R(n) L_phi with R = b_r (I - n n^T) + b_w n n^T (b = sigma c + k for the
@@ -41,8 +50,8 @@ where
   |L_phi|^2 = 1/I_i + 1/I_j and R(n') - R(n) = (b_w - b_r)(n' n'^T - n n^T), whose
   norm is at most |b_w - b_r| |n' - n|. So each pair's turn factor gains
   (1/I_i + 1/I_j) |b_w - b_r|. For disks R = b_r does not depend on n: no term.
-  Splitting b = k + sigma c gives the factors f_k (springs) and f_c (viscous parts):
-  every term is at most the sum of its spring and sigma times its viscous part.
+  Splitting b = k + sigma c gives the sums for the springs (D_K) and the viscous parts
+  (D_C): every term is at most the sum of its spring and sigma times its viscous part.
 
 Removed contacts only lower lambda_max (each element is positive semi-definite).
 With clumps the members' arms turn with their bodies, which this bound does not
@@ -57,17 +66,25 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from demstep._numba import njit
-from demstep.contact.geometry import any_periodic, image_count, pair_geometry, wall_geometry
+from demstep.contact.geometry import (any_periodic, contact_arms, image_count, pair_geometry,
+                                     wall_geometry, wall_geometry_arrays)
 
 
 @njit(cache=True)
-def _drift_sums(x, i, j, normal_ref, f_k, f_c, periodic_len, n_particles):
-    """Per particle, the sums over its covered pairs of |n - n_ref| f_k and |n - n_ref| f_c
-    (n the pair's current unit normal, minimum image along periodic axes); returns
-    their largest values."""
-    dim = normal_ref.shape[1]
-    sum_k = np.zeros(n_particles)
-    sum_c = np.zeros(n_particles)
+def _drift_sums(x, i, j, bond, normal_ref, arm_ref, spring, dashpot, roll, radius, inv_m,
+                inv_I, periodic_len, sum_k, sum_c):
+    """Adds to ``sum_k`` [1/T^2] and ``sum_c`` [1/T] (N,), per particle, over its covered
+    pairs (i, j), the bounds on how far the pair's element moved since the estimate
+    (module doc), for the springs and the viscous parts: the turn |n - n_ref| (n the
+    unit normal now, minimum image along periodic axes) times the turn factor at the
+    arms now, plus the arm term eta (l_ref + l) max(b_n, b_t). ``arm_ref`` (P, 2) the
+    arms [L] of the estimate, ``spring`` and ``dashpot`` (P, 2) (max(b_n, b_t),
+    |b_n - b_t|) of the springs and dashpots, ``roll`` (P, 2) the rolling and twisting
+    turn factors (springs, viscous parts; no arms in them), and per particle the radius,
+    inverse mass and inverse moment of inertia (zero when fixed, and rotation off). The
+    arms now are those of the geometry for a touching contact and a bond (``bond``
+    true: it acts apart too), the estimate's for a contact apart (it has no element
+    now, and closing it shortens them: counted once it touches)."""
     for c in range(i.shape[0]):
         a, b = i[c], j[c]
         d0 = x[b, 0] - x[a, 0]
@@ -80,15 +97,30 @@ def _drift_sums(x, i, j, normal_ref, f_k, f_c, periodic_len, n_particles):
         if dist > 0.0:
             t0 = d0 / dist - normal_ref[c, 0]
             t1 = d1 / dist - normal_ref[c, 1]
-            t2 = (d2 / dist - normal_ref[c, 2]) if dim == 3 else 0.0
+            t2 = (d2 / dist - normal_ref[c, 2]) if normal_ref.shape[1] == 3 else 0.0
             turn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
         else:  # coincident centres: any normal, at most a half turn
             turn = 2.0
-        sum_k[a] += turn * f_k[c]
-        sum_k[b] += turn * f_k[c]
-        sum_c[a] += turn * f_c[c]
-        sum_c[b] += turn * f_c[c]
-    return sum_k.max() if n_particles else 0.0, sum_c.max() if n_particles else 0.0
+        ref_i, ref_j = arm_ref[c, 0], arm_ref[c, 1]
+        if bond[c] or dist < radius[a] + radius[b]:
+            arm_i, arm_j = contact_arms(radius[a], radius[b], dist)
+        else:
+            arm_i, arm_j = ref_i, ref_j
+        trans = inv_m[a] + inv_m[b]
+        rot = arm_i * arm_i * inv_I[a] + arm_j * arm_j * inv_I[b]
+        l_now = math.sqrt(trans + rot)
+        rho = math.sqrt(rot)
+        l_ref = math.sqrt(trans + ref_i * ref_i * inv_I[a] + ref_j * ref_j * inv_I[b])
+        eta = math.sqrt((arm_i - ref_i) ** 2 * inv_I[a] + (arm_j - ref_j) ** 2 * inv_I[b])
+        arm_term = eta * (l_ref + l_now)
+        f_k = (turn * (l_now * (2.0 * rho * spring[c, 0] + l_now * spring[c, 1]) + roll[c, 0])
+               + arm_term * spring[c, 0])
+        f_c = (turn * (l_now * (2.0 * rho * dashpot[c, 0] + l_now * dashpot[c, 1])
+                       + roll[c, 1]) + arm_term * dashpot[c, 0])
+        sum_k[a] += f_k
+        sum_k[b] += f_k
+        sum_c[a] += f_c
+        sum_c[b] += f_c
 
 
 def cover_limits(keys, known, assumed, nonlinear: bool) -> np.ndarray:
@@ -179,9 +211,14 @@ def uncovered_walls(x, r, wp, ww, wall_point, wall_normal, n_walls, known, assum
     return mask
 
 
-def _turn_factor(l, rho, b_n, b_t):
-    """l (2 rho max(b_n, b_t) + l |b_n - b_t|): |E(n') - E(n)| / |n' - n| (module doc)."""
-    return l * (2.0 * rho * np.maximum(b_n, b_t) + l * np.abs(b_n - b_t))
+def _spring_bounds(b_n, b_t, count: int) -> np.ndarray:
+    """(max(b_n, b_t), |b_n - b_t|) (count, 2) of a pair's normal and tangential springs
+    or dashpots (arrays, or None: none): what its turn factor l (2 rho max + l |diff|)
+    and arm term take (module doc)."""
+    if b_n is None:
+        return np.zeros((count, 2))
+    b_t = np.zeros(count) if b_t is None else b_t
+    return np.ascontiguousarray(np.stack([np.maximum(b_n, b_t), np.abs(b_n - b_t)], axis=1))
 
 
 def _rolling_turn_factor(l_phi2, b_r, b_w):
@@ -222,9 +259,14 @@ def added_contacts_bound(particles, added, rotation: bool, bodies=None) -> tuple
 class StepCertificate:
     """What an 'auto' estimate certified (module doc): ``sigma`` = sigma_c [1/T],
     ``lam_c`` = Lambda_C [1/T], ``add_k`` [1/T^2] and ``add_c`` [1/T] from contacts
-    added since; the covered pairs' reference normals (``pair_i``, ``pair_j``,
-    ``normal``) and their turn factors ``f_k`` [1/T^2], ``f_c`` [1/T] for the drift term;
-    ``bounded`` False when the drift is not followed (clumps)."""
+    added since; for the drift term, the covered pairs (``pair_i``, ``pair_j``) with
+    their reference normals ``normal`` and ``factors`` (P, 8): reference arms [L], the
+    springs' and the dashpots' (max, |difference|) of normal and tangential, the
+    rolling and twisting turn factors (springs, viscous parts); the covered wall
+    contacts (``wall_p``, ``wall_w``) with ``wall_factors`` (W, 3): reference arm,
+    max(k_n, k_t), max(c_n, c_t); per particle ``particles`` (N, 3): radius, inverse
+    mass and inverse moment of inertia; ``bounded`` False when the drift is not
+    followed (clumps)."""
 
     sigma: float
     lam_c: float
@@ -232,58 +274,106 @@ class StepCertificate:
     add_c: float = 0.0
     pair_i: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     pair_j: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    #: per covered pair, 1 for a bond (its arms followed apart too), else 0
+    pair_bond: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     normal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    f_k: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    f_c: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    factors: np.ndarray = field(default_factory=lambda: np.zeros((0, 8)))
     bounded: bool = True
     #: what the estimate was made with besides the geometry and the masses
     #: (:meth:`demstep.engine.Simulation.certificate_inputs`: the law's springs and
     #: dashpots, the global damping); a certificate holds for those only
     inputs: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    wall_p: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    wall_w: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    wall_factors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    particles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @classmethod
     def from_estimate(cls, sigma: float, lam_c: float, contacts, inv_m, inv_I,
-                      bounded: bool = True, inputs=()) -> "StepCertificate":
+                      bounded: bool = True, inputs=(), radius=None,
+                      bond=None) -> "StepCertificate":
         """The certificate of an estimate: its certified root ``sigma``, ``lam_c`` and the
-        covered ``contacts`` (a ContactSet at the estimate's geometry; pairs have
-        ``j`` >= 0; their rolling and twisting springs count in the drift) with the
-        particles' inverse masses and inverse moments of inertia (zero for fixed
-        particles, and for rotations when rotation is off), made with ``inputs``
-        (:attr:`inputs`)."""
+        covered ``contacts`` (a ContactSet at the estimate's geometry: pairs have
+        ``j`` >= 0, their rolling and twisting springs count in the drift; walls
+        ``j`` < 0 and their wall in ``wall``) with the particles' inverse masses and
+        inverse moments of inertia (zero for fixed particles, and for rotations when
+        rotation is off) and radii ``radius`` (N,) [L] (the arms now follow from them),
+        ``bond`` (C,) true for the elements that are bonds (None: none), made with
+        ``inputs`` (:attr:`inputs`)."""
         cert = cls(float(sigma), float(lam_c), bounded=bounded,
                    inputs=np.array(inputs, dtype=np.float64).reshape(-1))
         if not bounded or contacts.n == 0:
             return cert
+        if radius is None:
+            raise ValueError("from_estimate: the radii are needed to follow the arms")
+        cert.particles = np.ascontiguousarray(np.stack(
+            [np.asarray(radius, dtype=np.float64), np.asarray(inv_m, dtype=np.float64),
+             np.asarray(inv_I, dtype=np.float64)], axis=1))
         pair = contacts.j >= 0
         i = np.ascontiguousarray(contacts.i[pair], dtype=np.int64)
         j = np.ascontiguousarray(contacts.j[pair], dtype=np.int64)
-        rot = contacts.arm_i[pair] ** 2 * inv_I[i] + contacts.arm_j[pair] ** 2 * inv_I[j]
-        l = np.sqrt(inv_m[i] + inv_m[j] + rot)
-        rho = np.sqrt(rot)
-        zeros = np.zeros(len(i))
-        c_n = zeros if contacts.c_n is None else contacts.c_n[pair]
-        c_t = zeros if contacts.c_t is None else contacts.c_t[pair]
-        cert.pair_i, cert.pair_j = i, j
-        cert.normal = np.ascontiguousarray(contacts.normal[pair], dtype=np.float64)
-        f_k = _turn_factor(l, rho, contacts.k_n[pair], contacts.k_s[pair])
-        f_c = _turn_factor(l, rho, c_n, c_t)
+        n = len(i)
+        c_n = None if contacts.c_n is None else contacts.c_n[pair]
+        c_t = None if contacts.c_t is None else contacts.c_t[pair]
+        roll = np.zeros((n, 2))
         if contacts.dim == 3 and contacts.has_rolling:
             l_phi2 = inv_I[i] + inv_I[j]  # zero when rotation is off
-            f_k = f_k + _rolling_turn_factor(l_phi2, contacts.k_r[pair], contacts.k_w[pair])
-            f_c = f_c + _rolling_turn_factor(l_phi2, contacts.c_r[pair], contacts.c_w[pair])
-        cert.f_k = np.ascontiguousarray(f_k)
-        cert.f_c = np.ascontiguousarray(f_c)
+            roll[:, 0] = _rolling_turn_factor(l_phi2, contacts.k_r[pair], contacts.k_w[pair])
+            roll[:, 1] = _rolling_turn_factor(l_phi2, contacts.c_r[pair], contacts.c_w[pair])
+        cert.pair_i, cert.pair_j = i, j
+        cert.pair_bond = (np.zeros(n, dtype=np.int64) if bond is None
+                          else np.asarray(bond, dtype=np.int64)[pair])
+        cert.normal = np.ascontiguousarray(contacts.normal[pair], dtype=np.float64)
+        cert.factors = np.ascontiguousarray(np.concatenate(
+            [contacts.arm_i[pair, None], contacts.arm_j[pair, None],
+             _spring_bounds(contacts.k_n[pair], contacts.k_s[pair], n),
+             _spring_bounds(c_n, c_t, n), roll], axis=1), dtype=np.float64)
+        wall = ~pair
+        if wall.any():
+            if contacts.wall is None:
+                raise ValueError("from_estimate: wall contacts without their walls")
+            m = int(wall.sum())
+            cert.wall_p = np.ascontiguousarray(contacts.i[wall], dtype=np.int64)
+            cert.wall_w = np.ascontiguousarray(contacts.wall[wall], dtype=np.int64)
+            cert.wall_factors = np.ascontiguousarray(np.stack(
+                [contacts.arm_i[wall], _spring_bounds(contacts.k_n[wall], contacts.k_s[wall],
+                                                      m)[:, 0],
+                 _spring_bounds(None if c_n is None else contacts.c_n[wall],
+                                None if c_t is None else contacts.c_t[wall], m)[:, 0]],
+                axis=1), dtype=np.float64)
         return cert
 
-    def drift(self, x, periodic_len) -> tuple[float, float]:
+    def drift(self, x, periodic_len, walls=None) -> tuple[float, float]:
         """(D_K [1/T^2], D_C [1/T]): D(sigma) <= D_K + sigma D_C for the positions ``x``
-        (N, 3) now (zero when not ``bounded``)."""
-        if not self.bounded or len(self.pair_i) == 0:
+        (N, 3) now and ``walls`` = (points, unit normals) (n_walls, 3) of the walls now
+        (needed when wall contacts are covered); zero when not ``bounded``."""
+        if not self.bounded or (len(self.pair_i) == 0 and len(self.wall_p) == 0):
             return 0.0, 0.0
         x = np.ascontiguousarray(x, dtype=np.float64)
-        dk, dc = _drift_sums(x, self.pair_i, self.pair_j, self.normal, self.f_k, self.f_c,
-                             np.asarray(periodic_len, dtype=np.float64), x.shape[0])
-        return float(dk), float(dc)
+        part = self.particles
+        radius, inv_m, inv_I = (np.ascontiguousarray(part[:, k]) for k in range(3))
+        sum_k = np.zeros(x.shape[0])
+        sum_c = np.zeros(x.shape[0])
+        f = self.factors
+        _drift_sums(x, self.pair_i, self.pair_j, self.pair_bond, self.normal,
+                    np.ascontiguousarray(f[:, 0:2]),
+                    np.ascontiguousarray(f[:, 2:4]), np.ascontiguousarray(f[:, 4:6]),
+                    np.ascontiguousarray(f[:, 6:8]), radius, inv_m, inv_I,
+                    np.asarray(periodic_len, dtype=np.float64), sum_k, sum_c)
+        if len(self.wall_p):
+            if walls is None:
+                raise ValueError("drift: the walls are needed (wall contacts are covered)")
+            p = self.wall_p
+            point, normal = (np.ascontiguousarray(w, dtype=np.float64) for w in walls)
+            _, dist, delta, _ = wall_geometry_arrays(x, radius, p, self.wall_w, point, normal)
+            ref = self.wall_factors[:, 0]
+            arm = np.where(delta > 0.0, dist, ref)  # (apart: no element now)
+            l_now = np.sqrt(inv_m[p] + arm * arm * inv_I[p])
+            l_ref = np.sqrt(inv_m[p] + ref * ref * inv_I[p])
+            term = np.abs(arm - ref) * np.sqrt(inv_I[p]) * (l_now + l_ref)
+            np.add.at(sum_k, p, term * self.wall_factors[:, 1])
+            np.add.at(sum_c, p, term * self.wall_factors[:, 2])
+        return float(sum_k.max()), float(sum_c.max())
 
     def bound(self, sigma: float, drift=(0.0, 0.0)) -> float:
         """Upper bound on lambda_max(sigma C^ + K^) [1/T^2] of the covered and added
@@ -308,6 +398,17 @@ class StepCertificate:
             s = math.nextafter(s, math.inf)
         return s
 
+    def renumber(self, order, inv):
+        """The particles renumbered (row k now was row ``order[k]``; ``inv`` the
+        inverse): the pairs' and wall contacts' indices and the per-particle rows (a
+        pair's normal keeps its direction from pair_i to pair_j)."""
+        if len(self.pair_i):
+            self.pair_i, self.pair_j = inv[self.pair_i], inv[self.pair_j]
+        if len(self.wall_p):
+            self.wall_p = inv[self.wall_p]
+        if len(self.particles):
+            self.particles = np.ascontiguousarray(self.particles[order])
+
     def add(self, k: float, c: float):
         """Contacts added since the estimate: their group bound k + sigma c."""
         self.add_k += float(k)
@@ -317,9 +418,12 @@ class StepCertificate:
     def state(self) -> dict:
         return {"ts_cert": np.array([self.sigma, self.lam_c, self.add_k, self.add_c,
                                      float(self.bounded)]),
-                "ts_cert_pairs": np.stack([self.pair_i, self.pair_j]),
+                "ts_cert_pairs": np.stack([self.pair_i, self.pair_j, self.pair_bond]),
                 "ts_cert_normal": self.normal,
-                "ts_cert_factors": np.stack([self.f_k, self.f_c]),
+                "ts_cert_factors": self.factors,
+                "ts_cert_walls": np.stack([self.wall_p, self.wall_w]),
+                "ts_cert_wall_factors": self.wall_factors,
+                "ts_cert_particles": self.particles,
                 "ts_cert_inputs": self.inputs}
 
     def made_with(self, inputs) -> bool:
@@ -329,15 +433,24 @@ class StepCertificate:
 
     @classmethod
     def from_state(cls, data: dict) -> "StepCertificate":
+        """Inverse of :meth:`state`. A checkpoint from before the arms were followed
+        gives a certificate without inputs (:meth:`made_with` is False: the run
+        estimates anew)."""
         values = [float(v) for v in np.asarray(data["ts_cert"]).reshape(-1)]
-        if len(values) < 5 or "ts_cert_pairs" not in data:
-            # a checkpoint from before the drift term: no reference normals to follow
+        if len(values) < 5 or "ts_cert_particles" not in data:
             return cls(values[0], values[1], bounded=False)
         pairs = np.asarray(data["ts_cert_pairs"], dtype=np.int64)
-        factors = np.asarray(data["ts_cert_factors"], dtype=np.float64)
+        walls = np.asarray(data["ts_cert_walls"], dtype=np.int64).reshape(2, -1)
         inputs = np.asarray(data.get("ts_cert_inputs", np.zeros(0)), dtype=np.float64)
+
+        def rows(key, width):
+            return np.ascontiguousarray(np.asarray(data[key], dtype=np.float64)
+                                        .reshape(-1, width))
+
         return cls(values[0], values[1], values[2], values[3],
                    np.ascontiguousarray(pairs[0]), np.ascontiguousarray(pairs[1]),
+                   np.ascontiguousarray(pairs[2]),
                    np.ascontiguousarray(data["ts_cert_normal"], dtype=np.float64),
-                   np.ascontiguousarray(factors[0]), np.ascontiguousarray(factors[1]),
-                   bool(values[4]), inputs.reshape(-1))
+                   rows("ts_cert_factors", 8), bool(values[4]), inputs.reshape(-1),
+                   np.ascontiguousarray(walls[0]), np.ascontiguousarray(walls[1]),
+                   rows("ts_cert_wall_factors", 3), rows("ts_cert_particles", 3))
