@@ -121,9 +121,10 @@ class ContactModel(RollingResistance):
                 raise InputError(f"{name}: must lie in (0, 1], got {v!r}")
         _non_negative("gamma-n", self.gamma_n)
         _non_negative("gamma-t", self.gamma_t)
-        if self.restitution is not None and (self.gamma_n or self.gamma_t):
-            raise InputError("restitution: give either --restitution or --gamma-n/--gamma-t, "
-                             "not both")
+        if (self.convention == "liggghts" and self.restitution is not None
+                and (self.gamma_n or self.gamma_t)):
+            raise InputError("restitution: the liggghts convention takes either --restitution "
+                             "or --gamma-n/--gamma-t, not both")
         if self.restitution_tangential is not None and self.convention == "liggghts":
             raise InputError("restitution-t: the liggghts convention damps the tangential "
                              "direction with the normal restitution (use "
@@ -156,9 +157,17 @@ class ContactModel(RollingResistance):
         return self.materials.get(int(t), self.materials.get(None))
 
     @property
+    def _tangential_restitution(self) -> float | None:
+        """The tangential restitution that sets a dashpot of its own (the demstep
+        convention, as the engine's law: with or without a normal one), else None."""
+        return self.restitution_tangential if self.convention == "demstep" else None
+
+    @property
     def damped(self) -> bool:
-        return bool(self.gamma_n or self.gamma_t or (self.restitution is not None
-                                                     and self.restitution < 1.0))
+        et = self._tangential_restitution
+        return bool(self.gamma_n or self.gamma_t
+                    or (self.restitution is not None and self.restitution < 1.0)
+                    or (et is not None and et < 1.0 and self.tangential_damping))
 
     def describe(self) -> str:
         if self.model == "linear":
@@ -170,17 +179,18 @@ class ContactModel(RollingResistance):
             text = f"Hertz-Mindlin tangent stiffnesses at each overlap ({mats})"
         if self.gamma_n or self.gamma_t:
             text += f"; dashpots gamma_n = {self.gamma_n:g}, gamma_t = {self.gamma_t:g} (absolute)"
-        elif self.restitution is not None:
-            if self.convention == "liggghts":
-                tang = ("tangential dashpot " + ("on" if self.tangential_damping else "off"))
-                form = ("c_t = c_n" if self.model == "linear" else "c_t from k_t")
-                text += (f"; dashpots from restitution {self.restitution:g}, LIGGGHTS "
-                         f"convention ({tang}; {form})")
-            else:
-                et = self.restitution_tangential
-                text += (f"; dashpots from restitution {self.restitution:g}"
-                         + (f" (tangential {et:g})" if et is not None else " (normal only)")
-                         + ", demstep convention")
+        if self.restitution is not None and self.convention == "liggghts":
+            tang = ("tangential dashpot " + ("on" if self.tangential_damping else "off"))
+            form = ("c_t = c_n" if self.model == "linear" else "c_t from k_t")
+            text += (f"; dashpots from restitution {self.restitution:g}, LIGGGHTS "
+                     f"convention ({tang}; {form})")
+        elif self.restitution is not None or self._tangential_restitution is not None:
+            et = self._tangential_restitution
+            normal = ("none" if self.restitution is None else f"{self.restitution:g}")
+            text += (f"; dashpots from restitution: normal {normal}, tangential "
+                     + (f"{et:g}" if et is not None else "none")
+                     + (" (added to the absolute ones)" if self.gamma_n or self.gamma_t else "")
+                     + ", demstep convention")
         if self.rolling_convention == "beta":
             text += (f"; rolling resistance k_r = {self.rolling_stiffness:g} k_t R*^2, "
                      f"k_w = {self.twisting_stiffness:g} k_t R*^2")
@@ -207,13 +217,13 @@ class ContactModel(RollingResistance):
         if self.restitution is not None:
             beta = laws.damping_ratio_from_restitution(self.restitution)
             p = p._replace(beta_n=beta)
-            if self.convention == "liggghts":
-                # Hertz: the same beta on k_t; linear: c_t = c_n (set after)
-                if self.tangential_damping and self.model == "hertz":
-                    p = p._replace(beta_t=beta)
-            elif self.restitution_tangential is not None:
-                p = p._replace(beta_t=laws.damping_ratio_from_restitution(
-                    self.restitution_tangential))
+            # liggghts, Hertz: the same beta on k_t; linear: c_t = c_n (set after)
+            if (self.convention == "liggghts" and self.tangential_damping
+                    and self.model == "hertz"):
+                p = p._replace(beta_t=beta)
+        if self._tangential_restitution is not None:  # (with a normal one or not)
+            p = p._replace(beta_t=laws.damping_ratio_from_restitution(
+                self._tangential_restitution))
         if not self.tangential_damping:
             p = p._replace(c_t=0.0, beta_t=0.0)
         if self.has_rolling:
