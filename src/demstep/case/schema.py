@@ -488,6 +488,10 @@ class Case(_Section):
     def resolved(self) -> dict:
         """The case with every default filled in and paths made absolute (for TOML)."""
         data = self.model_dump(mode="python", exclude_none=True)
+        for section in [data.get("timestep")] + [st.get("timestep") for st in data["stages"]]:
+            if section is not None and section.get("mode") != "auto":
+                for name in AUTO_ONLY:  # (the mode does not read them)
+                    section.pop(name, None)
         if self.particles.generator == "file":
             data["particles"]["path"] = str(self.particle_file())
         if self.bond_file() is not None:
@@ -880,10 +884,21 @@ def check_case(case: Case) -> None:
                                          initial=False)
 
 
+#: the [timestep] keys only the 'auto' mode reads
+AUTO_ONLY = ("safety", "method", "every", "growth")
+
+
 def _resolve_timestep(key: str, ts: "TimestepSection") -> None:
-    """Fill in ``mode`` (and the default alpha) and refuse keys the mode does not use."""
+    """Fill in ``mode`` (and the default alpha) and refuse keys the mode does not use
+    (the 'auto' keys without mode = 'auto' too: a case that meant the certified step
+    and forgot the mode ran on alpha)."""
     if ts.mode is None:
         ts.mode = "fixed" if ts.dt is not None else "alpha"
+    if ts.mode != "auto":
+        for name in AUTO_ONLY:
+            if name in ts.model_fields_set:
+                raise InputError(f"{key}.{name}: only used with mode = 'auto' (the mode is "
+                                 f"{ts.mode!r}), got {getattr(ts, name)!r}")
     if ts.mode == "fixed" and ts.dt is None:
         raise InputError(f"{key}.dt: required with mode = 'fixed'")
     if ts.mode == "fixed" and ts.alpha is not None:
