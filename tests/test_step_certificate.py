@@ -331,3 +331,37 @@ def test_merge_cover_equals_a_sort_of_both_records(n_known):
     np.testing.assert_array_equal(values, expect_values)
     assert merged.dtype == np.int64
     np.testing.assert_array_equal(assumed, before)  # the record itself is not changed
+
+
+def test_a_wall_contact_pressed_deeper_changes_by_less_than_its_drift():
+    """A sphere on a floor, estimated touching at the arm of its geometry (the centre's
+    distance to the wall), then pressed deeper and slid along the floor (its normal does
+    not turn, its arm shortens): the change of its mass-scaled element (dense) is
+    nonzero and below the drift, which only the wall contact's arm term gives."""
+    rng = np.random.default_rng(3)
+    point, normal = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
+    ratios = []
+    for _ in range(50):
+        r = rng.uniform(0.3, 1.5)
+        h, h2 = r * rng.uniform(0.9, 1.0), r * rng.uniform(0.7, 0.9)
+        x = np.array([[0.0, 0.0, h]])
+        moved = np.array([[rng.uniform(-1, 1), rng.uniform(-1, 1), h2]])
+        p = Particles.from_density(x, np.array([r]), rng.uniform(0.5, 3.0))
+        k_n, k_t = rng.uniform(0.1, 10.0, 2)
+
+        def element(arm):
+            return ContactSet(np.array([0]), np.array([-1]), -normal, np.array([arm]),
+                              np.zeros(1), np.array([k_n]), np.array([k_t]), np.array([0]),
+                              c_n=np.array([k_t]), c_t=np.array([k_n]))
+
+        ref = element(h)
+        cert = StepCertificate.from_estimate(1.0, 1.0, ref, 1.0 / p.m, 1.0 / p.inertia,
+                                             radius=np.array([r]))
+        drift = cert.drift(moved, np.zeros(3), (point, normal))
+        for coeff, bound in (((k_n, k_t), drift[0]), ((k_t, k_n), drift[1])):
+            change = (scaled(p, element(h2), True, coeff) - scaled(p, ref, True, coeff))
+            norm = np.abs(np.linalg.eigvalsh(change)).max()
+            assert norm > 0
+            ratios.append(norm / bound)
+    assert max(ratios) <= 1.0 + 1e-12
+    assert max(ratios) > 0.25
