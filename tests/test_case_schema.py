@@ -275,3 +275,49 @@ steps = 1
     assert sim.wall_point[0, 0] == -20.0 and sim.wall_point[1, 0] == 140.0  # touching walls
     with pytest.raises(InputError, match="no lattice site inside the clip box"):
         build_simulation(case_from_text(text.replace("clip_upper = [120.0", "clip_upper = [-50.0")))
+
+
+def test_a_periodic_axis_has_no_walls_across_it():
+    """[box] with [periodic] x gives only the walls of the other axes (x- and x+ would
+    cut the periodic box: the run diverged); a stage or [box.walls] naming x- is
+    refused as no such wall, and a wall across a periodic axis is refused with its name
+    and the axis, in a case and in the Python API."""
+    from demstep.contact.laws import LinearSpring
+    from demstep.engine import Simulation
+    from demstep.particles import Particles
+    from demstep.walls import Wall, box_walls
+
+    text = """
+name = "p"
+stages = [{ name = "s1", steps = 20 }]
+[particles]
+generator = "lattice"
+lattice = "hex"
+radius = 1.0
+size = [4, 3]
+density = 1000.0
+[periodic]
+x = 8.0
+[contact]
+law = "linear"
+k_n = 1e6
+[box]
+margin = 0.0
+"""
+    case = case_from_text(text)
+    assert case.wall_names() == ["y-", "y+"]
+    sim = build_simulation(case)
+    assert [w.name for w in sim.walls] == ["y-", "y+"]
+    sim.run(steps=20)
+    with pytest.raises(InputError, match=r'box.walls."x-": no such box wall \(have y-, y\+\)'):
+        case_from_text(text + '[box.walls."x-"]\nmotion = "velocity"\nvelocity = [1.0, 0.0]\n')
+    crossing = text + ('[[walls]]\nname = "slope"\npoint = [0.0, 0.0]\n'
+                       'normal = [0.1, 1.0]\n')
+    with pytest.raises(InputError, match="wall 'slope': its normal .* periodic axis x"):
+        build_simulation(case_from_text(crossing))
+    p = Particles.from_density(np.array([[1.0, 1.0], [3.0, 1.0]]), np.ones(2), 1.0)
+    with pytest.raises(InputError, match="wall 'x-': its normal .* periodic axis x"):
+        Simulation(p, LinearSpring(k_n=1e3), walls=box_walls([0, 0], [4, 4]),
+                   periodic=[4.0, None])
+    Simulation(p, LinearSpring(k_n=1e3), walls=[Wall([0, 0], [0, 1], name="floor")],
+               periodic=[4.0, None])

@@ -359,6 +359,12 @@ class Simulation:
         for wall in walls:
             if wall.dim != self.dim:
                 raise InputError(f"wall {wall.name!r}: has {wall.dim} components, the simulation {self.dim}")
+            normal = np.asarray(wall.normal, dtype=np.float64)
+            for k in np.flatnonzero(self.box.length[:self.dim] > 0):
+                if abs(normal[k]) > 1e-12 * np.linalg.norm(normal):
+                    raise InputError(f"wall {wall.name!r}: its normal {normal.tolist()} has a "
+                                     f"component along the periodic axis {'xyz'[k]} (a wall "
+                                     "cannot cross a periodic box)")
         self.walls = walls
         nw = len(walls)
         z3 = np.zeros((nw, 3))

@@ -177,7 +177,8 @@ def build_walls(case: Case, x: np.ndarray, r: np.ndarray) -> list:
         else:
             lower = (x - r[:, None]).min(axis=0) - b.margin
             upper = (x + r[:, None]).max(axis=0) + b.margin
-        walls = box_walls(lower, upper)
+        periodic = case.periodic_axes()  # (no box wall across a periodic axis)
+        walls = [w for w in box_walls(lower, upper) if w.name[0] not in periodic]
         for w in walls:
             if w.name in b.walls:
                 apply_motion(w, b.walls[w.name])

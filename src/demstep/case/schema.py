@@ -75,7 +75,8 @@ force per unit length), ``servo_gain`` [L T/M] (omitted: automatic, correcting
 ``max_speed`` [L/T], ``area`` [L^2] (2D: length; omitted: from the opposite box
 walls), ``friction`` (mu of this wall).
 
-``[box]``: the 2 x dim axis-aligned walls named x-, x+, y-, y+(, z-, z+): corners
+``[box]``: the 2 x dim axis-aligned walls named x-, x+, y-, y+(, z-, z+), none across a
+periodic axis (with ``[periodic] x``, no x- and x+): corners
 ``lower``/``upper`` [L], or (both omitted) the particles' extents plus ``margin`` [L].
 ``[box.walls."z+"]`` sets a box wall's motion with the keys of ``[[walls]]`` (except
 name, point and normal).
@@ -480,9 +481,16 @@ class Case(_Section):
         name = self.stages[k].name
         return name if name else f"stage {k + 1}"
 
+    def periodic_axes(self) -> str:
+        """The periodic axes, e.g. "x" or "xz" ("" none)."""
+        p = self.periodic
+        return "" if p is None else "".join(a for a in AXES[:self.dim]
+                                            if getattr(p, a) is not None)
+
     def wall_names(self) -> list[str]:
         """Names of every wall, in the order the Simulation holds them."""
-        names = box_wall_names(self.dim) if self.box is not None else []
+        names = (box_wall_names(self.dim, self.periodic_axes()) if self.box is not None
+                 else [])
         return names + [w.name for w in self.walls]
 
     def resolved(self) -> dict:
@@ -525,9 +533,10 @@ class Case(_Section):
         return p if p.is_absolute() else (self._base_dir / p).resolve()
 
 
-def box_wall_names(dim: int) -> list[str]:
-    """Names of the box walls in :func:`demstep.walls.box_walls` order."""
-    return [f"{a}{s}" for a in AXES[:dim] for s in "-+"]
+def box_wall_names(dim: int, periodic: str = "") -> list[str]:
+    """Names of the box walls in :func:`demstep.walls.box_walls` order, without those
+    across the ``periodic`` axes (e.g. "x")."""
+    return [f"{a}{s}" for a in AXES[:dim] if a not in periodic for s in "-+"]
 
 
 # ------------------------------------------------------------ error messages
@@ -816,7 +825,7 @@ def check_case(case: Case) -> None:
         raise InputError(f"periodic.z: a 2D case has no z axis, got {case.periodic.z!r}")
     _resolve_timestep("timestep", case.timestep)
     # walls
-    names = box_wall_names(dim) if case.box is not None else []
+    names = box_wall_names(dim, case.periodic_axes()) if case.box is not None else []
     if case.box is not None:
         b = case.box
         _need_len("box.lower", b.lower, dim)
@@ -850,7 +859,7 @@ def check_case(case: Case) -> None:
     for w in case.walls:
         state[w.name] = w
     if case.box is not None:
-        for nm in box_wall_names(dim):
+        for nm in box_wall_names(dim, case.periodic_axes()):
             state[nm] = case.box.walls.get(nm, WallMotion())
     for k, stage in enumerate(case.stages):
         key = f"stages[{k}]"
