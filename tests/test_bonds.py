@@ -187,6 +187,16 @@ def test_bond_between_distant_particles_is_refused():
         sim.add_bonds(ParallelBonds(normal_stiffness=KN, gap=0.1), pairs=[[0, 2]])
 
 
+@pytest.mark.parametrize("pairs", [[[0, 1], [1, 2], [0, 1]], [[1, 0], [0, 1]]])
+def test_a_pair_listed_twice_is_refused(pairs):
+    """Two bonds on one pair (the list had it twice, in either order) were made: a
+    bond file's duplicate is an error naming the pair, and no bond is added."""
+    p, sim = chain(3)
+    with pytest.raises(InputError, match=r"bonds: pair \(0, 1\) is listed twice"):
+        sim.add_bonds(ParallelBonds(normal_stiffness=KN, gap=0.1), pairs=pairs)
+    assert len(sim.bonds.i) == 0
+
+
 BONDED_CASE = """
 [particles]
 generator = "lattice"

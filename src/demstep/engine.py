@@ -1131,8 +1131,8 @@ class Simulation:
         (:class:`demstep.contact.bonds.ParallelBonds`): the given ``pairs`` (K, 2) of
         particle indices, or every pair whose surfaces are at most ``bonds.gap`` apart
         (touching and overlapping pairs included; minimum image across periodic axes;
-        never two spheres of one clump). Pairs already bonded by an intact bond are
-        skipped. Returns the number of bonds added."""
+        never two spheres of one clump; a pair listed twice is an error). Pairs already
+        bonded by an intact bond are skipped. Returns the number of bonds added."""
         from demstep.contact.bonds import bond_candidates
 
         bonds.validate()
@@ -1152,6 +1152,11 @@ class Simulation:
                 raise InputError(f"bonds: pair {k} bonds particle "
                                  f"{self.particle_id(pairs[k, 0])} to itself")
             i, j = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
+            keys, first, counts = np.unique(i * n + j, return_index=True, return_counts=True)
+            if (counts > 1).any():
+                k = int(first[np.flatnonzero(counts > 1)[0]])
+                raise InputError(f"bonds: pair ({self.particle_id(i[k])}, "
+                                 f"{self.particle_id(j[k])}) is listed twice (in either order)")
             d, dist, delta, *_ = pair_geometry_arrays(self.x, self.r, i, j, self.periodic_len)
             far = -delta > bonds.gap * (1 + 1e-12)
             if far.any():
