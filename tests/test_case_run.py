@@ -311,6 +311,22 @@ def test_cli_argument_errors_exit_2(tmp_path, capsys):
     assert cli_main(["plot", str(tmp_path / "nothing")]) == 2
 
 
+@pytest.mark.parametrize("content, needle", [
+    (b"x,y,r\n0,0,1\n", "is not a run's history: no column 'step'"),
+    (b"step,time,kinetic_translational\n0,0,0\n", "no column 'dt', 'dt_estimate'"),
+    (b"step,time\n0,\xff\xfe\n", "not a text history file (byte 12 is not UTF-8)"),
+])
+def test_plot_of_a_file_that_is_no_history_is_one_line(tmp_path, capsys, content, needle):
+    """`demstep plot` on a particle CSV, a history without the ledger's columns or a
+    binary file: exit 2, one line naming the file and what is missing (KeyError and
+    UnicodeDecodeError tracebacks before), and no plots folder begun."""
+    (tmp_path / "history.csv").write_bytes(content)
+    assert cli_main(["plot", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1 and "history.csv" in err
+    assert not (tmp_path / "plots").exists()
+
+
 def test_sigterm_in_a_subprocess_saves_a_checkpoint(tmp_path):
     """A real signal to a real process: the run stops cleanly with exit status 143
     (128 + SIGTERM, as the shell reports a process killed by it) and a checkpoint to

@@ -32,6 +32,12 @@ def _stage_lines(ax, h):
         ax.axvline(h["time"][k + 1], color="0.6", lw=0.8, ls=":")
 
 
+#: the history columns the figures read (checked before any is drawn)
+HISTORY_COLUMNS = ("step", "time", "dt", "dt_estimate", "kinetic_translational",
+                   "kinetic_rotational", "strain_normal", "strain_tangential", "friction",
+                   "external", "energy_error")
+
+
 def plot_run(out_dir) -> list[Path]:
     """Draw the run's figures from ``out_dir/history.csv`` into ``out_dir/plots``;
     returns the files written."""
@@ -42,6 +48,10 @@ def plot_run(out_dir) -> list[Path]:
     if not path.is_file():
         raise InputError(f"plot: no history.csv in {out_dir} (was output.history_every 0?)")
     h = read_history(path)
+    missing = [c for c in HISTORY_COLUMNS if c not in h]
+    if missing:
+        raise InputError(f"plot: {path} is not a run's history: no column "
+                         f"{', '.join(repr(c) for c in missing)}")
     if len(h["step"]) == 0:
         raise InputError(f"plot: {path} has no rows yet")
     folder = (path.parent / "plots")

@@ -150,23 +150,28 @@ def read_history(path) -> dict[str, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise missing_file(path, "history file")
-    with open(path, newline="", encoding="utf-8") as fh:
-        reader = csv.reader(fh)
-        header = next(reader, None)
-        if not header:
-            raise InputError(f"{path}: empty history file")
-        rows = []
-        for line, row in enumerate(reader, start=2):
-            if not row:
-                continue
-            if len(row) != len(header):
-                raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
-            try:
-                rows.append([float(v) for v in row])
-            except ValueError:
-                bad = next(i for i, v in enumerate(row) if not _is_float(v))
-                raise InputError(f"{path}:{line}: column {header[bad]!r}: not a number: "
-                                 f"{row[bad]!r}") from None
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            reader = csv.reader(fh)
+            header = next(reader, None)
+            if not header:
+                raise InputError(f"{path}: empty history file")
+            rows = []
+            for line, row in enumerate(reader, start=2):
+                if not row:
+                    continue
+                if len(row) != len(header):
+                    raise InputError(f"{path}:{line}: expected {len(header)} values, got "
+                                     f"{len(row)}")
+                try:
+                    rows.append([float(v) for v in row])
+                except ValueError:
+                    bad = next(i for i, v in enumerate(row) if not _is_float(v))
+                    raise InputError(f"{path}:{line}: column {header[bad]!r}: not a number: "
+                                     f"{row[bad]!r}") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not a text history file (byte {exc.start} is not "
+                         "UTF-8)") from None
     data = np.array(rows, dtype=np.float64).reshape(len(rows), len(header))
     return {name: data[:, k] for k, name in enumerate(header)}
 
