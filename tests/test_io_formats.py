@@ -141,6 +141,15 @@ BAD_FILES = [
                  "0 1\n0 1\n0 1\nITEM: ATOMS id x y z radius\n1 0 0 0 1\n1 2 0 0 1\n",
      "column 'id': duplicate id 1"),
     ("bad.dump", "ITEM: NUMBER OF ATOMS\n", "bad.dump:1: expected 'ITEM: TIMESTEP'"),
+    # rows with more values than the columns (read misaligned or cut before)
+    ("bad.csv", "x,y,z,r\n0,0,0,1\n1,0,0,1,7,8\n", "bad.csv:3: expected 4 values, got 6"),
+    ("bad.dump", "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n1\nITEM: BOX BOUNDS pp pp pp\n"
+                 "0 1\n0 1\n0 1\nITEM: ATOMS id x y z radius\n1 0 9 0 0 1\n",
+     "bad.dump:10: expected 5 values, got 6"),
+    ("bad.txt", "0 0 1\n1 1 1 1\n", "bad.txt:2: expected 3 values (as line 1), got 4"),
+    ("bad.dump", "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n1\nITEM: BOX BOUNDS pp pp\n"
+                 "0 1\n0 1\n0 1\nITEM: ATOMS id x y z radius\n1 0 0 0 1\n",
+     "bad.dump:5: BOX BOUNDS: expected a boundary flag for each of x, y and z, got 'pp pp'"),
 ]
 
 
@@ -226,3 +235,12 @@ def test_liggghts_integer_columns_are_integers(tmp_path, column, value, error):
                     f"{row['id']} {row['type']} 0.4 0.2 0.05\n")
     with pytest.raises(InputError, match=re.escape(f"d.dump:11: {error}")):
         read_liggghts_dump(path)
+
+
+def test_a_spreadsheet_s_trailing_empty_cells_are_no_extra_values(tmp_path):
+    """A CSV row ending in empty cells (a spreadsheet's export) reads like one without
+    them; a row with extra values that are not empty is refused (above)."""
+    path = tmp_path / "p.csv"
+    path.write_text("x,y,r\n0,0,1,\n3,0,1,,\n")
+    data = read_assembly(path)
+    assert np.array_equal(data.x, [[0, 0], [3, 0]]) and np.array_equal(data.r, [1, 1])

@@ -185,7 +185,9 @@ def read_csv(path) -> ParticleData:
             for line, row in enumerate(reader, start=2):
                 if not row or all(not c.strip() for c in row):
                     continue
-                if len(row) < len(header):
+                while len(row) > len(header) and not row[-1].strip():
+                    row = row[:-1]  # (trailing empty cells of a spreadsheet's export)
+                if len(row) != len(header):
                     raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
                 rows.append([_number(row[k], path, line, c) for k, c in zip(index, cols)])
                 lines.append(line)
@@ -325,7 +327,10 @@ def _liggghts_snapshots(path) -> list[_Snapshot]:
         if bounds[:3] == ["xy", "xz", "yz"]:
             raise InputError(f"{path}:{k + 5}: BOX BOUNDS: a triclinic box ({' '.join(bounds)}) "
                              f"is not supported; write the dump from an orthogonal box")
-        flags = bounds[:3] if len(bounds) >= 3 else ["ff", "ff", "ff"]
+        if 0 < len(bounds) < 3:
+            raise InputError(f"{path}:{k + 5}: BOX BOUNDS: expected a boundary flag for each "
+                             f"of x, y and z, got {' '.join(bounds)!r}")
+        flags = bounds[:3] if bounds else ["ff", "ff", "ff"]
         for a, flag in enumerate(flags):
             if len(flag) != 2 or any(f not in "pfsm" for f in flag) or (("p" in flag) and flag != "pp"):
                 raise InputError(f"{path}:{k + 5}: BOX BOUNDS: boundary flag of {'xyz'[a]} must "
@@ -413,7 +418,7 @@ def read_liggghts_dump(path, snapshot: int = -1, timestep: int | None = None) ->
     for row_k, text in enumerate(snap.rows):
         parts = text.split()
         line = snap.first_line + row_k
-        if len(parts) < len(cols):
+        if len(parts) != len(cols):
             raise InputError(f"{path}:{line}: expected {len(cols)} values, got {len(parts)}")
         for c, i in index.items():
             data[c][row_k] = _number(parts[i], path, line, c)
@@ -527,7 +532,8 @@ def write_liggghts_dump(path, x, r, m=None, v=None, timestep: int = 0, box=None,
 
 def read_yade_text(path) -> ParticleData:
     """A YADE text export: ``x y z r`` per line (``x y r`` for demstep's 2D files),
-    ``#`` comments, extra columns ignored; ``#format x_y_z_r...`` names the columns."""
+    ``#`` comments, extra columns ignored (every row has as many values as the first);
+    ``#format x_y_z_r...`` names the columns."""
     path = Path(path)
     lines = _read_lines(path)
     fmt = None
@@ -564,9 +570,11 @@ def read_yade_text(path) -> ParticleData:
         index = list(range(len(names)))
         width = len(names)
     data = np.empty((len(rows), len(names)))
+    count = max(width, len(rows[0]))  # (extra columns ignored, but in every row alike)
     for k, (parts, line_no) in enumerate(zip(rows, numbers)):
-        if len(parts) < width:
-            raise InputError(f"{path}:{line_no}: expected {width} values, got {len(parts)}")
+        if len(parts) != count:
+            raise InputError(f"{path}:{line_no}: expected {count} values (as line "
+                             f"{numbers[0]}), got {len(parts)}")
         for c, (i, nm) in enumerate(zip(index, names)):
             data[k, c] = _number(parts[i], path, line_no, nm)
     dim = len(names) - 1
