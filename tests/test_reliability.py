@@ -509,6 +509,22 @@ def test_damaged_checkpoint_gives_one_line(tmp_path, finished_run, capsys, damag
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("state", ["[1, 2]", "\"text\"", "\u00ff"])
+def test_a_run_state_that_is_no_json_object_gives_one_line(tmp_path, finished_run, capsys,
+                                                           state):
+    """A run state beside the checkpoint that is valid JSON but no object (or no JSON):
+    one line naming the file, for `run --restart` and `dt` (AttributeError before)."""
+    case, checkpoint = finished_run
+    bad = tmp_path / "c.npz"
+    shutil.copy(checkpoint, bad)
+    bad.with_suffix(".json").write_text(state, encoding="latin-1")
+    code, _, err = cli(["run", case, "--out", tmp_path / "out", "--restart", bad], capsys)
+    assert_one_line_error(code, err, "restart:", "not a demstep run state")
+    assert not (tmp_path / "out").exists()
+    code, _, err = cli(["dt", bad, "--case", case], capsys)
+    assert_one_line_error(code, err, "not a demstep run state")
+
+
 def test_restart_from_the_run_state_json(tmp_path, finished_run, capsys):
     case, checkpoint = finished_run
     code, _, err = cli(["run", case, "--out", tmp_path / "out", "--restart",

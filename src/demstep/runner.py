@@ -124,6 +124,8 @@ def read_state(checkpoint, key: str = "restart") -> tuple[RunPosition, dict]:
         raise InputError(f"{key}: no run state {path.name} beside the checkpoint {checkpoint}")
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
+        if not isinstance(data, dict):
+            raise ValueError(f"a JSON {type(data).__name__}, not an object")
         if data.get("format") != STATE_FORMAT:
             raise ValueError(f"format {data.get('format')!r}")
         pos = RunPosition(int(data["stage"]), int(data["stage_step"]),
