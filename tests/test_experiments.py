@@ -225,3 +225,27 @@ def test_engine_api_example_runs():
     spec.loader.exec_module(mod)
     sim = mod.main(steps=600)
     assert sim.step == 600 and sim.monitor.max_error < 1e-2
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--scheduler", "tcp://127.0.0.1:1", "--workers", "3"], ["workers", "--scheduler", "3"]),
+    (["--scheduler", "tcp://127.0.0.1:1"], ["scheduler: cannot connect to tcp://127.0.0.1:1"]),
+    (["--scheduler", "localhost"], ["tcp://HOST:PORT"]),
+])
+def test_paper_with_a_bad_cluster_writes_nothing(tmp_path, capsys, monkeypatch, args, words):
+    """`demstep paper` with --workers beside --scheduler, an unreachable scheduler or a
+    malformed address: exit 2, one line, and no output folder (the unreachable one left
+    data/ with the critical-step table and the first FCC stage after its timeout)."""
+    from demstep.sweep import cluster
+
+    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT", 1.0)
+    out = tmp_path / "paper"
+    try:
+        code = main(["paper", "--out", str(out), "--quiet", *args])
+    except SystemExit as exc:
+        code = exc.code
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1
+    for w in words:
+        assert w in err
+    assert not out.exists()

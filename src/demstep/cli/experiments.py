@@ -126,9 +126,10 @@ def add_paper_parser(sub):
                        "(Figs. 11, 12), the measured stability thresholds, and report.html.")
     p.add_argument("--out", default="demstep-paper", help="output folder (default demstep-paper)")
     p.add_argument("--quick", action="store_true", help="shorter runs (under 2 minutes)")
-    p.add_argument("--workers", type=positive_int("workers"), default=2,
+    p.add_argument("--workers", type=positive_int("workers"), default=None,
                    help="Dask workers on this machine (default 2)")
-    p.add_argument("--scheduler", help="address of an existing Dask scheduler (tcp://HOST:PORT)")
+    p.add_argument("--scheduler", help="address of an existing Dask scheduler (tcp://HOST:PORT; "
+                   "instead of --workers)")
     p.add_argument("--quiet", action="store_true", help="no progress display")
     p.set_defaults(func=cmd_paper)
 
@@ -140,7 +141,11 @@ def cmd_paper(args) -> int:
     from demstep.io.lock import check_folder_creatable
 
     check_folder_creatable(Path(args.out), "out")
-    summary = run_paper(args.out, quick=args.quick, workers=args.workers,
+    if args.scheduler and args.workers is not None:
+        raise InputError(f"workers: not used with --scheduler (its cluster has its own "
+                         f"workers), got {args.workers}")
+    summary = run_paper(args.out, quick=args.quick,
+                        workers=2 if args.workers is None else args.workers,
                         scheduler=args.scheduler, show_progress=not args.quiet)
     print(f"report: {args.out}/report.html ({summary['wall_time_s']:.0f} s)")
     for r in summary["fcc"]:

@@ -194,6 +194,11 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
     if workers < 1:
         raise InputError(f"--workers: must be >= 1, got {workers}")
     settings = PaperSettings.make(quick=quick, workers=workers, scheduler=scheduler)
+    if scheduler:  # unreachable: say so before anything is written
+        from demstep.sweep import dask_client
+
+        with dask_client(scheduler, workers):
+            pass
     out.mkdir(parents=True, exist_ok=True)
     (out / "data").mkdir(exist_ok=True)
     started = time.perf_counter()
