@@ -496,6 +496,9 @@ class Case(_Section):
     def resolved(self) -> dict:
         """The case with every default filled in and paths made absolute (for TOML)."""
         data = self.model_dump(mode="python", exclude_none=True)
+        for stage in data["stages"]:
+            if stage.get("until_kinetic_below") is None:
+                stage.pop("check_every", None)  # (read with until_kinetic_below only)
         for section in [data.get("timestep")] + [st.get("timestep") for st in data["stages"]]:
             if section is not None and section.get("mode") != "auto":
                 for name in AUTO_ONLY:  # (the mode does not read them)
@@ -824,6 +827,11 @@ def check_case(case: Case) -> None:
     if case.periodic is not None and dim == 2 and case.periodic.z is not None:
         raise InputError(f"periodic.z: a 2D case has no z axis, got {case.periodic.z!r}")
     _resolve_timestep("timestep", case.timestep)
+    if dim == 2:
+        for name in ("twisting_stiffness", "twisting_friction"):
+            if getattr(case.contact, name):
+                raise InputError(f"contact.{name}: disks do not twist (a 2D case), got "
+                                 f"{getattr(case.contact, name)!r}")
     # walls
     names = box_wall_names(dim, case.periodic_axes()) if case.box is not None else []
     if case.box is not None:
@@ -871,6 +879,9 @@ def check_case(case: Case) -> None:
         if stage.max_steps is not None and stage.until_kinetic_below is None:
             raise InputError(f"{key}.max_steps: only used with until_kinetic_below, "
                              f"got {stage.max_steps!r}")
+        if "check_every" in stage.model_fields_set and stage.until_kinetic_below is None:
+            raise InputError(f"{key}.check_every: only used with until_kinetic_below, "
+                             f"got {stage.check_every!r}")
         _need_len(f"{key}.gravity", stage.gravity, dim)
         if stage.timestep is not None:
             _resolve_timestep(f"{key}.timestep", stage.timestep)
