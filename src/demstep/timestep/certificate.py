@@ -67,20 +67,19 @@ import numpy as np
 
 from demstep._numba import njit
 from demstep.contact.geometry import (any_periodic, contact_arms, image_count, pair_geometry,
-                                     wall_geometry, wall_geometry_arrays)
+                                     wall_geometry)
 
 
 @njit(cache=True)
-def _drift_sums(x, i, j, bond, normal_ref, arm_ref, spring, dashpot, roll, radius, inv_m,
-                inv_I, periodic_len, sum_k, sum_c):
+def _drift_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, sum_k, sum_c):
     """Adds to ``sum_k`` [1/T^2] and ``sum_c`` [1/T] (N,), per particle, over its covered
     pairs (i, j), the bounds on how far the pair's element moved since the estimate
     (module doc), for the springs and the viscous parts: the turn |n - n_ref| (n the
     unit normal now, minimum image along periodic axes) times the turn factor at the
-    arms now, plus the arm term eta (l_ref + l) max(b_n, b_t). ``arm_ref`` (P, 2) the
-    arms [L] of the estimate, ``spring`` and ``dashpot`` (P, 2) (max(b_n, b_t),
-    |b_n - b_t|) of the springs and dashpots, ``roll`` (P, 2) the rolling and twisting
-    turn factors (springs, viscous parts; no arms in them), and per particle the radius,
+    arms now, plus the arm term eta (l_ref + l) max(b_n, b_t). ``factors`` (P, 8) per
+    pair (:attr:`StepCertificate.factors`): the arms [L] of the estimate, (max(b_n, b_t),
+    |b_n - b_t|) of the springs and of the dashpots, the rolling and twisting turn
+    factors (springs, viscous parts; no arms in them); ``particles`` (N, 3) the radius,
     inverse mass and inverse moment of inertia (zero when fixed, and rotation off). The
     arms now are those of the geometry for a touching contact and a bond (``bond``
     true: it acts apart too), the estimate's for a contact apart (it has no element
@@ -101,26 +100,49 @@ def _drift_sums(x, i, j, bond, normal_ref, arm_ref, spring, dashpot, roll, radiu
             turn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
         else:  # coincident centres: any normal, at most a half turn
             turn = 2.0
-        ref_i, ref_j = arm_ref[c, 0], arm_ref[c, 1]
-        if bond[c] or dist < radius[a] + radius[b]:
-            arm_i, arm_j = contact_arms(radius[a], radius[b], dist)
+        ref_i, ref_j = factors[c, 0], factors[c, 1]
+        r_a, r_b = particles[a, 0], particles[b, 0]
+        if bond[c] or dist < r_a + r_b:
+            arm_i, arm_j = contact_arms(r_a, r_b, dist)
         else:
             arm_i, arm_j = ref_i, ref_j
-        trans = inv_m[a] + inv_m[b]
-        rot = arm_i * arm_i * inv_I[a] + arm_j * arm_j * inv_I[b]
+        trans = particles[a, 1] + particles[b, 1]
+        inv_ia, inv_ib = particles[a, 2], particles[b, 2]
+        rot = arm_i * arm_i * inv_ia + arm_j * arm_j * inv_ib
         l_now = math.sqrt(trans + rot)
         rho = math.sqrt(rot)
-        l_ref = math.sqrt(trans + ref_i * ref_i * inv_I[a] + ref_j * ref_j * inv_I[b])
-        eta = math.sqrt((arm_i - ref_i) ** 2 * inv_I[a] + (arm_j - ref_j) ** 2 * inv_I[b])
+        l_ref = math.sqrt(trans + ref_i * ref_i * inv_ia + ref_j * ref_j * inv_ib)
+        eta = math.sqrt((arm_i - ref_i) ** 2 * inv_ia + (arm_j - ref_j) ** 2 * inv_ib)
         arm_term = eta * (l_ref + l_now)
-        f_k = (turn * (l_now * (2.0 * rho * spring[c, 0] + l_now * spring[c, 1]) + roll[c, 0])
-               + arm_term * spring[c, 0])
-        f_c = (turn * (l_now * (2.0 * rho * dashpot[c, 0] + l_now * dashpot[c, 1])
-                       + roll[c, 1]) + arm_term * dashpot[c, 0])
+        f_k = (turn * (l_now * (2.0 * rho * factors[c, 2] + l_now * factors[c, 3])
+                       + factors[c, 6]) + arm_term * factors[c, 2])
+        f_c = (turn * (l_now * (2.0 * rho * factors[c, 4] + l_now * factors[c, 5])
+                       + factors[c, 7]) + arm_term * factors[c, 4])
         sum_k[a] += f_k
         sum_k[b] += f_k
         sum_c[a] += f_c
         sum_c[b] += f_c
+
+
+@njit(cache=True)
+def _wall_drift_sums(x, p, w, point, normal, wall_factors, particles, sum_k, sum_c):
+    """Adds to ``sum_k`` and ``sum_c`` (N,) the arm terms of the covered wall contacts
+    (p, w) (walls keep their normals): eta (l_ref + l) max(b_n, b_t), eta the change of
+    the arm (the geometry's now for a touching contact, else the estimate's) over
+    sqrt(I); ``wall_factors`` (W, 3): the estimate's arm [L], max(k_n, k_t),
+    max(c_n, c_t); ``particles`` as :func:`_drift_sums`."""
+    for c in range(p.shape[0]):
+        a, b = p[c], w[c]
+        geo = wall_geometry(x[a, 0], x[a, 1], x[a, 2], particles[a, 0], point[b, 0],
+                            point[b, 1], point[b, 2], normal[b, 0], normal[b, 1],
+                            normal[b, 2])
+        ref = wall_factors[c, 0]
+        arm = geo[5] if geo[4] > 0.0 else ref  # (apart: no element now)
+        inv_m, inv_i = particles[a, 1], particles[a, 2]
+        term = abs(arm - ref) * math.sqrt(inv_i) * (math.sqrt(inv_m + arm * arm * inv_i)
+                                                     + math.sqrt(inv_m + ref * ref * inv_i))
+        sum_k[a] += term * wall_factors[c, 1]
+        sum_c[a] += term * wall_factors[c, 2]
 
 
 def cover_limits(keys, known, assumed, nonlinear: bool) -> np.ndarray:
@@ -351,28 +373,16 @@ class StepCertificate:
             return 0.0, 0.0
         x = np.ascontiguousarray(x, dtype=np.float64)
         part = self.particles
-        radius, inv_m, inv_I = (np.ascontiguousarray(part[:, k]) for k in range(3))
         sum_k = np.zeros(x.shape[0])
         sum_c = np.zeros(x.shape[0])
-        f = self.factors
-        _drift_sums(x, self.pair_i, self.pair_j, self.pair_bond, self.normal,
-                    np.ascontiguousarray(f[:, 0:2]),
-                    np.ascontiguousarray(f[:, 2:4]), np.ascontiguousarray(f[:, 4:6]),
-                    np.ascontiguousarray(f[:, 6:8]), radius, inv_m, inv_I,
-                    np.asarray(periodic_len, dtype=np.float64), sum_k, sum_c)
+        _drift_sums(x, self.pair_i, self.pair_j, self.pair_bond, self.normal, self.factors,
+                    part, np.asarray(periodic_len, dtype=np.float64), sum_k, sum_c)
         if len(self.wall_p):
             if walls is None:
                 raise ValueError("drift: the walls are needed (wall contacts are covered)")
-            p = self.wall_p
-            point, normal = (np.ascontiguousarray(w, dtype=np.float64) for w in walls)
-            _, dist, delta, _ = wall_geometry_arrays(x, radius, p, self.wall_w, point, normal)
-            ref = self.wall_factors[:, 0]
-            arm = np.where(delta > 0.0, dist, ref)  # (apart: no element now)
-            l_now = np.sqrt(inv_m[p] + arm * arm * inv_I[p])
-            l_ref = np.sqrt(inv_m[p] + ref * ref * inv_I[p])
-            term = np.abs(arm - ref) * np.sqrt(inv_I[p]) * (l_now + l_ref)
-            np.add.at(sum_k, p, term * self.wall_factors[:, 1])
-            np.add.at(sum_c, p, term * self.wall_factors[:, 2])
+            point, normal = (np.ascontiguousarray(a, dtype=np.float64) for a in walls)
+            _wall_drift_sums(x, self.wall_p, self.wall_w, point, normal, self.wall_factors,
+                             part, sum_k, sum_c)
         return float(sum_k.max()), float(sum_c.max())
 
     def bound(self, sigma: float, drift=(0.0, 0.0)) -> float:
