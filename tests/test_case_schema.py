@@ -64,6 +64,7 @@ REFUSED = [
     (setitem(("timestep", "dt"), -1), "timestep.dt: input should be greater than 0, got -1"),
     (setitem(("timestep", "dt"), 1e-3), "timestep.alpha: not used with mode = 'fixed'"),
     (setitem(("timestep", "mode"), "auto"), "timestep.alpha: not used with mode = 'auto'"),
+    (setitem(("energy", "x\ny"), 2), 'energy."x\\ny": unknown key'),
     (setitem(("contact", "twisting_stiffness"), 0.5),
      "contact.twisting_stiffness: disks do not twist (a 2D case), got 0.5"),
     (setitem(("stages", 1, "check_every"), 10),

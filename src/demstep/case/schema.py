@@ -547,6 +547,14 @@ _BARE_KEY = re.compile(r"^[A-Za-z0-9_]+$")
 _DISCRIMINATORS = ("generator", "law")
 
 
+def _quoted(key: str) -> str:
+    """A TOML key that is not bare, quoted as TOML writes it (control characters
+    escaped: an error stays one line)."""
+    import json
+
+    return json.dumps(key, ensure_ascii=False)
+
+
 def _key_path(loc, data) -> str:
     """'contact.mu', 'walls[0].normal', 'stages[1].walls."z+".velocity' from a pydantic
     error location, skipping the union tags pydantic inserts."""
@@ -558,7 +566,7 @@ def _key_path(loc, data) -> str:
             if any(node.get(d) == item for d in _DISCRIMINATORS) and not last:
                 continue  # discriminated-union tag, e.g. 'lattice' in particles.lattice.radius
             if item in node or last:
-                parts.append(item if _BARE_KEY.match(item) else f'"{item}"')
+                parts.append(item if _BARE_KEY.match(item) else _quoted(item))
                 node = node.get(item)
             continue
         if isinstance(node, list) and isinstance(item, int):
@@ -888,7 +896,7 @@ def check_case(case: Case) -> None:
         periodic_axes = [a for a in AXES[:dim]
                          if case.periodic is not None and getattr(case.periodic, a) is not None]
         for axis, change in stage.periodic.items():
-            akey = f"{key}.periodic.{axis}" if _BARE_KEY.match(axis) else f'{key}.periodic."{axis}"'
+            akey = f"{key}.periodic.{axis}" if _BARE_KEY.match(axis) else f'{key}.periodic.{_quoted(axis)}'
             if axis not in periodic_axes:
                 raise InputError(f"{akey}: not a periodic axis of the case (periodic: "
                                  f"{', '.join(periodic_axes) or 'none'})")
