@@ -404,3 +404,47 @@ def test_paper_case_restarts_bit_for_bit(tmp_path):
     for key in ("spheres.x", "spheres.v", "spheres.w", "box.length", "box.sums", "ledger.acc",
                 "ledger.energy", "wall_state.point"):
         assert np.array_equal(a[key], b[key]), key
+
+
+LATER_BONDS = """
+name = "bond_later"
+[particles]
+generator = "file"
+path = "two.csv"
+density = 1000.0
+[contact]
+law = "linear"
+k_n = 1.0e6
+[bonds]
+normal_stiffness = 1.0e6
+file = "pair.csv"
+stage = 2
+{gap}
+[[stages]]
+name = "separate"
+steps = 300
+[[stages]]
+name = "bonded"
+steps = 10
+"""
+
+
+def test_a_stage_that_cannot_start_keeps_the_earlier_stages_work(tmp_path, capsys):
+    """A bond file for stage 2 whose pair has moved apart during stage 1: the run stops
+    with one line naming the pair, and a checkpoint of the state after stage 1 (none
+    before: stage 1's work was lost), named in the message; the fixed case restarts
+    from it and completes stage 2 only."""
+    (tmp_path / "two.csv").write_text("x,y,r\n0,0,1\n1.96,0,1\n")
+    (tmp_path / "pair.csv").write_text("i,j\n0,1\n")
+    case = tmp_path / "case.toml"
+    case.write_text(LATER_BONDS.format(gap=""))
+    out = tmp_path / "out"
+    assert cli_main(["run", str(case), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    checkpoint = out / "checkpoints" / "step0000000300.npz"
+    assert "bonds.file: pair (0, 1) is" in err and "stage 2 'bonded' could not start" in err
+    assert f"--restart {checkpoint}" in err and checkpoint.is_file()
+    case.write_text(LATER_BONDS.format(gap="gap = 20.0"))
+    assert cli_main(["run", str(case), "--out", str(out), "--quiet", "--restart",
+                     str(checkpoint), "--allow-changed-case"]) == 0
+    assert json.loads((out / "run.json").read_text())["step"] == 310

@@ -377,6 +377,21 @@ class _Runner:
         log.info("stage %d/%d '%s' starts at step %d (t = %.6g)", k + 1, len(self.case.stages),
                  self.case.stage_label(k), sim.step, sim.time)
 
+    def _start_stage_keeping_work(self, k: int, done_here: bool):
+        """:meth:`_start_stage`; when the stage cannot start (its changes are bad input
+        only its start can tell, e.g. a bond file's pair too far apart by then) after
+        stages this run did (``done_here``), a checkpoint of the state they left first,
+        named in the one-line error (their work was lost: no checkpoint was written)."""
+        try:
+            self._start_stage(k)
+        except InputError as exc:
+            if not done_here:
+                raise
+            path = self.checkpoint("stage_error")
+            raise InputError(f"{exc} (stage {k + 1} '{self.case.stage_label(k)}' could not "
+                             f"start; the state after stage {k} is saved: fix the case and "
+                             f"restart with --restart {path} --allow-changed-case)") from None
+
     def _stage_budget(self) -> int | None:
         """Steps this stage may still take at most (None: no fixed bound)."""
         stage = self.case.stages[self.pos.stage]
@@ -452,7 +467,7 @@ class _Runner:
             for k in range(start, len(case.stages)):
                 # a stage with no step done has not started (its changes are not applied)
                 if fresh_run or k > start or self.pos.stage_step == 0:
-                    self._start_stage(k)
+                    self._start_stage_keeping_work(k, done_here=k > start)
                 else:
                     sim.prepare()
                 if fresh_run and k == 0 and self.vtk is not None:
