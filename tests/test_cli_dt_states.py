@@ -294,6 +294,20 @@ def test_case_file_and_checkpoint(tmp_path, capsys):
     data, est = estimates(out)
     # the hex example has restitution 0.5: its dashpots enter the analysis
     assert data["damped"] and est["exact"]["dt"] < est["exact-undamped"]["dt"]
+    assert not any("is not the case that wrote" in n for n in data["notes"])
+    # another case (a stiffer law) on the checkpoint: analysed, and said so
+    import tomllib
+    import tomli_w
+
+    data_case = tomllib.loads((tmp_path / "hex" / "case.toml").read_text())
+    data_case["contact"]["k_n"] *= 4.0
+    stiffer = tmp_path / "stiffer.toml"
+    stiffer.write_text(tomli_w.dumps(data_case))
+    code, out, err = run(["dt", str(ck), "--case", str(stiffer), "--json"], capsys)
+    assert code == 0, err
+    other, other_est = estimates(out)
+    assert any(f"case: {stiffer} is not the case that wrote" in n for n in other["notes"])
+    assert other_est["exact"]["dt"] < est["exact"]["dt"]
     code, out, err = run(["dt", str(ck), "--kn", "5"], capsys)
     assert code == 2 and "--kn" in err
     # a checkpoint without its run state: the error names dt's input, not run's --restart

@@ -702,20 +702,25 @@ def from_checkpoint(path, case_path=None) -> AnalysisInput:
     """A checkpoint of a demstep run: its actual contacts and overlaps, with the law and
     damping of the stage it was written in. The case is the run folder's resolved
     ``case.toml`` (the checkpoint's folder's parent) unless ``case_path`` is given."""
-    sim = load_run(path, case_path)
-    out = from_simulation(sim, f"checkpoint {path} (step {sim.step})",
-                          [f"run state at step {sim.step}, t = {sim.time:g}, dt = {sim.dt:g}"])
+    sim, case_changed = load_run(path, case_path)
+    notes = [f"run state at step {sim.step}, t = {sim.time:g}, dt = {sim.dt:g}"]
+    if case_changed:
+        given = case_path if case_path is not None else "the run folder's case.toml"
+        notes.append(f"case: {given} is not the case that wrote {path} (its law, damping "
+                     "and walls are the ones analysed)")
+    out = from_simulation(sim, f"checkpoint {path} (step {sim.step})", notes)
     out.rotation = sim.rotation
     out.simulation = sim
     return out
 
 
 def load_run(checkpoint, case_path=None):
-    """A Simulation restored from a checkpoint of a demstep run (with the stages that
-    had started applied, as a restart does)."""
+    """(Simulation, case_changed): a Simulation restored from a checkpoint of a demstep
+    run (with the stages that had started applied, as a restart does), and whether the
+    case is not the one that wrote the checkpoint."""
     from demstep.case import apply_stage, build_simulation, load_case
     from demstep.io.checkpoint import load_checkpoint
-    from demstep.runner import find_checkpoint, read_state
+    from demstep.runner import case_hash, find_checkpoint, read_state
 
     checkpoint = find_checkpoint(checkpoint)
     if case_path is None:
@@ -723,10 +728,10 @@ def load_run(checkpoint, case_path=None):
         if not case_path.is_file():
             raise InputError(f"case: no case.toml in the run folder of {checkpoint}: give --case")
     case = load_case(case_path)
-    pos, _ = read_state(checkpoint, key="checkpoint")
+    pos, state = read_state(checkpoint, key="checkpoint")
     sim = build_simulation(case)
     started = pos.stage + 1 if pos.stage_step > 0 else pos.stage
     for k in range(min(started, len(case.stages))):
         apply_stage(sim, case, k, fresh=False)
     load_checkpoint(sim, checkpoint)
-    return sim
+    return sim, state.get("case_sha256") != case_hash(case)
