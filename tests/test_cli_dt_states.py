@@ -332,6 +332,7 @@ def test_case_file_and_checkpoint(tmp_path, capsys):
     (["--kn", "1e6", "--wall", "q+"], "wall"),
     (["--kn", "1e6", "--plot", "out.txt"], "plot"),
     (["--kn", "1e6", "--mode-vtk", "mode.csv"], "mode-vtk"),
+    (["--kn", "1e6", "--overlap", "0.01"], "overlap: only used with the hertz model"),
 ])
 def test_bad_options_on_a_dump(tmp_path, capsys, argv, needle):
     x, r, box = fcc_state(size=3)

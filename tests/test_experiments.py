@@ -169,6 +169,10 @@ def test_stability_cli_json_shape(capsys):
     (["fcc", "--alpha", "-1"], "alpha"),
     (["stability", "--lattice", "diamond"], "unknown lattice"),
     (["paper", "--workers", "0"], "workers"),
+    # a compression of 100 % or more (it ran on and on), a tolerance of 1 or more
+    (["fcc", "--strain", "5"], "strain: must lie in (0, 1), got '5'"),
+    (["fcc", "--strain", "1"], "strain: must lie in (0, 1), got '1'"),
+    (["stability", "--lattice", "sc", "--rtol", "5"], "rtol: must lie in (0, 1), got '5'"),
 ])
 def test_experiment_bad_options(capsys, argv, needle):
     code, out, err = run_cli(argv, capsys)

@@ -25,6 +25,16 @@ def positive(name):
     return parse
 
 
+def fraction(name):
+    """An option ``name`` in (0, 1): a relative tolerance, a compressive strain."""
+    def parse(text):
+        v = positive(name)(text)
+        if not v < 1.0:
+            raise argparse.ArgumentTypeError(f"{name}: must lie in (0, 1), got {text!r}")
+        return v
+    return parse
+
+
 def non_negative(name):
     def parse(text):
         try:

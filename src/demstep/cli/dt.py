@@ -212,6 +212,9 @@ def _model(args, default_convention: str):
             materials = {None: Material(args.youngs, args.poisson, args.density)}
         kn = None
     convention = args.convention or default_convention
+    if model == "linear" and args.overlap is not None:
+        raise InputError(f"overlap: only used with the hertz model (a linear spring's "
+                         f"stiffness does not depend on it), got {args.overlap!r}")
     overlap = args.overlap if args.overlap is not None else 0.0
     cm = ContactModel(model, kn, args.ks, materials, args.restitution, args.restitution_t,
                       args.gamma_n, args.gamma_t, args.tangential_damping, convention, overlap,

@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from demstep.cli.common import non_negative, positive, positive_int
+from demstep.cli.common import fraction, non_negative, positive, positive_int
 from demstep.errors import InputError
 
 
@@ -26,8 +26,8 @@ def add_fcc_parser(sub):
     p.add_argument("--mu", type=non_negative("mu"), default=0.3, help="friction (default 0.3)")
     p.add_argument("--alpha", type=positive("alpha"), default=0.05,
                    help="time step as alpha sqrt(m/K) (default 0.05)")
-    p.add_argument("--strain", type=positive("strain"), default=0.02,
-                   help="final axial strain (default 0.02)")
+    p.add_argument("--strain", type=fraction("strain"), default=0.02,
+                   help="final axial strain, in (0, 1) (default 0.02)")
     p.add_argument("--rotation", action=argparse.BooleanOptionalAction, default=True,
                    help="free particle rotation (default) or blocked")
     p.add_argument("--boundary", choices=("periodic", "platens"), default="periodic",
@@ -93,8 +93,8 @@ def add_stability_parser(sub):
                        description="Bisection for the smallest alpha at which the engine goes "
                        "unstable on a pre-compressed periodic specimen, beside every estimate.")
     p.add_argument("--lattice", required=True, help=f"one of {', '.join(STUDY_NAMES)}")
-    p.add_argument("--rtol", type=positive("rtol"), default=2e-3,
-                   help="relative tolerance of the bisection (default 2e-3)")
+    p.add_argument("--rtol", type=fraction("rtol"), default=2e-3,
+                   help="relative tolerance of the bisection, in (0, 1) (default 2e-3)")
     p.add_argument("--steps", type=positive_int("steps"), default=3000,
                    help="steps per trial (default 3000)")
     p.add_argument("--json", action="store_true", help="print the documented JSON")
