@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -58,3 +60,22 @@ def compiled_kernels():
 @pytest.fixture
 def rng():
     return np.random.default_rng(20260122)
+
+
+def contacts_now(ref, x, r, bond=None, apart=False):
+    """The elements of the covered ``ref`` at the positions ``x`` now, as the engine has
+    them: the touching pairs (and the bonds, ``bond`` true, touching or not) with their
+    normals and arms from the geometry; pairs apart have no element, or with ``apart``
+    one at their new normal and their estimate's arms (the drift bounds that too: a
+    harder test, which also shows that the drift is needed). Every other field of
+    ``ref`` (springs, dashpots, rolling) is kept. With ``ref``'s arms the radii and
+    ``apart``, the elements an estimate of ``x`` covers (the engine's contact set)."""
+    d = x[ref.j] - x[ref.i]
+    dist = np.linalg.norm(d, axis=1)
+    on = dist < r[ref.i] + r[ref.j]
+    if bond is not None:
+        on |= bond
+    half = 0.5 * (r[ref.i] + r[ref.j] - dist)
+    now = replace(ref, normal=d / dist[:, None], arm_i=np.where(on, r[ref.i] - half, ref.arm_i),
+                  arm_j=np.where(on, r[ref.j] - half, ref.arm_j))
+    return now if apart else now.subset(on)

@@ -14,6 +14,8 @@ from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
 from demstep.timestep.certificate import StepCertificate
 from demstep.walls import box_walls
 
+from conftest import contacts_now
+
 
 def scaled(particles, contacts, rotation, coefficients):
     """Dense M^-1/2 X M^-1/2 of the contacts with (normal, tangential) coefficients."""
@@ -26,24 +28,6 @@ def scaled(particles, contacts, rotation, coefficients):
 
 def unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def contacts_now(ref, x, r, bond=None, apart=False):
-    """The elements of the covered ``ref`` at the positions ``x`` now, as the engine has
-    them: the touching pairs (and the bonds, ``bond`` true, touching or not) with their
-    normals and arms from the geometry; pairs apart have no element, or with ``apart``
-    one at their new normal and their estimate's arms (the drift bounds that too: a
-    harder test, which also shows that the drift is needed)."""
-    d = x[ref.j] - x[ref.i]
-    dist = np.linalg.norm(d, axis=1)
-    on = dist < r[ref.i] + r[ref.j]
-    if bond is not None:
-        on |= bond
-    half = 0.5 * (r[ref.i] + r[ref.j] - dist)
-    now = ContactSet(ref.i, ref.j, d / dist[:, None], np.where(on, r[ref.i] - half, ref.arm_i),
-                     np.where(on, r[ref.j] - half, ref.arm_j), ref.k_n, ref.k_s, c_n=ref.c_n,
-                     c_t=ref.c_t)
-    return now if apart else now.subset(on)
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -139,11 +123,10 @@ def test_moved_assembly_stays_below_the_drifted_certificate():
     found = find_contacts(p, 1.0, contact_tol=0.25)
     assert found.n > 40
     k_n = rng.uniform(1.0, 3.0, found.n)
-    dist = np.linalg.norm(x[found.j] - x[found.i], axis=1)
-    half = np.maximum(0.5 * (r[found.i] + r[found.j] - dist), 0.0)  # (apart: the radii)
-    assert np.count_nonzero(half) > 10  # touching pairs, their arms shorter
-    ref = ContactSet(found.i, found.j, found.normal, r[found.i] - half, r[found.j] - half,
-                     k_n, 0.4 * k_n, c_n=0.2 * np.sqrt(k_n), c_t=0.05 * np.sqrt(k_n))
+    ref = contacts_now(ContactSet(found.i, found.j, found.normal, r[found.i], r[found.j], k_n,
+                                  0.4 * k_n, c_n=0.2 * np.sqrt(k_n), c_t=0.05 * np.sqrt(k_n)),
+                       x, r, apart=True)
+    assert np.count_nonzero(ref.arm_i < r[ref.i]) > 10  # touching pairs, their arms shorter
     K = scaled(p, ref, True, (ref.k_n, ref.k_s))
     C = scaled(p, ref, True, (ref.c_n, ref.c_t))
     sigma_c = dense_root(K, C)
@@ -233,10 +216,10 @@ def test_a_refused_refresh_hands_its_contact_set_to_the_new_estimate(monkeypatch
         return build(*args, **kwargs)
 
     monkeypatch.setattr(sim, "contact_set", counted)
-    refreshes = getattr(sim, "n_dt_refreshes", 0)
+    refreshes = sim.n_dt_refreshes
     sim._choose_dt(force=True)
     assert len(calls) == 1
-    assert getattr(sim, "n_dt_refreshes", 0) == refreshes  # refused: a new solve
+    assert sim.n_dt_refreshes == refreshes  # refused: a new solve
     cover = {}
     build(sim.dt_horizon, cover)
     assert set(cover) == set(sim._dt_cover)

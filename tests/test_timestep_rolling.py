@@ -35,6 +35,8 @@ from demstep.timestep.exact import ScaledContactOperator, exact_critical_step
 from demstep.timestep.mass_split import element_mass
 from demstep.walls import Wall
 
+from conftest import contacts_now
+
 
 # ------------------------------------------------------------------ references
 def cross_matrix(v):
@@ -677,12 +679,11 @@ def test_moved_assembly_with_rolling_stays_below_the_drifted_certificate():
     n = found.n
     assert n > 30
     k_n = rng.uniform(1.0, 3.0, n)
-    dist = np.linalg.norm(x[found.j] - x[found.i], axis=1)
-    half = np.maximum(0.5 * (r[found.i] + r[found.j] - dist), 0.0)  # (apart: the radii)
-    ref = ContactSet(found.i, found.j, found.normal, r[found.i] - half, r[found.j] - half,
-                     k_n, 0.4 * k_n, c_n=0.2 * np.sqrt(k_n), c_t=0.05 * np.sqrt(k_n),
-                     k_r=rng.uniform(0.5, 3.0, n), k_w=rng.uniform(0.0, 0.2, n),
-                     c_r=rng.uniform(0.0, 0.3, n), c_w=0.0)
+    ref = contacts_now(ContactSet(found.i, found.j, found.normal, r[found.i], r[found.j], k_n,
+                                  0.4 * k_n, c_n=0.2 * np.sqrt(k_n), c_t=0.05 * np.sqrt(k_n),
+                                  k_r=rng.uniform(0.5, 3.0, n), k_w=rng.uniform(0.0, 0.2, n),
+                                  c_r=rng.uniform(0.0, 0.3, n), c_w=0.0),
+                       x, r, apart=True)
     s = scaling(p, True)
     K = s[:, None] * dense_matrix(p, ref, True) * s[None, :]
     C = s[:, None] * dense_matrix(p, ref, True, True) * s[None, :]
@@ -702,13 +703,7 @@ def test_moved_assembly_with_rolling_stays_below_the_drifted_certificate():
     assert np.any(cert.factors[:, 6] > 0) and not plain.factors[:, 6:].any()
     for trial in range(10):
         moved = x + 0.05 * r[:, None] * rng.normal(size=(30, 3))
-        d = moved[ref.j] - moved[ref.i]
-        dist = np.linalg.norm(d, axis=1)
-        # touching: the arms of the geometry; apart: kept with the estimate's (harder)
-        half = 0.5 * (r[ref.i] + r[ref.j] - dist)
-        on = half > 0
-        now = replace(ref, normal=d / dist[:, None], arm_i=np.where(on, r[ref.i] - half, ref.arm_i),
-                      arm_j=np.where(on, r[ref.j] - half, ref.arm_j))
+        now = contacts_now(ref, moved, r, apart=True)  # (apart: the estimate's arms, harder)
         K2 = s[:, None] * dense_matrix(p, now, True) * s[None, :]
         C2 = s[:, None] * dense_matrix(p, now, True, True) * s[None, :]
         drift = cert.drift(moved, np.zeros(3))
