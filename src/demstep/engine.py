@@ -1152,7 +1152,8 @@ class Simulation:
                 raise InputError(f"bonds: pair {k} bonds particle "
                                  f"{self.particle_id(pairs[k, 0])} to itself")
             i, j = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
-            keys, first, counts = np.unique(i * n + j, return_index=True, return_counts=True)
+            _, first, counts = np.unique(self._pair_keys(i, j), return_index=True,
+                                         return_counts=True)
             if (counts > 1).any():
                 k = int(first[np.flatnonzero(counts > 1)[0]])
                 raise InputError(f"bonds: pair ({self.particle_id(i[k])}, "
