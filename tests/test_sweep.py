@@ -163,6 +163,10 @@ def test_set_key_and_runs_files(tmp_path):
     (["--param", "contact.mu=0.1", "--scheduler", "tcp://127.0.0.1:1", "--workers", "2"],
      ["workers"]),
     (["--runs", "missing.csv"], ["no such file"]),
+    (["--param", "contact.mu=0.1", "--peak", "z+.stress"],
+     ["peak", "run 1 of 1", "'z+.stress'", "y+.stress"]),
+    (["--param", "output.history_every=10,0", "--peak", "y+.stress"],
+     ["peak", "run 2 of 2", "history_every"]),
 ])
 def test_bad_input_exits_2_and_writes_nothing(tiny, tmp_path, capsys, args, words):
     out = tmp_path / "sweep"
@@ -172,6 +176,24 @@ def test_bad_input_exits_2_and_writes_nothing(tiny, tmp_path, capsys, args, word
     for w in words:
         assert w in err
     assert not out.exists()
+
+
+def test_peak_columns_are_those_the_run_writes():
+    """The columns ``--peak`` is checked against before any run (from the case alone)
+    are those the run's history writer takes from the built simulation: walls in the
+    simulation's order (box walls without the periodic axis, then named walls), the
+    periodic length and Love stress columns, the runner's stage column."""
+    from demstep.case import build_simulation, case_from_text
+    from demstep.io.history import columns_for, history_columns
+
+    text = TINY.replace("[box]", "[periodic]\nx = 8.0\n[box]") + (
+        '[[walls]]\nname = "floor"\npoint = [0.0, -1.0]\nnormal = [0.0, 1.0]\n')
+    case = case_from_text(text)
+    predicted = columns_for(case.dim, case.wall_names(), case.periodic_axes(), ["stage"])
+    built = history_columns(build_simulation(case), {"stage": None})
+    assert predicted == built
+    assert "floor.stress" in built and "box.Lx" in built and "love.yy" in built
+    assert "x+.stress" not in built and built[-1] == "stage"
 
 
 def test_out_folder_not_a_sweep_is_refused(tiny, tmp_path, capsys):

@@ -1,7 +1,7 @@
 """``demstep sweep``: parameter sweeps of a case on Dask (:mod:`demstep.sweep`).
 
 Bad input (a key that is not in the schema, a value the schema refuses, a bad runs
-file, an unreachable scheduler) raises InputError before anything is written (the main
+file, a ``--peak`` that is no column of a run's history, an unreachable scheduler) raises InputError before anything is written (the main
 CLI prints ``demstep: error: ...`` and exits 2; so does an output folder another sweep
 is writing into). Exit status: 0 when every run finished (completed, diverged or
 energy_stop: results of the sweep), 1 when any run failed with an error or was left
@@ -65,7 +65,8 @@ def add_sweep_parser(subparsers):
                    metavar="N", help="run at most N steps per stage (previews, smoke tests)")
     p.add_argument("--peak", metavar="COLUMN", default=None,
                    help="history.csv column whose maximum is reported as 'peak' (default: "
-                   "the top wall's stress, else the first wall's)")
+                   "the top wall's stress, else the first wall's); checked against each "
+                   "run's history columns before anything runs")
     p.add_argument("--log-level", default="INFO", metavar="LEVEL",
                    help="level of each run's run.log: DEBUG, INFO (default), WARNING, ERROR")
     p.add_argument("--worker-timeout", type=_positive_seconds, default=None, metavar="S",

@@ -35,6 +35,7 @@ from typing import Callable
 
 import numpy as np
 
+from demstep.energy import EnergyLedger
 from demstep.io.atomic import write_text_atomic
 from demstep.errors import InputError, missing_file
 
@@ -43,19 +44,29 @@ AXES = "xyz"
 
 def history_columns(sim, extra: dict | None = None) -> list[str]:
     """Column names of the history of ``sim`` (plus the keys of ``extra``)."""
+    return columns_for(sim.dim, [wall.name for wall in sim.walls],
+                       "".join(_periodic_axes(sim)), extra,
+                       love=hasattr(sim, "love_stress"))
+
+
+def columns_for(dim: int, wall_names, periodic_axes: str, extra=None,
+                love: bool = True) -> list[str]:
+    """Column names of the history of a ``dim``-dimensional run with the walls
+    ``wall_names`` (in the simulation's order) and the periodic axes ``periodic_axes``
+    (e.g. "xz"), plus ``extra`` (names, or a dict of them): known before the run is
+    built (``demstep sweep`` checks its ``--peak`` against them)."""
     cols = ["step", "time", "dt", "dt_estimate"]
-    cols += list(sim.ledger.as_dict())
+    cols += list(EnergyLedger().as_dict())
     cols.append("energy_alarm")
     cols.append("n_contacts")
-    for wall in sim.walls:
-        cols += [f"{wall.name}.f{a}" for a in AXES[: sim.dim]]
-        cols.append(f"{wall.name}.stress")
-        cols += [f"{wall.name}.{a}" for a in AXES[: sim.dim]]
-    for a in _periodic_axes(sim):
-        cols.append(f"box.L{a}")
-    if _periodic_axes(sim) and hasattr(sim, "love_stress"):
-        cols += [f"love.{a}{a}" for a in AXES[: sim.dim]]
-    cols += list(extra or {})
+    for name in wall_names:
+        cols += [f"{name}.f{a}" for a in AXES[:dim]]
+        cols.append(f"{name}.stress")
+        cols += [f"{name}.{a}" for a in AXES[:dim]]
+    cols += [f"box.L{a}" for a in periodic_axes]
+    if periodic_axes and love:
+        cols += [f"love.{a}{a}" for a in AXES[:dim]]
+    cols += list(extra or ())
     return cols
 
 

@@ -117,7 +117,7 @@ def run_sweep(case_path, out, params: Sequence[str] = (), runs_file=None,
         raise InputError(f"log-level: must be one of {', '.join(LOG_LEVELS)}, got {log_level!r}")
     if scheduler:
         check_scheduler_address(scheduler)
-    plan = plan_sweep(case_path, params, runs_file)
+    plan = plan_sweep(case_path, params, runs_file, peak)
     _check_out(out)
     base_dir = str(plan.case_path.resolve().parent)
     rows: list[dict | None] = [None] * len(plan.runs)

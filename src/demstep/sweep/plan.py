@@ -294,9 +294,11 @@ class SweepPlan:
         return [key_text(k) for k in self.keys]
 
 
-def plan_sweep(case_path, params: Sequence[str] = (), runs_file=None) -> SweepPlan:
-    """Parse the parameters, build every run's case dict and validate each; raises a
-    one-line InputError naming the run, key and value of the first bad one."""
+def plan_sweep(case_path, params: Sequence[str] = (), runs_file=None,
+               peak: str | None = None) -> SweepPlan:
+    """Parse the parameters, build every run's case dict and validate each (and that
+    ``peak``, when given, is a column of each run's history); raises a one-line
+    InputError naming the run, key and value of the first bad one."""
     from demstep.case import case_from_dict
     from demstep.runner import case_hash
 
@@ -330,6 +332,8 @@ def plan_sweep(case_path, params: Sequence[str] = (), runs_file=None) -> SweepPl
                                   source=str(case_path))
         except InputError as exc:
             raise InputError(f"sweep: {where}: {exc}") from None
+        if peak is not None:
+            check_peak_column(peak, case, where)
         first = first or case
         rid = run_id(ordered)
         if rid in seen:
@@ -341,4 +345,19 @@ def plan_sweep(case_path, params: Sequence[str] = (), runs_file=None) -> SweepPl
         runs.append(SweepRun(rid, ordered, data, case_hash(case)))
     return SweepPlan(case_path, case_text, keys, runs, first.energy.eps, first.name)
 
+
+def check_peak_column(peak: str, case, where: str) -> None:
+    """InputError unless ``peak`` is a column of the history the run of ``case``
+    writes (the runner adds ``stage``)."""
+    from demstep.io.history import columns_for
+
+    if not case.output.history_every:
+        raise InputError(f"peak: {where}: the case writes no history (output.history_every "
+                         f"= 0), so there is no column {peak!r}")
+    columns = columns_for(case.dim, case.wall_names(), case.periodic_axes(), ["stage"])
+    if peak not in columns:
+        walls = [c for c in columns if "." in c]
+        hint = f"; its wall and box columns: {', '.join(walls)}" if walls else \
+            "; it has no wall or box columns"
+        raise InputError(f"peak: {where}: no history column {peak!r}{hint}")
 
