@@ -316,6 +316,67 @@ def test_case_file_and_checkpoint(tmp_path, capsys):
     assert code == 2 and err.startswith("demstep: error: checkpoint: no run state")
 
 
+HERTZ_CASE = """
+name = "hertz-pile"
+[particles]
+generator = "lattice"
+lattice = "fcc"
+radius = 1.0
+size = [2, 2, 2]
+origin = [1.0, 1.0, 1.0]
+density = 1000.0
+[contact]
+law = "hertz"
+youngs_modulus = 1.0e7
+poisson_ratio = 0.3
+mu = 0.3
+[box]
+margin = 0.0
+[[stages]]
+steps = 60
+gravity = [0.0, 0.0, -9.81]
+"""
+
+
+def test_hertz_checkpoint_brings_its_materials_and_the_impact_velocity(tmp_path, capsys):
+    """A checkpoint of a Hertz run reports the Rayleigh time and the Hertz time from
+    its law's E and nu and its spheres (the latter at --impact-velocity, default twice
+    the largest speed), checked against the rules' formulas; the option on a linear
+    law's checkpoint is refused (it was dropped without a word)."""
+    from demstep.case import case_from_text
+    from demstep.runner import run_case
+    from demstep.timestep_input import load_run
+
+    run_case(case_from_text(HERTZ_CASE), tmp_path / "run", quiet=True)
+    ck = sorted((tmp_path / "run" / "checkpoints").glob("*.npz"))[-1]
+    sim, _ = load_run(ck)
+    E, nu = 1.0e7, 0.3
+    e_star = E / (2 * (1 - nu**2))
+    rho = 1000.0
+    t_r = math.pi * 1.0 * math.sqrt(rho / (E / (2 * (1 + nu)))) / (0.1631 * nu + 0.8766)
+    m = 1000.0 * 4 / 3 * math.pi
+
+    def hertz_time(v):
+        return 2.87 * (m * m / (0.5 * 1.0 * e_star**2 * v)) ** 0.2
+
+    speed = float(np.linalg.norm(sim.v, axis=1).max())
+    assert speed > 0
+    for argv, v in (([], 2 * speed), (["--impact-velocity", "0.25"], 0.25)):
+        code, out, err = run(["dt", str(ck), "--json", *argv], capsys)
+        assert code == 0, err
+        _, est = estimates(out)
+        assert est["rayleigh-time"]["dt"] == pytest.approx(t_r, rel=1e-12)
+        assert est["hertz-time"]["dt"] == pytest.approx(hertz_time(v), rel=1e-12)
+    linear = HERTZ_CASE.replace('law = "hertz"', 'law = "linear"\nk_n = 1.0e5').replace(
+        "youngs_modulus = 1.0e7\npoisson_ratio = 0.3\n", "")
+    run_case(case_from_text(linear), tmp_path / "lin", quiet=True)
+    capsys.readouterr()  # the run's log
+    ck = sorted((tmp_path / "lin" / "checkpoints").glob("*.npz"))[-1]
+    code, out, err = run(["dt", str(ck), "--impact-velocity", "0.25"], capsys)
+    assert code == 2 and out == "" and err.count("\n") == 1
+    assert "impact-velocity: only used by the Hertz time" in err and "linear" in err
+
+
 @pytest.mark.parametrize("argv,needle", [
     (["--kn", "1e6", "--youngs", "1e7"], "hertz"),
     (["--youngs", "1e7"], "both --youngs and --poisson"),
@@ -333,6 +394,8 @@ def test_case_file_and_checkpoint(tmp_path, capsys):
     (["--kn", "1e6", "--plot", "out.txt"], "plot"),
     (["--kn", "1e6", "--mode-vtk", "mode.csv"], "mode-vtk"),
     (["--kn", "1e6", "--overlap", "0.01"], "overlap: only used with the hertz model"),
+    (["--kn", "1e6", "--impact-velocity", "2"],
+     "impact-velocity: only used by the Hertz time of the hertz model"),
 ])
 def test_bad_options_on_a_dump(tmp_path, capsys, argv, needle):
     x, r, box = fcc_state(size=3)

@@ -427,6 +427,21 @@ def make_materials(model: ContactModel, particles: Particles, types: np.ndarray,
                      density, e_star, impact_velocity)
 
 
+def _impact_velocity(model: ContactModel, given: float | None, velocities) -> float | None:
+    """The impact velocity of the Hertz time [L/T]: ``given``, else twice the largest
+    particle speed (as LIGGGHTS), None without motion. Given with a model that is not
+    Hertz: InputError (the Hertz time is the only estimate that reads it)."""
+    if model.model != "hertz":
+        if given is not None:
+            raise InputError(f"impact-velocity: only used by the Hertz time of the hertz "
+                             f"model; this input's contact model is {model.model}, got {given!r}")
+        return None
+    if given is None and velocities is not None and len(velocities):
+        speed = float(np.linalg.norm(velocities, axis=1).max())
+        return 2.0 * speed if speed > 0 else None
+    return given
+
+
 def check_types(model: ContactModel, types: np.ndarray, source: str):
     if model.model != "hertz":
         return
@@ -452,9 +467,7 @@ def from_particles(particles: Particles, model: ContactModel, types=None, period
         jj = np.maximum(geometry.j, 0)
         geometry = geometry.subset((geometry.j < 0) | (sb[geometry.i] < 0) | (sb[geometry.i] != sb[jj]))
     contacts = model.apply(geometry, particles, types)
-    if impact_velocity is None and velocities is not None and model.model == "hertz":
-        speed = np.linalg.norm(velocities, axis=1).max()
-        impact_velocity = 2.0 * float(speed) if speed > 0 else None
+    impact_velocity = _impact_velocity(model, impact_velocity, velocities)
     out = AnalysisInput(particles, contacts, damping or GlobalDamping(), types,
                         make_materials(model, particles, types, impact_velocity),
                         velocities=velocities, notes=list(notes or []), bodies=bodies)
@@ -629,15 +642,22 @@ def from_lattice(name: str, size: int, radius: float, density: float, model: Con
     return out
 
 
-def from_simulation(sim, source: str, notes=None) -> AnalysisInput:
+def from_simulation(sim, source: str, notes=None,
+                    impact_velocity: float | None = None) -> AnalysisInput:
     """The contacts of a Simulation's current state (overlap > 0, walls included) with
-    its law's coefficients and its global viscous damping (demstep convention)."""
+    its law's coefficients and its global viscous damping (demstep convention). A
+    Hertz law brings its materials (the Rayleigh and Hertz times: the impact velocity
+    ``impact_velocity`` [L/T], default twice the largest particle speed)."""
     contacts = sim.contact_set()
     particles = sim.particles_now()
     if not sim.rotation:
         notes = list(notes or []) + ["rotation locked in the simulation"]
+    model = model_from_law(sim.law)
+    types = np.ones(particles.n, dtype=np.int64)
+    materials = make_materials(model, particles, types,
+                               _impact_velocity(model, impact_velocity, sim.v[:, :sim.dim]))
     return AnalysisInput(particles, contacts, GlobalDamping(mass=float(sim.damping.viscous)),
-                         np.ones(particles.n, dtype=np.int64), None,
+                         types, materials,
                          notes=list(notes or []) + [f"contacts of {source}: the engine's law "
                                                     f"({type(sim.law).__name__}, demstep "
                                                     f"convention)"],
@@ -698,7 +718,7 @@ def from_case(path, stage: int = 1, contact_tol: float = DEFAULT_CONTACT_TOL,
     return out
 
 
-def from_checkpoint(path, case_path=None) -> AnalysisInput:
+def from_checkpoint(path, case_path=None, impact_velocity=None) -> AnalysisInput:
     """A checkpoint of a demstep run: its actual contacts and overlaps, with the law and
     damping of the stage it was written in. The case is the run folder's resolved
     ``case.toml`` (the checkpoint's folder's parent) unless ``case_path`` is given."""
@@ -708,7 +728,7 @@ def from_checkpoint(path, case_path=None) -> AnalysisInput:
         given = case_path if case_path is not None else "the run folder's case.toml"
         notes.append(f"case: {given} is not the case that wrote {path} (its law, damping "
                      "and walls are the ones analysed)")
-    out = from_simulation(sim, f"checkpoint {path} (step {sim.step})", notes)
+    out = from_simulation(sim, f"checkpoint {path} (step {sim.step})", notes, impact_velocity)
     out.rotation = sim.rotation
     out.simulation = sim
     return out

@@ -136,8 +136,8 @@ def add_dt_parser(sub):
                      "largest eigenvalue found, lies at most about 4 x TOL below the "
                      "critical one")
     ana.add_argument("--impact-velocity", type=number("impact-velocity", 0, strict=True),
-                     default=None, help="Hertz time: the impact velocity [L/T] (default: twice "
-                     "the largest particle speed in the file, as LIGGGHTS)")
+                     default=None, help="Hertz time (hertz model only): the impact velocity [L/T] (default: twice "
+                     "the largest particle speed in the input, as LIGGGHTS)")
     ana.add_argument("--top", type=int, default=10,
                      help="how many particles and contacts of the critical mode to list (default 10)")
     ana.add_argument("--mode-vtk", metavar="FILE.vtu",
@@ -328,7 +328,7 @@ def load_input(args):
                              f"and damping; this option does not apply")
         if fmt == "case":
             return ti.from_case(path, args.stage, args.contact_tol, args.impact_velocity)
-        return ti.from_checkpoint(path, args.case)
+        return ti.from_checkpoint(path, args.case, args.impact_velocity)
     check_memory(_estimate_rows(path), args.max_memory, f"{path}")
     model = _model(args, "liggghts" if fmt == "liggghts" else "demstep")
     density = args.density
