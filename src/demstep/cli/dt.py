@@ -136,8 +136,9 @@ def add_dt_parser(sub):
                      "largest eigenvalue found, lies at most about 4 x TOL below the "
                      "critical one")
     ana.add_argument("--impact-velocity", type=number("impact-velocity", 0, strict=True),
-                     default=None, help="Hertz time (hertz model only): the impact velocity [L/T] (default: twice "
-                     "the largest particle speed in the input, as LIGGGHTS)")
+                     default=None, help="Hertz time (hertz model only): the impact "
+                     "velocity [L/T] (default: twice the largest particle speed in the "
+                     "input, as LIGGGHTS)")
     ana.add_argument("--top", type=int, default=10,
                      help="how many particles and contacts of the critical mode to list (default 10)")
     ana.add_argument("--mode-vtk", metavar="FILE.vtu",
