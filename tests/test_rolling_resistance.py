@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 
-from demstep.contact.laws import LinearSpring
+from demstep.contact.laws import HertzMindlin, LinearSpring
 from demstep.energy import A_ROLLING, E_STRAIN_R
 from demstep.engine import Simulation, TimeStep
 from demstep.errors import InputError
@@ -143,6 +143,36 @@ def test_twisting_spring_frequency_between_two_spheres():
     assert sim.pairs.roll[0, ROLL_TWIST] != 0.0
     assert np.abs(sim.pairs.roll[0, :3]).max() < 1e-12 * abs(sim.pairs.roll[0, ROLL_TWIST])
     assert sim.ledger.balance_error() < 1e-6
+
+
+def test_epsd_with_hertz_takes_the_secant_normal_stiffness():
+    """The epsd convention as LIGGGHTS' epsd model with Hertz contacts: k = 2.25 k_n
+    mu^2 R*^2 with k_n the secant F_n / delta = 4/3 E* sqrt(R* delta), not the tangent
+    2 E* sqrt(R* delta) (1.5x stiffer, as before): the twisting period of a sphere
+    resting on a fixed sphere is 2 pi sqrt(I / k_w), its moment below the limit."""
+    r, mu_w = 0.01, 0.3
+    law = HertzMindlin(youngs_modulus=1e7, poisson_ratio=0.3, mu=0.5, rolling_convention="epsd",
+                       rolling_friction=0.1, twisting_friction=mu_w)
+    m = RHO * 4.0 / 3.0 * math.pi * r**3
+    r_star, e_star = r / 2, 1e7 / (2 * (1 - 0.3**2))
+    delta = (3 * m * G / (4 * e_star * math.sqrt(r_star))) ** (2 / 3)  # at rest: F_n = m g
+    x = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 2 * r - delta]])
+    p = Particles.from_density(x, np.full(2, r), RHO, fixed=[True, False])
+    k_tangent = 2 * e_star * math.sqrt(r_star * delta)
+    sim = Simulation(p, law, gravity=[0, 0, -G],
+                     timestep=TimeStep.fixed(2 * math.pi * math.sqrt(m / k_tangent) / 200))
+    w0 = 1e-3
+    sim.w[1, 2] = w0
+    k_w = 2.25 * (4.0 / 3.0 * e_star * math.sqrt(r_star * delta)) * mu_w**2 * r_star**2
+    period = 2 * math.pi * math.sqrt(sim.inertia[1] / k_w)
+    assert w0 * math.sqrt(sim.inertia[1] * k_w) < 0.1 * mu_w * r_star * m * G  # elastic
+    times, ws = [], []
+    sim.every(1, lambda s: (times.append(s.time), ws.append(s.w[1, 2])))
+    sim.run(duration=2.3 * period)
+    ws, t = np.asarray(ws), np.asarray(times)
+    downs = np.flatnonzero((ws[:-1] > 0) & (ws[1:] <= 0))
+    crossings = t[downs] + ws[downs] / (ws[downs] - ws[downs + 1]) * (t[downs + 1] - t[downs])
+    assert np.diff(crossings).mean() == pytest.approx(period, rel=2e-3)
 
 
 def test_twisting_limit_stops_a_spin_at_a_constant_rate():

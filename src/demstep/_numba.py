@@ -10,8 +10,11 @@ keeps compiled kernels on disk so a second run starts computing at once. Setting
 as plain Python (the tests use this against slow numpy references).
 """
 
+import functools
+import hashlib
 import types
 import warnings
+from pathlib import Path
 
 import numba
 
@@ -44,6 +47,77 @@ def _cache_writable(dispatcher) -> bool:
     return True
 
 
+#: the package's folder; and the folders and modules in it that hold no code numba
+#: compiles and no global a kernel reads (the command line, cases, sweeps, experiments,
+#: file formats, plots, the runner): the kernels' cache does not depend on them
+PACKAGE_DIR = Path(__file__).resolve().parent
+NOT_COMPILED = ("cli", "case", "sweep", "experiments", "io", "plotting.py",
+                "plotting_run.py", "runner.py", "engine.py", "timestep_input.py",
+                "packings.py", "walls.py")
+
+
+def compiled_sources() -> list[Path]:
+    """The package's source files a compiled kernel can depend on (all but
+    :data:`NOT_COMPILED`), sorted."""
+    return sorted(p for p in PACKAGE_DIR.rglob("*.py")
+                  if p.relative_to(PACKAGE_DIR).parts[0] not in NOT_COMPILED)
+
+
+@functools.lru_cache(maxsize=None)
+def kernel_source_stamp() -> bytes:
+    """SHA-256 of every file of :func:`compiled_sources` (names and contents): the
+    freshness stamp of each kernel's on-disk cache entry. numba's own stamp is the
+    hash of the kernel's own file only, so a cached kernel that inlines a function of
+    another module (a contact law, a constant of the ledger) outlived a change of it,
+    silently running the old code (found when the epsd rolling stiffness changed in
+    contact/laws.py and the pair loop in kernels/dem.py kept the old one)."""
+    digest = hashlib.sha256()
+    for path in compiled_sources():
+        digest.update(str(path.relative_to(PACKAGE_DIR)).encode())
+        digest.update(path.read_bytes())
+    return digest.digest()
+
+
+class _PackageStamp:
+    """Mixin of numba's source-backed cache locators: a kernel of this package is
+    fresh while :func:`kernel_source_stamp` is unchanged."""
+
+    def get_source_stamp(self):
+        py_file = getattr(self, "_py_file", None)
+        if py_file is not None and Path(py_file).resolve().is_relative_to(PACKAGE_DIR):
+            return kernel_source_stamp()
+        return super().get_source_stamp()
+
+
+def _kernel_cache_class():
+    """numba's FunctionCache with every locator stamped by :class:`_PackageStamp`
+    (None when this numba's caching classes differ: numba's own cache then)."""
+    try:
+        from numba.core import caching
+
+        impl = caching.FunctionCache._impl_class
+        here = {"__module__": __name__}
+        locators = [type("Stamped" + c.__name__.lstrip("_"), (_PackageStamp, c), dict(here))
+                    for c in impl._locator_classes]
+        stamped_impl = type("KernelCacheImpl", (impl,),
+                            {**here, "_locator_classes": locators})
+        return type("KernelCache", (caching.FunctionCache,),
+                    {**here, "_impl_class": stamped_impl})
+    except (ImportError, AttributeError, TypeError):
+        return None
+
+
+KERNEL_CACHE = _kernel_cache_class()
+
+
+def _with_package_cache(dispatcher):
+    """The dispatcher (compiled with ``cache=True``) with its cache stamped by the
+    package's compiled sources (:func:`kernel_source_stamp`)."""
+    if KERNEL_CACHE is not None:
+        dispatcher._cache = KERNEL_CACHE(dispatcher.py_func)
+    return dispatcher
+
+
 def _compile(func, options: dict):
     """numba.njit(**options)(func); without the on-disk cache when numba has no
     writable place for it (a read-only installation without a writable home, a zip
@@ -54,6 +128,8 @@ def _compile(func, options: dict):
         options = {**options, "cache": False}
     try:
         dispatcher = numba.njit(**options)(func)
+        if options.get("cache"):
+            dispatcher = _with_package_cache(dispatcher)
         if not options.get("cache") or _cache_writable(dispatcher):
             return dispatcher
     except RuntimeError as exc:

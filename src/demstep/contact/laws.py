@@ -19,8 +19,10 @@ the elastic normal force), with viscous moments -c_r omega_r, -c_w omega_w while
 spring sticks (a coefficient mu_r or mu_w of 0 with a stiffness: no limit, an elastic
 spring). Stiffness conventions: ``beta`` (default), k_r = beta_r k_t R*^2 and
 k_w = beta_w k_t R*^2 (k_t the tangent tangential stiffness; YADE's CohFrictMat uses
-alphaKr ks r1 r2); ``epsd``, k_r = 2.25 k_n mu_r^2 R*^2 (Iwashita & Oda 1998 as used by
-LIGGGHTS' epsd2 and Ai et al.), k_w = 2.25 k_n mu_w^2 R*^2. Viscous coefficients
+alphaKr ks r1 r2; LIGGGHTS' epsd2 is beta_r = 1); ``epsd``, k_r = 2.25 k_n mu_r^2 R*^2
+(Iwashita & Oda 1998 as used by LIGGGHTS' epsd model and Ai et al.; k_n the secant
+normal stiffness F_n / delta as in LIGGGHTS: 4/3 E* sqrt(R* delta) for Hertz), k_w =
+2.25 k_n mu_w^2 R*^2. Viscous coefficients
 c = 2 eta sqrt(I_r k) with I_r = 1/(1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2)) (a
 wall's term is zero), eta the ``rolling_damping`` ratio. Disks roll about z and do not
 twist.
@@ -138,15 +140,19 @@ def rolling_coefficients(params, k_n, k_t, r_star, i_star):
     """Rolling and twisting spring stiffnesses k_r, k_w [M L^2/T^2 per rad] and
     viscous coefficients c_r, c_w [M L^2/T] of a contact with tangent stiffnesses k_n,
     k_t [M/T^2], effective radius r_star [L] and equivalent rotational inertia i_star
-    [M L^2] (see the module docstring; zeros when the law has no rolling resistance)."""
+    [M L^2] (see the module docstring; zeros when the law has no rolling resistance).
+    The epsd convention takes the secant normal stiffness F_n / delta, as LIGGGHTS'
+    epsd model: k_n for the linear law, 2/3 k_n for Hertz."""
     mode = params.roll_mode
     r2 = r_star * r_star
     if mode == ROLL_BETA:
         k_r = params.beta_r * k_t * r2
         k_w = params.beta_w * k_t * r2
     elif mode == ROLL_EPSD:
-        k_r = 2.25 * k_n * params.mu_r * params.mu_r * r2
-        k_w = 2.25 * k_n * params.mu_w * params.mu_w * r2
+        # k_n of LIGGGHTS' epsd: the secant F_n / delta, 2/3 of the tangent for Hertz
+        k_sec = k_n if params.law == LAW_LINEAR else (2.0 / 3.0) * k_n
+        k_r = 2.25 * k_sec * params.mu_r * params.mu_r * r2
+        k_w = 2.25 * k_sec * params.mu_w * params.mu_w * r2
     else:
         return 0.0, 0.0, 0.0, 0.0
     c_r = 0.0

@@ -34,7 +34,7 @@ import math
 import numpy as np
 
 from demstep._numba import compile_parallel_and_serial, njit, prange
-from demstep.kernels.integration import moved_since_build, store_step_terms
+from demstep.kernels.integration import moved_since_build, step_weights, store_step_terms
 
 
 @njit(inline="always")
@@ -106,9 +106,12 @@ def world_omega(q0, q1, q2, q3, L0, L1, L2, i0, i1, i2):
 def _kick(b, k, f, t, omega, m, inv_m, rotating, gravity, v, L, x, applied, damp_force,
           damp_torque, dt, dt_prev, local_damping, global_damping, first, store_damping):
     """Component k of body b: the leapfrog kick of the velocity and the angular
-    momentum with gravity, applied force and damping, the drift of the centre; returns
-    the lagged angular momentum and the ledger terms (gravity work, applied work, local
-    and global damping dissipation, kinetic energy of translation at t)."""
+    momentum with gravity, applied force and damping (by the mean of the last and the
+    new step, :func:`~demstep.kernels.integration.step_weights`), the drift of the
+    centre; returns the lagged angular momentum and the ledger terms (gravity work,
+    applied work, local and global damping dissipation, kinetic energy of translation
+    at t)."""
+    kick, c_old, c_new = step_weights(dt, dt_prev, first)
     g = gravity[k]
     fl = f + m * g + applied[b, k]
     v_old = v[b, k]
@@ -126,8 +129,8 @@ def _kick(b, k, f, t, omega, m, inv_m, rotating, gravity, v, L, x, applied, damp
     if global_damping > 0.0:
         gdk = -global_damping * m * v_old
         gtk = -global_damping * L_old
-    v_new = v_old + dt * (fl + fdk + gdk) * inv_m[b]
-    L_new = L_old + dt * (t + tdk + gtk) if rotating else 0.0
+    v_new = v_old + kick * (fl + fdk + gdk) * inv_m[b]
+    L_new = L_old + kick * (t + tdk + gtk) if rotating else 0.0
     w_body = 0.0
     w_app = 0.0
     d_local = 0.0
@@ -146,7 +149,7 @@ def _kick(b, k, f, t, omega, m, inv_m, rotating, gravity, v, L, x, applied, damp
         damp_torque[b, k] = tdk
         damp_force[b, 3 + k] = gdk
         damp_torque[b, 3 + k] = gtk
-    vm = 0.5 * (v_old + v_new)
+    vm = 0.5 * (c_old * v_old + c_new * v_new)
     v[b, k] = v_new
     L[b, k] = L_new
     x[b, k] += dt * v_new
@@ -171,6 +174,7 @@ def _body_loop(bx, bq, bv, bL, bm, binertia, binv_m, binv_I, bforce, btorque, ba
     disp2 = 0.0
     jump2 = 0.0
     x_flat, v_flat, x_ref_flat = x.reshape(-1), v.reshape(-1), x_ref.reshape(-1)
+    _, c_old, c_new = step_weights(dt, dt_prev, first)  # (the angular momentum at t)
     for b in prange(bm.shape[0]):
         q0, q1, q2, q3 = bq[b, 0], bq[b, 1], bq[b, 2], bq[b, 3]
         # 1. forces and torques about the centre of mass
@@ -217,9 +221,10 @@ def _body_loop(bx, bq, bv, bL, bm, binertia, binv_m, binv_I, bforce, btorque, ba
         d_local += dl0 + dl1 + dl2
         d_global += dg0 + dg1 + dg2
         ke_t += ke0 + ke1 + ke2
-        # rotational kinetic energy at t from the mean angular momentum (body frame)
-        lm0, lm1, lm2 = quat_rotate(q0, -q1, -q2, -q3, 0.5 * (lo0 + bL[b, 0]),
-                                    0.5 * (lo1 + bL[b, 1]), 0.5 * (lo2 + bL[b, 2]))
+        # rotational kinetic energy at t from the angular momentum at t (body frame)
+        lm0, lm1, lm2 = quat_rotate(q0, -q1, -q2, -q3, 0.5 * (c_old * lo0 + c_new * bL[b, 0]),
+                                    0.5 * (c_old * lo1 + c_new * bL[b, 1]),
+                                    0.5 * (c_old * lo2 + c_new * bL[b, 2]))
         ke_r += 0.5 * (lm0 * lm0 * i0 + lm1 * lm1 * i1 + lm2 * lm2 * i2)
         # 3. orientation
         n0, n1, n2, n3 = q0, q1, q2, q3

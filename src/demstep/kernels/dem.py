@@ -29,7 +29,7 @@ from demstep.contact.laws import (
 )
 from demstep.kernels.bodies import body_step, body_step_serial
 from demstep.kernels.bonds import bond_forces
-from demstep.kernels.integration import moved_since_build, store_step_terms
+from demstep.kernels.integration import moved_since_build, step_weights, store_step_terms
 
 from demstep.energy import (  # the ledger's layout is the energy module's
     A_APPLIED, A_BODY, A_BOND_BROKEN, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL,
@@ -901,7 +901,8 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
                     dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first,
                     store_damping, acc_out, sphere_body):
     """Central-difference update of all particles with damping and the particle terms
-    of the ledger. ``acc_out`` (8,): work of gravity, of applied forces, local and
+    of the ledger (a change of step from ``dt_prev`` to ``dt`` kicks by their mean,
+    :func:`~demstep.kernels.integration.step_weights`). ``acc_out`` (8,): work of gravity, of applied forces, local and
     global damping dissipation, kinetic energy (translation, rotation) at t, the
     largest squared displacement since the list was built, the largest |v| dt / r.
     ``fd_prev``/``td_prev`` (N, 6) hold the damping forces of the last step (local,
@@ -931,6 +932,7 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
     FA = f_app.reshape(-1)
     XR = x_ref.reshape(-1)
     three = _U(3)
+    kick, c_old, c_new = step_weights(dt, dt_prev, _ANY_STEP and first)
     for p in prange(x.shape[0]):
         i_m = inv_m[p]
         if i_m == 0.0 or sphere_body[p] >= 0:
@@ -968,8 +970,8 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
             if _ANY_STEP and global_damping > 0.0:
                 gdk = -global_damping * m_p * v_old
                 gtk = -global_damping * inertia_p * w_old
-            v_new = v_old + dt * (fl + fdk + gdk) * i_m
-            w_new = w_old + dt * (tl + tdk + gtk) * i_I
+            v_new = v_old + kick * (fl + fdk + gdk) * i_m
+            w_new = w_old + kick * (tl + tdk + gtk) * i_I
             if not (_ANY_STEP and first):
                 dx = dt_prev * v_old
                 g_dx += g * dx
@@ -983,9 +985,9 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
                 td_prev[p, k] = tdk
                 fd_prev[p, 3 + k] = gdk
                 td_prev[p, 3 + k] = gtk
-            # twice the mid-step velocities
-            vm = v_old + v_new
-            wm = w_old + w_new
+            # twice the velocities at t
+            vm = c_old * v_old + c_new * v_new
+            wm = c_old * w_old + c_new * w_new
             vv += vm * vm
             ww += wm * wm
             V[q] = v_new

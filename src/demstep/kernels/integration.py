@@ -25,6 +25,24 @@ def moved_since_build(x_flat, v_flat, x_ref_flat, r, p):
 
 
 @njit(inline="always")
+def step_weights(dt, dt_prev, first):
+    """(kick [T], c_old, c_new) of the central-difference step from t to t + dt after a
+    step ``dt_prev`` [T]: the half-step velocities are (dt_prev + dt) / 2 apart,
+
+        v(t + dt/2) = v(t - dt_prev/2) + kick a(t),      kick = (dt_prev + dt) / 2,
+
+    and twice the velocity at t is c_old v(t - dt_prev/2) + c_new v(t + dt/2) with
+    c_old = 2 dt / (dt_prev + dt), c_new = 2 dt_prev / (dt_prev + dt) (exact for a
+    constant acceleration). For a constant step: (dt, 1, 1) exactly; the ``first`` step
+    starts from v(-dt/2), as after a step dt. A kick of dt after a change of step gave
+    every accelerated particle a lasting velocity error of a (dt - dt_prev) / 2."""
+    if first:
+        return dt, 1.0, 1.0
+    span = dt_prev + dt
+    return 0.5 * span, 2.0 * dt / span, 2.0 * dt_prev / span
+
+
+@njit(inline="always")
 def store_step_terms(out, w_body, w_app, d_local, d_global, ke_t, ke_r, disp2, jump2, dt):
     """``out`` (8,): work of gravity, of applied forces, local and global damping
     dissipation, kinetic energy of translation and rotation at t, the largest squared
