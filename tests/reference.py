@@ -90,6 +90,7 @@ def _spring_slider(x, v, w, r, pairs, f_el, e_el, k_t, mu, c_n, c_t, dt, ft, fd,
     new_t = np.where(sliding[:, None], trial * (limit / np.where(mag > 0, mag, 1))[:, None], trial)
     v_t = vrel - v_n[:, None] * n
     damp_t = np.where(sliding[:, None], 0.0, -np.broadcast_to(c_t, v_n.shape)[:, None] * v_t)
+    damp_t = _within_coulomb(new_t, damp_t, limit)
     e_t = np.sum(new_t**2, axis=1) / (2 * np.where(k_t > 0, k_t, np.inf))
     new_fd = f_nd[:, None] * n + damp_t
     force = (f_el + f_nd)[:, None] * n + new_t + damp_t
@@ -106,6 +107,22 @@ def _spring_slider(x, v, w, r, pairs, f_el, e_el, k_t, mu, c_n, c_t, dt, ft, fd,
     e_t[apart] = 0.0
     e_n = np.where(touching, e_el, 0.0)
     return force, new_t, new_fd, e_t, e_n, friction, dashpot, arm_i, arm_j, n
+
+
+def _within_coulomb(spring, dashpot, limit):
+    """The dashpot forces scaled by the largest alpha in [0, 1] with |spring + alpha
+    dashpot| <= limit (found by bisection: the squared norm is convex in alpha and at
+    most limit^2 at 0, the spring sticking)."""
+    def norm2(alpha):
+        return np.sum((spring + alpha[:, None] * dashpot) ** 2, axis=1)
+
+    over = norm2(np.ones(len(limit))) > limit**2
+    lo, hi = np.zeros(len(limit)), np.ones(len(limit))
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        inside = norm2(mid) <= limit**2
+        lo, hi = np.where(inside, mid, lo), np.where(inside, hi, mid)
+    return np.where(over[:, None], lo[:, None] * dashpot, dashpot)
 
 
 def gather(pairs, force, n, arm_i, arm_j, n_particles):

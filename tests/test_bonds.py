@@ -125,6 +125,8 @@ def test_bond_breaks_at_its_strength_and_releases_its_energy(mode):
         assert -last[1] / area < sigma_c
     else:
         assert last[2] / area == pytest.approx(tau_c, abs=step_force / area)
+    if mode == "tension":  # the stored energy of a bar: F^2 / (2 k A)
+        assert last[3] == pytest.approx(last[1] ** 2 / (2 * KN * area), rel=1e-9)
     released = sim.ledger.bond_broken
     assert released > 0
     # the energy at the break is the last stored energy plus one step's increment
@@ -132,6 +134,33 @@ def test_bond_breaks_at_its_strength_and_releases_its_energy(mode):
     assert released == pytest.approx(last[3], rel=2.5 * step_force / held)
     assert released > last[3]
     assert sim.bonds.energy[0] == 0 and sim.ledger.energy[5] == 0
+
+
+def test_twisted_bond_oscillates_with_its_torsional_stiffness():
+    """A sphere bonded to a fixed one (a small gap: no contact) spinning about the bond
+    axis: a torsional oscillator of stiffness k_s^b J (J = pi R^4 / 2) and the sphere's
+    inertia, period 2 pi sqrt(I / (k_s^b J)); at the turning points the bond holds the
+    initial kinetic energy as M_t^2 / (2 k_s^b J)."""
+    ks, gap, w0 = 4.0e5, 1e-3, 1e-2
+    x = np.array([[0.0, 0.0, 0.0], [2 * R + gap, 0.0, 0.0]])
+    p = Particles.from_density(x, np.full(2, R), RHO, fixed=[True, False])
+    polar = math.pi * R**4 / 2
+    period = 2 * math.pi * math.sqrt(p.inertia[1] / (ks * polar))
+    sim = Simulation(p, LinearSpring(k_n=1e5, mu=0.5), timestep=TimeStep.fixed(period / 400))
+    sim.add_bonds(ParallelBonds(normal_stiffness=KN, shear_stiffness=ks, gap=2 * gap))
+    sim.w[1, 0] = w0
+    times, spins, energies = [], [], []
+    sim.every(1, lambda s: (times.append(s.time), spins.append(s.w[1, 0]),
+                            energies.append(s.bonds.energy[0])))
+    sim.run(duration=2.3 * period)
+    ws, t = np.asarray(spins), np.asarray(times)
+    downs = np.flatnonzero((ws[:-1] > 0) & (ws[1:] <= 0))
+    crossings = t[downs] + ws[downs] / (ws[downs] - ws[downs + 1]) * (t[downs + 1] - t[downs])
+    assert len(crossings) >= 2
+    assert np.diff(crossings).mean() == pytest.approx(period, rel=1e-3)
+    assert max(energies) == pytest.approx(0.5 * p.inertia[1] * w0**2, rel=1e-3)
+    assert np.abs(sim.w[1, 1:]).max() < 1e-12 * w0  # a pure twist
+    assert sim.ledger.balance_error() < (2 * math.pi / 400) ** 2  # O((omega dt)^2): 5.6e-5
 
 
 def test_bond_candidates_follow_the_gap_and_the_periodic_image():

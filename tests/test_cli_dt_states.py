@@ -184,7 +184,9 @@ def test_hertz_from_youngs_and_poisson(tmp_path, capsys):
 
 
 def test_materials_per_type(tmp_path, capsys):
-    """Two materials: E* and G* of each pair from both (LIGGGHTS' mixing)."""
+    """Two materials: E* and G* of each pair from both (LIGGGHTS' mixing, 1/E* =
+    sum (1 - nu^2)/E, 1/G* = sum 2 (2 - nu)(1 + nu)/E): the exact step equals the
+    dense reference on contacts whose tangent stiffnesses are built by hand per pair."""
     x, r, box = fcc_state()
     m = np.full(len(r), 4.0)
     types = [1 + (k % 2) for k in range(len(r))]
@@ -203,6 +205,20 @@ def test_materials_per_type(tmp_path, capsys):
     soft = estimates(out_one)[1]["exact"]["dt"]
     assert soft == pytest.approx(estimates(out_same)[1]["exact"]["dt"], rel=1e-12)
     assert stiff < soft  # type 2 is four times stiffer
+    from demstep.particles import particle_inertia
+
+    youngs, poisson = {1: 1e7, 2: 4e7}, {1: 0.3, 2: 0.2}
+    p = Particles(x, r, m, particle_inertia(m, r, 3))
+    c = find_contacts(p, 1.0, 1.0, periodic=list(box))
+    ti, tj = np.asarray(types)[c.i], np.asarray(types)[c.j]
+    e_star = 1.0 / np.array([(1 - poisson[a] ** 2) / youngs[a] + (1 - poisson[b] ** 2) / youngs[b]
+                             for a, b in zip(ti, tj)])
+    g_star = 1.0 / np.array([2 * (2 - poisson[a]) * (1 + poisson[a]) / youngs[a]
+                             + 2 * (2 - poisson[b]) * (1 + poisson[b]) / youngs[b]
+                             for a, b in zip(ti, tj)])
+    root = np.sqrt(0.5 * 1.001 * (2 * 1.001 - (c.arm_i + c.arm_j)))
+    ref = exact_critical_step(p, replace(c, k_n=2 * e_star * root, k_s=8 * g_star * root), True)
+    assert stiff == pytest.approx(ref.dt, rel=1e-8)
     code, out, err = run(["dt", str(dump), "--materials", str(tmp_path / "one.toml"),
                           "--json"], capsys)
     mats.write_text("[[material]]\ntype = 1\nyoungs = 1e7\npoisson = 0.3\n")

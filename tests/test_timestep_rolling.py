@@ -925,17 +925,26 @@ def test_cli_case_file_with_rolling_resistance(tmp_path, capsys):
 
 def test_fixed_particle_counts_as_a_wall_in_the_rolling_inertia():
     """I* of a contact with a fixed particle is the moving side's I + m r^2 alone (the
-    engine's convention), so its viscous rolling part is 2 eta sqrt(I* k_r)."""
+    engine's convention), so its viscous rolling part is 2 eta sqrt(I* k_r); between two
+    free particles of radii 0.2 and 0.3, the harmonic combination of both."""
     from demstep.timestep_input import ContactModel, from_particles
 
-    x = np.array([[0.0, 0, 0], [2.0, 0, 0]])
-    p0 = Particles.from_density(x, np.array([1.0, 1.0]), 1.0)
+    x = np.array([[0.0, 0, 0], [0.5, 0, 0]])
+    radii = np.array([0.2, 0.3])  # radii other than 1: m r^2 is no m r
+    p0 = Particles.from_density(x, radii, 1.0)
     p = Particles(p0.x, p0.r, p0.m, p0.inertia, fixed=np.array([True, False]))
     model = ContactModel("linear", k_n=100.0, rolling_convention="beta", rolling_stiffness=1.0,
                          rolling_damping=0.5)
     c = from_particles(p, model).contacts
     assert c.n == 1
-    i_star = p.inertia[1] + p.m[1] * 1.0
+    r_star = 0.2 * 0.3 / 0.5
+    assert c.k_r[0] == pytest.approx(100.0 * r_star**2, rel=1e-14)
+    i_star = p.inertia[1] + p.m[1] * 0.3**2
+    assert c.c_r[0] == pytest.approx(2 * 0.5 * math.sqrt(i_star * c.k_r[0]), rel=1e-14)
+    # both free: I* = 1 / (1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2))
+    c = from_particles(p0, model).contacts
+    a_i, a_j = p0.inertia[0] + p0.m[0] * 0.2**2, p0.inertia[1] + p0.m[1] * 0.3**2
+    i_star = 1.0 / (1.0 / a_i + 1.0 / a_j)
     assert c.c_r[0] == pytest.approx(2 * 0.5 * math.sqrt(i_star * c.k_r[0]), rel=1e-14)
 
 

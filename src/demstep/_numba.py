@@ -113,8 +113,9 @@ KERNEL_CACHE = _kernel_cache_class()
 def _with_package_cache(dispatcher):
     """The dispatcher (compiled with ``cache=True``) with its cache stamped by the
     package's compiled sources (:func:`kernel_source_stamp`)."""
-    if KERNEL_CACHE is not None:
-        dispatcher._cache = KERNEL_CACHE(dispatcher.py_func)
+    py_func = getattr(dispatcher, "py_func", None)  # (None: NUMBA_DISABLE_JIT, plain Python)
+    if KERNEL_CACHE is not None and py_func is not None:
+        dispatcher._cache = KERNEL_CACHE(py_func)
     return dispatcher
 
 

@@ -56,7 +56,7 @@ must touch or overlap one another (one rigid body), radii > 0.
 ``damping_normal``/``damping_tangential`` [M/T]; rolling and twisting resistance
 (:mod:`demstep.contact.laws`, Ai et al. 2011 type C): ``rolling_convention`` "beta"
 (k_r = ``rolling_stiffness`` k_t R*^2, k_w = ``twisting_stiffness`` k_t R*^2) or
-"epsd" (k = 2.25 k_n mu^2 R*^2), limits ``rolling_friction`` mu_r and
+"epsd" (k = 2.25 k_n mu^2 R*^2, k_n the secant F_n / delta), limits ``rolling_friction`` mu_r and
 ``twisting_friction`` mu_w (moments up to mu R* F_n; 0 with a stiffness: no limit),
 viscous damping ratio ``rolling_damping``.
 

@@ -106,7 +106,8 @@ def add_dt_parser(sub):
     mod.add_argument("--rolling-convention", choices=("beta", "epsd"), default=None,
                      help="rolling and twisting resistance: 'beta' (k_r = beta_r k_t R*^2, "
                      "k_w = beta_w k_t R*^2) or 'epsd' (k_r = 2.25 k_n mu_r^2 R*^2, "
-                     "k_w = 2.25 k_n mu_w^2 R*^2); default none")
+                     "k_w = 2.25 k_n mu_w^2 R*^2, k_n the secant F_n / delta as "
+                     "LIGGGHTS' epsd); default none")
     mod.add_argument("--rolling-stiffness", type=number("rolling-stiffness", 0), default=None,
                      metavar="BETA_R", help="beta convention: rolling stiffness factor beta_r")
     mod.add_argument("--twisting-stiffness", type=number("twisting-stiffness", 0), default=None,

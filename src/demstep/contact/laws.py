@@ -31,6 +31,8 @@ Dashpots: F = -c v_rel on the normal and tangential relative velocity, with c gi
 directly [M/T] or from a coefficient of restitution e through the damping ratio
 beta = -ln e / sqrt(pi^2 + ln^2 e): c = 2 beta sqrt(m* k) (linear) and
 c = 2 sqrt(5/6) beta sqrt(m* k_tangent) (Hertz, Tsuji et al. 1992 as in LIGGGHTS).
+The tangential dashpot acts while the spring sticks and is scaled down so that spring
+plus dashpot stay within the Coulomb limit mu F_n (LIGGGHTS adds it unchecked).
 """
 
 from __future__ import annotations
@@ -150,7 +152,7 @@ def rolling_coefficients(params, k_n, k_t, r_star, i_star):
         k_w = params.beta_w * k_t * r2
     elif mode == ROLL_EPSD:
         # k_n of LIGGGHTS' epsd: the secant F_n / delta, 2/3 of the tangent for Hertz
-        k_sec = k_n if params.law == LAW_LINEAR else (2.0 / 3.0) * k_n
+        k_sec = (2.0 / 3.0) * k_n if params.law == LAW_HERTZ else k_n
         k_r = 2.25 * k_sec * params.mu_r * params.mu_r * r2
         k_w = 2.25 * k_sec * params.mu_w * params.mu_w * r2
     else:

@@ -62,7 +62,8 @@ def build_specimen(name: str, alpha: float, k: float = 1.0e6, density: float = 1
     """A pre-compressed periodic specimen with a small random perturbation;
     ``law_options`` are keyword arguments of :class:`LinearSpring`: dashpots
     (``restitution``, ``restitution_tangential``, ``damping_normal``,
-    ``damping_tangential``) and rolling resistance (``rolling_convention``, ...);
+    ``damping_tangential``), rolling resistance (``rolling_convention``, ...) and the
+    friction ``mu`` (default 0.5);
     ``bonds`` (:class:`demstep.contact.bonds.ParallelBonds`) bonds every contact."""
     if name == SPECIMEN:
         from demstep.experiments.fcc_plane_strain import FCCConfig, fcc_specimen
@@ -86,7 +87,7 @@ def build_specimen(name: str, alpha: float, k: float = 1.0e6, density: float = 1
     amplitude = 1e-4 * precompression * radius * omega  # displacement ~1e-4 of the overlap
     v = rng.normal(0.0, amplitude, (len(x), dim))
     w = rng.normal(0.0, amplitude / radius, len(x) if dim == 2 else (len(x), 3))
-    law = LinearSpring(k_n=k, k_s=k, mu=0.5, **(law_options or {}))
+    law = LinearSpring(**{"k_n": k, "k_s": k, "mu": 0.5, **(law_options or {})})
     sim = Simulation(p, law, periodic=box, velocities=v, angular_velocities=w if rotation else None,
                      timestep=TimeStep.from_alpha(alpha), rotation=rotation, runaway_factor=0,
                      jump_limit=np.inf, energy=EnergyMonitor(every=10**9))

@@ -55,6 +55,24 @@ BOX_FIXED, BOX_RATE, BOX_SERVO = 0, 1, 2
 
 
 @njit(inline="always")
+def coulomb_dashpot(tx, ty, tz, dx, dy, dz, limit):
+    """The tangential dashpot force (d_x, d_y, d_z) of a sticking contact, scaled down
+    (by the largest alpha in [0, 1]) so that the total tangential force, spring t plus
+    dashpot, stays within the Coulomb limit mu F_n [M L/T^2] (|t| <= limit here).
+    LIGGGHTS adds the dashpot unchecked, which let the total reach several times mu F_n
+    when a contact starts or turns; LAMMPS' granular pair styles cap the total too."""
+    sx, sy, sz = tx + dx, ty + dy, tz + dz
+    limit2 = limit * limit
+    if sx * sx + sy * sy + sz * sz <= limit2:
+        return dx, dy, dz
+    a = dx * dx + dy * dy + dz * dz
+    b = tx * dx + ty * dy + tz * dz
+    c = tx * tx + ty * ty + tz * tz - limit2  # <= 0: the root lies in [0, 1)
+    alpha = (math.sqrt(max(b * b - a * c, 0.0)) - b) / a
+    return alpha * dx, alpha * dy, alpha * dz
+
+
+@njit(inline="always")
 def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy, vz, dt,
                      ox, oy, oz, fdx, fdy, fdz, etan_old):
     """Force of one contact and its history update (the contact law applied once).
@@ -97,9 +115,10 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
     if mag2 > limit * limit:  # (squares: the root only for a sliding contact)
         s = limit / math.sqrt(mag2)
         tx, ty, tz = tx * s, ty * s, tz * s
-    else:
+    elif c_t > 0.0:
         vtx, vty, vtz = vx - v_n * nx, vy - v_n * ny, vz - v_n * nz
-        tdx, tdy, tdz = -c_t * vtx, -c_t * vty, -c_t * vtz
+        tdx, tdy, tdz = coulomb_dashpot(tx, ty, tz, -c_t * vtx, -c_t * vty, -c_t * vtz,
+                                        limit)
     e_t = 0.0
     if k_t > 0.0:
         e_t = (tx * tx + ty * ty + tz * tz) / (2.0 * k_t)
