@@ -25,7 +25,7 @@ def test_stability_edge_at_exact_critical_step(name):
 
 def dense_box(k=1e5, law=None, radii=(0.98, 1.02), **kw):
     rng = np.random.default_rng(0)
-    x = np.stack(np.meshgrid(*[np.arange(4) * 1.95] * 3, indexing="ij"), -1).reshape(-1, 3)
+    x = np.stack(np.meshgrid(*[np.arange(4) * 1.99] * 3, indexing="ij"), -1).reshape(-1, 3)
     p = Particles.from_density(x + 1.0, rng.uniform(*radii, len(x)), 1.0)
     walls = box_walls(np.zeros(3), np.full(3, 4 * 1.95))
     return Simulation(p, law or LinearSpring(k_n=k, mu=0.3), walls=walls,
@@ -201,3 +201,39 @@ def test_neighbour_scratch_kept_only_while_rebuilds_come_often():
         pi, pj = build_pair_list(sim.x, sim.r, sim.skin, sim.periodic_len)
         assert np.array_equal(sim.pairs.i, pi) and np.array_equal(sim.pairs.j, pj)
     assert held == [True, True, False, True]
+
+
+@pytest.mark.parametrize("law", [LinearSpring(k_n=1e4, mu=0.4, restitution=0.6,
+                                              restitution_tangential=0.6),
+                                 HertzMindlin(youngs_modulus=1e6, poisson_ratio=0.3, mu=0.4,
+                                              restitution=0.6)])
+def test_contact_forces_are_the_law_at_the_current_positions(law):
+    """``contact_forces()`` (VTK's contact output): per touching pair the elastic normal
+    force from the overlap now (k_n delta; Hertz 4/3 E* sqrt(R* delta) delta) along
+    the normal from i to j, plus the stored tangential spring and dashpot forces, on j;
+    the pairs are exactly those that overlap."""
+    rng = np.random.default_rng(5)
+    x = np.stack(np.meshgrid(*[np.arange(4) * 1.99] * 3, indexing="ij"), -1).reshape(-1, 3)
+    p = Particles.from_density(x, np.full(len(x), 1.0), 1.0)
+    sim = Simulation(p, law, velocities=rng.normal(0, 0.05, x.shape),
+                     angular_velocities=rng.normal(0, 0.05, x.shape), timestep=TimeStep.fixed(2e-3))
+    sim.run(steps=10)
+    pairs, force, normal = sim.contact_forces()
+    d = sim.x[pairs[:, 1]] - sim.x[pairs[:, 0]]
+    dist = np.linalg.norm(d, axis=1)
+    delta = 2.0 - dist
+    assert len(pairs) > 20 and (delta > 0).all()
+    all_d = np.linalg.norm(sim.x[sim.pj] - sim.x[sim.pi], axis=1)
+    assert len(pairs) == int((all_d < 2.0).sum())
+    n = d / dist[:, None]
+    assert normal == pytest.approx(n, abs=1e-14)
+    if isinstance(law, LinearSpring):
+        f_el = 1e4 * delta
+    else:
+        e_star = 1e6 / (2 * (1 - 0.3**2))
+        f_el = 4.0 / 3.0 * e_star * np.sqrt(0.5 * delta) * delta
+    index = {(a, b): k for k, (a, b) in enumerate(zip(sim.pi, sim.pj))}
+    rows = [index[(a, b)] for a, b in pairs]
+    expected = f_el[:, None] * n + sim.ft[rows] + sim.fd[rows]
+    assert force == pytest.approx(expected, rel=1e-12, abs=1e-12 * np.abs(expected).max())
+    assert np.abs(sim.ft[rows]).max() > 0 and np.abs(sim.fd[rows]).max() > 0
