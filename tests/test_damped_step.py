@@ -6,6 +6,7 @@ one-step amplification matrix of the engine's scheme (damping on the half-step
 velocity), dense companion-matrix eigenvalues of element pencils, and bisection of the
 engine's own runs."""
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -102,6 +103,42 @@ def test_exact_damped_step_is_the_amplification_threshold(name, seed, walls, fix
     assert result.dt == pytest.approx(reference, rel=1e-6)
     assert result.dt <= reference * (1 + 1e-9)  # certified: never above
     assert result.dt < result.dt_undamped
+
+
+def sdof_threshold(k, c):
+    """Largest dt whose one-step map of x'' + c x' + k x = 0 (the engine's scheme on one
+    degree of freedom) has spectral radius <= 1 (bisection on the 2 x 2 map)."""
+    def rho(dt):
+        G = np.array([[1 - dt * dt * k, dt * (1 - dt * c)], [-dt * k, 1 - dt * c]])
+        return np.abs(np.linalg.eigvals(G)).max()
+
+    lo, hi = 0.0, 4.0 / math.sqrt(k)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if rho(mid) <= 1 + 1e-12 else (lo, mid)
+    return lo
+
+
+@pytest.mark.parametrize("name,seed,walls,fixed", CASES[:3])
+@pytest.mark.parametrize("rotation", [True, False])
+def test_nodal_rule_damped_is_each_diagonals_own_threshold(name, seed, walls, fixed, rotation):
+    """The damped nodal rule: per free degree of freedom the one-DOF system of stiffness
+    2 K_dd / M_dd and damping a1 + 2 (a2 K_dd + C_dd) / M_dd (C_dd the dashpots'
+    diagonal), its threshold from the 2 x 2 amplification map; the rule is the least."""
+    from demstep.timestep.estimates import nodal_dt
+
+    p, c, rng = random_assembly(name, seed, walls, fixed)
+    cc = replace(c, c_n=rng.random(c.n) * 0.6, c_t=rng.random(c.n) * 0.6)
+    damping = GlobalDamping(0.3, 0.02)
+    K = assemble_stiffness(p, cc, rotation).toarray().diagonal()
+    Cd = assemble_stiffness(p, replace(cc, k_n=cc.c_n, k_s=cc.c_t), rotation).toarray().diagonal()
+    m = lumped_mass(p, rotation)
+    free = ~np.repeat(p.fixed, len(m) // p.n) & (K > 0)
+    reference = min(sdof_threshold(2 * K[d] / m[d], 0.3 + 2 * (0.02 * K[d] + Cd[d]) / m[d])
+                    for d in np.flatnonzero(free))
+    assert nodal_dt(p, cc, rotation, damping) == pytest.approx(reference, rel=1e-9)
+    undamped = min(sdof_threshold(2 * K[d] / m[d], 0.0) for d in np.flatnonzero(free))
+    assert reference < undamped
 
 
 @pytest.mark.parametrize("name,seed,walls,fixed", CASES[:3])
