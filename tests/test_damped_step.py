@@ -141,6 +141,29 @@ def test_nodal_rule_damped_is_each_diagonals_own_threshold(name, seed, walls, fi
     assert reference < undamped
 
 
+@pytest.mark.parametrize("name", ["hex", "fcc"])
+def test_rules_damped_by_the_largest_dashpot_ratio(name):
+    """Itasca's rule and the paper's guidance with dashpots: the one-DOF system at the
+    rule's frequency omega^2 = 4 K_max / (alpha^2 m_min) damped by beta omega^2, beta
+    the largest c/k of the normal and the tangential dashpots (here the tangential
+    ones), its threshold from the 2 x 2 amplification map (guidance: 0.75 of it)."""
+    from demstep.timestep import estimate_time_steps
+    from demstep.timestep.stability import GUIDANCE_ALPHA
+
+    p, c, rng = random_assembly(name, 7)
+    cc = replace(c, c_n=0.05 * c.k_n, c_t=0.2 * c.k_s * rng.random(c.n))
+    beta = float((cc.c_t / cc.k_s).max())
+    assert beta > 0.05
+    rep = estimate_time_steps(p, cc, True, methods=["itasca", "guidance"])
+    m_min, k_max = p.m.min(), max(c.k_n.max(), c.k_s.max())
+    assert rep.m_min == m_min and rep.k_max == k_max
+    omega2 = 4 * k_max / m_min
+    assert rep.get("itasca").dt == pytest.approx(sdof_threshold(omega2, beta * omega2), rel=1e-9)
+    omega2 = 4 * k_max / ((GUIDANCE_ALPHA[p.dim] / 0.75) ** 2 * m_min)
+    assert rep.get("guidance").dt == pytest.approx(
+        0.75 * sdof_threshold(omega2, beta * omega2), rel=1e-9)
+
+
 @pytest.mark.parametrize("name,seed,walls,fixed", CASES[:3])
 def test_sparse_matrix_free_path_matches_dense(name, seed, walls, fixed):
     p, c, rng = random_assembly(name, seed, walls, fixed)
