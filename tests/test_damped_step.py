@@ -164,6 +164,31 @@ def test_rules_damped_by_the_largest_dashpot_ratio(name):
         0.75 * sdof_threshold(omega2, beta * omega2), rel=1e-9)
 
 
+@pytest.mark.parametrize("rotation", [True, False])
+def test_paper_element_damped_per_axis_on_one_contact(rotation):
+    """The paper's element with dashpots, one contact of two unequal spheres along an
+    oblique normal (the whole masses in its element): per axis the one-DOF system of
+    normal, tangential and (with rotation) rotational stiffness, each damped by its own
+    dashpot, its threshold from the 2 x 2 amplification map; the step is the least."""
+    from demstep.particles import particle_inertia
+    from demstep.timestep.estimates import element_paper_dt
+
+    n = np.array([1.0, 2.0, 2.0]) / 3.0
+    r = np.array([1.0, 0.8])
+    x = np.array([np.zeros(3), 1.79 * n])
+    m = np.array([2.0, 1.1])
+    p = Particles(x, r, m, particle_inertia(m, r, 3))
+    c = find_contacts(p, 3.0, 1.5)
+    assert c.n == 1
+    cc = replace(c, c_n=np.array([0.4]), c_t=np.array([0.9]))
+    c_m = 1 / m[0] + 1 / m[1]
+    ref = [sdof_threshold(3.0 * c_m, 0.4 * c_m), sdof_threshold(1.5 * c_m, 0.9 * c_m)]
+    if rotation:
+        w = (1 - (n**2).min()) * (c.arm_i[0] ** 2 / p.inertia[0] + c.arm_j[0] ** 2 / p.inertia[1])
+        ref.append(sdof_threshold(1.5 * w, 0.9 * w))
+    assert element_paper_dt(p, cc, rotation) == pytest.approx(min(ref), rel=1e-9)
+
+
 @pytest.mark.parametrize("name,seed,walls,fixed", CASES[:3])
 def test_sparse_matrix_free_path_matches_dense(name, seed, walls, fixed):
     p, c, rng = random_assembly(name, seed, walls, fixed)
