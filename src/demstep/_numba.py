@@ -12,6 +12,7 @@ as plain Python (the tests use this against slow numpy references).
 
 import functools
 import hashlib
+import os
 import types
 import warnings
 from pathlib import Path
@@ -58,9 +59,17 @@ NOT_COMPILED = ("cli", "case", "sweep", "experiments", "io", "plotting.py",
 
 def compiled_sources() -> list[Path]:
     """The package's source files a compiled kernel can depend on (all but
-    :data:`NOT_COMPILED`), sorted."""
-    return sorted(p for p in PACKAGE_DIR.rglob("*.py")
-                  if p.relative_to(PACKAGE_DIR).parts[0] not in NOT_COMPILED)
+    :data:`NOT_COMPILED`), sorted. (os.walk, pruned: the caches' folders hold hundreds
+    of files, which ``Path.rglob`` read at every start.)"""
+    found = []
+    for folder, subfolders, files in os.walk(PACKAGE_DIR):
+        here = Path(folder)
+        top = here == PACKAGE_DIR
+        subfolders[:] = [d for d in subfolders if d != "__pycache__"
+                         and not (top and d in NOT_COMPILED)]
+        found += [here / f for f in files
+                  if f.endswith(".py") and not (top and f in NOT_COMPILED)]
+    return sorted(found)
 
 
 @functools.lru_cache(maxsize=None)
