@@ -25,7 +25,7 @@ def test_stability_edge_at_exact_critical_step(name):
 
 def dense_box(k=1e5, law=None, radii=(0.98, 1.02), **kw):
     rng = np.random.default_rng(0)
-    x = np.stack(np.meshgrid(*[np.arange(4) * 1.99] * 3, indexing="ij"), -1).reshape(-1, 3)
+    x = np.stack(np.meshgrid(*[np.arange(4) * 1.95] * 3, indexing="ij"), -1).reshape(-1, 3)
     p = Particles.from_density(x + 1.0, rng.uniform(*radii, len(x)), 1.0)
     walls = box_walls(np.zeros(3), np.full(3, 4 * 1.95))
     return Simulation(p, law or LinearSpring(k_n=k, mu=0.3), walls=walls,
