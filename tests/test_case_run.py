@@ -241,7 +241,9 @@ def test_polydisperse_packing_example_reads():
     from demstep.io.assembly_files import read_assembly
 
     data = read_assembly(EXAMPLES / "polydisperse_packing.csv")
-    assert data.x.shape == (125, 3) and data.r.std() > 0.01
+    table = np.loadtxt(EXAMPLES / "polydisperse_packing.csv", delimiter=",", skiprows=1)
+    assert data.x.shape == (125, 3) and data.m is None
+    assert np.array_equal(data.x, table[:, :3]) and np.array_equal(data.r, table[:, 3])
 
 
 # ------------------------------------------------------------------ the CLI
