@@ -108,6 +108,22 @@ def test_clump_free_fall_stays_exact_across_changes_of_step():
         assert sim.ledger.balance_error() < 1e-5, (dt, steps)
 
 
+def test_viscous_damping_decays_a_free_clump_geometrically():
+    """Global viscous damping a1 on a free clump (force -a1 m v, torque -a1 L on the
+    lagged half-step values): its velocity and angular momentum fall by (1 - a1 dt)
+    per step, exactly (to rounding)."""
+    a1, dt, steps = 2.0, 1e-3, 300
+    cs = place([ASYM], [0], [[0, 0, 0]], random_quaternions(1, np.random.default_rng(3)), 1.0)
+    sim = Simulation(None, LinearSpring(k_n=1e3), clumps=cs, damping=Damping(viscous=a1),
+                     clump_velocities=[[0.4, -0.1, 0.2]],
+                     clump_angular_velocities=[[0.3, 1.5, 0.4]], timestep=TimeStep.fixed(dt))
+    v0, L0 = sim.bodies.v[0].copy(), sim.bodies.L[0].copy()
+    sim.run(steps=steps)
+    decay = (1 - a1 * dt) ** steps
+    assert sim.bodies.v[0] == pytest.approx(v0 * decay, rel=1e-12)
+    assert sim.bodies.L[0] == pytest.approx(L0 * decay, rel=1e-12)
+
+
 def test_intermediate_axis_flips():
     """Spin about the intermediate principal axis with a small perturbation: the
     body-frame angular momentum along it reverses (the tennis-racket effect), while the
