@@ -1,3 +1,4 @@
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -55,6 +56,16 @@ def compiled_kernels():
         sim.run(steps=2)
         sim.critical_dt("exact")
         sim.contact_forces()
+
+
+def oscillation_period(times, values):
+    """Mean period [T] of a sampled oscillation: the spacing of its downward zero
+    crossings, each placed by linear interpolation between samples (NaN with fewer than
+    two crossings, which no approx comparison accepts)."""
+    t, v = np.asarray(times), np.asarray(values)
+    down = np.flatnonzero((v[:-1] > 0) & (v[1:] <= 0))
+    crossings = t[down] + v[down] / (v[down] - v[down + 1]) * (t[down + 1] - t[down])
+    return float(np.diff(crossings).mean()) if len(crossings) >= 2 else math.nan
 
 
 @pytest.fixture

@@ -16,6 +16,8 @@ from demstep.engine import Damping, Simulation, TimeStep
 from demstep.errors import InputError
 from demstep.particles import Particles
 
+from conftest import oscillation_period
+
 R = 0.5
 RHO = 1000.0
 KN = 1.0e6
@@ -85,10 +87,7 @@ def test_axial_vibration_of_a_bonded_chain_against_the_bar():
     times, vs = [], []
     sim.every(1, lambda s: (times.append(s.time), vs.append(s.v[0, 0])))
     sim.run(duration=2.3 * period_chain)
-    t, v = np.asarray(times), np.asarray(vs)
-    down = np.flatnonzero((v[:-1] > 0) & (v[1:] <= 0))
-    crossings = t[down] + v[down] / (v[down] - v[down + 1]) * (t[down + 1] - t[down])
-    measured = np.diff(crossings).mean()
+    measured = oscillation_period(times, vs)
     assert measured == pytest.approx(period_chain, rel=2e-3)
     assert measured == pytest.approx(period_bar, rel=1e-2)
     assert abs(sim.x[:, 0] - xs).max() < 1e-3 * R  # small motion: linear
@@ -153,11 +152,7 @@ def test_twisted_bond_oscillates_with_its_torsional_stiffness():
     sim.every(1, lambda s: (times.append(s.time), spins.append(s.w[1, 0]),
                             energies.append(s.bonds.energy[0])))
     sim.run(duration=2.3 * period)
-    ws, t = np.asarray(spins), np.asarray(times)
-    downs = np.flatnonzero((ws[:-1] > 0) & (ws[1:] <= 0))
-    crossings = t[downs] + ws[downs] / (ws[downs] - ws[downs + 1]) * (t[downs + 1] - t[downs])
-    assert len(crossings) >= 2
-    assert np.diff(crossings).mean() == pytest.approx(period, rel=1e-3)
+    assert oscillation_period(times, spins) == pytest.approx(period, rel=1e-3)
     assert max(energies) == pytest.approx(0.5 * p.inertia[1] * w0**2, rel=1e-3)
     assert np.abs(sim.w[1, 1:]).max() < 1e-12 * w0  # a pure twist
     assert sim.ledger.balance_error() < (2 * math.pi / 400) ** 2  # O((omega dt)^2): 5.6e-5

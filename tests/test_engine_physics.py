@@ -111,15 +111,26 @@ def test_hertz_contact_duration(dim):
     assert sim.v[1, 0] - sim.v[0, 0] == pytest.approx(1.0, rel=1e-3)
 
 
-@pytest.mark.parametrize("dim", [2, 3])
-def test_free_fall_exact(dim):
+def lone_particle(dim, **kw):
+    """A Simulation of one free particle at the origin (r 1, m 2, I 0.8) with ``kw``."""
+    p = Particles(np.zeros((1, dim)), np.ones(1), np.array([2.0]), np.array([0.8]))
+    return Simulation(p, LinearSpring(k_n=1.0), **kw)
+
+
+def thrown_particle(dim):
+    """(sim, g, v0): a lone particle thrown at (0.3, ..., 2.0) under gravity -9.81 along
+    the last axis, steps of 1e-3."""
     g = np.zeros(dim)
     g[-1] = -9.81
     v0 = np.zeros((1, dim))
     v0[0, 0] = 0.3
     v0[0, -1] = 2.0
-    p = Particles(np.zeros((1, dim)), np.ones(1), np.array([2.0]), np.array([0.8]))
-    sim = Simulation(p, LinearSpring(k_n=1.0), gravity=g, velocities=v0, timestep=TimeStep.fixed(1e-3))
+    return lone_particle(dim, gravity=g, velocities=v0, timestep=TimeStep.fixed(1e-3)), g, v0
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_free_fall_exact(dim):
+    sim, g, v0 = thrown_particle(dim)
     sim.run(steps=1000)
     t = sim.time
     assert t == pytest.approx(1.0)
@@ -135,14 +146,7 @@ def test_free_fall_stays_exact_across_changes_of_step(dim):
     t (the half-step velocities weighted by the steps) balances gravity's work to
     rounding right after a change. A kick of dt left a lasting velocity error of
     g (dt_prev - dt) / 2 (position off by 2.5e-4 after 0.1 s) and the ledger 1e-3 off."""
-    g = np.zeros(dim)
-    g[-1] = -9.81
-    v0 = np.zeros((1, dim))
-    v0[0, 0] = 0.3
-    v0[0, -1] = 2.0
-    p = Particles(np.zeros((1, dim)), np.ones(1), np.array([2.0]), np.array([0.8]))
-    sim = Simulation(p, LinearSpring(k_n=1.0), gravity=g, velocities=v0,
-                     timestep=TimeStep.fixed(1e-3))
+    sim, g, v0 = thrown_particle(dim)
     for dt, steps in ((1e-3, 100), (5e-4, 1), (5e-4, 150), (2e-3, 1), (7e-4, 60), (1.3e-3, 40)):
         sim.timestep = TimeStep.fixed(dt)
         sim.run(steps=steps)
@@ -255,9 +259,8 @@ def test_viscous_damping_decays_a_free_particle_geometrically(dim):
     a1, dt, steps = 3.0, 1e-3, 400
     v0 = np.zeros((1, dim))
     v0[0, 0], v0[0, 1] = 0.7, -0.2
-    p = Particles(np.zeros((1, dim)), np.ones(1), np.array([2.0]), np.array([0.8]))
-    sim = Simulation(p, LinearSpring(k_n=1.0), velocities=v0, damping=Damping(viscous=a1),
-                     timestep=TimeStep.fixed(dt))
+    sim = lone_particle(dim, velocities=v0, damping=Damping(viscous=a1),
+                        timestep=TimeStep.fixed(dt))
     spin = 1.5
     sim.w[0, 2] = spin
     sim.run(steps=steps)
@@ -273,9 +276,8 @@ def test_local_damping_scales_a_constant_force(dim):
     alpha = 0.3
     g = np.zeros(dim)
     g[-1] = -9.81
-    p = Particles(np.zeros((1, dim)), np.ones(1), np.array([2.0]), np.array([0.8]))
-    sim = Simulation(p, LinearSpring(k_n=1.0), gravity=g, damping=Damping(local=alpha),
-                     timestep=TimeStep.fixed(1e-3))
+    sim = lone_particle(dim, gravity=g, damping=Damping(local=alpha),
+                        timestep=TimeStep.fixed(1e-3))
     sim.run(steps=1000)
     t = sim.time
     assert sim.x[0, dim - 1] == pytest.approx(-0.5 * (1 - alpha) * 9.81 * t * t, rel=2e-3)

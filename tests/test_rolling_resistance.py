@@ -20,6 +20,8 @@ from demstep.kernels.dem import ROLL_TWIST
 from demstep.particles import Particles
 from demstep.walls import Wall
 
+from conftest import oscillation_period
+
 G = 9.81
 RHO = 2500.0
 
@@ -102,12 +104,8 @@ def test_rocking_frequency_of_the_elastic_rolling_spring():
     times, xs = [], []
     sim.every(1, lambda s: (times.append(s.time), xs.append(s.x[0, 0])))
     sim.run(duration=2.2 * period)
-    xs = np.asarray(xs)
-    t = np.asarray(times)
-    ups = np.flatnonzero((xs[:-1] < 0) & (xs[1:] >= 0))  # upward zero crossings
-    crossings = t[ups] + (0 - xs[ups]) / (xs[ups + 1] - xs[ups]) * (t[ups + 1] - t[ups])
-    assert len(crossings) >= 2
-    assert np.diff(crossings).mean() == pytest.approx(period, rel=5e-3)
+    # (the upward zero crossings of x)
+    assert oscillation_period(times, -np.asarray(xs)) == pytest.approx(period, rel=5e-3)
     # the engine without the rolling spring: the same start is a free roll, no return
     free = sphere_on_floor(LinearSpring(k_n=k_n, k_s=0.5 * k_n, mu=0.8), r=r,
                            steps_per_period=400.0)
@@ -142,10 +140,7 @@ def test_twisting_spring_frequency_between_two_spheres():
     times, ws = [], []
     sim.every(1, lambda s: (times.append(s.time), ws.append(s.w[1, 2])))
     sim.run(duration=2.3 * period)
-    ws, t = np.asarray(ws), np.asarray(times)
-    downs = np.flatnonzero((ws[:-1] > 0) & (ws[1:] <= 0))
-    crossings = t[downs] + ws[downs] / (ws[downs] - ws[downs + 1]) * (t[downs + 1] - t[downs])
-    assert np.diff(crossings).mean() == pytest.approx(period, rel=2e-3)
+    assert oscillation_period(times, ws) == pytest.approx(period, rel=2e-3)
     assert sim.pairs.roll[0, ROLL_TWIST] != 0.0
     assert np.abs(sim.pairs.roll[0, :3]).max() < 1e-12 * abs(sim.pairs.roll[0, ROLL_TWIST])
     assert sim.ledger.balance_error() < 1e-6
@@ -175,10 +170,7 @@ def test_epsd_with_hertz_takes_the_secant_normal_stiffness():
     times, ws = [], []
     sim.every(1, lambda s: (times.append(s.time), ws.append(s.w[1, 2])))
     sim.run(duration=2.3 * period)
-    ws, t = np.asarray(ws), np.asarray(times)
-    downs = np.flatnonzero((ws[:-1] > 0) & (ws[1:] <= 0))
-    crossings = t[downs] + ws[downs] / (ws[downs] - ws[downs + 1]) * (t[downs + 1] - t[downs])
-    assert np.diff(crossings).mean() == pytest.approx(period, rel=2e-3)
+    assert oscillation_period(times, ws) == pytest.approx(period, rel=2e-3)
 
 
 def test_twisting_limit_stops_a_spin_at_a_constant_rate():

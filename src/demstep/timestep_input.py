@@ -25,8 +25,9 @@ beta = -ln e / sqrt(ln^2 e + pi^2), in one of two conventions:
 Rolling and twisting resistance (either model, :mod:`demstep.contact.laws`): per
 contact k_r, k_w [M L^2/T^2 per rad] by the convention ``beta`` (k = beta k_t R*^2,
 k_t the tangent tangential stiffness) or ``epsd`` (k = 2.25 k_n mu^2 R*^2, mu the
-rolling or twisting friction, k_n the secant normal stiffness F_n / delta), and viscous parts c = 2 eta sqrt(I* k) with
-I* = 1/(1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2)) (a wall's term is zero).
+rolling or twisting friction, k_n the secant normal stiffness F_n / delta), and
+viscous parts c = 2 eta sqrt(I* k) with I* = 1/(1/(I_i + m_i r_i^2) + 1/(I_j + m_j
+r_j^2)) (a wall's term is zero).
 
 Every coefficient formula is the engine's (:func:`demstep.contact.laws.contact_coefficients`,
 :func:`demstep.contact.laws.rolling_coefficients`); only the LIGGGHTS choices of beta_t

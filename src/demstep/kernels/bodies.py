@@ -104,14 +104,14 @@ def world_omega(q0, q1, q2, q3, L0, L1, L2, i0, i1, i2):
 
 @njit
 def _kick(b, k, f, t, omega, m, inv_m, rotating, gravity, v, L, x, applied, damp_force,
-          damp_torque, dt, dt_prev, local_damping, global_damping, first, store_damping):
+          damp_torque, dt, dt_prev, kick, c_old, c_new, local_damping, global_damping, first,
+          store_damping):
     """Component k of body b: the leapfrog kick of the velocity and the angular
-    momentum with gravity, applied force and damping (by the mean of the last and the
-    new step, :func:`~demstep.kernels.integration.step_weights`), the drift of the
-    centre; returns the lagged angular momentum and the ledger terms (gravity work,
-    applied work, local and global damping dissipation, kinetic energy of translation
-    at t)."""
-    kick, c_old, c_new = step_weights(dt, dt_prev, first)
+    momentum with gravity, applied force and damping (by ``kick``, the mean of the last
+    and the new step, weights ``c_old``, ``c_new`` of the velocity at t:
+    :func:`~demstep.kernels.integration.step_weights`), the drift of the centre;
+    returns the lagged angular momentum and the ledger terms (gravity work, applied
+    work, local and global damping dissipation, kinetic energy of translation at t)."""
     g = gravity[k]
     fl = f + m * g + applied[b, k]
     v_old = v[b, k]
@@ -174,7 +174,7 @@ def _body_loop(bx, bq, bv, bL, bm, binertia, binv_m, binv_I, bforce, btorque, ba
     disp2 = 0.0
     jump2 = 0.0
     x_flat, v_flat, x_ref_flat = x.reshape(-1), v.reshape(-1), x_ref.reshape(-1)
-    _, c_old, c_new = step_weights(dt, dt_prev, first)  # (the angular momentum at t)
+    kick, c_old, c_new = step_weights(dt, dt_prev, first)
     for b in prange(bm.shape[0]):
         q0, q1, q2, q3 = bq[b, 0], bq[b, 1], bq[b, 2], bq[b, 3]
         # 1. forces and torques about the centre of mass
@@ -208,14 +208,14 @@ def _body_loop(bx, bq, bv, bL, bm, binertia, binv_m, binv_I, bforce, btorque, ba
         if rotating:
             om0, om1, om2 = world_omega(q0, q1, q2, q3, bL[b, 0], bL[b, 1], bL[b, 2], i0, i1, i2)
         lo0, wb0, wa0, dl0, dg0, ke0 = _kick(b, 0, f0, t0, om0, m, binv_m, rotating, gravity, bv, bL, bx, bapplied,
-                        damp_force, damp_torque, dt, dt_prev, local_damping, global_damping,
-                        first, store_damping)
+                        damp_force, damp_torque, dt, dt_prev, kick, c_old, c_new,
+                        local_damping, global_damping, first, store_damping)
         lo1, wb1, wa1, dl1, dg1, ke1 = _kick(b, 1, f1, t1, om1, m, binv_m, rotating, gravity, bv, bL, bx, bapplied,
-                        damp_force, damp_torque, dt, dt_prev, local_damping, global_damping,
-                        first, store_damping)
+                        damp_force, damp_torque, dt, dt_prev, kick, c_old, c_new,
+                        local_damping, global_damping, first, store_damping)
         lo2, wb2, wa2, dl2, dg2, ke2 = _kick(b, 2, f2, t2, om2, m, binv_m, rotating, gravity, bv, bL, bx, bapplied,
-                        damp_force, damp_torque, dt, dt_prev, local_damping, global_damping,
-                        first, store_damping)
+                        damp_force, damp_torque, dt, dt_prev, kick, c_old, c_new,
+                        local_damping, global_damping, first, store_damping)
         w_body += wb0 + wb1 + wb2
         w_app += wa0 + wa1 + wa2
         d_local += dl0 + dl1 + dl2

@@ -921,9 +921,10 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
                     store_damping, acc_out, sphere_body):
     """Central-difference update of all particles with damping and the particle terms
     of the ledger (a change of step from ``dt_prev`` to ``dt`` kicks by their mean,
-    :func:`~demstep.kernels.integration.step_weights`). ``acc_out`` (8,): work of gravity, of applied forces, local and
-    global damping dissipation, kinetic energy (translation, rotation) at t, the
-    largest squared displacement since the list was built, the largest |v| dt / r.
+    :func:`~demstep.kernels.integration.step_weights`). ``acc_out`` (8,): work of
+    gravity, of applied forces, local and global damping dissipation, kinetic energy
+    (translation, rotation) at t, the largest squared displacement since the list was
+    built, the largest |v| dt / r.
     ``fd_prev``/``td_prev`` (N, 6) hold the damping forces of the last step (local,
     global) for the trapezoid; ``store_damping`` False (damping off and those arrays
     all zero) skips reading and writing them. Members of rigid bodies

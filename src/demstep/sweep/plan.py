@@ -360,4 +360,3 @@ def check_peak_column(peak: str, case, where: str) -> None:
         hint = f"; its wall and box columns: {', '.join(walls)}" if walls else \
             "; it has no wall or box columns"
         raise InputError(f"peak: {where}: no history column {peak!r}{hint}")
-
