@@ -22,15 +22,29 @@ where
 * D(sigma) bounds how far the covered contacts' normals have turned (Weyl's inequality
   again): a contact's mass-scaled element matrix is E(n) = L(n)^T B(n) L(n) with
   B = b_n n n^T + b_t (I - n n^T) (b = sigma c + k) and L the map from the two
-  particles' scaled motions to the relative displacement at the contact, whose
-  rotational blocks are r [n]x / sqrt(I). With l^2 = 1/m_i + 1/m_j + r_i^2/I_i +
-  r_j^2/I_j >= |L|^2, rho^2 = r_i^2/I_i + r_j^2/I_j >= |L(n') - L(n)|^2 / |n' - n|^2 and
-  |B(n') - B(n)| <= |b_n - b_t| |n' - n|,
+  particles' scaled motions x = (u, w) to the relative displacement at the contact,
+  L(n) x = v + n x omega: v = u_j / sqrt(m_j) - u_i / sqrt(m_i), |v| <= tau |u| with
+  tau^2 = 1/m_i + 1/m_j, and omega = r_i w_i / sqrt(I_i) + r_j w_j / sqrt(I_j) (signs
+  aside), |omega| <= rho |w| with rho^2 = r_i^2/I_i + r_j^2/I_j (r the arms). The
+  rotation does not move the contact along n, so x.E x = b_t |L x|^2 + (b_n - b_t)
+  (n.v)^2. With d = n' - n and s = n' + n (d.s = 0, |s| <= 2):
 
-      |E(n') - E(n)| <= |n' - n| l (2 rho max(b_n, b_t) + l |b_n - b_t|),
+      |L(n') x|^2 - |L(n) x|^2 = 2 v.(d x omega) - (d.omega)(s.omega),
+      (n'.v)^2 - (n.v)^2 = (d.v)(s.v), at most |d| |v|^2 |s| / 2 <= |d| tau^2 |u|^2.
 
-  and a sum of two-particle element matrices has its norm below the largest sum over
-  the elements of one particle (x.E x <= |E| (|x_i|^2 + |x_j|^2) per element).
+  Only the part of omega across d, |omega| sin(phi), enters d x omega and s.omega, and
+  d.omega = |d| |omega| cos(phi); so the first is at most |d| 2 rho |w| sin(phi)
+  (tau |u| + rho |w| cos(phi)), whose largest value over |u|^2 + |w|^2 = 1 (a 2 x 2
+  eigenvalue) and phi is at most |d| rho (rho/2 + sqrt(rho^2/4 + tau^2)) =: |d| g.
+  Hence, per unit of |x|^2,
+
+      |E(n') - E(n)| <= |n' - n| (b_t g + |b_n - b_t| tau^2),
+
+  at most half of the earlier |n' - n| l (2 rho max(b_n, b_t) + l |b_n - b_t|)
+  (l^2 = tau^2 + rho^2) for a pure turn with b_n = b_t, and a fifth of it for solid
+  spheres with b_t = 2/7 b_n (the tangential springs are what a turn moves). A sum
+  of two-particle element matrices has its norm below the largest sum over the
+  elements of one particle (x.E x <= |E| (|x_i|^2 + |x_j|^2) per element).
 
   The arms change too: a contact's shorten as it closes (the estimate took the radii,
   the longest), a bond's lengthen as it stretches, and lambda_max of an assembly is
@@ -40,7 +54,8 @@ where
   [E(n, a') - E(n, a)]: the first is bounded as above with l and rho at the arms a'
   now, the second, L being affine in the arms with |L(a') - L(a)| <= eta,
   eta^2 = (a_i' - a_i)^2/I_i + (a_j' - a_j)^2/I_j, by
-  |L'^T B L' - L^T B L| <= eta (l(a) + l(a')) max(b_n, b_t). A covered wall contact
+  |L'^T B L' - L^T B L| <= eta (l(a) + l(a')) max(b_n, b_t), l(a)^2 = tau^2 + rho(a)^2
+  >= |L(a)|^2. A covered wall contact
   keeps its normal (walls do not turn) and changes its arm alike (one particle).
 
   Rolling and twisting resistance (3D) adds to E the rotational element
@@ -77,9 +92,9 @@ def _drift_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, sum
     (module doc), for the springs and the viscous parts: the turn |n - n_ref| (n the
     unit normal now, minimum image along periodic axes) times the turn factor at the
     arms now, plus the arm term eta (l_ref + l) max(b_n, b_t). ``factors`` (P, 8) per
-    pair (:attr:`StepCertificate.factors`): the arms [L] of the estimate, (max(b_n, b_t),
-    |b_n - b_t|) of the springs and of the dashpots, the rolling and twisting turn
-    factors (springs, viscous parts; no arms in them); ``particles`` (N, 3) the radius,
+    pair (:attr:`StepCertificate.factors`): the arms [L] of the estimate, (b_n, b_t) of
+    the springs and of the dashpots, the rolling and twisting turn factors (springs,
+    viscous parts; no arms in them); ``particles`` (N, 3) the radius,
     inverse mass and inverse moment of inertia (zero when fixed, and rotation off). The
     arms now are those of the geometry for a touching contact and a bond (``bond``
     true: it acts apart too), the estimate's for a contact apart (it has no element
@@ -111,13 +126,15 @@ def _drift_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, sum
         rot = arm_i * arm_i * inv_ia + arm_j * arm_j * inv_ib
         l_now = math.sqrt(trans + rot)
         rho = math.sqrt(rot)
+        g = rho * (0.5 * rho + math.sqrt(0.25 * rot + trans))
         l_ref = math.sqrt(trans + ref_i * ref_i * inv_ia + ref_j * ref_j * inv_ib)
         eta = math.sqrt((arm_i - ref_i) ** 2 * inv_ia + (arm_j - ref_j) ** 2 * inv_ib)
         arm_term = eta * (l_ref + l_now)
-        f_k = (turn * (l_now * (2.0 * rho * factors[c, 2] + l_now * factors[c, 3])
-                       + factors[c, 6]) + arm_term * factors[c, 2])
-        f_c = (turn * (l_now * (2.0 * rho * factors[c, 4] + l_now * factors[c, 5])
-                       + factors[c, 7]) + arm_term * factors[c, 4])
+        k_n, k_t, c_n, c_t = factors[c, 2], factors[c, 3], factors[c, 4], factors[c, 5]
+        f_k = (turn * (k_t * g + abs(k_n - k_t) * trans + factors[c, 6])
+               + arm_term * max(k_n, k_t))
+        f_c = (turn * (c_t * g + abs(c_n - c_t) * trans + factors[c, 7])
+               + arm_term * max(c_n, c_t))
         sum_k[a] += f_k
         sum_k[b] += f_k
         sum_c[a] += f_c
@@ -233,14 +250,16 @@ def uncovered_walls(x, r, wp, ww, wall_point, wall_normal, n_walls, known, assum
     return mask
 
 
-def _spring_bounds(b_n, b_t, count: int) -> np.ndarray:
-    """(max(b_n, b_t), |b_n - b_t|) (count, 2) of a pair's normal and tangential springs
-    or dashpots (arrays, or None: none): what its turn factor l (2 rho max + l |diff|)
-    and arm term take (module doc)."""
-    if b_n is None:
-        return np.zeros((count, 2))
-    b_t = np.zeros(count) if b_t is None else b_t
-    return np.ascontiguousarray(np.stack([np.maximum(b_n, b_t), np.abs(b_n - b_t)], axis=1))
+def _normal_tangential(b_n, b_t, count: int) -> np.ndarray:
+    """(b_n, b_t) (count, 2) of the normal and tangential springs or dashpots (arrays,
+    or None: none) of ``count`` contacts: what a pair's turn factor and arm term take
+    (module doc)."""
+    out = np.zeros((count, 2))
+    if b_n is not None:
+        out[:, 0] = b_n
+        if b_t is not None:
+            out[:, 1] = b_t
+    return out
 
 
 def _rolling_turn_factor(l_phi2, b_r, b_w):
@@ -283,7 +302,7 @@ class StepCertificate:
     ``lam_c`` = Lambda_C [1/T], ``add_k`` [1/T^2] and ``add_c`` [1/T] from contacts
     added since; for the drift term, the covered pairs (``pair_i``, ``pair_j``) with
     their reference normals ``normal`` and ``factors`` (P, 8): reference arms [L], the
-    springs' and the dashpots' (max, |difference|) of normal and tangential, the
+    springs' and the dashpots' (normal, tangential) coefficients, the
     rolling and twisting turn factors (springs, viscous parts); the covered wall
     contacts (``wall_p``, ``wall_w``) with ``wall_factors`` (W, 3): reference arm,
     max(k_n, k_t), max(c_n, c_t); per particle ``particles`` (N, 3): radius, inverse
@@ -348,8 +367,8 @@ class StepCertificate:
         cert.normal = np.ascontiguousarray(contacts.normal[pair], dtype=np.float64)
         cert.factors = np.ascontiguousarray(np.concatenate(
             [contacts.arm_i[pair, None], contacts.arm_j[pair, None],
-             _spring_bounds(contacts.k_n[pair], contacts.k_s[pair], n),
-             _spring_bounds(c_n, c_t, n), roll], axis=1), dtype=np.float64)
+             _normal_tangential(contacts.k_n[pair], contacts.k_s[pair], n),
+             _normal_tangential(c_n, c_t, n), roll], axis=1), dtype=np.float64)
         wall = ~pair
         if wall.any():
             if contacts.wall is None:
@@ -358,11 +377,11 @@ class StepCertificate:
             cert.wall_p = np.ascontiguousarray(contacts.i[wall], dtype=np.int64)
             cert.wall_w = np.ascontiguousarray(contacts.wall[wall], dtype=np.int64)
             cert.wall_factors = np.ascontiguousarray(np.stack(
-                [contacts.arm_i[wall], _spring_bounds(contacts.k_n[wall], contacts.k_s[wall],
-                                                      m)[:, 0],
-                 _spring_bounds(None if c_n is None else contacts.c_n[wall],
-                                None if c_t is None else contacts.c_t[wall], m)[:, 0]],
-                axis=1), dtype=np.float64)
+                [contacts.arm_i[wall],
+                 _normal_tangential(contacts.k_n[wall], contacts.k_s[wall], m).max(axis=1),
+                 _normal_tangential(None if c_n is None else contacts.c_n[wall],
+                                    None if c_t is None else contacts.c_t[wall], m)
+                 .max(axis=1)], axis=1), dtype=np.float64)
         return cert
 
     def drift(self, x, periodic_len, walls=None) -> tuple[float, float]:
@@ -430,7 +449,7 @@ class StepCertificate:
                                      float(self.bounded)]),
                 "ts_cert_pairs": np.stack([self.pair_i, self.pair_j, self.pair_bond]),
                 "ts_cert_normal": self.normal,
-                "ts_cert_factors": self.factors,
+                "ts_cert_coefficients": self.factors,
                 "ts_cert_walls": np.stack([self.wall_p, self.wall_w]),
                 "ts_cert_wall_factors": self.wall_factors,
                 "ts_cert_particles": self.particles,
@@ -443,11 +462,13 @@ class StepCertificate:
 
     @classmethod
     def from_state(cls, data: dict) -> "StepCertificate":
-        """Inverse of :meth:`state`. A checkpoint from before the arms were followed
-        gives a certificate without inputs (:meth:`made_with` is False: the run
-        estimates anew)."""
+        """Inverse of :meth:`state`. A checkpoint from before the arms were followed, or
+        from before the factors held the springs themselves (``ts_cert_factors``, their
+        (max, |difference|)), gives a certificate without inputs (:meth:`made_with` is
+        False: the run estimates anew)."""
         values = [float(v) for v in np.asarray(data["ts_cert"]).reshape(-1)]
-        if len(values) < 5 or "ts_cert_particles" not in data:
+        if (len(values) < 5 or "ts_cert_particles" not in data
+                or "ts_cert_coefficients" not in data):
             return cls(values[0], values[1], bounded=False)
         pairs = np.asarray(data["ts_cert_pairs"], dtype=np.int64)
         walls = np.asarray(data["ts_cert_walls"], dtype=np.int64).reshape(2, -1)
@@ -461,6 +482,6 @@ class StepCertificate:
                    np.ascontiguousarray(pairs[0]), np.ascontiguousarray(pairs[1]),
                    np.ascontiguousarray(pairs[2]),
                    np.ascontiguousarray(data["ts_cert_normal"], dtype=np.float64),
-                   rows("ts_cert_factors", 8), bool(values[4]), inputs.reshape(-1),
+                   rows("ts_cert_coefficients", 8), bool(values[4]), inputs.reshape(-1),
                    np.ascontiguousarray(walls[0]), np.ascontiguousarray(walls[1]),
                    rows("ts_cert_wall_factors", 3), rows("ts_cert_particles", 3))
