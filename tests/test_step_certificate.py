@@ -71,34 +71,37 @@ def test_moved_element_changes_by_less_than_its_drift(dim):
 
 
 @pytest.mark.parametrize("isotropic", [True, False])
-def test_a_pure_turn_comes_close_to_its_drift(isotropic):
-    """One pair of spheres turned about its middle (the distance and so the arms kept:
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_pure_turn_comes_close_to_its_drift(dim, isotropic):
+    """One pair of spheres (disks) turned about its middle (the distance and so the arms kept:
     no arm term), random radii, masses and turns up to 60 degrees: the change of its
     mass-scaled element stays below the drift and reaches 85 % of it for some draw with
     k_t = k_n, 75 % with k_t < k_n (the earlier bound l (2 rho max(b) + l |b_n - b_t|)
-    reached 50 % and 41 % on these draws: this fails on it)."""
+    reached 50 % and 41 % on these draws, 34 % and 26 % for disks: this fails on it)."""
     rng = np.random.default_rng(11)
     ratios = []
     for _ in range(200):
         r = rng.uniform(0.3, 1.5, 2)
-        n = unit(rng.normal(size=3))
-        n2 = unit(n + rng.uniform(0.01, 1.0) * unit(rng.normal(size=3)))
+        n = unit(rng.normal(size=dim))
+        n2 = unit(n + rng.uniform(0.01, 1.0) * unit(rng.normal(size=dim)))
         dist = r.sum() * rng.uniform(0.9, 1.0)
         x, x2 = np.zeros((2, 3)), np.zeros((2, 3))
-        x[1], x2[1] = dist * n, dist * n2
-        p = Particles.from_density(x, r, rng.uniform(0.5, 3.0))
+        x[1, :dim], x2[1, :dim] = dist * n, dist * n2
+        p = Particles.from_density(x[:, :dim], r, rng.uniform(0.5, 3.0))
         k_n = rng.uniform(0.1, 10.0)
         k_t = k_n if isotropic else k_n * rng.uniform(0.1, 0.9)
         arms = r - 0.5 * (r.sum() - dist)
         base = ContactSet(np.array([0]), np.array([1]), n[None], arms[:1], arms[1:],
                           np.array([k_n]), np.array([k_t]))
-        now = contacts_now(base, x2, r)
+        now = contacts_now(base, x2[:, :dim], r)
         cert = StepCertificate.from_estimate(1.0, 1.0, base, 1.0 / p.m, 1.0 / p.inertia,
                                              radius=r)
         change = scaled(p, now, True, (base.k_n, base.k_s)) - scaled(p, base, True,
                                                                     (base.k_n, base.k_s))
         ratios.append(np.abs(np.linalg.eigvalsh(change)).max() / cert.drift(x2, np.zeros(3))[0])
-    assert max(ratios) <= 1.0 + 1e-12
+    # (for disks with k_t = k_n the bound is attained: the comparison is then at the
+    # rounding of a difference of two unit-sized matrices that is as small as 1e-2)
+    assert max(ratios) <= 1.0 + 1e-10
     assert max(ratios) > (0.85 if isotropic else 0.75)
 
 

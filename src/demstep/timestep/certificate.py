@@ -36,6 +36,7 @@ where
   d.omega = |d| |omega| cos(phi); so the first is at most |d| 2 rho |w| sin(phi)
   (tau |u| + rho |w| cos(phi)), whose largest value over |u|^2 + |w|^2 = 1 (a 2 x 2
   eigenvalue) and phi is at most |d| rho (rho/2 + sqrt(rho^2/4 + tau^2)) =: |d| g.
+  For disks omega is normal to the plane, across d (phi = 90 degrees): g = rho tau.
   Hence, per unit of |x|^2,
 
       |E(n') - E(n)| <= |n' - n| (b_t g + |b_n - b_t| tau^2),
@@ -99,6 +100,7 @@ def _drift_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, sum
     arms now are those of the geometry for a touching contact and a bond (``bond``
     true: it acts apart too), the estimate's for a contact apart (it has no element
     now, and closing it shortens them: counted once it touches)."""
+    planar = normal_ref.shape[1] == 2
     for c in range(i.shape[0]):
         a, b = i[c], j[c]
         d0 = x[b, 0] - x[a, 0]
@@ -126,7 +128,8 @@ def _drift_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, sum
         rot = arm_i * arm_i * inv_ia + arm_j * arm_j * inv_ib
         l_now = math.sqrt(trans + rot)
         rho = math.sqrt(rot)
-        g = rho * (0.5 * rho + math.sqrt(0.25 * rot + trans))
+        # (disks: omega normal to the plane, across the turn)
+        g = rho * (math.sqrt(trans) if planar else 0.5 * rho + math.sqrt(0.25 * rot + trans))
         l_ref = math.sqrt(trans + ref_i * ref_i * inv_ia + ref_j * ref_j * inv_ib)
         eta = math.sqrt((arm_i - ref_i) ** 2 * inv_ia + (arm_j - ref_j) ** 2 * inv_ib)
         arm_term = eta * (l_ref + l_now)
