@@ -355,10 +355,12 @@ def test_a_wall_contact_pressed_deeper_changes_by_less_than_its_drift():
     """A sphere on a floor, estimated touching at the arm of its geometry (the centre's
     distance to the wall), then pressed deeper and slid along the floor (its normal does
     not turn, its arm shortens): the change of its mass-scaled element (dense) is
-    nonzero and below the drift, which only the wall contact's arm term gives."""
+    nonzero and below the drift, which only the wall contact's arm term gives. The arm
+    moves only the tangential part: with b_t < b_n / 2 the change still reaches 60 %
+    of the drift (a term with max(b_n, b_t) in place of b_t stays below 46 % there)."""
     rng = np.random.default_rng(3)
     point, normal = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
-    ratios = []
+    ratios, soft = [], []
     for _ in range(50):
         r = rng.uniform(0.3, 1.5)
         h, h2 = r * rng.uniform(0.9, 1.0), r * rng.uniform(0.7, 0.9)
@@ -381,8 +383,10 @@ def test_a_wall_contact_pressed_deeper_changes_by_less_than_its_drift():
             norm = np.abs(np.linalg.eigvalsh(change)).max()
             assert norm > 0
             ratios.append(norm / bound)
+            if coeff[1] < 0.5 * coeff[0]:
+                soft.append(norm / bound)
     assert max(ratios) <= 1.0 + 1e-12
-    assert max(ratios) > 0.25
+    assert len(soft) > 10 and max(soft) > 0.6
 
 
 def test_a_checkpointed_certificate_restores_and_an_older_one_is_dropped():

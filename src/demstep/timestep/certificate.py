@@ -53,11 +53,12 @@ where
   assemblies from the radii raised it by up to 5.6e-5, relative). With the arms a
   of the estimate and a' now, E(n', a') - E(n, a) = [E(n', a') - E(n, a')] +
   [E(n, a') - E(n, a)]: the first is bounded as above with l and rho at the arms a'
-  now, the second, L being affine in the arms with |L(a') - L(a)| <= eta,
-  eta^2 = (a_i' - a_i)^2/I_i + (a_j' - a_j)^2/I_j, by
-  |L'^T B L' - L^T B L| <= eta (l(a) + l(a')) max(b_n, b_t), l(a)^2 = tau^2 + rho(a)^2
-  >= |L(a)|^2. A covered wall contact
-  keeps its normal (walls do not turn) and changes its arm alike (one particle).
+  now, the second by the arms' change of omega, |omega' - omega| <= eta |w| with
+  eta^2 = (a_i' - a_i)^2/I_i + (a_j' - a_j)^2/I_j: the arms move only the tangential
+  part P L x = P v + n x omega (P = I - n n^T), so x.(E' - E) x = b_t (|P L' x|^2 -
+  |P L x|^2), at most b_t eta (l(a) + l(a')) |x|^2 with l(a)^2 = tau^2 + rho(a)^2
+  >= |L(a)|^2. A covered wall contact keeps its normal (walls do not turn) and
+  changes its arm alike (one particle).
 
   Rolling and twisting resistance (3D) adds to E the rotational element
   L_phi^T R(n) L_phi with R = b_r (I - n n^T) + b_w n n^T (b = sigma c + k for the
@@ -92,7 +93,7 @@ def _drift_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, sum
     pairs (i, j), the bounds on how far the pair's element moved since the estimate
     (module doc), for the springs and the viscous parts: the turn |n - n_ref| (n the
     unit normal now, minimum image along periodic axes) times the turn factor at the
-    arms now, plus the arm term eta (l_ref + l) max(b_n, b_t). ``factors`` (P, 8) per
+    arms now, plus the arm term eta (l_ref + l) b_t. ``factors`` (P, 8) per
     pair (:attr:`StepCertificate.factors`): the arms [L] of the estimate, (b_n, b_t) of
     the springs and of the dashpots, the rolling and twisting turn factors (springs,
     viscous parts; no arms in them); ``particles`` (N, 3) the radius,
@@ -135,9 +136,9 @@ def _drift_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, sum
         arm_term = eta * (l_ref + l_now)
         k_n, k_t, c_n, c_t = factors[c, 2], factors[c, 3], factors[c, 4], factors[c, 5]
         f_k = (turn * (k_t * g + abs(k_n - k_t) * trans + factors[c, 6])
-               + arm_term * max(k_n, k_t))
+               + arm_term * k_t)
         f_c = (turn * (c_t * g + abs(c_n - c_t) * trans + factors[c, 7])
-               + arm_term * max(c_n, c_t))
+               + arm_term * c_t)
         sum_k[a] += f_k
         sum_k[b] += f_k
         sum_c[a] += f_c
@@ -147,10 +148,10 @@ def _drift_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, sum
 @njit(cache=True)
 def _wall_drift_sums(x, p, w, point, normal, wall_factors, particles, sum_k, sum_c):
     """Adds to ``sum_k`` and ``sum_c`` (N,) the arm terms of the covered wall contacts
-    (p, w) (walls keep their normals): eta (l_ref + l) max(b_n, b_t), eta the change of
+    (p, w) (walls keep their normals): eta (l_ref + l) b_t, eta the change of
     the arm (the geometry's now for a touching contact, else the estimate's) over
-    sqrt(I); ``wall_factors`` (W, 3): the estimate's arm [L], max(k_n, k_t),
-    max(c_n, c_t); ``particles`` as :func:`_drift_sums`."""
+    sqrt(I); ``wall_factors`` (W, 3): the estimate's arm [L], the tangential spring
+    k_t and dashpot c_t; ``particles`` as :func:`_drift_sums`."""
     for c in range(p.shape[0]):
         a, b = p[c], w[c]
         geo = wall_geometry(x[a, 0], x[a, 1], x[a, 2], particles[a, 0], point[b, 0],
@@ -308,7 +309,7 @@ class StepCertificate:
     springs' and the dashpots' (normal, tangential) coefficients, the
     rolling and twisting turn factors (springs, viscous parts); the covered wall
     contacts (``wall_p``, ``wall_w``) with ``wall_factors`` (W, 3): reference arm,
-    max(k_n, k_t), max(c_n, c_t); per particle ``particles`` (N, 3): radius, inverse
+    k_t, c_t; per particle ``particles`` (N, 3): radius, inverse
     mass and inverse moment of inertia; ``bounded`` False when the drift is not
     followed (clumps)."""
 
@@ -381,10 +382,10 @@ class StepCertificate:
             cert.wall_w = np.ascontiguousarray(contacts.wall[wall], dtype=np.int64)
             cert.wall_factors = np.ascontiguousarray(np.stack(
                 [contacts.arm_i[wall],
-                 _normal_tangential(contacts.k_n[wall], contacts.k_s[wall], m).max(axis=1),
+                 _normal_tangential(contacts.k_n[wall], contacts.k_s[wall], m)[:, 1],
                  _normal_tangential(None if c_n is None else contacts.c_n[wall],
-                                    None if c_t is None else contacts.c_t[wall], m)
-                 .max(axis=1)], axis=1), dtype=np.float64)
+                                    None if c_t is None else contacts.c_t[wall], m)[:, 1]],
+                axis=1), dtype=np.float64)
         return cert
 
     def drift(self, x, periodic_len, walls=None) -> tuple[float, float]:
