@@ -44,7 +44,7 @@ import numpy as np
 
 from demstep.contact.laws import RollingResistance
 from demstep.contacts import DEFAULT_CONTACT_TOL, ContactSet, find_contacts
-from demstep.errors import InputError
+from demstep.errors import InputError, magnitude_problem
 from demstep.packings import SPATIAL_ORDER_MIN
 from demstep.particles import Particles, particle_inertia
 from demstep.timestep.damping import GlobalDamping
@@ -314,6 +314,22 @@ def _non_negative(name, v):
         raise InputError(f"{name}: must be a finite number >= 0, got {v!r}")
 
 
+#: the keys of a [[material]] table of a materials file (type, youngs and poisson required)
+MATERIAL_KEYS = ("type", "youngs", "poisson", "density")
+
+
+def _material_number(where: str, key: str, value) -> float:
+    """The number ``value`` of ``key`` in a materials file: a TOML integer or float (not
+    a boolean or a string) within the magnitudes every input number must lie in."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(f"{where}: {key} must be a number, got {value!r}")
+    value = float(value)
+    problem = magnitude_problem(value) if math.isfinite(value) else None
+    if problem:
+        raise InputError(f"{where}: {key} {problem}, got {value!r}")
+    return value
+
+
 def read_materials(path) -> dict:
     """Materials per particle type from a TOML file::
 
@@ -322,7 +338,9 @@ def read_materials(path) -> dict:
         youngs = 7.0e10      # [M/(L T^2)]
         poisson = 0.25
         density = 2500.0     # [M/L^3], optional
-    """
+
+    Only ``[[material]]`` tables at the top level, only these keys in them, numbers
+    as TOML numbers (not strings, not booleans)."""
     import tomllib
 
     path = Path(path)
@@ -332,6 +350,10 @@ def read_materials(path) -> dict:
         data = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"materials: {path}: not valid TOML ({exc})") from None
+    unknown = sorted(set(data) - {"material"})
+    if unknown:
+        raise InputError(f"materials: {path}: unknown key {unknown[0]!r} (a materials file holds "
+                         f"[[material]] tables only)")
     rows = data.get("material")
     if not isinstance(rows, list) or not rows:
         raise InputError(f"materials: {path}: expected [[material]] tables with type, youngs, "
@@ -341,7 +363,7 @@ def read_materials(path) -> dict:
         where = f"materials: {path}: material {k + 1}"
         if not isinstance(row, dict):
             raise InputError(f"{where}: expected a table")
-        unknown = set(row) - {"type", "youngs", "poisson", "density"}
+        unknown = set(row) - set(MATERIAL_KEYS)
         if unknown:
             raise InputError(f"{where}: unknown key {sorted(unknown)[0]!r}")
         for key in ("type", "youngs", "poisson"):
@@ -352,11 +374,10 @@ def read_materials(path) -> dict:
             raise InputError(f"{where}: type must be an integer >= 1, got {t!r}")
         if t in out:
             raise InputError(f"{where}: type {t} appears twice")
-        try:
-            mat = Material(float(row["youngs"]), float(row["poisson"]),
-                           None if row.get("density") is None else float(row["density"]))
-        except (TypeError, ValueError):
-            raise InputError(f"{where}: youngs, poisson and density must be numbers") from None
+        density = row.get("density")
+        mat = Material(_material_number(where, "youngs", row["youngs"]),
+                       _material_number(where, "poisson", row["poisson"]),
+                       None if density is None else _material_number(where, "density", density))
         mat.validate(f"{where}:")
         out[t] = mat
     return out

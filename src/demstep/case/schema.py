@@ -29,16 +29,20 @@ scaling for quasi-static runs; the critical step grows by its square root).
   ``seed``, ``origin`` [L]. Particles never overlap at start (checked).
 * ``generator = "file"``: ``path`` (relative to the case file) of a CSV, LIGGGHTS dump
   or YADE text file (:mod:`demstep.io.formats`), ``format`` (auto, csv, liggghts,
-  yade), ``snapshot`` (LIGGGHTS: 0 first, -1 last). ``density`` may be omitted when the
-  file has masses. From 1000 spheres on the run holds them in spatial order (2.5x faster
-  on a file in random order); indices (``fixed.indices``, bond files), messages and
-  the VTK ``id`` still count the file's rows (0-based, after LIGGGHTS' sort by id).
+  yade), ``snapshot`` (LIGGGHTS dumps only: 0 first, -1 last). ``density`` may be
+  omitted when the file has masses. From 1000 spheres on the run holds them in spatial
+  order (2.5x faster on a file in random order); indices (``fixed.indices``, bond
+  files), messages and the VTK ``id`` still count the file's rows (0-based, after
+  LIGGGHTS' sort by id).
 
 * ``generator = "clumps"``: rigid bodies of several spheres (:mod:`demstep.clumps`):
   ``templates`` (names of ``[[clumps]]`` shapes, used in turn), ``count`` (bodies per
   axis), ``spacing`` [L], ``origin`` [L], ``orientation`` ("random": uniform, from
   ``seed``; "fixed"), ``density``. The mass, centre of mass and inertia tensor of each
   body are those of the union of its members (overlaps counted once).
+  Or a ``file`` of bodies (instead of ``templates``, ``count`` and ``spacing``): a CSV
+  x, y[, z], template[, qw, qx, qy, qz] (with the orientation columns, no
+  ``orientation`` and ``seed``; 2D: turns about z only, qx = qy = 0).
 * a ``file`` with a ``body`` column (CSV ``body``, dump ``body`` or ``mol``) makes the
   spheres that share an id >= 0 one clump (its members as they lie).
 
@@ -47,13 +51,14 @@ template's frame (or ``file``, a CSV x,y[,z],r relative to the case file). The m
 must touch or overlap one another (one rigid body), radii > 0.
 
 ``[particles.fixed]``: particles held in place: ``indices`` (0-based) and/or the box
-``lower``/``upper`` [L] (every centre inside is fixed).
+``lower``/``upper`` [L] (lower <= upper on every axis; every centre inside is fixed).
 
 ``[contact]``: ``law`` = "linear" (``k_n``, ``k_s`` [M/T^2]; k_s defaults to k_n) or
 "hertz" (``youngs_modulus`` [M/(L T^2)], ``poisson_ratio``); for both ``mu``
 (particle-particle friction), ``mu_wall`` (default mu), dashpots by ``restitution``
 (normal, in (0, 1]) and ``restitution_tangential`` or by coefficients
-``damping_normal``/``damping_tangential`` [M/T]; rolling and twisting resistance
+``damping_normal``/``damping_tangential`` [M/T] (one or the other for each direction:
+both would add up); rolling and twisting resistance
 (:mod:`demstep.contact.laws`, Ai et al. 2011 type C): ``rolling_convention`` "beta"
 (k_r = ``rolling_stiffness`` k_t R*^2, k_w = ``twisting_stiffness`` k_t R*^2) or
 "epsd" (k = 2.25 k_n mu^2 R*^2, k_n the secant F_n / delta), limits ``rolling_friction`` mu_r and
@@ -72,8 +77,10 @@ to normal), ``tensile_strength``, ``shear_strength`` [M/(L T^2)] (default inf),
 (fixed, velocity, servo), ``velocity`` [L/T], ``target_stress`` [M/(L T^2)] (2D:
 force per unit length), ``servo_gain`` [L T/M] (omitted: automatic, correcting
 ``servo_factor`` of the stress error per step at the current contact stiffness),
-``max_speed`` [L/T], ``area`` [L^2] (2D: length; omitted: from the opposite box
-walls), ``friction`` (mu of this wall).
+``max_speed`` [L/T], ``area`` [L^2] (> 0; 2D: length; omitted: from the opposite box
+walls), ``friction`` (mu of this wall). A key the motion does not read is an error
+(``velocity``: velocity walls only; ``target_stress``, ``servo_gain``, ``servo_factor``,
+``max_speed``, ``area``: servo walls only).
 
 ``[box]``: the 2 x dim axis-aligned walls named x-, x+, y-, y+(, z-, z+), none across a
 periodic axis (with ``[periodic] x``, no x- and x+): corners
@@ -88,7 +95,8 @@ a1 [1/T]).
 sqrt(m_min/K_max), default alpha 0.1) or "auto" (``safety`` x the critical step by
 ``method`` exact|element-coupled, re-evaluated ``every`` steps, growth capped at
 ``growth`` per update); ``overlap`` is the relative overlap at which Hertz K_max is
-taken. ``mode`` may be omitted: "fixed" when ``dt`` is given, else "alpha".
+taken (Hertz law only). ``mode`` may be omitted: "fixed" when ``dt`` is given, else
+"alpha".
 
 ``[energy]``: the balance monitor (paper eq. 22): ``eps`` (default 1e-2), ``every``
 [steps], ``action`` = "warn" | "stop", ``floor`` [M L^2/T^2] (energies below it are
@@ -111,8 +119,9 @@ their order).
 stage: ``mu``, ``mu_wall``, ``damping = {local, viscous}``, ``gravity`` [L/T^2],
 ``[stages.walls."name"]`` (motion, velocity, target_stress, servo_gain, servo_factor,
 max_speed, area, friction), ``[stages.periodic.x]`` (how a periodic length changes:
-``motion`` fixed|rate|servo, ``rate`` [L/T], ``target_stress`` [M/(L T^2)] on the Love
-stress, ``servo_gain`` [L T/M] or ``servo_factor``, ``max_speed`` [L/T]),
+``motion`` fixed|rate|servo, ``rate`` [L/T] (rate only), ``target_stress`` [M/(L T^2)]
+on the Love stress, ``servo_gain`` [L T/M] or ``servo_factor``, ``max_speed`` [L/T]
+(servo only)),
 ``[stages.timestep]`` (a new [timestep] section from this stage on), ``reset_ledger``
 (start a new energy balance from the current state).
 
@@ -128,7 +137,8 @@ when the simulation is built (:func:`check_initial_state`): coordinates float64 
 resolve at the scale of the radii, no heavy overlaps, periodic lengths that hold the
 particles, and finite masses, stiffnesses, time step and energies.
 
-Errors (unknown keys, wrong types, non-physical values) raise
+Errors (unknown keys, keys the chosen mode does not read, wrong types, non-physical
+values) raise
 :class:`~demstep.errors.InputError` with one line naming the key path (e.g.
 ``contact.mu``) and the value.
 """
@@ -178,6 +188,12 @@ Vector = Annotated[list[Real], Field(min_length=2, max_length=3)]
 Name = Annotated[str, Field(min_length=1, max_length=64)]
 
 
+def Bounded(**bounds):
+    """A float within ``bounds`` (pydantic's gt, ge, lt, le) and within the magnitudes
+    every number of a case must lie in."""
+    return Annotated[float, Field(**bounds), AfterValidator(_magnitude)]
+
+
 class _Section(BaseModel):
     """Strict sections: unknown keys, wrong types and non-finite numbers are errors."""
 
@@ -220,7 +236,7 @@ class GridParticles(_ParticlesBase):
     radius_min: Positive
     radius_max: Positive
     density: Positive
-    jitter: Annotated[float, Field(ge=0, lt=0.5)] = 0.0
+    jitter: Bounded(ge=0, lt=0.5) = 0.0
     seed: NonNegativeInt = 0
     origin: Vector | None = None
 
@@ -263,8 +279,8 @@ class BondsSection(_Section):
 
     normal_stiffness: Positive
     shear_stiffness: NonNegative | None = None
-    tensile_strength: Annotated[float, Field(gt=0)] = math.inf
-    shear_strength: Annotated[float, Field(gt=0)] = math.inf
+    tensile_strength: Positive = math.inf  # (the default: no limit)
+    shear_strength: Positive = math.inf
     radius_multiplier: Positive = 1.0
     gap: NonNegative = 0.0
     file: str | None = None
@@ -277,7 +293,7 @@ class ClumpTemplateSpec(_Section):
     to the case file."""
 
     name: Name
-    members: list[Annotated[list[float], Field(min_length=3, max_length=4)]] = []
+    members: list[Annotated[list[Real], Field(min_length=3, max_length=4)]] = []
     file: str | None = None
 
 
@@ -285,8 +301,8 @@ class ClumpTemplateSpec(_Section):
 class _ContactBase(_Section):
     mu: NonNegative = 0.0
     mu_wall: NonNegative | None = None
-    restitution: Annotated[float, Field(gt=0, le=1)] | None = None
-    restitution_tangential: Annotated[float, Field(gt=0, le=1)] | None = None
+    restitution: Bounded(gt=0, le=1) | None = None
+    restitution_tangential: Bounded(gt=0, le=1) | None = None
     damping_normal: NonNegative = 0.0
     damping_tangential: NonNegative = 0.0
     rolling_convention: Literal["beta", "epsd"] | None = None
@@ -310,7 +326,7 @@ class HertzContact(_ContactBase):
 
     law: Literal["hertz"]
     youngs_modulus: Positive
-    poisson_ratio: Annotated[float, Field(gt=-1, lt=0.5)]
+    poisson_ratio: Bounded(gt=-1, lt=0.5)
 
 
 ContactSection = Annotated[Union[LinearContact, HertzContact], Field(discriminator="law")]
@@ -326,7 +342,7 @@ class WallMotion(_Section):
     servo_gain: Positive | None = None
     servo_factor: Positive | None = None
     max_speed: Positive | None = None
-    area: NonNegative | None = None
+    area: Positive | None = None
     friction: NonNegative | None = None
 
 
@@ -357,12 +373,12 @@ class PeriodicSection(_Section):
 
 # --------------------------------------------------------------- integration
 class DampingSection(_Section):
-    local: Annotated[float, Field(ge=0, lt=1)] = 0.0
+    local: Bounded(ge=0, lt=1) = 0.0
     viscous: NonNegative = 0.0
 
 
 class DampingChange(_Section):
-    local: Annotated[float, Field(ge=0, lt=1)] | None = None
+    local: Bounded(ge=0, lt=1) | None = None
     viscous: NonNegative | None = None
 
 
@@ -370,7 +386,7 @@ class TimestepSection(_Section):
     mode: Literal["fixed", "alpha", "auto"] | None = None
     dt: Positive | None = None
     alpha: Positive | None = None
-    safety: Annotated[float, Field(gt=0, le=1)] = 0.8
+    safety: Bounded(gt=0, le=1) = 0.8
     method: Literal["exact", "element-coupled"] = "exact"
     every: PositiveInt = 500
     growth: NonNegative = 0.05
@@ -503,6 +519,12 @@ class Case(_Section):
             if section is not None and section.get("mode") != "auto":
                 for name in AUTO_ONLY:  # (the mode does not read them)
                     section.pop(name, None)
+        for _, path, _, _, _ in _unused_keys(self):  # (the case's choices do not read them)
+            node = data
+            for item in path[:-1]:
+                node = node[item] if isinstance(node, list) else node.get(item, {})
+            if isinstance(node, dict):
+                node.pop(path[-1], None)
         if self.particles.generator == "file":
             data["particles"]["path"] = str(self.particle_file())
         if self.bond_file() is not None:
@@ -675,22 +697,40 @@ def _particle_dim(case: Case) -> int:
         return len(read_body_file(case)[0][0])
     from demstep.io.formats import read_particle_file
 
-    path = case.particle_file()
+    path = _case_file("particles.path", p.path, case.particle_file())
+    return read_particle_file(path, p.format, p.snapshot).dim
+
+
+def _case_file(key: str, given: str, path: Path) -> Path:
+    """``path`` (the file ``given`` for the key ``key``, resolved against the case
+    file's folder) when it is an existing regular file; else an InputError naming the
+    key and the value given."""
     if not path.is_file():
         what = "a folder, not a file" if path.is_dir() else "no such file"
-        raise InputError(f"particles.path: {what}, got {p.path!r}")
-    return read_particle_file(path, p.format, p.snapshot).dim
+        raise InputError(f"{key}: {what}, got {given!r}")
+    return path
+
+
+def _relative(case: Case, given: str) -> Path:
+    path = Path(given).expanduser()
+    return path if path.is_absolute() else case.base_dir / path
+
+
+#: in 2D a body turns only about z: the x and y components of its unit quaternion must
+#: be 0 up to this rounding
+QUATERNION_2D_TOL = 1.0e-12
 
 
 def read_body_file(case: Case):
     """The ``particles.file`` of the clumps generator: (positions (B, dim) [L],
-    template names (B,), orientations (B, 4) or None)."""
+    template names (B,), orientations (B, 4) or None). Numbers as in particle files
+    (:func:`demstep.io.formats._number`: finite, within the magnitudes); every row has
+    as many values as the header; in 2D (no z column) orientations about z only."""
     import csv
 
-    path = Path(case.particles.file).expanduser()
-    path = path if path.is_absolute() else case.base_dir / path
-    if not path.is_file():
-        raise InputError(f"particles.file: no such file, got {str(path)!r}")
+    from demstep.io.formats import _number
+
+    path = _case_file("particles.file", case.particles.file, _relative(case, case.particles.file))
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
             rows = list(csv.reader(fh))
@@ -707,28 +747,40 @@ def read_body_file(case: Case):
     quat = [c for c in ("qw", "qx", "qy", "qz") if c in header]
     if quat and len(quat) != 4:
         raise InputError(f"{path}:1: the orientation needs all of qw, qx, qy, qz")
-    pos, names, qs = [], [], []
+    twice = [c for c in axes + ["template"] + quat if header.count(c) > 1]
+    if twice:
+        raise InputError(f"{path}:1: column {twice[0]!r} given twice (got {','.join(header)})")
+    pos, names, qs, lines = [], [], [], []
     for line, row in enumerate(rows[1:], start=2):
         if not row or all(not c.strip() for c in row):
             continue
-        if len(row) < len(header):
+        while len(row) > len(header) and not row[-1].strip():
+            row = row[:-1]  # (trailing empty cells of a spreadsheet's export)
+        if len(row) != len(header):
             raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
-        try:
-            pos.append([float(row[header.index(a)]) for a in axes])
-            if quat:
-                qs.append([float(row[header.index(c)]) for c in quat])
-        except ValueError:
-            raise InputError(f"{path}:{line}: coordinates and orientation must be numbers") from None
+        pos.append([_number(row[header.index(a)], path, line, a) for a in axes])
+        if quat:
+            qs.append([_number(row[header.index(c)], path, line, c) for c in quat])
         names.append(row[header.index("template")].strip())
+        lines.append(line)
     if not pos:
         raise InputError(f"{path}: no bodies")
     q = None
     if quat:
         q = np.array(qs)
         norms = np.linalg.norm(q, axis=1)
-        if not (np.isfinite(q).all() and (norms > 0).all()):
-            raise InputError(f"{path}: orientations must be finite, non-zero quaternions")
+        if not (np.isfinite(norms).all() and (norms > 0).all()):
+            k = int(np.flatnonzero(~(np.isfinite(norms) & (norms > 0)))[0])
+            raise InputError(f"{path}:{lines[k]}: columns 'qw', 'qx', 'qy', 'qz': the orientation "
+                             f"must be a non-zero quaternion, got {qs[k]}")
         q = q / norms[:, None]
+        if len(axes) == 2:
+            tilted = np.flatnonzero(np.abs(q[:, 1:3]).max(axis=1) > QUATERNION_2D_TOL)
+            if len(tilted):
+                k = int(tilted[0])
+                raise InputError(f"{path}:{lines[k]}: columns 'qx', 'qy': a 2D body turns only "
+                                 f"about z (qx = qy = 0), got qx = {qs[k][1]!r}, "
+                                 f"qy = {qs[k][2]!r}")
     return np.array(pos), names, q
 
 
@@ -746,8 +798,7 @@ def clump_templates(case: Case) -> dict:
                 raise InputError(f"{where}: give members or file, not both")
             from demstep.io.formats import read_csv
 
-            path = Path(spec.file).expanduser()
-            data = read_csv(path if path.is_absolute() else case.base_dir / path)
+            data = read_csv(_case_file(f"{where}.file", spec.file, _relative(case, spec.file)))
             centers, radii = data.x, data.r
         else:
             rows = spec.members
@@ -830,6 +881,13 @@ def check_case(case: Case) -> None:
         _need_len("particles.fixed.upper", p.fixed.upper, dim)
         if (p.fixed.lower is None) != (p.fixed.upper is None):
             raise InputError("particles.fixed: give both lower and upper, or neither")
+        if p.fixed.lower is not None:
+            for k in range(dim):
+                if not p.fixed.upper[k] >= p.fixed.lower[k]:
+                    raise InputError(f"particles.fixed.upper: must be >= lower {p.fixed.lower} "
+                                     f"on every axis, got {p.fixed.upper}")
+    if case.bonds is not None and case.bonds.file is not None:
+        _case_file("bonds.file", case.bonds.file, case.bond_file())
     # global vectors
     _need_len("gravity", case.gravity, dim)
     if case.periodic is not None and dim == 2 and case.periodic.z is not None:
@@ -910,6 +968,80 @@ def check_case(case: Case) -> None:
                                  f"{', '.join(state) or 'none'})")
             state[wname] = _check_motion(f'{key}.walls."{wname}"', change, state[wname], dim,
                                          initial=False)
+    for key, _, section, name, reason in _unused_keys(case):
+        if name in section.model_fields_set:
+            raise InputError(f"{key}: {reason}, got {getattr(section, name)!r}")
+
+
+#: the keys of a periodic axis' change each motion reads (motion = 'fixed': none)
+BOX_MOTION_KEYS = {"rate": ("rate",),
+                   "servo": ("target_stress", "servo_gain", "servo_factor", "max_speed")}
+#: the keys of a wall's motion each motion reads (friction: every motion)
+WALL_MOTION_KEYS = {"velocity": ("velocity",),
+                    "servo": ("target_stress", "servo_gain", "servo_factor", "max_speed", "area")}
+
+
+def _unused_keys(case: Case) -> list:
+    """(key, path in :meth:`Case.resolved`, section, field, why) of every key the case's
+    choices (contact law, dashpots, file format, clump file, periodic motions) do not
+    read, or would add to one given another way. Given, :func:`check_case` refuses it
+    (a case that sets it means something it would not get); the resolved case leaves
+    out their defaults. (Walls: :func:`_check_motion`; the 'auto' timestep keys:
+    :func:`_resolve_timestep`.)"""
+    out = []
+    c = case.contact
+    for value, name, other in (("restitution", "damping_normal", "normal"),
+                               ("restitution_tangential", "damping_tangential", "tangential")):
+        if getattr(c, value) is not None:
+            out.append((f"contact.{name}", ("contact", name), c, name,
+                        f"give the {other} dashpot by {value} or by {name}, not both (they "
+                        f"would add up; {value} is {getattr(c, value)!r})"))
+    if c.law == "linear":
+        sections = [("timestep", ("timestep",), case.timestep)]
+        sections += [(f"stages[{k}].timestep", ("stages", k, "timestep"), st.timestep)
+                     for k, st in enumerate(case.stages) if st.timestep is not None]
+        for key, path, ts in sections:
+            out.append((f"{key}.overlap", path + ("overlap",), ts, "overlap",
+                        "only used with law = 'hertz' (a linear spring's stiffness does not "
+                        "depend on it)"))
+    p = case.particles
+    if p.generator == "file":
+        fmt = _file_format(case)
+        if fmt != "liggghts":
+            out.append(("particles.snapshot", ("particles", "snapshot"), p, "snapshot",
+                        f"only used with a LIGGGHTS dump (the file is {fmt})"))
+    if p.generator == "clumps":
+        if p.file is not None:
+            out.append(("particles.templates", ("particles", "templates"), p, "templates",
+                        "not used with a file (its column 'template' names the template of "
+                        "each body)"))
+            if read_body_file(case)[2] is not None:
+                for name in ("orientation", "seed"):
+                    out.append((f"particles.{name}", ("particles", name), p, name,
+                                "not used with a file that has the orientation columns qw, "
+                                "qx, qy, qz"))
+        if p.orientation == "fixed":
+            out.append(("particles.seed", ("particles", "seed"), p, "seed",
+                        "only used with orientation = 'random'"))
+    for k, stage in enumerate(case.stages):
+        for axis, change in stage.periodic.items():
+            akey = (f"stages[{k}].periodic.{axis}" if _BARE_KEY.match(axis)
+                    else f"stages[{k}].periodic.{_quoted(axis)}")
+            for motion, names in BOX_MOTION_KEYS.items():
+                if change.motion != motion:
+                    for name in names:
+                        out.append((f"{akey}.{name}", ("stages", k, "periodic", axis, name),
+                                    change, name, f"only used with motion = {motion!r} (the "
+                                    f"motion is {change.motion!r})"))
+    return out
+
+
+def _file_format(case: Case) -> str:
+    """The format of the particle file of ``generator = "file"`` (csv, liggghts, yade)."""
+    from demstep.io.formats import detect_format
+
+    p = case.particles
+    return p.format if p.format != "auto" else detect_format(case.particle_file())
 
 
 #: the [timestep] keys only the 'auto' mode reads
@@ -965,6 +1097,11 @@ def _check_motion(key: str, change: WallMotion, before: WallMotion, dim: int,
     if motion == "servo":
         if merged.target_stress is None:
             raise InputError(f"{key}.target_stress: required with motion = 'servo'")
+    for used_by, names in WALL_MOTION_KEYS.items():
+        for name in names:
+            if motion != used_by and getattr(change, name) is not None:
+                raise InputError(f"{key}.{name}: only used with motion = {used_by!r} (the "
+                                 f"motion is {motion!r}), got {getattr(change, name)!r}")
     return merged
 
 

@@ -21,15 +21,19 @@ Three text formats carry particle centres [L] and radii [L]:
   through the box bounds), the radius from ``radius`` (or ``diameter``), optional
   ``mass``, velocities ``vx vy vz``, angular velocities ``omegax omegay omegaz`` and
   the clump of each sphere ``body`` (or LAMMPS' molecule id ``mol``, 0: none).
-  Rows are sorted by ``id``. A dump without a ``z`` column is read as 2D.
+  Rows are sorted by ``id``. A dump without a ``z`` column is read as 2D. A column
+  read twice is refused.
 * **YADE** text exports (``yade.export.text``, read by ``ymport.text``): one particle
   per line, ``x y z r`` separated by blanks, further columns (e.g. a material id)
-  ignored, ``#`` starts a comment. A ``#format x_y_z_r...`` header names the columns.
-  demstep also writes and reads 2D files as ``x y r`` (header ``#format x_y_r``);
-  YADE itself is 3D only.
+  ignored, ``#`` starts a comment. A ``#format x_y_z_r...`` header names the columns
+  (x, y, z, r, matId and, last, attrs; each once). demstep also writes and reads 2D
+  files as ``x y r`` (header ``#format x_y_r``); YADE itself is 3D only.
 
-Every reader raises :class:`~demstep.errors.InputError` with one line naming the
-file, the line and the field at fault.
+Numbers are finite and within the magnitudes of :mod:`demstep.errors`, written without
+underscores (Python would read ``1_0`` as 10); integer columns (ids, types, bodies)
+below 2^53 in magnitude, where float64 stops resolving integers. Every reader raises
+:class:`~demstep.errors.InputError` with one line naming the file, the line and the
+field at fault.
 """
 
 from __future__ import annotations
@@ -93,6 +97,9 @@ def _number(text: str, path, line: int, column: str) -> float:
         value = float(text)
     except (TypeError, ValueError):
         raise InputError(f"{path}:{line}: column {column!r}: not a number: {text!r}") from None
+    if "_" in text:  # (Python reads 1_0 as 10; no other code writes it)
+        raise InputError(f"{path}:{line}: column {column!r}: not a number (an underscore): "
+                         f"{text!r}")
     if not math.isfinite(value):
         raise InputError(f"{path}:{line}: column {column!r}: not finite: {text!r}")
     # every value at most MAX_MAGNITUDE; sizes and masses also at least MIN_MAGNITUDE (a
@@ -107,9 +114,12 @@ def _number(text: str, path, line: int, column: str) -> float:
 
 def _integer(text: str, path, line: int, column: str) -> int:
     try:
-        return int(text)
+        value = int(text)
     except (TypeError, ValueError):
         raise InputError(f"{path}:{line}: {column}: not an integer: {text!r}") from None
+    if "_" in text:  # (Python reads 1_0 as 10)
+        raise InputError(f"{path}:{line}: {column}: not an integer (an underscore): {text!r}")
+    return value
 
 
 def _check_positive(values, path, lines, column: str, what: str):
@@ -182,6 +192,8 @@ def read_csv(path) -> ParticleData:
             cols = needed + [c for c in CSV_OPTIONAL if c in header]
             index = [header.index(c) for c in cols]
             rows, lines = [], []
+            texts = {c: [] for c in ("type", "body") if c in cols}  # (for messages)
+            text_index = {c: header.index(c) for c in texts}
             for line, row in enumerate(reader, start=2):
                 if not row or all(not c.strip() for c in row):
                     continue
@@ -191,6 +203,8 @@ def read_csv(path) -> ParticleData:
                     raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
                 rows.append([_number(row[k], path, line, c) for k, c in zip(index, cols)])
                 lines.append(line)
+                for c, kept in texts.items():
+                    kept.append(row[text_index[c]].strip())
     except UnicodeDecodeError:
         raise InputError(f"{path}: not a text file") from None
     except OSError as exc:
@@ -204,17 +218,17 @@ def read_csv(path) -> ParticleData:
     if "m" in cols:
         m = data[:, cols.index("m")]
         _check_positive(m, path, lines, "m", "mass")
-    types = _integer_column(data, cols, "type", path, lines, minimum=1)
+    types = _integer_column(data, cols, "type", path, lines, 1, texts.get("type"))
     out = ParticleData(np.ascontiguousarray(x), r.copy(), m, types=types, source=str(path))
-    body = _integer_column(data, cols, "body", path, lines, minimum=-1)
+    body = _integer_column(data, cols, "body", path, lines, -1, texts.get("body"))
     if body is not None:
         out.extra["body"] = body
     return out
 
 
 def read_bond_csv(path) -> np.ndarray:
-    """Bond list: CSV with header i,j (0-based particle indices; extra columns
-    ignored); returns pairs (K, 2)."""
+    """Bond list: CSV with header i,j (0-based particle indices; other named columns
+    ignored, every row as many values as the header); returns pairs (K, 2)."""
     path = Path(path)
     if not path.is_file():
         raise missing_file(path)
@@ -226,12 +240,18 @@ def read_bond_csv(path) -> np.ndarray:
             if missing:
                 raise InputError(f"{path}:1: missing column {missing[0]!r} (header must name "
                                  f"i and j; got {','.join(header) or 'nothing'})")
+            twice = [c for c in ("i", "j") if header.count(c) > 1]
+            if twice:
+                raise InputError(f"{path}:1: column {twice[0]!r} given twice (got "
+                                 f"{','.join(header)})")
             ci, cj = header.index("i"), header.index("j")
             pairs = []
             for line, row in enumerate(reader, start=2):
                 if not row or all(not c.strip() for c in row):
                     continue
-                if len(row) < len(header):
+                while len(row) > len(header) and not row[-1].strip():
+                    row = row[:-1]  # (trailing empty cells of a spreadsheet's export)
+                if len(row) != len(header):
                     raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
                 pairs.append((_integer(row[ci].strip(), path, line, "column 'i'"),
                               _integer(row[cj].strip(), path, line, "column 'j'")))
@@ -244,26 +264,38 @@ def read_bond_csv(path) -> np.ndarray:
     return np.array(pairs, dtype=np.int64)
 
 
-def _integer_column(data, cols, name, path, lines, minimum):
+def _integer_column(data, cols, name, path, lines, minimum, texts=None):
     """An optional integer column (``type``: >= 1; ``body``: the clump of each sphere,
     -1 for a free sphere) or None."""
     if name not in cols:
         return None
-    return _check_integers(data[:, cols.index(name)], name, path, lines, minimum)
+    return _check_integers(data[:, cols.index(name)], name, path, lines, minimum, texts)
 
 
-def _check_integers(values, name, path, lines, minimum=None) -> np.ndarray:
+#: integer columns (ids, types, bodies) must lie below this in magnitude: float64, which
+#: the readers parse every column into, resolves every integer up to it (2^53), and
+#: 2^53 + 1 reads as 2^53 (two ids then look alike)
+MAX_EXACT_INTEGER = 2**53
+
+
+def _check_integers(values, name, path, lines, minimum=None, texts=None) -> np.ndarray:
     """``values`` of the column ``name`` (read from ``lines`` of ``path``) as int64 when
-    each is an integer (>= ``minimum`` when given); else an InputError naming the line."""
-    bad = values != np.round(values)
+    each is an integer (>= ``minimum`` when given) below 2^53 in magnitude (so that the
+    float64 it was read into holds it exactly); else an InputError naming the line, the
+    column and the value (``texts[k]``: the text of row k, when given)."""
+    huge = ~(np.abs(values) < MAX_EXACT_INTEGER)
+    bad = huge | (values != np.round(values))
     if minimum is not None:
         bad |= values < minimum
     bad = np.flatnonzero(bad)
     if len(bad):
         k = bad[0]
         need = "an integer" if minimum is None else f"an integer >= {minimum}"
-        raise InputError(f"{path}:{lines[k]}: column {name!r}: expected {need}, "
-                         f"got {values[k]:g}")
+        if huge[k]:
+            need += (f" below 2^53 = {MAX_EXACT_INTEGER} in magnitude (float64 resolves no "
+                     f"larger integers)")
+        got = texts[k] if texts is not None else repr(float(values[k]))
+        raise InputError(f"{path}:{lines[k]}: column {name!r}: expected {need}, got {got}")
     return values.astype(np.int64)
 
 
@@ -412,6 +444,10 @@ def read_liggghts_dump(path, snapshot: int = -1, timestep: int | None = None) ->
     wanted = axes + [radius_col]
     optional = [c for c in ("id", "type", "mass", "vx", "vy", "vz", "omegax", "omegay", "omegaz",
                             "body", "mol") if c in cols]
+    twice = [c for c in wanted + optional if cols.count(c) > 1]
+    if twice:
+        raise InputError(f"{path}:{snap.first_line - 1}: ITEM: ATOMS: column {twice[0]!r} given "
+                         f"twice")
     index = {c: cols.index(c) for c in wanted + optional}
     data = {c: np.empty(len(snap.rows)) for c in index}
     lines = np.arange(snap.first_line, snap.first_line + len(snap.rows))
@@ -431,7 +467,9 @@ def read_liggghts_dump(path, snapshot: int = -1, timestep: int | None = None) ->
     _check_positive(r, path, lines, radius_col, "radius")
     for name, minimum in (("id", None), ("type", 1), ("body", -1), ("mol", None)):
         if name in data:
-            _check_integers(data[name], name, path, lines, minimum)
+            column = index[name]
+            texts = _LazyColumn(snap.rows, column)
+            _check_integers(data[name], name, path, lines, minimum, texts)
     order = np.argsort(data["id"], kind="stable") if "id" in data else np.arange(len(r))
     if "id" in data:
         ids = data["id"][order]
@@ -462,6 +500,17 @@ def read_liggghts_dump(path, snapshot: int = -1, timestep: int | None = None) ->
         body = data[body_col][order].astype(np.int64)
         out.extra["body"] = np.where(body <= 0, -1, body) if body_col == "mol" else body
     return out
+
+
+class _LazyColumn:
+    """The text of one column of dump rows, split only for the row asked for (an error
+    message's value)."""
+
+    def __init__(self, rows, column):
+        self.rows, self.column = rows, column
+
+    def __getitem__(self, k):
+        return self.rows[k].split()[self.column]
 
 
 def format_liggghts_snapshot(x, r, m=None, v=None, timestep: int = 0, box=None, ids=None,
@@ -530,10 +579,31 @@ def write_liggghts_dump(path, x, r, m=None, v=None, timestep: int = 0, box=None,
 
 # ----------------------------------------------------------------------- YADE
 
+#: the fields of a YADE ``#format`` header (yade.export.textExt: x_y_z_r, x_y_z_r_matId,
+#: x_y_z_r_attrs; demstep's 2D files: x_y_r); ``attrs``, last, stands for any number of
+#: further columns
+YADE_FIELDS = ("x", "y", "z", "r", "matid", "attrs")
+
+
+def _yade_format(spec: str, path, line: int) -> list[str]:
+    """The fields of the ``#format`` header ``spec`` (lower case), each known and given
+    once, x, y and r among them; else an InputError naming the line and the header."""
+    fmt = [c.strip().lower() for c in spec.split("_") if c.strip()]
+    for k, name in enumerate(fmt):
+        if name not in YADE_FIELDS or (name == "attrs" and k != len(fmt) - 1):
+            raise InputError(f"{path}:{line}: #format: unknown field {name!r} (fields: x, y, z, "
+                             f"r, matId, and attrs last), got {spec!r}")
+        if fmt.count(name) > 1:
+            raise InputError(f"{path}:{line}: #format: field {name!r} given twice, got {spec!r}")
+    if "r" not in fmt or "x" not in fmt or "y" not in fmt:
+        raise InputError(f"{path}:{line}: #format: must name x, y and r columns, got {spec!r}")
+    return fmt
+
+
 def read_yade_text(path) -> ParticleData:
     """A YADE text export: ``x y z r`` per line (``x y r`` for demstep's 2D files),
     ``#`` comments, extra columns ignored (every row has as many values as the first);
-    ``#format x_y_z_r...`` names the columns."""
+    ``#format x_y_z_r...`` names the columns (:data:`YADE_FIELDS`, each once)."""
     path = Path(path)
     lines = _read_lines(path)
     fmt = None
@@ -545,7 +615,7 @@ def read_yade_text(path) -> ParticleData:
             body = stripped.lstrip("#").strip()
             if body.lower().startswith("format") and fmt is None and not rows:
                 spec = body[len("format"):].strip()
-                fmt = [c.strip().lower() for c in spec.split("_") if c.strip()]
+                fmt = _yade_format(spec, path, line_no)
             continue
         if not stripped:
             continue
@@ -560,11 +630,13 @@ def read_yade_text(path) -> ParticleData:
     if not rows:
         raise InputError(f"{path}: no particles")
     if fmt is not None:
-        if "r" not in fmt or "x" not in fmt or "y" not in fmt:
-            raise InputError(f"{path}: #format: must name x, y and r columns, got {'_'.join(fmt)!r}")
         names = ["x", "y"] + (["z"] if "z" in fmt else []) + ["r"]
         index = [fmt.index(c) for c in names]
-        width = len(fmt)
+        width = len(fmt) - (1 if fmt[-1] == "attrs" else 0)
+        for parts, line_no in zip(rows, numbers):
+            if len(parts) < width:
+                raise InputError(f"{path}:{line_no}: expected {width} values (#format "
+                                 f"{spec}), got {len(parts)}")
     else:
         names = ["x", "y", "r"] if ncols == 3 else ["x", "y", "z", "r"]
         index = list(range(len(names)))
