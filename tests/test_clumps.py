@@ -414,6 +414,32 @@ def test_body_file_naming_a_missing_template(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_resolved_case_finds_its_body_and_template_files_from_elsewhere(tmp_path):
+    """The resolved case (what a run folder's case.toml holds) names the clump body file
+    and a template's member file by absolute paths: written to another folder it loads
+    and builds the same bodies (relative, it would look for them in that folder)."""
+    import tomli_w
+
+    from demstep.case import build_simulation, case_from_dict, load_case
+
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "bodies.csv").write_text("x,y,z,template\n1.5,1.5,1.5,tetra\n"
+                                               "4,1.5,1.5,dimer\n")
+    (tmp_path / "in" / "dimer.csv").write_text("x,y,z,r\n0,0,0,0.5\n0.9,0,0,0.45\n")
+    text = (CLUMP_CASE.replace('templates = ["tetra", "dimer"]\ncount = [3, 3, 2]\nspacing = 2.5\n',
+                               'file = "bodies.csv"\n')
+            .replace('members = [[0.0, 0.0, 0.0, 0.5], [0.9, 0.0, 0.0, 0.45]]', 'file = "dimer.csv"'))
+    assert 'file = "dimer.csv"' in text
+    (tmp_path / "in" / "case.toml").write_text(text)
+    case = load_case(tmp_path / "in" / "case.toml")
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "elsewhere" / "case.toml").write_text(tomli_w.dumps(case.resolved()))
+    again = load_case(tmp_path / "elsewhere" / "case.toml")
+    a, b = build_simulation(case), build_simulation(again)
+    assert a.bodies is not None and len(a.x) == len(b.x) == 6
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.m, b.m)
+
+
 def test_dt_on_a_file_with_a_body_column(tmp_path, capsys):
     """`demstep dt` on spheres with a body column: clumps with six DOFs, the same exact
     step as the bodies of the Python API."""

@@ -527,6 +527,11 @@ class Case(_Section):
                 node.pop(path[-1], None)
         if self.particles.generator == "file":
             data["particles"]["path"] = str(self.particle_file())
+        if self.particles.generator == "clumps" and self.particles.file is not None:
+            data["particles"]["file"] = str(_relative(self, self.particles.file).resolve())
+        for k, spec in enumerate(self.clumps):
+            if spec.file is not None:
+                data["clumps"][k]["file"] = str(_relative(self, spec.file).resolve())
         if self.bond_file() is not None:
             data["bonds"]["file"] = str(self.bond_file())
         return data
