@@ -167,14 +167,18 @@ def test_bond_candidates_follow_the_gap_and_the_periodic_image():
     assert len(i) == 0
 
 
-def test_restart_with_bonds_is_bit_identical():
+@pytest.mark.parametrize("strength", [1e3, math.inf])
+def test_restart_with_bonds_is_bit_identical(strength):
+    """A run restored from its state continues bit for bit, with strengths or without a
+    limit (inf: a value the checkpoint's checks accept)."""
     n = 6
     p, _ = chain(n)
     m, area = p.m[1], math.pi * R**2
 
     def make():
         _, sim = chain(n, timestep=TimeStep.fixed(0.2 * math.sqrt(m / (KN * area))))
-        sim.add_bonds(ParallelBonds(normal_stiffness=KN, tensile_strength=1e3, shear_strength=1e3))
+        sim.add_bonds(ParallelBonds(normal_stiffness=KN, tensile_strength=strength,
+                                    shear_strength=strength))
         sim.applied_force[n, 2] = -1.0
         return sim
 

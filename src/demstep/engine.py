@@ -1229,16 +1229,10 @@ class Simulation:
         missing = [k for k in needed if k not in data]
         if missing:
             raise InputError(f"{source}: a damaged checkpoint (array {missing[0]!r} missing)")
+        data = self._checked_state(data, source)
         self._order_as(data.get("source_index"), source)
-        if data["r"].shape != self.r.shape or not np.array_equal(data["r"], self.r):
+        if not np.array_equal(data["r"], self.r):
             raise InputError(f"{source}: the checkpoint's particles do not match the simulation")
-        if data["wall_state.point"].shape != self.wall_state.point.shape:
-            raise InputError(f"{source}: the checkpoint's walls do not match the simulation")
-        if data["bodies.x"].shape != self.bodies.x.shape:
-            raise InputError(f"{source}: the checkpoint's bodies do not match the simulation")
-        if np.shape(data["scalars"]) != (11,):
-            raise InputError(f"{source}: a damaged checkpoint (scalars of shape "
-                             f"{np.shape(data['scalars'])})")
         for name in self.BUNDLES:
             bundle = getattr(self, name)
             setattr(self, name, bundle._replace(**{
@@ -1276,6 +1270,158 @@ class Simulation:
         for t in self._triggers:  # the next multiple of each interval, as in an unbroken run
             t.next_step = (self.step // t.every + 1) * t.every
         return self
+
+    #: fields of the pair and particle-wall lists: one row per listed contact (``roll``
+    #: and ``cover`` may have none: no rolling resistance, no cover tracked)
+    _LIST_FIELDS = {"pairs": ("i", "j") + CONTACT_HISTORY,
+                    "wall_state": ("p", "wall") + CONTACT_HISTORY}
+    #: the scalars (:meth:`state_dict`) that are NaN when unset: dt, dt_estimate, the
+    #: reference dt
+    _NAN_SCALARS = (2, 7, 10)
+
+    def _checked_state(self, data: dict, source: str) -> dict:
+        """``data`` (a :meth:`state_dict` read back) checked before anything is restored:
+        every per-particle, per-wall and per-body array has the shape this Simulation
+        (built from the same case) has, every pair, wall-contact and bond array as many
+        rows as its list has, indices lie in range and values are finite (the compiled
+        kernels do not check bounds: a short array would be read past its end). Raises
+        an InputError naming ``source``, the array's key and the shape or value; returns
+        the arrays as contiguous arrays of the engine's types."""
+        n, n_walls = len(self.r), len(self.wall_state.point)
+        data = dict(data)
+        # another case's checkpoint: say so, not which array differs first
+        for key, like, what in (("r", self.r, "particles"), ("wall_state.point",
+                                self.wall_state.point, "walls"), ("bodies.x", self.bodies.x,
+                                "bodies")):
+            shape = np.shape(data[key])
+            if shape != like.shape:
+                raise InputError(f"{source}: the checkpoint's {what} do not match the "
+                                 f"simulation ({shape[0] if shape else 0} in the checkpoint, "
+                                 f"{len(like)} in the case)")
+
+        def fail(key, what):
+            return InputError(f"{source}: checkpoint array {key!r} {what}")
+
+        def numbers(key, like=None):
+            a = np.asarray(data[key])
+            kinds = "iu" if like is not None and like.dtype.kind in "iu" else "fiu"
+            if a.dtype.kind not in kinds:
+                what = "integers" if kinds == "iu" else "numbers"
+                raise fail(key, f"holds {a.dtype} values, not {what}")
+            if like is not None:
+                a = np.ascontiguousarray(a, dtype=like.dtype)
+            data[key] = a
+            return a
+
+        def shaped(key, shape, count=""):
+            a = data[key]
+            if a.shape != tuple(shape):
+                raise fail(key, f"has shape {a.shape}, expected {tuple(shape)}{count}")
+
+        def in_range(key, top, what, a=None):
+            a = data[key] if a is None else a
+            if a.size and (a.min() < 0 or a.max() >= top):
+                value = a.min() if a.min() < 0 else a.max()
+                raise fail(key, f"holds the {what} index {int(value)}, outside 0..{top - 1}")
+
+        def finite(key, nan_only=False):
+            a = data[key]
+            if a.dtype.kind == "f":
+                bad = np.isnan(a) if nan_only else ~np.isfinite(a)
+                if bad.any():
+                    at = np.unravel_index(int(np.argmax(bad)), a.shape)
+                    raise fail(key, f"holds the non-finite value {a[at]} at {list(map(int, at))}")
+
+        counts = {"spheres": f" ({n} particles)", "wall_state": f" ({n_walls} walls)",
+                  "bodies": f" ({self.bodies.n} bodies)", "box": ""}
+        for name in self.BUNDLES:
+            bundle = getattr(self, name)
+            lists = self._LIST_FIELDS.get(name, ())
+            if name == "bonds":
+                lists = bundle.STATE
+            if lists:
+                head = f"{name}.{lists[0]}"
+                rows = len(numbers(head, getattr(bundle, lists[0])).reshape(-1))
+            for f in bundle.STATE:
+                key = f"{name}.{f}"
+                like = getattr(bundle, f)
+                a = numbers(key, like)
+                if f in lists:
+                    expected = (rows,) + like.shape[1:]
+                    optional = f in ("roll", "cover") and a.shape[0] == 0
+                    if not optional:
+                        shaped(key, expected, f" (as many rows as {head}: {rows})")
+                    elif a.shape[1:] != like.shape[1:]:
+                        raise fail(key, f"has shape {a.shape}, expected {expected}")
+                else:
+                    shaped(key, like.shape, counts[name])
+                # (inf is a value of: unused servo limits, the cover of a contact covered
+                # at any overlap, a bond without a strength limit)
+                finite(key, nan_only=f in ("servo", "cover", "sigma_c", "tau_c"))
+        for key in ("pairs.i", "pairs.j", "wall_state.p", "bonds.i", "bonds.j"):
+            in_range(key, n, "particle")
+        in_range("wall_state.wall", n_walls, "wall")
+        for key, like in (("ledger.acc", self.ledger.acc), ("ledger.energy", self.ledger.energy),
+                          ("ledger.counters", self.counters)):
+            a = numbers(key, like)  # (older checkpoints: a prefix of the layout)
+            if a.ndim != 1 or len(a) > len(like):
+                raise fail(key, f"has shape {a.shape}, expected at most ({len(like)},)")
+            finite(key)
+        numbers("gravity", self.gravity)
+        shaped("gravity", self.gravity.shape)
+        finite("gravity")
+        scalars = numbers("scalars").astype(np.float64)
+        data["scalars"] = scalars
+        shaped("scalars", (11,))
+        for k, value in enumerate(scalars):
+            if not (math.isfinite(value) or (k in self._NAN_SCALARS and math.isnan(value))):
+                raise fail("scalars", f"holds the non-finite value {value} at [{k}]")
+        if scalars[0] < 0 or scalars[1] < 0:
+            raise fail("scalars", f"holds a negative step or time, got step {scalars[0]:g}, "
+                                  f"time {scalars[1]:g}")
+        for key in ("monitor", "last_sort"):
+            if key in data:
+                a = numbers(key).reshape(-1)
+                if a.size == 0:
+                    raise fail(key, "is empty")
+                finite(key)
+        if "ts_cert" in data:
+            self._check_certificate_state(data, numbers, in_range, finite, fail, n, n_walls)
+        return data
+
+    @staticmethod
+    def _check_certificate_state(data, numbers, in_range, finite, fail, n, n_walls):
+        """The 'auto' time step's certificate of a checkpoint (:meth:`timestep_state`):
+        the covered pairs' and wall contacts' indices in range and their rows, as
+        :meth:`demstep.timestep.certificate.StepCertificate.from_state` reads them."""
+        values = numbers("ts_cert").reshape(-1)
+        finite("ts_cert", nan_only=True)
+        if len(values) < 5 or "ts_cert_particles" not in data \
+                or "ts_cert_coefficients" not in data:
+            return  # (restored unbounded: the run estimates anew)
+        pairs = numbers("ts_cert_pairs")
+        walls = numbers("ts_cert_walls")
+        if pairs.ndim != 2 or pairs.shape[0] != 3:
+            raise fail("ts_cert_pairs", f"has shape {pairs.shape}, expected (3, pairs)")
+        if walls.size % 2:
+            raise fail("ts_cert_walls", f"has shape {walls.shape}, expected (2, contacts)")
+        k, kw = pairs.shape[1], walls.size // 2
+        walls = walls.reshape(2, -1)
+        in_range("ts_cert_pairs", n, "particle", pairs[:2])
+        in_range("ts_cert_walls", n, "particle", walls[0])
+        in_range("ts_cert_walls", n_walls, "wall", walls[1])
+        for key, size, shape in (("ts_cert_normal", None, None),
+                                 ("ts_cert_coefficients", 8 * k, f"({k}, 8)"),
+                                 ("ts_cert_wall_factors", 3 * kw, f"({kw}, 3)"),
+                                 ("ts_cert_particles", 3 * n if k or kw else None, f"({n}, 3)")):
+            a = numbers(key)
+            if key == "ts_cert_normal":
+                if a.size and (a.ndim != 2 or a.shape[0] != k or a.shape[1] not in (2, 3)) \
+                        or not a.size and k:
+                    raise fail(key, f"has shape {a.shape}, expected ({k}, 2 or 3)")
+            elif size is not None and a.size != size:
+                raise fail(key, f"has shape {a.shape}, expected {shape}")
+            finite(key)
 
     def _order_as(self, source_index, source: str):
         """Renumber the particles as a checkpoint's (its ``source_index``: the input row

@@ -116,9 +116,13 @@ def write_state(checkpoint, pos: RunPosition, case: Case, sim, reason: str) -> P
     return _write_text(state_path(checkpoint), json.dumps(data, indent=2) + "\n")
 
 
-def read_state(checkpoint, key: str = "restart") -> tuple[RunPosition, dict]:
+def read_state(checkpoint, key: str = "restart",
+               stages: int | None = None) -> tuple[RunPosition, dict]:
     """Where the run that wrote ``checkpoint`` was; errors name the option ``key``
-    (``restart`` for ``demstep run --restart``, ``checkpoint`` for ``demstep dt``)."""
+    (``restart`` for ``demstep run --restart``, ``checkpoint`` for ``demstep dt``) and
+    the field and value at fault: the stage an integer in [0, ``stages``] (the number of
+    stages of the case; ``stages``: its end, the run completed), the step counts
+    integers >= 0 (``stage_total`` also null), the times finite numbers >= 0."""
     path = state_path(checkpoint)
     if not path.is_file():
         raise InputError(f"{key}: no run state {path.name} beside the checkpoint {checkpoint}")
@@ -128,11 +132,38 @@ def read_state(checkpoint, key: str = "restart") -> tuple[RunPosition, dict]:
             raise ValueError(f"a JSON {type(data).__name__}, not an object")
         if data.get("format") != STATE_FORMAT:
             raise ValueError(f"format {data.get('format')!r}")
-        pos = RunPosition(int(data["stage"]), int(data["stage_step"]),
-                          int(data["stage_start_step"]), float(data["stage_start_time"]),
-                          None if data["stage_total"] is None else int(data["stage_total"]))
+        missing = [name for name in ("stage", "stage_step", "stage_start_step",
+                                     "stage_start_time", "stage_total") if name not in data]
+        if missing:
+            raise ValueError(f"no {missing[0]!r}")
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(f"{key}: {path}: not a demstep run state ({exc})") from None
+
+    def bad(name, rule):
+        return InputError(f"{key}: {path}: {name} must be {rule}, got {data[name]!r}")
+
+    def count(name, top=None):
+        value = data[name]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0 \
+                or (top is not None and value > top):
+            raise bad(name, "an integer >= 0" if top is None else f"an integer in [0, {top}] "
+                      f"(the case has {top} stage(s))")
+        return value
+
+    def seconds(name):
+        value = data[name]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not math.isfinite(value) or value < 0:
+            raise bad(name, "a finite number >= 0")
+        return float(value)
+
+    if "step" in data:  # (the step and time of the checkpoint, beside the position)
+        count("step")
+    if "time" in data:
+        seconds("time")
+    pos = RunPosition(count("stage", stages), count("stage_step"), count("stage_start_step"),
+                      seconds("stage_start_time"),
+                      None if data["stage_total"] is None else count("stage_total"))
     return pos, data
 
 
@@ -144,6 +175,13 @@ def find_checkpoint(path) -> Path:
     """A checkpoint file, or the newest good checkpoint (by step; not one saved at a
     divergence or an energy stop) in a checkpoint folder or a run folder."""
     path = Path(path)
+    try:
+        path.stat()
+    except FileNotFoundError:
+        pass  # (said below)
+    except OSError as exc:  # e.g. a name too long: Path.is_dir raises it
+        raise InputError(f"restart: cannot read {str(path)!r} "
+                         f"({exc.strerror or type(exc).__name__})") from None
     if path.is_dir():
         folder = path / "checkpoints" if (path / "checkpoints").is_dir() else path
         found = []
@@ -404,22 +442,37 @@ class _Runner:
             bounds.append(self.max_steps)
         return min(bounds) - self.pos.stage_step if bounds else None
 
+    def _kinetic_below(self) -> bool:
+        """Whether the stage's ``until_kinetic_below`` is met now, logged when it is: the
+        kinetic energy of the last step (the ledger's, updated every step) below it,
+        after at least one step of the stage (none done: not measured yet)."""
+        sim, pos = self.sim, self.pos
+        stage = self.case.stages[pos.stage]
+        if pos.stage_step == 0 or not sim.ledger.kinetic < stage.until_kinetic_below:
+            return False
+        log.info("stage '%s': kinetic energy %.4g below %.4g after %d steps",
+                 self.case.stage_label(pos.stage), sim.ledger.kinetic,
+                 stage.until_kinetic_below, pos.stage_step)
+        return True
+
     def _stage_done(self) -> bool:
         sim, pos = self.sim, self.pos
         stage = self.case.stages[pos.stage]
-        if stage.until_kinetic_below is not None and pos.stage_step > 0 \
-                and pos.stage_step % stage.check_every == 0 \
-                and sim.ledger.kinetic < stage.until_kinetic_below:
-            log.info("stage '%s': kinetic energy %.4g below %.4g after %d steps",
-                     self.case.stage_label(pos.stage), sim.ledger.kinetic,
-                     stage.until_kinetic_below, pos.stage_step)
+        if stage.until_kinetic_below is not None \
+                and pos.stage_step % stage.check_every == 0 and self._kinetic_below():
             return True
         budget = self._stage_budget()
         if budget is not None and budget <= 0:
-            if stage.until_kinetic_below is not None:
-                log.warning("stage '%s': kinetic energy %.4g still above %.4g after %d steps",
-                            self.case.stage_label(pos.stage), sim.ledger.kinetic,
-                            stage.until_kinetic_below, pos.stage_step)
+            # the stage ends on its step budget: measured there, below or not (between
+            # two checks the energy may have fallen below already)
+            if stage.until_kinetic_below is not None and not self._kinetic_below():
+                if pos.stage_step == 0:
+                    log.info("stage '%s': ended after 0 steps, kinetic energy not measured",
+                             self.case.stage_label(pos.stage))
+                else:
+                    log.warning("stage '%s': kinetic energy %.4g still above %.4g after %d "
+                                "steps", self.case.stage_label(pos.stage), sim.ledger.kinetic,
+                                stage.until_kinetic_below, pos.stage_step)
             return True
         if stage.duration is not None and pos.stage_total is None:
             # as Simulation.run(duration=...): the first step at or past the end time
@@ -542,10 +595,11 @@ class _Runner:
 OUTPUTS = ("case.toml", "run.json", "run.log", "history.csv", "vtk", "checkpoints", "plots")
 
 
-def _remove_outputs(out_dir: Path):
+def remove_outputs(out_dir: Path, outputs=OUTPUTS):
+    """Remove ``outputs`` (names in ``out_dir``: files and folders) of an earlier run."""
     import shutil
 
-    for name in OUTPUTS:
+    for name in outputs:
         path = out_dir / name
         if path.is_dir():
             shutil.rmtree(path)
@@ -568,7 +622,7 @@ def _replaceable(out_dir: Path) -> bool:
     """Whether a fresh run may write into ``out_dir`` without ``overwrite``: it does
     not exist, holds nothing but its lock file, or holds only a run that stopped before
     its first step (run.json: ``"results": false``; e.g. interrupted while compiling)."""
-    if not out_dir.is_dir() or folder_is_empty(out_dir):
+    if _empty(out_dir):
         return True
     try:
         info = json.loads((out_dir / "run.json").read_text(encoding="utf-8"))
@@ -579,9 +633,64 @@ def _replaceable(out_dir: Path) -> bool:
     return all(p.name in OUTPUTS or p.name.startswith(".") for p in out_dir.iterdir())
 
 
-def _not_empty(out_dir: Path) -> InputError:
-    return InputError(f"out: {out_dir} exists and is not empty (give --restart to continue "
-                      f"a run or --overwrite to replace it)")
+def _input_files(case: Case) -> list[tuple[str, Path]]:
+    """The files a run of ``case`` reads, each with the key that names it: the case file
+    itself, the particle file, the clumps' body file and template files, the bond file."""
+    def from_case(name) -> Path:  # (relative paths are taken from the case file's folder)
+        p = Path(name).expanduser()
+        return p if p.is_absolute() else case.base_dir / p
+
+    files = []
+    if case.source and Path(case.source).is_file():
+        files.append(("case", Path(case.source)))
+    p = case.particles
+    if p.generator == "file":
+        files.append(("particles.path", case.particle_file()))
+    elif getattr(p, "file", None) is not None:
+        files.append(("particles.file", from_case(p.file)))
+    for k, spec in enumerate(case.clumps):
+        if spec.file is not None:
+            files.append((f"clumps[{k}].file", from_case(spec.file)))
+    if case.bond_file() is not None:
+        files.append(("bonds.file", case.bond_file()))
+    return files
+
+
+def _check_inputs_kept(case: Case, out_dir: Path, restart) -> None:
+    """InputError when a file the run reads is one the run writes (or removes, with
+    ``overwrite``) in ``out_dir``: one of :data:`OUTPUTS` or inside one of their folders.
+    A restart may read the case.toml it rewrites (the run folder's resolved case)."""
+    out = out_dir.resolve()
+    for key, path in _input_files(case):
+        source = path.resolve()
+        for name in OUTPUTS:
+            dest = out / name
+            hit = source == dest or dest in source.parents
+            if not hit and source.is_file() and dest.is_file():
+                try:
+                    hit = os.path.samefile(source, dest)  # (a hard link)
+                except OSError:
+                    pass
+            if hit and not (restart is not None and key == "case" and name == "case.toml"):
+                raise InputError(f"out: a run writes {name} into {out_dir}, which would "
+                                 f"replace the input {key} {str(path)!r}; choose another "
+                                 f"folder or move the input")
+
+
+def _empty(out_dir: Path) -> bool:
+    """Whether ``out_dir`` does not exist or holds nothing but its lock file."""
+    return not out_dir.is_dir() or folder_is_empty(out_dir)
+
+
+def check_out_empty(out_dir: Path, overwrite: bool,
+                    hint: str = "give --restart to continue a run or --overwrite to replace it",
+                    replaceable: Callable[[Path], bool] = _empty) -> None:
+    """The rule of every output folder a fresh result goes into (``run --out``,
+    ``paper --out``): unless ``overwrite``, it must be new, empty, or ``replaceable``;
+    else an InputError naming the option and the folder, with ``hint`` (what to do).
+    Check it before anything is written, and again under the folder's lock."""
+    if not overwrite and not replaceable(out_dir):
+        raise InputError(f"out: {out_dir} exists and is not empty ({hint})")
 
 
 def _check_restart_case(state: dict, case: Case, checkpoint, allow_changed_case: bool) -> bool:
@@ -634,7 +743,9 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
     ``max_steps``: at most this many steps per stage (previews, smoke tests).
     ``overwrite``: allow a non-empty ``out_dir`` without ``restart`` (the outputs of
     an earlier run there, :data:`OUTPUTS`, are removed first). A folder whose run
-    stopped before its first step needs no ``overwrite``.
+    stopped before its first step needs no ``overwrite``. An input file of the case
+    (the case file, its particle, clump or bond files) among the outputs is refused
+    in any case: the run would replace or delete it.
     ``chunk_steps``: steps between returns to Python, where outputs, progress and
     signals are handled (default :func:`default_chunk_steps`); chunks end at multiples
     of it. A restart reproduces the uninterrupted run bit for bit when both use the
@@ -662,8 +773,9 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
         raise InputError(f"chunk_steps: must be an integer >= 1, got {chunk_steps!r}")
     out_dir = Path(out_dir)
     check_folder_creatable(out_dir, "out")
-    if restart is None and not overwrite and not _replaceable(out_dir):
-        raise _not_empty(out_dir)
+    if restart is None:
+        check_out_empty(out_dir, overwrite, replaceable=_replaceable)
+    _check_inputs_kept(case, out_dir, restart)
     # everything that can fail on input happens before the folder is created: the
     # case's particles, walls, parameters and initial state (demstep.case), the restart
     check_stages(case)
@@ -673,10 +785,7 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
     checkpoint = None
     if restart is not None:
         checkpoint = find_checkpoint(restart)
-        pos, state = read_state(checkpoint)
-        if pos.stage > len(case.stages):
-            raise InputError(f"restart: the checkpoint is at stage {pos.stage + 1}, the case "
-                             f"has {len(case.stages)}")
+        pos, state = read_state(checkpoint, stages=len(case.stages))
         case_changed = _check_restart_case(state, case, checkpoint, allow_changed_case)
         # replay the changes of every stage already started, then restore the state
         started = pos.stage + 1 if pos.stage_step > 0 else pos.stage
@@ -700,11 +809,11 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
         make_folder(out_dir, "out")
         lock = FolderLock(out_dir, "out").acquire()
         # under the lock: another process may have written here since the check above
-        if restart is None and not overwrite and not _replaceable(out_dir):
-            raise _not_empty(out_dir)
+        if restart is None:
+            check_out_empty(out_dir, overwrite, replaceable=_replaceable)
         remove_orphans(out_dir, *(out_dir / name for name in ("checkpoints", "vtk", "plots")))
         if restart is None:
-            _remove_outputs(out_dir)
+            remove_outputs(out_dir)
         return _run_locked(case, sim, out_dir, pos, restart_info, checkpoint, level, quiet,
                            max_steps, chunk_steps, on_chunk, stop, __version__)
     finally:

@@ -68,13 +68,22 @@ def generate_particles(case: Case, with_body: bool = False):
     return out + (body,) if with_body else out
 
 
+def mass_and_density(path, key: str, density) -> InputError:
+    """The error for a particle file with masses (a mass column: CSV ``m``, a dump's
+    ``mass``) given together with a density (``key``: ``particles.density`` of a case,
+    ``density`` of ``demstep dt --density``): neither ``demstep run`` nor ``demstep dt``
+    chooses one of the two silently."""
+    return InputError(f"{key}: the particle file {path} has a mass column (m) too; keep one "
+                      f"of the two (the file's masses or the density), got {density!r}")
+
+
 def _particles(case: Case, x, r, m):
     """Particles of the case's spheres (masses from the file, or from the density)."""
     from demstep.particles import Particles, particle_inertia
 
     p = case.particles
     fixed = _fixed_flags(case, x)
-    if m is None or (p.generator == "file" and p.density is not None):
+    if m is None:
         try:
             return Particles.from_density(x, r, p.density, fixed=fixed)
         except InputError as exc:
@@ -215,6 +224,8 @@ def _build_simulation(case: Case, checkpoint_dir):
         x = r = None
     else:
         x, r, m, body = generate_particles(case, with_body=True)
+        if m is not None and p.density is not None:
+            raise mass_and_density(case.particle_file(), "particles.density", p.density)
     if clumps is None and body is not None and (body >= 0).any():
         from demstep.clumps import clumps_from_members
 

@@ -69,7 +69,8 @@ def add_dt_parser(sub):
     src.add_argument("--radius", type=number("radius", 0, strict=True), default=DEFAULT_RADIUS,
                      help=f"lattice particle radius (default {DEFAULT_RADIUS:g})")
     src.add_argument("--density", type=number("density", 0, strict=True), default=None,
-                     help=f"particle density without a mass column (default {DEFAULT_DENSITY:g})")
+                     help=f"particle density of a file without a mass column (refused with "
+                     f"one; default {DEFAULT_DENSITY:g})")
     src.add_argument("--contact-tol", type=number("contact-tol", 0), default=1e-6,
                      help="relative gap still counted as contact (default 1e-6)")
     mod = p.add_argument_group("contact model and damping")
@@ -157,18 +158,20 @@ def add_dt_parser(sub):
 # ----------------------------------------------------------------------- checks
 def _check_output_path(option: str, path, suffixes) -> Path:
     """An output path with a known suffix whose folder exists or can be made
-    (:func:`~demstep.io.lock.check_folder_creatable`)."""
-    from demstep.io.atomic import check_name_lengths
+    (:func:`~demstep.io.lock.check_folder_creatable`) and takes files
+    (:func:`~demstep.io.atomic.check_writable`): checked before the analysis runs."""
+    from demstep.io.atomic import check_name_lengths, check_writable
     from demstep.io.lock import check_folder_creatable
 
     path = Path(path)
     if path.suffix.lower() not in suffixes:
         raise InputError(f"{option}: the file name must end in {', '.join(suffixes)}, "
                          f"got {str(path)!r}")
+    check_name_lengths(path, option)  # (first: is_dir raises on a name too long)
     if path.is_dir():
         raise InputError(f"{option}: {str(path)!r} is a folder")
-    check_name_lengths(path, option)
     check_folder_creatable(path.absolute().parent, option)
+    check_writable(path.absolute().parent, option)
     return path
 
 
@@ -308,8 +311,12 @@ def load_input(args):
                                periodic=args.periodic is not None, contact_tol=args.contact_tol,
                                damping=damping, impact_velocity=args.impact_velocity)
     path = Path(args.state)
-    if not path.exists():
-        raise InputError(f"{path}: no such file")
+    try:
+        path.stat()
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except OSError as exc:  # e.g. a name too long (Path.exists raises it)
+        raise InputError(f"{path}: cannot read ({exc.strerror or type(exc).__name__})") from None
     if path.is_dir():
         raise InputError(f"{path}: is a folder, expected a file")
     fmt = _file_format(args)
@@ -330,8 +337,15 @@ def load_input(args):
                              f"and damping; this option does not apply")
         if fmt == "case":
             return ti.from_case(path, args.stage, args.contact_tol, args.impact_velocity)
+        _check_run_position(path, args.case)
         return ti.from_checkpoint(path, args.case, args.impact_velocity)
     check_memory(_estimate_rows(path), args.max_memory, f"{path}")
+    if args.density is not None:
+        from demstep.case.build import mass_and_density
+        from demstep.io.formats import read_particle_file
+
+        if read_particle_file(path, fmt, args.snapshot).m is not None:
+            raise mass_and_density(path, "density", args.density)
     model = _model(args, "liggghts" if fmt == "liggghts" else "demstep")
     density = args.density
     if density is None and not (model.model == "hertz" and model.materials
@@ -340,6 +354,21 @@ def load_input(args):
     return ti.from_file(path, model, fmt, density, _box(args), _periodic_axes(args.periodic),
                         args.wall, args.contact_tol, damping, args.impact_velocity,
                         args.snapshot)
+
+
+def _check_run_position(path, case_path):
+    """The run state beside a checkpoint read with the number of stages of its case
+    (:func:`demstep.runner.read_state`: the stage must be one of them, or their end),
+    before :func:`demstep.timestep_input.from_checkpoint` applies the stages that had
+    started. (The case as from_checkpoint finds it; a missing one it reports.)"""
+    from demstep.case import load_case
+    from demstep.runner import find_checkpoint, read_state
+
+    checkpoint = find_checkpoint(path)
+    case_file = Path(case_path) if case_path is not None else \
+        checkpoint.resolve().parent.parent / "case.toml"
+    if case_file.is_file():
+        read_state(checkpoint, key="checkpoint", stages=len(load_case(case_file).stages))
 
 
 #: options that apply to one kind of input only: (option, attribute, default, formats)

@@ -131,6 +131,9 @@ def add_paper_parser(sub):
     p.add_argument("--scheduler", help="address of an existing Dask scheduler (tcp://HOST:PORT; "
                    "instead of --workers)")
     p.add_argument("--quiet", action="store_true", help="no progress display")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the results of an earlier run in --out (only the files "
+                   "the paper writes; other files there are kept)")
     p.set_defaults(func=cmd_paper)
 
 
@@ -146,7 +149,8 @@ def cmd_paper(args) -> int:
                          f"workers), got {args.workers}")
     summary = run_paper(args.out, quick=args.quick,
                         workers=2 if args.workers is None else args.workers,
-                        scheduler=args.scheduler, show_progress=not args.quiet)
+                        scheduler=args.scheduler, show_progress=not args.quiet,
+                        overwrite=args.overwrite)
     print(f"report: {args.out}/report.html ({summary['wall_time_s']:.0f} s)")
     for r in summary["fcc"]:
         rot = "" if r["rotation"] else " (rotation blocked)"

@@ -45,7 +45,8 @@ def add_run_parser(subparsers):
     p.add_argument("--max-steps", type=_non_negative_int, default=None, metavar="N",
                    help="run at most N steps per stage (previews, smoke tests)")
     p.add_argument("--overwrite", action="store_true",
-                   help="allow a non-empty --out folder without --restart")
+                   help="allow a non-empty --out folder without --restart (an earlier "
+                   "run's outputs there are replaced; never the case's input files)")
     p.add_argument("--allow-changed-case", action="store_true",
                    help="with --restart: continue although the case differs from the one "
                    "that wrote the checkpoint")

@@ -180,17 +180,31 @@ def _unwrap(r):
 
 # ------------------------------------------------------------------------ driver
 
+#: what `demstep paper` writes into its folder (removed first by ``overwrite``; nothing
+#: else there is touched)
+OUTPUTS = ("data", "summary.json", "report.md", "report.html", "critical_steps.png",
+           "fcc_stress_ratio.png", "fcc_energy_error.png", "stability.png", "damping.png",
+           "clumps.png")
+#: what to do about a folder that is not empty (``paper`` has no restart)
+NOT_EMPTY_HINT = "choose a new or empty folder, or give --overwrite to replace the results there"
+
+
 def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | None = None,
-              show_progress: bool = True) -> dict:
-    """Run the whole validation into ``out_dir``; returns the summary dictionary."""
-    from demstep import __version__
-    from demstep.experiments.fcc_plane_strain import FCCConfig, run_stage1, thornton_peak_ratio
-    from demstep.io.checkpoint import save_checkpoint
-    from demstep.timestep.paper_table import paper_table, table_json
+              show_progress: bool = True, overwrite: bool = False) -> dict:
+    """Run the whole validation into ``out_dir``; returns the summary dictionary.
+
+    ``out_dir`` follows the rule of ``demstep run --out``
+    (:func:`demstep.runner.check_out_empty`): it must be new or empty unless
+    ``overwrite`` (then the results of an earlier paper run there, :data:`OUTPUTS`, are
+    removed first), and is locked while the study writes into it (a second process
+    gets an InputError). Everything is checked before the folder is created."""
+    from demstep.io.atomic import remove_orphans
+    from demstep.io.lock import FolderLock, check_folder_creatable, make_folder
+    from demstep.runner import check_out_empty, remove_outputs
 
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out: {out} exists and is not a folder")
+    check_folder_creatable(out, "out")
+    check_out_empty(out, overwrite, NOT_EMPTY_HINT)
     if workers < 1:
         raise InputError(f"--workers: must be >= 1, got {workers}")
     settings = PaperSettings.make(quick=quick, workers=workers, scheduler=scheduler)
@@ -199,7 +213,26 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
 
         with dask_client(scheduler, workers):
             pass
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out, "out")
+    lock = FolderLock(out, "out").acquire()
+    try:
+        # under the lock: another process may have written here since the check above
+        check_out_empty(out, overwrite, NOT_EMPTY_HINT)
+        remove_orphans(out, out / "data")
+        if overwrite:
+            remove_outputs(out, OUTPUTS)
+        return _run_paper_locked(out, settings, show_progress)
+    finally:
+        lock.release()
+
+
+def _run_paper_locked(out: Path, settings: PaperSettings, show_progress: bool) -> dict:
+    """The part of :func:`run_paper` that computes and writes (the folder is locked)."""
+    from demstep import __version__
+    from demstep.experiments.fcc_plane_strain import FCCConfig, run_stage1, thornton_peak_ratio
+    from demstep.io.checkpoint import save_checkpoint
+    from demstep.timestep.paper_table import paper_table, table_json
+
     (out / "data").mkdir(exist_ok=True)
     started = time.perf_counter()
     n_tasks = (4 + len(settings.alphas) + len(settings.alphas_no_rotation)

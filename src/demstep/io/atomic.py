@@ -48,7 +48,8 @@ def check_name_lengths(path, key: str, is_file: bool = True) -> None:
     than PATH_MAX: such a path would fail half-way, after folders were made."""
     path = Path(path).absolute()
     probe = path
-    while not probe.exists() and probe.parent != probe:
+    # (Path.exists raises OSError for a name too long rather than saying False)
+    while not _exists(probe) and probe.parent != probe:
         probe = probe.parent
     try:
         name_max = os.pathconf(probe, "PC_NAME_MAX")
@@ -64,6 +65,38 @@ def check_name_lengths(path, key: str, is_file: bool = True) -> None:
     if len(str(path).encode()) + TEMP_NAME_EXTRA > path_max:
         raise InputError(f"{key}: the path is {len(str(path).encode())} bytes long; this file "
                          f"system takes at most {path_max - TEMP_NAME_EXTRA}")
+
+
+def _exists(path) -> bool:
+    """Whether ``path`` exists; False (not an OSError) when it cannot be looked up,
+    e.g. a name longer than the file system takes."""
+    try:
+        os.stat(path)
+    except (OSError, ValueError):
+        return False
+    return True
+
+
+def check_writable(folder, key: str) -> None:
+    """Before any work whose result goes into ``folder``: raise InputError naming the
+    option ``key`` unless a file can be created there (or, when ``folder`` does not
+    exist yet, in its nearest existing parent), by creating and deleting a temporary
+    file. Catches what permission bits do not show (a virtual file system such as
+    /proc, a read-only mount, root's writes refused)."""
+    folder = Path(folder).absolute()
+    probe = folder
+    while not _exists(probe) and probe.parent != probe:
+        probe = probe.parent
+    try:
+        tmp = _create_temporary(probe, "write-probe")
+    except OSError as exc:
+        where = "" if probe == folder else f" (nor in its parent {str(probe)!r})"
+        raise InputError(f"{key}: cannot create a file in {str(folder)!r}{where} "
+                         f"({exc.strerror or type(exc).__name__})") from None
+    try:
+        os.unlink(tmp)
+    except OSError:
+        pass
 
 
 @contextlib.contextmanager

@@ -296,10 +296,12 @@ class SweepPlan:
 
 def plan_sweep(case_path, params: Sequence[str] = (), runs_file=None,
                peak: str | None = None) -> SweepPlan:
-    """Parse the parameters, build every run's case dict and validate each (and that
-    ``peak``, when given, is a column of each run's history); raises a one-line
-    InputError naming the run, key and value of the first bad one."""
-    from demstep.case import case_from_dict
+    """Parse the parameters, build every run's case dict and validate each as
+    ``demstep run`` does before it writes (the schema, then the build of its simulation
+    and every stage's changes: :func:`demstep.case.check_stages`), and that ``peak``,
+    when given, is a column of each run's history; raises a one-line InputError naming
+    the run, key and value of the first bad one."""
+    from demstep.case import case_from_dict, check_stages
     from demstep.runner import case_hash
 
     case_path = Path(case_path)
@@ -330,6 +332,7 @@ def plan_sweep(case_path, params: Sequence[str] = (), runs_file=None,
                 set_key(data, k, v)
             case = case_from_dict(copy.deepcopy(data), base_dir=case_path.resolve().parent,
                                   source=str(case_path))
+            check_stages(case)
         except InputError as exc:
             raise InputError(f"sweep: {where}: {exc}") from None
         if peak is not None:
