@@ -354,3 +354,25 @@ def test_paper_refuses_a_non_empty_or_locked_folder(tmp_path, capsys, monkeypatc
         code, _, err = cli(["paper", "--out", locked, "--quiet"], capsys)
     assert_one_line_error(code, err, "out:", "in use by another demstep process")
     assert list(locked.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv", [["run", LONG + ".toml", "--out", "o", "--quiet"],
+                                  ["sweep", LONG + ".toml", "--param", "contact.mu=0.1",
+                                   "--out", "o"]], ids=["run", "sweep"])
+def test_an_over_long_case_file_name_gives_one_line(tmp_path, capsys, monkeypatch, argv):
+    """A case file name longer than the file system takes: one line naming the case file,
+    exit 2, nothing written (Path.is_file raised on Python 3.11: exit 1)."""
+    monkeypatch.chdir(tmp_path)
+    code, _, err = cli(argv, capsys)
+    assert_one_line_error(code, err, "case file", "too long")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("option", ["--kn", "--density"])
+def test_option_numbers_with_underscores_are_refused(tmp_path, capsys, option):
+    """Python's float() reads '1_0' as 10: an option given so is refused, naming it."""
+    csv = tmp_path / "a.csv"
+    csv.write_text("x,y,r\n0,0,1\n2,0,1\n")
+    argv = ["dt", csv, "--kn", "1e4", "--density", "1", option, "1_0"]
+    code, out, err = cli(argv, capsys)
+    assert code == 2 and "1_0" in err and option.strip("-") in err and out == ""

@@ -156,7 +156,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, 
 
 # (MIN_MAGNITUDE, MAX_MAGNITUDE: the case files' range, documented above, one for all input)
 from demstep.errors import (MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem,
-                            missing_file)
+                            read_input_text)
 
 #: the largest assembly a case file may generate (a guard against typos in ``size``)
 MAX_PARTICLES = 2_000_000
@@ -642,14 +642,7 @@ def _validation_message(exc: ValidationError, data) -> str:
 def load_case(path) -> Case:
     """Read and validate a TOML case file (schema, physics and dimensions)."""
     path = Path(path)
-    if not path.is_file():
-        raise missing_file(path, "case file")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    text = read_input_text(path, "case file")
     return case_from_text(text, base_dir=path.resolve().parent, source=str(path))
 
 

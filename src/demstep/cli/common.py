@@ -13,12 +13,20 @@ import sys
 from demstep.errors import InputError, magnitude_problem
 
 
+def _parsed(name: str, text: str, kind=float, what: str = "a number"):
+    """``text`` as a ``kind`` (float or int), else the option's one-line error (also for
+    underscores, which Python reads: 1_0 is 10)."""
+    try:
+        if "_" in text:
+            raise ValueError
+        return kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{name}: not {what}: {text!r}") from None
+
+
 def positive(name):
     def parse(text):
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: not a number: {text!r}") from None
+        v = _parsed(name, text)
         if not (v > 0 and v < float("inf")):
             raise argparse.ArgumentTypeError(f"{name}: must be a finite positive number, got {text!r}")
         return v
@@ -37,10 +45,7 @@ def fraction(name):
 
 def non_negative(name):
     def parse(text):
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: not a number: {text!r}") from None
+        v = _parsed(name, text)
         if not (v >= 0 and v < float("inf")):
             raise argparse.ArgumentTypeError(f"{name}: must be a finite number >= 0, got {text!r}")
         return v
@@ -49,10 +54,7 @@ def non_negative(name):
 
 def positive_int(name):
     def parse(text):
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: not an integer: {text!r}") from None
+        v = _parsed(name, text, int, "an integer")
         if v < 1:
             raise argparse.ArgumentTypeError(f"{name}: must be >= 1, got {text!r}")
         return v
@@ -63,10 +65,7 @@ def number(name, minimum=None, strict=False):
     """A number option ``name``: finite, and >= ``minimum`` (> with ``strict``)."""
 
     def parse(text):
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: not a number: {text!r}") from None
+        v = _parsed(name, text)
         if not math.isfinite(v) or (minimum is not None and (v < minimum or (strict and v == minimum))):
             rel = ">" if strict else ">="
             bound = "" if minimum is None else f" {rel} {minimum:g}"

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from demstep.errors import InputError, missing_file
+from demstep.errors import InputError, read_input_text
 
 from demstep.sweep.cluster import one_line
 
@@ -305,13 +305,9 @@ def plan_sweep(case_path, params: Sequence[str] = (), runs_file=None,
     from demstep.runner import case_hash
 
     case_path = Path(case_path)
-    if not case_path.is_file():
-        raise missing_file(case_path, "case file")
+    case_text = read_input_text(case_path, "case file")
     try:
-        case_text = case_path.read_text(encoding="utf-8")
         base = tomllib.loads(case_text)
-    except UnicodeDecodeError:
-        raise InputError(f"{case_path}: not a text file") from None
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{case_path}: not valid TOML ({str(exc).splitlines()[0]})") from None
     parsed = [parse_param(p) for p in params]
