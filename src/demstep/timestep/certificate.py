@@ -32,20 +32,22 @@ where
       |L(n') x|^2 - |L(n) x|^2 = 2 v.(d x omega) - (d.omega)(s.omega),
       (n'.v)^2 - (n.v)^2 = (d.v)(s.v), at most |d| |v|^2 |s| / 2 <= |d| tau^2 |u|^2.
 
-  Only the part of omega across d, |omega| sin(phi), enters d x omega and s.omega, and
-  d.omega = |d| |omega| cos(phi); so the first is at most |d| 2 rho |w| sin(phi)
-  (tau |u| + rho |w| cos(phi)), whose largest value over |u|^2 + |w|^2 = 1 (a 2 x 2
-  eigenvalue) and phi is at most |d| rho (rho/2 + sqrt(rho^2/4 + tau^2)) =: |d| g.
-  For disks omega is normal to the plane, across d (phi = 90 degrees): g = rho tau.
-  Hence, per unit of |x|^2,
+  Only the part of omega across d, rho q = |omega| sin(phi), enters d x omega and
+  s.omega, and d.omega = |d| rho p with rho p = |omega| cos(phi). With a = |u|:
+  a^2 + p^2 + q^2 <= |x|^2, and |x.(E(n') - E(n)) x| / |d| is at most
 
-      |E(n') - E(n)| <= |n' - n| (b_t g + |b_n - b_t| tau^2),
+      |b_n - b_t| tau^2 a^2 + 2 b_t tau rho a q + 2 b_t rho^2 p q = y.M y,
+      M = [[A, 0, B], [0, 0, C], [B, C, 0]], A = |b_n - b_t| tau^2, B = b_t tau rho,
+      C = b_t rho^2, y = (a, p, q) >= 0,
 
-  at most half of the earlier |n' - n| l (2 rho max(b_n, b_t) + l |b_n - b_t|)
-  (l^2 = tau^2 + rho^2) for a pure turn with b_n = b_t, and a fifth of it for solid
-  spheres with b_t = 2/7 b_n (the tangential springs are what a turn moves). A sum
-  of two-particle element matrices has its norm below the largest sum over the
-  elements of one particle (x.E x <= |E| (|x_i|^2 + |x_j|^2) per element).
+  so |E(n') - E(n)| <= |n' - n| lambda_max(M) (:func:`_turn_factor`). For disks omega
+  is normal to the plane, across d (p = 0): the 2 x 2 [[A, B], [B, 0]]. lambda_max(M)
+  is at most b_t rho l + A (l^2 = tau^2 + rho^2), attained for b_n = b_t by a pure
+  turn; the earlier |n' - n| l (2 rho max(b_n, b_t) + l |b_n - b_t|) was twice that
+  for b_n = b_t and about 8 times for solid spheres with b_t = 2/7 b_n (the tangential
+  springs are what a turn moves). A sum of two-particle element matrices has its norm
+  below the largest sum over the elements of one particle (x.E x <= |E| (|x_i|^2 +
+  |x_j|^2) per element).
 
   The arms change too: a contact's shorten as it closes (the estimate took the radii,
   the longest), a bond's lengthen as it stretches, and lambda_max of an assembly is
@@ -85,6 +87,41 @@ import numpy as np
 from demstep._numba import njit
 from demstep.contact.geometry import (any_periodic, contact_arms, image_count, pair_geometry,
                                      wall_geometry)
+
+
+#: relative margin added to the root :func:`_turn_factor` finds (its Newton iterates
+#: approach the root from above in exact arithmetic; this covers their rounding), and
+#: the most iterations it takes (an early stop leaves a larger, still valid, bound)
+TURN_FACTOR_MARGIN = 1e-12
+TURN_FACTOR_ITERATIONS = 30
+
+
+@njit(inline="always")
+def _turn_factor(trans, rot, b_n, b_t, planar):
+    """lambda_max(M) of the module doc, an upper bound on |E(n') - E(n)| / |n' - n| for
+    a turn at the arms now: ``trans`` = tau^2 = 1/m_i + 1/m_j, ``rot`` = rho^2, the
+    normal and tangential coefficients ``b_n``, ``b_t`` (springs or dashpots); for
+    disks (``planar``) the 2 x 2 block's, in closed form. In 3D the largest root of
+    det(M - x) = -(x^3 - A x^2 - (B^2 + C^2) x + A C^2), which is convex and increasing
+    from A (<= the root) on: Newton's iterates from the upper bound b_t rho l + A
+    decrease to it and stay above it, until a step is below 1e-14 of it, plus
+    :data:`TURN_FACTOR_MARGIN`."""
+    big_a = abs(b_n - b_t) * trans
+    b2 = b_t * b_t * trans * rot
+    if planar:
+        return (0.5 * big_a + math.sqrt(0.25 * big_a * big_a + b2)) * (1.0 + TURN_FACTOR_MARGIN)
+    c2 = b_t * b_t * rot * rot
+    x = b_t * math.sqrt(rot * (trans + rot)) + big_a
+    for _ in range(TURN_FACTOR_ITERATIONS):
+        slope = x * (3.0 * x - 2.0 * big_a) - (b2 + c2)
+        value = x * (x * (x - big_a) - (b2 + c2)) + big_a * c2
+        if slope <= 0.0 or value <= 0.0:
+            break
+        step = value / slope
+        x -= step
+        if step <= 1e-14 * x:
+            break
+    return x * (1.0 + TURN_FACTOR_MARGIN)
 
 
 @njit(cache=True)
@@ -128,16 +165,13 @@ def _drift_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, sum
         inv_ia, inv_ib = particles[a, 2], particles[b, 2]
         rot = arm_i * arm_i * inv_ia + arm_j * arm_j * inv_ib
         l_now = math.sqrt(trans + rot)
-        rho = math.sqrt(rot)
-        # (disks: omega normal to the plane, across the turn)
-        g = rho * (math.sqrt(trans) if planar else 0.5 * rho + math.sqrt(0.25 * rot + trans))
         l_ref = math.sqrt(trans + ref_i * ref_i * inv_ia + ref_j * ref_j * inv_ib)
         eta = math.sqrt((arm_i - ref_i) ** 2 * inv_ia + (arm_j - ref_j) ** 2 * inv_ib)
         arm_term = eta * (l_ref + l_now)
         k_n, k_t, c_n, c_t = factors[c, 2], factors[c, 3], factors[c, 4], factors[c, 5]
-        f_k = (turn * (k_t * g + abs(k_n - k_t) * trans + factors[c, 6])
+        f_k = (turn * (_turn_factor(trans, rot, k_n, k_t, planar) + factors[c, 6])
                + arm_term * k_t)
-        f_c = (turn * (c_t * g + abs(c_n - c_t) * trans + factors[c, 7])
+        f_c = (turn * (_turn_factor(trans, rot, c_n, c_t, planar) + factors[c, 7])
                + arm_term * c_t)
         sum_k[a] += f_k
         sum_k[b] += f_k
