@@ -350,3 +350,69 @@ def test_engine_threshold_matches_damped_exact_step(name, dashpots, rotation):
     assert result.alpha_empirical == pytest.approx(exact, rel=5e-3)
     undamped = specimen_estimates(name, rotation)["exact"]
     assert exact < undamped * (0.8 if "restitution_tangential" in dashpots or not rotation else 1)
+
+
+def _dashpotted(seed, dim, n=40):
+    """A random polydisperse assembly with walls and fixed particles, random normal and
+    tangential dashpots."""
+    from conftest import random_polydisperse
+
+    p, c = random_polydisperse(seed, dim, n=n, walls=True, fixed=True)
+    rng = np.random.default_rng(seed)
+    return p, replace(c, c_n=rng.uniform(0.0, 0.5, c.n), c_t=rng.uniform(0.0, 0.5, c.n))
+
+
+def _scaled_dense(p, c, k_n, k_t):
+    from demstep.timestep.assembly import inverse_sqrt_mass
+
+    s = inverse_sqrt_mass(p, True)
+    return assemble_stiffness(p, replace(c, k_n=k_n, k_s=k_t), True, scale=s).toarray()
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("dashpots", [False, True])
+def test_damping_bound_bounds_the_dense_damping_matrix(dim, dashpots):
+    """The operator's bound on lambda_max(C^) (the closed-form fallback's) against the
+    dense C^ = a1 I + a2 K^ + C^_dashpots: never below its largest eigenvalue (a bound
+    without the a2 K^ part, or the dashpots', fails)."""
+    from demstep.timestep.exact import ScaledContactOperator
+
+    p, c = _dashpotted(3 + dim, dim)
+    if not dashpots:
+        c = replace(c, c_n=np.zeros(c.n), c_t=np.zeros(c.n))
+    d = GlobalDamping(0.2, 0.05)
+    K = _scaled_dense(p, c, c.k_n, c.k_s)
+    C = d.mass * np.eye(len(K)) + d.stiffness * K + _scaled_dense(p, c, c.c_n, c.c_t)
+    bound = ScaledContactOperator(p, c, True, d).damping_bound()
+    assert np.linalg.eigvalsh(C)[-1] <= bound * (1 + 1e-12)
+
+
+@pytest.mark.parametrize("dim,seed", [(2, 1), (3, 2)])
+def test_the_damped_step_is_certified_by_the_upper_bound_not_the_ritz_value(
+        monkeypatch, dim, seed):
+    """A solver may return any bracket value <= lambda_max <= value + residual: here its
+    Ritz values are lowered by half with residuals raised as much (the same upper
+    bounds), and it starts from the undamped top mode alone. The certified damped step
+    stays at most the dense one (or the solve refuses): a certificate that read the
+    Ritz value instead of the upper bound would accept a candidate above the root."""
+    from demstep.timestep.exact import ScaledContactOperator
+
+    p, c = _dashpotted(seed, dim)
+    d = GlobalDamping(0.1, 0.01)
+    dense = exact_critical_step(p, c, True, d, dense_limit=10**6)
+    real_top = ScaledContactOperator.top
+
+    def widened(self, sigma, *a, **k):
+        pair = real_top(self, sigma, *a, **k)
+        if sigma > 0:
+            shift = 0.5 * pair.value
+            pair = replace(pair, value=pair.value - shift, residual=pair.residual + shift)
+        return pair
+
+    monkeypatch.setattr(ScaledContactOperator, "top", widened)
+    monkeypatch.setattr(ScaledContactOperator, "subspace_start", lambda self, Y: Y[0].copy())
+    try:
+        step = exact_critical_step(p, c, True, d, dense_limit=10**6, loose_tol=1e-12)
+    except RuntimeError:
+        return  # refusing to certify is allowed
+    assert step.dt <= 2.0 / dense.sigma * (1 + 1e-10)

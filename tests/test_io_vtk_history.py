@@ -16,8 +16,8 @@ from demstep.particles import Particles
 from demstep.walls import box_walls
 
 
-def settling(dim, periodic=False):
-    """A small lattice under gravity in a box (or a periodic strip): contacts form."""
+def settling(dim):
+    """A small lattice under gravity in a box: contacts form."""
     lat = lattice("hex" if dim == 2 else "fcc", radius=1.0)
     x = lat.block(3)
     x = x + 1.0
@@ -131,3 +131,75 @@ def test_history_resume_truncates_later_rows(tmp_path):
     with HistoryWriter(path, sim, resume_after_step=150):
         pass
     assert read_history(path)["step"].tolist() == [50, 100, 150]
+
+
+def periodic_square(box=(8.0, 8.0)):
+    """A square lattice of disks, slightly overlapping, periodic along x and y (lengths
+    ``box``), with contacts across both boundaries, small random velocities."""
+    nx, ny = int(round(box[0] / 2)), int(round(box[1] / 2))
+    x = np.stack(np.meshgrid(np.arange(nx) * 2.0, np.arange(ny) * 2.0, indexing="ij"),
+                 -1).reshape(-1, 2) + 0.5
+    p = Particles.from_density(x, np.full(len(x), 1.002), 1.0)
+    return Simulation(p, LinearSpring(k_n=1e4, mu=0.3), periodic=list(box),
+                      timestep=TimeStep.fixed(1e-3),
+                      velocities=np.random.default_rng(0).normal(0, 0.01, (len(x), 2)))
+
+
+def test_vtk_particle_fields_and_contact_forces_in_a_periodic_box(tmp_path):
+    """The particle fields read back equal the simulation's (mass, torque, fixed, id);
+    the contact lines are the touching pairs found by brute force (none drawn across
+    the box: each line joins two touching disks), and each line's force projected on
+    its centre line is its (compressive) normal force."""
+    sim = periodic_square()
+    sim.run(steps=5)
+    VtkWriter(tmp_path).write(sim)
+    mesh = meshio.read(tmp_path / "particles_0000000005.vtu")
+    for name, value in (("mass", sim.m), ("torque", sim.torque),
+                        ("fixed", sim.fixed.astype(int)), ("id", np.arange(len(sim.r)))):
+        np.testing.assert_array_equal(mesh.point_data[name], value)
+    c = meshio.read(tmp_path / "contacts_0000000005.vtu")
+    lines = c.cells_dict["line"]
+    d = sim.x[lines[:, 1]] - sim.x[lines[:, 0]]
+    dist = np.linalg.norm(d, axis=1)
+    assert np.all(dist < sim.r[lines[:, 0]] + sim.r[lines[:, 1]])
+    gaps = np.linalg.norm(sim.x[None] - sim.x[:, None], axis=2)
+    touching = np.triu(gaps < sim.r[:, None] + sim.r[None], 1)
+    assert len(lines) == touching.sum() > 0
+    f_n = np.einsum("ck,ck->c", c.cell_data["force"][0], d / dist[:, None])
+    np.testing.assert_allclose(f_n, c.cell_data["normal_force"][0], rtol=1e-12)
+    assert (f_n > 0).all()
+
+
+def test_history_periodic_box_and_love_stress_columns(tmp_path):
+    """A periodic box of two different lengths: the history's box.Lx, box.Ly and
+    love.xx, love.yy columns are the simulation's, row by row (a column written from
+    another axis fails)."""
+    sim = periodic_square((10.0, 8.0))
+    writer = HistoryWriter(tmp_path / "h.csv", sim)
+    sim.every(5, writer)
+    rows = []
+    sim.every(5, lambda s: rows.append((s.periodic_len.copy(), s.love_stress().copy())))
+    sim.run(steps=10)
+    writer.close()
+    h = read_history(tmp_path / "h.csv")
+    assert len(rows) == 2
+    for k, (length, love) in enumerate(rows):
+        assert h["box.Lx"][k] == length[0] == 10.0 and h["box.Ly"][k] == length[1] == 8.0
+        assert h["love.xx"][k] == love[0] and h["love.yy"][k] == love[1]
+        assert np.all(np.isfinite(love[:2])) and np.all(love[:2] != 0) and love[0] != love[1]
+
+
+def test_history_wall_position_columns():
+    """The walls' position columns are the walls' points (not their velocities)."""
+    import tempfile
+
+    sim = settling(2)
+    with tempfile.TemporaryDirectory() as folder:
+        writer = HistoryWriter(f"{folder}/h.csv", sim)
+        sim.every(50, writer)
+        sim.run(steps=100)
+        writer.close()
+        h = read_history(f"{folder}/h.csv")
+    for k, wall in enumerate(sim.walls):
+        assert h[f"{wall.name}.x"][-1] == sim.wall_point[k, 0]
+        assert h[f"{wall.name}.y"][-1] == sim.wall_point[k, 1]

@@ -553,3 +553,37 @@ def test_pair_loop_for_a_law_and_box_equals_the_general_one(parallel, dashpot, p
         call(special_loop, store_dashpot=not dashpot)
     with pytest.raises(ValueError, match="another kind of box"):
         call(dem.pair_loop_for(parallel, dashpot, not periodic))
+
+
+def test_a_pair_across_a_moving_periodic_boundary_is_its_unwrapped_image():
+    """A pair touching across a periodic boundary whose length changes at the rate
+    Ldot gives the forces, torques and dashpot history of the same pair unwrapped in an
+    open box, with j at its image x_j - L moving at v_j - Ldot (the image moves with the
+    box: a sign error in the image's velocity changes the dashpot and shear forces)."""
+    L, rate = 4.0, 0.7
+    law = LinearSpring(k_n=1000.0, k_s=800.0, mu=0.4, damping_normal=3.0,
+                       damping_tangential=2.0)
+    r = np.array([0.35, 0.35])
+    m = np.array([1.0, 1.3])
+    v = np.array([[0.1, 0.2, -0.1], [-0.3, 0.05, 0.2]])
+    w = np.array([[0.3, -0.2, 0.1], [0.2, 0.4, -0.3]])
+    wrapped = np.array([[0.3, 1.0, 1.0], [L - 0.3, 1.1, 1.0]])
+    image, v_image = wrapped.copy(), v.copy()
+    image[1, 0] -= L
+    v_image[1, 0] -= rate
+
+    def forces(x, vel, box, box_rate):
+        f, t = np.zeros((2, 3)), np.zeros((2, 3))
+        ft, fd, et = np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1)
+        dem.pair_forces_serial(x, vel, w, r, m, 1.0 / m, np.array([0]), np.array([1]), box,
+                               box_rate, 0, law.params(), 1e-3, ft, fd, et, True,
+                               np.array([0, 1]), np.array([[0, 2]]), f, t,
+                               np.zeros((1, 0, 3)), np.zeros((1, 0, 3)), np.zeros((4, 3)),
+                               np.empty((1, 4)), np.zeros(0))
+        return f, t, ft, fd
+
+    across = forces(wrapped, v, np.array([L, 0.0, 0.0]), np.array([rate, 0.0, 0.0]))
+    unwrapped = forces(image, v_image, np.zeros(3), np.zeros(3))
+    assert np.abs(across[0]).max() > 0 and np.abs(across[3]).max() > 0
+    for a, b in zip(across, unwrapped):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-13)

@@ -160,3 +160,74 @@ def test_itasca_is_unconservative_on_dense_lattices():
     assert rep.get("element-coupled").conservative is True
     assert rep.get("itasca").alpha == pytest.approx(1.0)
     assert rep.get("guidance").alpha == pytest.approx(0.17)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_damped_paper_element_step_tends_to_the_undamped_one(dim):
+    """On a random assembly (normals off the axes: the rotational factor 1 - min n_k^2
+    matters) the paper element's damped step with vanishing damping is its undamped
+    step (a damped path that drops a factor differs)."""
+    from demstep.timestep.damping import GlobalDamping
+    from demstep.timestep.estimates import element_paper_dt
+
+    p, c = random_polydisperse(7, dim, n=27)
+    undamped = element_paper_dt(p, c, True)
+    nearly = element_paper_dt(p, c, True, damping=GlobalDamping(1e-12, 0.0))
+    assert nearly == pytest.approx(undamped, rel=1e-9)
+
+
+def test_tangential_dashpots_alone_set_the_dashpot_ratio():
+    """The rules' dashpot ratio is the largest c/k over normal and tangential dashpots:
+    with tangential ones only, max(c_t / k_s)."""
+    from dataclasses import replace
+
+    from demstep.timestep.estimates import dashpot_ratio
+
+    p, c = random_polydisperse(7, 3, n=27)
+    c = replace(c, c_n=np.zeros(c.n), c_t=0.3 * c.k_s)
+    assert dashpot_ratio(c) == pytest.approx(0.3, rel=1e-12)
+
+
+def test_rayleigh_time_against_the_rayleigh_wave_equation():
+    """T_R = pi r / c_R with c_R the root of Rayleigh's equation (xi = c_R / c_S):
+    xi^6 - 8 xi^4 + (24 - 16 k^2) xi^2 - 16 (1 - k^2) = 0, k^2 = c_S^2 / c_P^2 =
+    (1 - 2 nu) / (2 (1 - nu)); the usual fit (0.1631 nu + 0.8766) is within 0.5 %."""
+    from demstep.timestep.rules import rayleigh_time
+
+    r, rho, E = 1e-3, 2500.0, 7e10
+    for nu in (0.2, 0.3, 0.4):
+        G = E / (2 * (1 + nu))
+        k2 = (1 - 2 * nu) / (2 * (1 - nu))
+        roots = np.roots([1, 0, -8, 0, 24 - 16 * k2, 0, -16 * (1 - k2)])
+        xi = min(z.real for z in roots if abs(z.imag) < 1e-12 and 0 < z.real < 1)
+        t_exact = np.pi * r / (xi * np.sqrt(G / rho))
+        assert rayleigh_time([r], [rho], [E], [nu]) == pytest.approx(t_exact, rel=5e-3)
+
+
+def test_hertz_time_against_an_integrated_impact():
+    """The duration of a Hertz impact of two equal spheres (m* = m/2, R* = r/2,
+    F = 4/3 E* sqrt(R*) d^1.5), integrated numerically (scipy's solve_ivp to the
+    separation), against hertz_time, which takes its mass and r/2 as the effective mass
+    and radius (2.87 (m^2 / (R E*^2 v))^(1/5), LIGGGHTS' form with the particle's mass,
+    longer than the pair's impact): given m* and r = 2 R*, it is this impact's duration,
+    within 0.2 % (the constant 2.87 is rounded)."""
+    from scipy.integrate import solve_ivp
+
+    from demstep.timestep.rules import hertz_time
+
+    m, r, e_star, v = 2.0e-3, 1e-2, 1e8, 1.0
+    m_star, r_star = m / 2, r / 2
+    k = 4.0 / 3.0 * e_star * np.sqrt(r_star)
+
+    def rhs(t, y):
+        return [y[1], -k * max(y[0], 0.0) ** 1.5 / m_star]
+
+    def separated(t, y):
+        return y[0] if t > 0 else 1.0
+
+    separated.terminal, separated.direction = True, -1
+    scale = (m_star**2 / (r_star * e_star**2 * v)) ** 0.2
+    out = solve_ivp(rhs, (0, 10 * scale), [0.0, v], events=separated, rtol=1e-11,
+                    atol=1e-15 * v * scale, max_step=scale / 200)
+    duration = out.t_events[0][-1]
+    assert hertz_time([m_star], [2 * r_star], [e_star], v) == pytest.approx(duration, rel=2e-3)
