@@ -331,3 +331,32 @@ def test_a_certificate_holds_only_for_the_law_and_damping_it_was_made_with(chang
     # (the exact step moves a little between estimates: certified, not at 0.8 exactly)
     assert len(ratios) == 30 and max(ratios) <= 0.8 * (1 + 1e-5)
     assert max(ratios) > 0.79  # the exact step decides dt
+
+
+@pytest.mark.parametrize("local", [0.3, 0.7])
+def test_local_damping_lowers_the_auto_step_to_where_it_is_stable(local):
+    """Local (Cundall) damping takes the sign of the lagged half-step velocity, which in
+    the fastest mode is the displacement's: it adds local |F| to the restoring force. A
+    compressed chain of seven disks between two fixed ones (rotation locked), perturbed
+    by 1e-3: in 'auto' mode at safety 0.8, dt is 0.8 / sqrt(1 + local) of the exact
+    step of K and C, and the kinetic energy decays by orders of magnitude (at 0.8 of
+    that step, where the mode is unstable from 0.78 at local 0.7, it grew from 6e-6 to
+    1: this fails there)."""
+    from demstep.engine import Damping
+
+    n = 7
+    x = np.stack([np.arange(n) * 1.99, np.zeros(n)], 1)  # overlaps 0.01
+    fixed = np.zeros(n, bool)
+    fixed[[0, -1]] = True
+    p = Particles.from_density(x, np.ones(n), 1.0, fixed=fixed)
+    v = np.random.default_rng(1).normal(0, 1e-3, (n, 2))
+    sim = Simulation(p, LinearSpring(k_n=1e4, k_s=0.5e4, mu=0.5), velocities=v,
+                     damping=Damping(local=local), timestep=TimeStep.auto(safety=0.8),
+                     rotation=False, runaway_factor=0, jump_limit=1e9)
+    sim.run(steps=1)
+    start = sim.kinetic_energy()
+    assert sim.dt == pytest.approx(0.8 / np.sqrt(1 + local) * sim.critical_dt("exact"),
+                                   rel=1e-6)
+    sim.run(steps=3000)
+    assert sim.n_contacts == n - 1
+    assert sim.kinetic_energy() < 1e-6 * start

@@ -92,7 +92,8 @@ class TimeStep:
       Hertz K_max is the tangent stiffness at relative overlap ``overlap``).
     * ``mode='auto'``: dt = ``safety`` x the certified critical step by ``method``
       (``exact`` or ``element-coupled``) of every contact that can close before the
-      next estimate, re-evaluated every ``every`` steps; growth is capped at ``growth``
+      next estimate (with local damping also x 1 / sqrt(1 + local), which stiffens
+      the fastest mode), re-evaluated every ``every`` steps; growth is capped at ``growth``
       per update, decreases are immediate. Before contacts form, the coupled element
       bound of the densest packing (hex/FCC) is used. Between estimates the
       certificate follows contacts that close outside it and the turning of the
@@ -1002,7 +1003,7 @@ class Simulation:
                 estimate = fallback
             self.dt_estimate = estimate
             self.n_dt_estimates = getattr(self, "n_dt_estimates", 0) + 1
-            target = ts.safety * estimate
+            target = ts.safety * self._local_damping_factor() * estimate
             if self.dt is None or target < self.dt:
                 self.dt = target
             elif scheduled:
@@ -1069,7 +1070,25 @@ class Simulation:
         same: the growth cap (a ``scheduled`` estimate) or the rule that a forced one
         only lowers dt holds dt at or below ``safety`` x ``estimate``."""
         ts = self.timestep
-        return ts.safety * estimate >= self.dt * ((1.0 + ts.growth) if scheduled else 1.0)
+        return (ts.safety * self._local_damping_factor() * estimate
+                >= self.dt * ((1.0 + ts.growth) if scheduled else 1.0))
+
+    def _local_damping_factor(self) -> float:
+        """1 / sqrt(1 + local): what local (Cundall) damping takes off the certified
+        step. Its force -local |F| sign(v) takes the sign of the lagged half-step velocity,
+        which in the fastest (period-two) mode is that of the displacement: it adds
+        local |F| to the restoring force, a stiffness (1 + local) K for that mode
+        (measured: unstable from 0.90 and 0.78 of the undamped step at local 0.3 and
+        0.7, against 0.877 and 0.767). The 'auto' step is safety x this x the certified
+        step of K and C; a root sigma_0 of (K, C) gives sqrt(1 + local) sigma_0 for
+        ((1 + local) K, C), since lambda_max(s C + (1 + local) K) <= (1 + local)
+        lambda_max(s / sqrt(1 + local) C + K) (C >= 0)."""
+        return 1.0 / math.sqrt(1.0 + float(self.damping.local))
+
+    def _certified_sigma(self) -> float:
+        """The root [1/T] the last certificate (of K and C) must reach for dt to hold
+        with local damping: 2 / (dt sqrt(1 + local)) (:meth:`_local_damping_factor`)."""
+        return 2.0 * self._local_damping_factor() / self.dt
 
     def _element_estimate(self, horizon: float, scheduled: bool, prepared=None):
         """(dt, prepared) for an 'exact' estimate that may not need its solve: the
@@ -1563,8 +1582,7 @@ class Simulation:
         if (cert is None or not cert.bounded or self.dt is None
                 or self.step % self.AUTO_CHECK_EVERY):
             return True
-        sigma = 2.0 / self.dt
-        return cert.certifies(sigma, self._drift(cert))
+        return cert.certifies(self._certified_sigma(), self._drift(cert))
 
     def _contacts_covered(self) -> bool:
         """Whether every contact closed now was part of the last 'auto' estimate, at no
@@ -1583,7 +1601,7 @@ class Simulation:
         cert = getattr(self, "_dt_cert", None)
         if cert is None or self.dt is None:
             return False
-        sigma = 2.0 / self.dt
+        sigma = self._certified_sigma()
         added = self._contacts_of(pair_mask, wall_mask)
         if added.n == 0:
             return True
