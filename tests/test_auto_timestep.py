@@ -360,3 +360,35 @@ def test_local_damping_lowers_the_auto_step_to_where_it_is_stable(local):
     sim.run(steps=3000)
     assert sim.n_contacts == n - 1
     assert sim.kinetic_energy() < 1e-6 * start
+
+
+def test_at_full_safety_the_certificate_is_checked_at_every_step():
+    """At safety 1 there is no slack for the drift between checks: a touching pair
+    pushing itself apart (its arms lengthen) and a bonded V of three disks flapping
+    (bonds and contacts turning) keep dt at most the exact step of the state each step
+    starts from, at every step (with the checks every 50 steps they went 2e-4 and 9e-4
+    above it)."""
+    from demstep.contact.bonds import ParallelBonds
+
+    def worst(sim, steps):
+        ratio = 0.0
+        for _ in range(steps):
+            sim.prepare()
+            crit = sim.critical_dt("exact")
+            if crit is not None:
+                ratio = max(ratio, sim.dt / crit)
+            sim.run(steps=1)
+        return ratio
+
+    p = Particles.from_density(np.array([[0.0, 0, 0], [1.999, 0, 0]]), np.ones(2), 1.0)
+    sim = Simulation(p, LinearSpring(k_n=1e4), timestep=TimeStep.auto(safety=1.0, every=500))
+    assert worst(sim, 5) <= 1 + 1e-9
+    a = np.radians(60)
+    x = np.array([[-2 * np.sin(a), -2 * np.cos(a)], [0.0, 0.0], [2 * np.sin(a), -2 * np.cos(a)]])
+    v = np.array([[-np.cos(a), np.sin(a)], [0, 0], [np.cos(a), np.sin(a)]])
+    sim = Simulation(Particles.from_density(x, np.ones(3), 1.0),
+                     LinearSpring(k_n=1e4, k_s=0.3e4, mu=0.5), velocities=v - v.mean(0),
+                     timestep=TimeStep.auto(safety=1.0, every=500))
+    sim.add_bonds(ParallelBonds(normal_stiffness=1e4, shear_stiffness=0.3e4,
+                                radius_multiplier=0.5, gap=1e-9))
+    assert worst(sim, 300) <= 1 + 1e-9
