@@ -90,3 +90,33 @@ def contacts_now(ref, x, r, bond=None, apart=False):
     now = replace(ref, normal=d / dist[:, None], arm_i=np.where(on, r[ref.i] - half, ref.arm_i),
                   arm_j=np.where(on, r[ref.j] - half, ref.arm_j))
     return now if apart else now.subset(on)
+
+
+def cli(argv, capsys):
+    """Exit status, stdout and stderr of the command line run in this process."""
+    from demstep.cli import main as cli_main
+
+    try:
+        code = cli_main([str(a) for a in argv])
+    except SystemExit as exc:
+        code = exc.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code, err, *words):
+    """Exit status 2, one line 'demstep: error: ...' holding every one of ``words``."""
+    assert code == 2, err
+    assert err.startswith("demstep: error: ") and err.count("\n") == 1, err
+    assert "Traceback" not in err
+    for word in words:
+        assert word in err, err
+
+
+def snapshot(folder):
+    """Every file under ``folder`` with its bytes (to show nothing was written)."""
+    from pathlib import Path
+
+    folder = Path(folder)
+    return {str(p.relative_to(folder)): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file()}

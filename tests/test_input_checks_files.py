@@ -9,9 +9,9 @@ import warnings
 from pathlib import Path
 
 import pytest
+from conftest import assert_one_line_error, cli as run_cli
 
 from demstep.case import case_from_text, dump_case, load_case
-from demstep.cli import main as cli_main
 from demstep.errors import InputError
 from demstep.io.formats import read_bond_csv, read_csv, read_liggghts_dump, read_yade_text
 from demstep.timestep_input import read_materials
@@ -75,23 +75,12 @@ DUMP = ("ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n2\nITEM: BOX BOUNDS ff ff ff\
         "0 10\n0 10\n0 10\nITEM: ATOMS {cols}\n{a}\n{b}\n")
 
 
+
+
 def cli(argv, capsys):
     """Exit status and stderr of the command line run in this process."""
-    try:
-        code = cli_main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code
-    _, err = capsys.readouterr()
+    code, _, err = run_cli(argv, capsys)
     return code, err
-
-
-def assert_one_line_error(code, err, *words):
-    """Exit status 2, one line 'demstep: error: ...' holding every one of ``words``."""
-    assert code == 2, err
-    assert err.startswith("demstep: error: ") and err.count("\n") == 1, err
-    assert "Traceback" not in err
-    for word in words:
-        assert word in err, err
 
 
 def run_case(tmp_path, capsys, text, files=None):

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_one_line_error, cli, snapshot
 
-from demstep.cli import main as cli_main
 from demstep.io.lock import FolderLock
 
 CASE = """
@@ -40,29 +40,7 @@ checkpoint_keep = 0
 LONG = "x" * 300
 
 
-def cli(argv, capsys):
-    """Exit status, stdout and stderr of the command line run in this process."""
-    try:
-        code = cli_main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
 
-
-def assert_one_line_error(code, err, *words):
-    assert code == 2, err
-    assert err.startswith("demstep: error: ") and err.count("\n") == 1, err
-    assert "Traceback" not in err
-    for word in words:
-        assert word in err, err
-
-
-def snapshot(folder):
-    """Every file under ``folder`` with its bytes (to show nothing was written)."""
-    folder = Path(folder)
-    return {str(p.relative_to(folder)): p.read_bytes()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def write_case(folder, stage="", name="case.toml"):

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_one_line_error, cli, snapshot
 
 from demstep.case import build_simulation, case_from_text, load_case
-from demstep.cli import main as cli_main
 from demstep.errors import InputError
 from demstep.io.atomic import write_text_atomic
 from demstep.io.checkpoint import load_checkpoint
@@ -70,29 +70,7 @@ def write_case(folder, name="small", steps=300, checkpoint_every=100, extra=""):
     return path
 
 
-def cli(argv, capsys):
-    """Exit status and stderr of the command line run in this process."""
-    try:
-        code = cli_main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
 
-
-def assert_one_line_error(code, err, *words):
-    assert code == 2, err
-    assert err.startswith("demstep: error: ") and err.count("\n") == 1, err
-    assert "Traceback" not in err
-    for word in words:
-        assert word in err, err
-
-
-def snapshot(folder):
-    """Every file under ``folder`` with its bytes (to show nothing was written)."""
-    folder = Path(folder)
-    return {str(p.relative_to(folder)): p.read_bytes()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def start_run(case, out, *extra, env=None):
