@@ -177,10 +177,12 @@ def test_pair_forces_equal_numpy_reference(kernel):
     # the cover of each pair (0: none, inf: any overlap, else an overlap limit)
     delta = r[pi] + r[pj] - np.linalg.norm(x[pj] - x[pi], axis=1)
     cover = np.choose(np.arange(P) % 3, [np.zeros(P), np.full(P, np.inf), 0.5 * np.abs(delta)])
-    e_n, e_t, fric, dash, nc, uncovered = fn(
+    e_n, e_t, fric, dash, nc, uncovered, headroom = fn(
         x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0, params, dt, ft2, fd2, et2,
         True, chunks, spans, f, t, fbuf, tbuf, sums, np.empty((P, 4)), cover)
     assert uncovered == np.count_nonzero(delta > cover) > 0
+    # the smallest headroom cover - delta over every pair (here a touching one's < 0)
+    assert headroom == pytest.approx(np.min(cover - delta), rel=1e-12) and headroom < 0
     assert nc == np.count_nonzero(delta > 0)
     force, new_t, new_fd, new_et, ref_en, ref_fric, ref_dash, arm_i, arm_j, n = ref
     tol = dict(rtol=1e-10, atol=1e-12)
@@ -227,7 +229,7 @@ def test_hertz_pair_forces_equal_numpy_reference(kernel):
     sums = np.zeros((4, 3))
     fn = dem.pair_forces_serial if kernel == "serial" else dem.pair_forces
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
-    e_n, e_t, fric, dash, nc, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
+    e_n, e_t, fric, dash, nc, _, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
                                   LAW_HERTZ, params, dt, ft2, fd2, et2, True, chunks, spans,
                                   f, t, fbuf, tbuf, sums, np.empty((P, 4)), np.zeros(0))
     tol = dict(rtol=1e-10, atol=1e-12)
@@ -435,7 +437,7 @@ def test_pair_blocks_any_chunking_equal_numpy_reference(n_chunks):
     chunks, spans, f, t, fbuf, tbuf = chunk_buffers(pi, pj, len(r), n_chunks)
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
     fn = dem.pair_forces_serial if n_chunks == 1 else dem.pair_forces
-    e_n, e_t, fric, dash, nc, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
+    e_n, e_t, fric, dash, nc, _, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
                                   law.params(), dt, ft2, fd2, et2, True, chunks, spans, f, t,
                                   fbuf, tbuf, np.zeros((4, 3)), np.empty((0, 4)), np.zeros(0))
     tol = dict(rtol=1e-10, atol=1e-12)

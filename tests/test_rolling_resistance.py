@@ -232,6 +232,30 @@ def test_switching_rolling_off_releases_its_stored_energy():
     assert sim.ledger.acc[A_ROLLING] - before == pytest.approx(stored, rel=1e-12)
 
 
+def test_rolling_acts_on_pairs_that_form_after_an_empty_start_and_over_runs():
+    """Spheres poured from apart (no pair in the first lists): the pairs that form get
+    rolling history in that same run, and a second run reuses the lists (it once kept
+    the first run's empty pair geometry and read past its end)."""
+    rng = np.random.default_rng(5)
+    grid = np.stack(np.meshgrid(np.arange(3), np.arange(3), np.arange(4), indexing="ij"), -1)
+    x = grid.reshape(-1, 3) * 3.0 + 1.5 + rng.uniform(-0.1, 0.1, (36, 3))
+    from demstep.walls import box_walls
+
+    law = LinearSpring(k_n=2e5, k_s=1e5, mu=0.4, restitution=0.5, rolling_convention="beta",
+                       rolling_stiffness=0.5)
+    sim = Simulation(Particles.from_density(x, rng.uniform(0.8, 1.0, 36), 2.0), law,
+                     walls=box_walls([0, 0, 0], [9.0, 9.0, 30.0]), gravity=[0, 0, -9.81],
+                     timestep=TimeStep.fixed(2e-4))
+    sim.prepare()
+    assert len(sim.pairs.i) == 0
+    sim.run(steps=6000)
+    assert sim.n_contacts > 0 and len(sim.pairs.roll) == len(sim.pairs.i) > 0
+    assert np.abs(sim.pairs.roll).sum() > 0  # rolling springs loaded in the first run
+    sim.run(steps=500)
+    assert np.isfinite(sim.x).all() and len(sim.pairs.roll) == len(sim.pairs.i)
+    assert sim.ledger.energy[E_STRAIN_R] > 0
+
+
 @pytest.mark.parametrize("kwargs, key", [
     ({"rolling_friction": 0.1}, "rolling_friction"),
     ({"rolling_convention": "beta"}, "rolling_stiffness"),

@@ -518,7 +518,8 @@ class Simulation:
             shear, energy = be.transfer_history(old.i, old.j, pi, pj, old.shear, old.shear_energy)
             dashpot = np.zeros((len(pi), 3))
         roll, cover = old.roll, old.cover
-        if len(roll):
+        rolling = getattr(self, "_rolling_history", False)
+        if len(roll) or rolling:  # (new pairs: zeros; also when there were no pairs)
             roll, = be.transfer_history(old.i, old.j, pi, pj, roll)
         if len(cover):  # new pairs: not covered (0)
             cover, = be.transfer_history(old.i, old.j, pi, pj, cover)
@@ -528,12 +529,14 @@ class Simulation:
         wshear, wdash, wenergy = be.transfer_history(ws.p, ws.wall, wp, ww, ws.shear,
                                                      ws.dashpot, ws.shear_energy)
         wroll, wcover = ws.roll, ws.cover
-        if len(wroll):
+        if len(wroll) or rolling:
             wroll, = be.transfer_history(ws.p, ws.wall, wp, ww, wroll)
         if len(wcover):
             wcover, = be.transfer_history(ws.p, ws.wall, wp, ww, wcover)
         self.wall_state = ws._replace(p=wp, wall=ww, shear=wshear, dashpot=wdash,
                                       shear_energy=wenergy, roll=wroll, cover=wcover)
+        if self._closed_uncovered_new(cover, wcover):
+            self.counters[3] += 1.0  # (the 'auto' control covers them before the next step)
         if self.sort_every is not None and (
                 not built or self.step - self._last_sort >= self.sort_every):
             self._sort_particles()
@@ -542,6 +545,27 @@ class Simulation:
         self.box.ref[:] = self.box.length
         self._pairs_built = True
         self.n_rebuilds = getattr(self, "n_rebuilds", 0) + 1
+
+    def _closed_uncovered_new(self, cover, wall_cover) -> bool:
+        """At a rebuild, with the 'auto' control's cover tracked (``cover``,
+        ``wall_cover`` per pair and wall pair of the new lists): whether a pair not
+        covered (a new one) is closed already. The pair loops watch the pairs they know
+        a step ahead; those the rebuild brought they have not seen yet."""
+        found = False
+        if len(cover) and len(cover) == len(self.pairs.i):
+            new = cover == 0.0
+            if new.any():
+                delta = pair_geometry_arrays(self.x, self.r, self.pairs.i[new], self.pairs.j[new],
+                                             self.periodic_len)[2]
+                found = bool((delta > 0.0).any())
+        ws = self.wall_state
+        if not found and len(wall_cover) and len(wall_cover) == len(ws.p):
+            new = wall_cover == 0.0
+            if new.any():
+                delta = wall_geometry_arrays(self.x, self.r, ws.p[new], ws.wall[new], ws.point,
+                                             ws.normal)[2]
+                found = bool((delta > 0.0).any())
+        return found
 
     #: a sort is done when it brings the pairs' ends closer in memory by at least this
     #: much: the mean of log2(1 + |j - i|) over the new pair list falls by this (1: the
@@ -735,13 +759,12 @@ class Simulation:
                 delta_eval = delta[on]
             else:
                 on = np.ones(len(delta), dtype=bool)
-                delta_eval = np.maximum(delta, 0.0) + np.minimum(
-                    2.0 * horizon * (speed[self.pi] + speed[self.pj]), self.skin)
             i, j, d, dist = self.pi[on], self.pj[on], d[on], dist[on]
             arm_i, arm_j = arm_i[on], arm_j[on]
             r_star = self.r[i] * self.r[j] / (self.r[i] + self.r[j])
-            if horizon is not None and self.law.law_id != 0:
-                delta_eval = np.maximum(delta_eval, self.timestep.overlap * r_star)
+            if horizon is not None:
+                delta_eval = self._reachable_overlap(delta, horizon * (speed[i] + speed[j]),
+                                                     r_star)
             inv = self.inv_m[i] + self.inv_m[j]
             m_star = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), self.m[i])
             kn, kt, cn, ct = self._coefficients(law_id, params, delta_eval, r_star, m_star)
@@ -763,14 +786,9 @@ class Simulation:
                 delta_eval = delta[on]
             else:
                 on = np.ones(len(delta), dtype=bool)
-                wall_speed = np.linalg.norm(self.wall_vel[self.ww], axis=1)
-                wall_speed = np.maximum(wall_speed, np.where(
-                    self.wall_motion[self.ww] == dem.WALL_SERVO,
-                    np.minimum(self.servo[self.ww, dem.S_MAXSPEED], 1e300), 0.0))
-                delta_eval = np.maximum(delta, 0.0) + np.minimum(
-                    2.0 * horizon * (speed[self.wp] + wall_speed), self.skin)
-                if self.law.law_id != 0:
-                    delta_eval = np.maximum(delta_eval, self.timestep.overlap * self.r[self.wp])
+                delta_eval = self._reachable_overlap(
+                    delta, horizon * (speed[self.wp] + self._wall_speeds(self.ww)),
+                    self.r[self.wp])
             p, wi, dist = self.wp[on], self.ww[on], dist[on]
             kn, kt, cn, ct = self._coefficients(law_id, params, delta_eval, self.r[p], self.m[p])
             arm = dist if horizon is None else np.where(delta[on] > 0.0, dist, self.r[p])
@@ -779,6 +797,25 @@ class Simulation:
             if cover is not None:
                 cover["walls"] = _sorted_keys(self._wall_keys(p, wi), delta_eval)
         return self._with_rolling_and_bonds(parts, params)
+
+    def _wall_speeds(self, walls) -> np.ndarray:
+        """The speeds [L/T] of the ``walls`` (indices): servo walls at their speed limit."""
+        speed = np.linalg.norm(self.wall_vel[walls], axis=1)
+        return np.maximum(speed, np.where(self.wall_motion[walls] == dem.WALL_SERVO,
+                                          np.minimum(self.servo[walls, dem.S_MAXSPEED], 1e300),
+                                          0.0))
+
+    def _reachable_overlap(self, delta, reach, r_star, ahead: float = 0.0) -> np.ndarray:
+        """The overlap [L] an 'auto' estimate covers contacts at (their coefficients;
+        the cover the pair loops compare with): from the overlap ``delta`` now (negative
+        apart), ``reach`` = h (s_i + s_j) [L] the distance the two ends cover within the
+        horizon h (:meth:`contact_set`), twice (a margin for speeding up), at most the
+        skin, at least ``ahead`` [L] (:meth:`_lookahead`); a non-linear law's at least
+        the TimeStep's relative ``overlap`` x ``r_star``."""
+        out = np.maximum(delta, 0.0) + np.maximum(np.minimum(2.0 * reach, self.skin), ahead)
+        if self.law.law_id != 0:
+            out = np.maximum(out, self.timestep.overlap * r_star)
+        return out
 
     def _with_rolling_and_bonds(self, parts, params) -> ContactSet:
         """The contact parts as one ContactSet with the law's rolling and twisting
@@ -1134,7 +1171,10 @@ class Simulation:
     def _size_rolling_history(self, rolling: bool):
         """Rolling-resistance history rows for every pair and wall pair while the law
         has rolling resistance (zeros for new ones), none otherwise: switching it off
-        releases the stored energy into the ledger's rolling dissipation."""
+        releases the stored energy into the ledger's rolling dissipation. Rebuilds of
+        the lists keep a row per pair while it is on (also from an empty list), and the
+        pair loop's work space (its rolling geometry) is sized anew after a change."""
+        self._rolling_history = bool(rolling)
         for name in ("pairs", "wall_state"):
             bundle = getattr(self, name)
             n = len(bundle.i) if name == "pairs" else len(bundle.p)
@@ -1144,6 +1184,10 @@ class Simulation:
                 self.ledger.acc[A_ROLLING] += float(bundle.roll[:, dem.ROLL_ENERGY].sum())
                 self.ledger.energy[E_STRAIN_R] = 0.0
                 setattr(self, name, bundle._replace(roll=np.zeros((0, ROLL_WIDTH))))
+            else:
+                continue
+            if name == "pairs":
+                self._chunks_for = None
 
     def add_bonds(self, bonds, pairs=None) -> int:
         """Bond particles with parallel bonds of parameters ``bonds``
@@ -1489,10 +1533,13 @@ class Simulation:
         # (the pair loops' cover arrays are part of the saved state: not synced here)
         self._cover_record = cover if cover or "ts_mode" in data else None
 
-    def _uncovered(self):
+    def _uncovered(self, apart: float = 0.0, ahead: float = 0.0):
         """Masks over the pair and wall lists of the closed contacts the last 'auto'
         estimate did not cover (or covered at a smaller overlap than they have now,
-        for a non-linear law); None when there was no estimate."""
+        for a non-linear law); None when there was no estimate. With ``apart`` [L] also
+        those not covered that are closer than it to touching (+inf: all), with
+        ``ahead`` [L] also a non-linear law's covered at less than ``ahead`` beyond
+        their overlap now."""
         cover = getattr(self, "_dt_cover", None)
         if cover is None:
             return None
@@ -1502,12 +1549,13 @@ class Simulation:
         none = (np.zeros(0, dtype=np.int64), np.zeros(0))
         known, assumed = cover.get("pairs", none)
         pair_mask = uncovered_pairs(self.x, self.r, self.pi, self.pj, self.periodic_len,
-                                    known, assumed, nonlinear)
+                                    known, assumed, nonlinear, float(apart), float(ahead))
         known, assumed = cover.get("walls", none)
         wall_mask = uncovered_walls(self.x, self.r, self.wp, self.ww, self.wall_point,
                                     self.wall_normal, self._walls_per_key,
                                     np.asarray(known, dtype=np.int64),
-                                    np.asarray(assumed, dtype=np.float64), nonlinear)
+                                    np.asarray(assumed, dtype=np.float64), nonlinear,
+                                    float(apart), float(ahead))
         return pair_mask, wall_mask
 
     @property
@@ -1547,9 +1595,13 @@ class Simulation:
             self.counters[3] = 0.0
 
     def _uncovered_now(self):
-        """:meth:`_uncovered`, skipped (no contact uncovered) when the pair loops counted
-        no contact closed beyond its cover since the last check; the cover synced after
-        a check."""
+        """The contacts to add to the certificate before the next step: skipped (none)
+        when the pair loops counted no contact that may have closed beyond its cover
+        since the last check (:func:`demstep.kernels.dem._advance`); else every contact
+        not covered, closed or not (one addition per rebuild of the lists, not one per
+        contact that comes close), and a non-linear law's closer than
+        :meth:`_lookahead` to the overlap it was covered at. The cover is synced after a
+        check."""
         if getattr(self, "_dt_cover", None) is None:
             return None
         tracked = (len(self.pairs.cover) == len(self.pairs.i)
@@ -1557,17 +1609,32 @@ class Simulation:
         if tracked and self.counters[3] == 0:
             return np.zeros(len(self.pairs.i), dtype=bool), np.zeros(len(self.wall_state.p),
                                                                       dtype=bool)
-        return self._uncovered()
+        return self._uncovered(apart=np.inf, ahead=self._lookahead())
+
+    #: :meth:`_lookahead`: how many steps' worth of closing an added contact is covered
+    #: for beyond its overlap now, at least (so that it is not at risk again at once)
+    LOOKAHEAD_STEPS = 4
+
+    def _lookahead(self) -> float:
+        """LOOKAHEAD_STEPS x the most a contact's gap closed in the last step [L], as the
+        pair loops bound it: both ends' moves (at most r_max x the largest |v| dt / r)
+        and the walls' or the box's."""
+        step = (2.0 * float(self.r.max(initial=0.0)) * float(self.counters[2])
+                + float(np.sqrt((self.wall_state.disp_prev ** 2).sum(axis=1)).max(initial=0.0))
+                + float(np.abs(self.box.sums[5]).sum()))
+        return self.LOOKAHEAD_STEPS * step
 
     def _still_certified(self) -> bool:
         """The check of the 'auto' control between estimates: False when there was no
-        estimate, or when a contact closed that the last one did not cover and
-        :meth:`_certify_added` cannot add it, or when the covered contacts' normals
-        turned so far that the certificate no longer holds at dt
-        (:mod:`demstep.timestep.certificate`; checked at every multiple of
-        AUTO_CHECK_EVERY steps: the certificate has the slack of the safety factor). The
-        pair loops count the contacts that close beyond their cover at every step; the
-        closed contacts are compared with the record only when they counted some."""
+        estimate, or when a contact may close that the last one did not cover
+        (:meth:`_uncovered_now`) and :meth:`_certify_added` cannot add it, or when the
+        covered contacts' normals turned so far that the certificate no longer holds at
+        dt (:mod:`demstep.timestep.certificate`; checked every
+        :meth:`_auto_check_every` steps: in between, the certificate has the slack of
+        the safety factor). With clumps the certificate does not follow the drift (their
+        members' arms turn with the bodies): there every check is a new estimate (a
+        forced one: it may only lower dt). The pair loops watch the contacts not covered
+        a step ahead; the lists are compared with the record only when they found some."""
         masks = self._uncovered_now()
         if masks is None:
             return False
@@ -1579,9 +1646,10 @@ class Simulation:
         if self.counters[3]:
             self._sync_cover()
         cert = getattr(self, "_dt_cert", None)
-        if (cert is None or not cert.bounded or self.dt is None
-                or self.step % self._auto_check_every()):
+        if cert is None or self.dt is None or self.step % self._auto_check_every():
             return True
+        if not cert.bounded:
+            return False  # (clumps: a new estimate at every check)
         return cert.certifies(self._certified_sigma(), self._drift(cert))
 
     def _contacts_covered(self) -> bool:
@@ -1602,7 +1670,7 @@ class Simulation:
         if cert is None or self.dt is None:
             return False
         sigma = self._certified_sigma()
-        added = self._contacts_of(pair_mask, wall_mask)
+        added, overlaps = self._contacts_of(pair_mask, wall_mask)
         if added.n == 0:
             return True
         # the longest arms the contacts can have (they lengthen as a contact opens)
@@ -1622,26 +1690,28 @@ class Simulation:
             if not mask.any():
                 continue
             if name == "pairs":
-                i, j = self.pi[mask], self.pj[mask]
-                keys = self._pair_keys(i, j)
-                delta = pair_geometry_arrays(self.x, self.r, i, j, self.periodic_len)[2]
+                keys = self._pair_keys(self.pi[mask], self.pj[mask])
             else:
-                p, w = self.wp[mask], self.ww[mask]
-                keys = self._wall_keys(p, w)
-                delta = wall_geometry_arrays(self.x, self.r, p, w, self.wall_point,
-                                             self.wall_normal)[2]
+                keys = self._wall_keys(self.wp[mask], self.ww[mask])
             known, assumed = cover.get(name, (np.zeros(0, dtype=np.int64), np.zeros(0)))
-            cover[name] = merge_cover(known, assumed, keys, delta)
+            cover[name] = merge_cover(known, assumed, keys, overlaps[name])
         self.n_dt_extensions = getattr(self, "n_dt_extensions", 0) + 1
         return True
 
-    def _contacts_of(self, pair_mask, wall_mask) -> ContactSet:
-        """The pairs and wall contacts selected by the masks as a ContactSet at their
-        current geometry and overlap (coefficients from the law)."""
+    def _contacts_of(self, pair_mask, wall_mask) -> tuple[ContactSet, dict]:
+        """The pairs and wall contacts selected by the masks (closed or not) as a
+        ContactSet at their current geometry, with the coefficients of the overlap they
+        can reach (:meth:`_reachable_overlap` over the last estimate's horizon, at least
+        :meth:`_lookahead` beyond the overlap now); and those overlaps [L],
+        {'pairs': (P,), 'walls': (W,)}."""
         dim = self.dim
         params = self.law.params()
         law_id = int(params.law)
         parts = []
+        overlaps = {}
+        horizon = float(getattr(self, "dt_horizon", 0.0) or 0.0)
+        speed = self._reach_speed(horizon)
+        ahead = self._lookahead()
         if pair_mask.any():
             i, j = self.pi[pair_mask], self.pj[pair_mask]
             d, dist, delta, ai, aj, _ = pair_geometry_arrays(self.x, self.r, i, j,
@@ -1649,21 +1719,27 @@ class Simulation:
             r_star = self.r[i] * self.r[j] / (self.r[i] + self.r[j])
             inv = self.inv_m[i] + self.inv_m[j]
             m_star = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), self.m[i])
-            kn, kt, cn, ct = self._coefficients(law_id, params, delta, r_star, m_star)
+            overlaps["pairs"] = self._reachable_overlap(delta, horizon * (speed[i] + speed[j]),
+                                                        r_star, ahead)
+            kn, kt, cn, ct = self._coefficients(law_id, params, overlaps["pairs"], r_star,
+                                                m_star)
             parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
                                     c_n=cn, c_t=ct))
         if wall_mask.any():
             p, wi = self.wp[wall_mask], self.ww[wall_mask]
             _, dist, delta, arm = wall_geometry_arrays(self.x, self.r, p, wi, self.wall_point,
                                                        self.wall_normal)
-            kn, kt, cn, ct = self._coefficients(law_id, params, delta, self.r[p], self.m[p])
+            overlaps["walls"] = self._reachable_overlap(
+                delta, horizon * (speed[p] + self._wall_speeds(wi)), self.r[p], ahead)
+            kn, kt, cn, ct = self._coefficients(law_id, params, overlaps["walls"], self.r[p],
+                                                self.m[p])
             parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim],
                                     arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct))
         if not parts:
             return ContactSet(np.zeros(0), np.zeros(0), np.zeros((0, dim)), np.zeros(0),
-                              np.zeros(0), 0.0, 0.0)
+                              np.zeros(0), 0.0, 0.0), overlaps
         return with_rolling(ContactSet.concatenate(parts), self.r, self.m, self.inertia,
-                            self.inv_m > 0, params)
+                            self.inv_m > 0, params), overlaps
 
     # --------------------------------------------------------------- running
     def every(self, n: int, callback: Callable[["Simulation"], None]):

@@ -434,7 +434,8 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, pa
     threads lost against two processes. Returns the chunk's PAIR_SUMS sums, all as
     floats (the counts exact below 2^53): strain_n, strain_t, friction, dashpot,
     contacts, uncovered, then the rows of ``box_sums``: virial (3), crossing sums (3),
-    crossing contacts (3), their k_n (3).
+    crossing contacts (3), their k_n (3); last the chunk's smallest headroom cover -
+    delta [L] (+inf without a cover).
 
     In the copies :func:`pair_loop_for` compiles, whether the law keeps dashpot history
     and whether the box is periodic are constants, and the branches on them are gone
@@ -449,6 +450,7 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, pa
     d_dash = 0.0
     n_contacts = 0
     n_uncovered = 0
+    headroom = np.inf
     vir0 = 0.0
     vir1 = 0.0
     vir2 = 0.0
@@ -615,8 +617,11 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, pa
             touching = delta > 0.0
             if touching:
                 n_contacts += 1
-            if track_cover and touching and delta > cover[k]:
-                n_uncovered += 1
+            if track_cover:
+                room = cover[k] - delta
+                headroom = min(headroom, room)
+                if touching and room < 0.0:
+                    n_uncovered += 1
             if periodic:
                 n0, n1, n2 = s[S_N0 * B + b], s[S_N1 * B + b], s[S_N2 * B + b]
                 cr0 += fx * n0
@@ -634,12 +639,13 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, pa
                         nc2 += 1
                         kc2 += c_kn
     return (e_n, e_t, d_fric, d_dash, float(n_contacts), float(n_uncovered), vir0, vir1, vir2,
-            cr0, cr1, cr2, float(nc0), float(nc1), float(nc2), kc0, kc1, kc2)
+            cr0, cr1, cr2, float(nc0), float(nc1), float(nc2), kc0, kc1, kc2, headroom)
 
 
 #: the sums a chunk of the pair loop returns (:func:`_pair_chunk`): six, then the
-#: four rows of three of ``box_sums``
-PAIR_SUMS = 18
+#: four rows of three of ``box_sums``, then the headroom (a minimum, not a sum)
+PAIR_SUMS = 19
+PAIR_HEADROOM = 18
 
 
 pair_chunk = njit(fastmath=CONTRACT)(_pair_chunk)
@@ -659,7 +665,7 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     ``spans[c, 1]``) to ``force_band[c]``/``torque_band[c]`` (rows from the first
     particle past its own), which :func:`_reduce_loop` adds once every chunk is done:
     no two threads write the same memory, and with one chunk there is no band. Returns
-    (strain_n, strain_t, friction, dashpot, contacts, uncovered). ``box_sums`` (4, 3)
+    (strain_n, strain_t, friction, dashpot, contacts, uncovered, headroom). ``box_sums`` (4, 3)
     receives per axis the virial sum F_on_j,k d_k (Love stress times volume), the
     boundary sum F_on_j,k n_img,k over pairs crossing a
     periodic boundary (times a change of box length: the work done on the contacts),
@@ -670,8 +676,11 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     row per pair, it receives the unit normal and the centre distance of every pair
     (the rolling-resistance loop reads them). ``cover`` (P,) or (0,): when it has a row
     per pair, the largest overlap [L] the last certified time step covered each pair at
-    (0: not covered; see :meth:`demstep.engine.Simulation._still_certified`), and the
-    touching pairs whose overlap exceeds it are counted (the last return value).
+    (0: not covered; see :meth:`demstep.engine.Simulation._still_certified`): the
+    touching pairs whose overlap exceeds it are counted (``uncovered``), and the
+    smallest headroom cover - delta [L] over all pairs is returned last (+inf without a
+    cover): a pair whose gap or overlap changes by less than it in the next step stays
+    within its cover.
 
     A chunk runs in blocks of PAIR_BLOCK pairs, in three passes whose work stays in
     the L1 cache: (1) gather: each pair's geometry, contact-point relative velocity
@@ -698,12 +707,15 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
             sums[c, q] = got[q]
     # the chunks' sums added in chunk order: the same whatever the threads did
     for c in range(1, n_chunks):
-        for q in range(PAIR_SUMS):
+        for q in range(PAIR_HEADROOM):
             sums[0, q] += sums[c, q]
+        sums[0, PAIR_HEADROOM] = min(sums[0, PAIR_HEADROOM], sums[c, PAIR_HEADROOM])
     for row in range(4):
         for k in range(3):
             box_sums[row, k] = sums[0, 6 + 3 * row + k]
-    return sums[0, 0], sums[0, 1], sums[0, 2], sums[0, 3], int(sums[0, 4]), int(sums[0, 5])
+    headroom = sums[0, PAIR_HEADROOM] if n_chunks > 0 else np.inf
+    return (sums[0, 0], sums[0, 1], sums[0, 2], sums[0, 3], int(sums[0, 4]), int(sums[0, 5]),
+            headroom)
 
 
 def _reduce_loop(force_band, torque_band, spans, force, torque):
@@ -764,7 +776,7 @@ def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu
     the particles exert on each wall, ``wall_contacts`` and ``wall_k`` the number of
     touching particles and the sum of their k_n (per run first, then summed). ``cover``
     as in :func:`_pair_loop` (per wall pair). Returns (strain_n, strain_t, friction,
-    dashpot, uncovered). Arrays of particles and wall pairs are read
+    dashpot, uncovered, headroom). Arrays of particles and wall pairs are read
     through flat views with unsigned indices (as in :func:`_pair_loop`)."""
     e_n = 0.0
     e_t = 0.0
@@ -778,6 +790,9 @@ def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu
     # rows sit between 64-byte pads, so that two threads never share a cache line
     per_run_padded = np.zeros((n_chunks, n_walls + 2, 8))
     per_run = per_run_padded[:, 1:n_walls + 1, :5]
+    # per run, the smallest headroom cover - delta (in the run's own first pad row)
+    for c in range(n_chunks):
+        per_run_padded[c, 0, 0] = np.inf
     # flat views, unsigned indices (as in the pair loop)
     X = x.reshape(-1)
     V = v.reshape(-1)
@@ -801,8 +816,12 @@ def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu
             ox, oy, oz = FT[h], FT[h + one], FT[h + two]
             fdx, fdy, fdz = FD[h], FD[h + one], FD[h + two]
             e_old = wetan[q]
-            if track_cover and delta > 0.0 and delta > cover[q]:
-                n_uncovered += 1
+            if track_cover:
+                room = cover[q] - delta
+                if room < per_run_padded[c, 0, 0]:
+                    per_run_padded[c, 0, 0] = room
+                if delta > 0.0 and room < 0.0:
+                    n_uncovered += 1
             if delta <= 0.0 and e_old == 0.0 and ox == 0.0 and oy == 0.0 and oz == 0.0 \
                     and fdx == 0.0 and fdy == 0.0 and fdz == 0.0:
                 continue
@@ -847,7 +866,10 @@ def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu
                 wall_force[wi, k] += per_run[c, wi, k]
             wall_contacts[wi] += int(per_run[c, wi, 3])
             wall_k[wi] += per_run[c, wi, 4]
-    return e_n, e_t, d_fric, d_dash, n_uncovered
+    headroom = np.inf
+    for c in range(n_chunks):
+        headroom = min(headroom, per_run_padded[c, 0, 0])
+    return e_n, e_t, d_fric, d_dash, n_uncovered, headroom
 
 
 @njit
@@ -1084,7 +1106,10 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
     (4,): particle-particle contacts, particle-wall contacts, largest jump |v| dt / r,
     and (added to, step after step) the contacts closed beyond the overlap the last
     certified time step covered them at (``pairs.cover``, ``walls.cover``; none counted
-    when those are empty)."""
+    when those are empty), plus one for each step after which a contact may be closed
+    beyond it (the smallest headroom of the step's pair and wall loops, less the most
+    a gap can have closed in the step): the chunk then ends (STOP_UNCOVERED), so that
+    the engine covers that contact before any force of it acts (not one step late)."""
     x, v, w, r, m = sph.x, sph.v, sph.w, sph.r, sph.m
     inv_m, force, torque = sph.inv_m, sph.force, sph.torque
     acc, energy, counters = ledger.acc, ledger.energy, ledger.counters
@@ -1103,12 +1128,16 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
     nw = wall_point.shape[0]
     n_chunks = pairs.force_band.shape[0]
     force_band, torque_band = pairs.force_band, pairs.torque_band
+    r_max = 0.0
+    if pairs.cover.shape[0] > 0 or walls.cover.shape[0] > 0:
+        for p in range(r.shape[0]):
+            r_max = max(r_max, r[p])
     for step in range(n_steps):
         # 1. pair contact forces; the slip increment of step n is x(t) - x(t - dt_prev)
         dt_slip = 0.0 if first else dt_prev
         for k in range(3):
             box_rate[k] = 0.0 if first else box_state[5, k] / dt_prev
-        e_n, e_t, d_fric, d_dash, n_pp, pp_uncovered = pair_forces(
+        e_n, e_t, d_fric, d_dash, n_pp, pp_uncovered, pp_headroom = pair_forces(
             x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, law, params,
             dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
             pairs.chunks, pairs.spans, force, torque, force_band, torque_band, box_sums,
@@ -1122,7 +1151,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         if n_chunks > 1:
             reduce_forces(force_band, torque_band, pairs.spans, force, torque)
         # 2. particle-wall contact forces
-        we_n, we_t, wd_fric, wd_dash, pw_uncovered = wall_forces(
+        we_n, we_t, wd_fric, wd_dash, pw_uncovered, pw_headroom = wall_forces(
             x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
             law, params, dt_slip, walls.shear, walls.dashpot, walls.shear_energy, force,
             torque, wall_force, walls.contacts, walls.k_sum, wall_chunks, walls.cover)
@@ -1201,8 +1230,10 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
             out[7] = max(out[7], out_bodies[7])
         # 6. walls and the periodic box move
         boundary_move = 0.0
+        boundary_step = 0.0  # how far a wall or the box moved in this step, at most
         for wi in range(nw):
             d2 = 0.0
+            s2 = 0.0
             for k in range(3):
                 disp = dt * wall_vel[wi, k] if walls.motion[wi] != WALL_FIXED else 0.0
                 wall_point[wi, k] += disp
@@ -1210,12 +1241,15 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
                 walls.force_prev[wi, k] = wall_force[wi, k]
                 dd = wall_point[wi, k] - walls.ref[wi, k]
                 d2 += dd * dd
+                s2 += disp * disp
             boundary_move = max(boundary_move, math.sqrt(d2))
+            boundary_step = max(boundary_step, math.sqrt(s2))
         for k in range(3):
             box_state[4, k] = box_sums[1, k]
             box_state[5, k] = dt * box_speed[k]
             periodic_len[k] += dt * box_speed[k]
             boundary_move += abs(periodic_len[k] - box.ref[k])
+            boundary_step += abs(dt * box_speed[k])
         # 7. ledger
         acc[A_BODY] += out[0]
         acc[A_APPLIED] += out[1]
@@ -1254,10 +1288,16 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         floor = ctl.energy_floor
         if ctl.runaway_factor > 0.0 and ke > ctl.runaway_factor * max(supplied + floor, floor):
             return step + 1, STOP_RUNAWAY
+        # a contact that may have closed beyond the cover of the certified step at the
+        # positions now (its headroom at the start of this step, less how far its gap
+        # can have closed in it: both ends' moves, at most r_max (|v| dt / r)_max each,
+        # and the walls' or the box's), or that closed beyond it in this step: the
+        # engine checks it before the next step's forces (after a rebuild too)
+        if min(pp_headroom, pw_headroom) <= 2.0 * r_max * out[7] + boundary_step:
+            counters[3] += 1.0
         # neighbour lists expire after skin / 2 of particle, wall or box motion
         if math.sqrt(out[6]) + boundary_move > 0.5 * ctl.skin:
             return step + 1, STOP_REBUILD
-        # a contact closed beyond the cover of the certified step: the engine checks it
         if counters[3] > 0:
             return step + 1, STOP_UNCOVERED
     return n_steps, STOP_DONE
