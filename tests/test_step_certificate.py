@@ -313,18 +313,29 @@ def test_uncovered_masks_equal_a_numpy_search():
         chosen = np.union1d(chosen, np.flatnonzero(~on)[:5])
         known = keys_all[chosen]
         assumed = delta[chosen] * rng.choice([0.5, 2.0], len(chosen))
+        # looking ahead: each particle's move and the boundaries' added to the overlap
+        move = rng.uniform(0.0, 0.02, n)
+        ahead = move[pi] + move[pj] + 0.01 if name == "pairs" else move[wp] + 0.01
         for check in (False, True):
-            pos = np.minimum(np.searchsorted(known, keys_all), len(known) - 1)
-            expect = on & ((known[pos] != keys_all)
-                           | (check & (delta > np.where(known[pos] == keys_all, assumed[pos], np.inf))))
-            if name == "pairs":
-                got = uncovered_pairs(x, r, pi, pj, np.zeros(3), known, assumed, check)
-            else:
-                got = uncovered_walls(x, r, wp, ww, point, normal, 3, known, assumed, check)
-            assert np.array_equal(got, expect), (name, check)
-            assert got.sum() > 0
-            # the per-contact limits the pair loops compare with say the same
-            assert np.array_equal(on & (delta > cover_limits(keys_all, known, assumed, check)), expect)
+            for looked in (0.0, 1.0):
+                eff = delta + looked * ahead
+                pos = np.minimum(np.searchsorted(known, keys_all), len(known) - 1)
+                limit = np.where(known[pos] == keys_all, assumed[pos], np.inf)
+                expect = (eff > 0) & ((known[pos] != keys_all) | (check & (eff > limit)))
+                if name == "pairs":
+                    got = uncovered_pairs(x, r, pi, pj, np.zeros(3), known, assumed, check,
+                                          looked * move, looked * 0.01)
+                else:
+                    got = uncovered_walls(x, r, wp, ww, point, normal, 3, known, assumed, check,
+                                          looked * move, looked * 0.01)
+                assert np.array_equal(got, expect), (name, check, looked)
+                assert got.sum() > 0
+            # (looking ahead finds more: pairs apart now, overlaps about to outgrow)
+            assert (expect & ~on).any()
+            # the per-contact limits the pair loops compare with say the same (now)
+            expect_now = on & ((known[pos] != keys_all) | (check & (delta > limit)))
+            assert np.array_equal(on & (delta > cover_limits(keys_all, known, assumed, check)),
+                                  expect_now)
 
 
 @pytest.mark.parametrize("n_known", [0, 1, 300])

@@ -549,8 +549,9 @@ class Simulation:
     def _closed_uncovered_new(self, cover, wall_cover) -> bool:
         """At a rebuild, with the 'auto' control's cover tracked (``cover``,
         ``wall_cover`` per pair and wall pair of the new lists): whether a pair not
-        covered (a new one) is closed already. The pair loops watch the pairs they know
-        a step ahead; those the rebuild brought they have not seen yet."""
+        covered (a new one) is closed already. The steps look for such contacts among
+        the pairs they know at the positions they end with; those the rebuild brought
+        they have not seen."""
         found = False
         if len(cover) and len(cover) == len(self.pairs.i):
             new = cover == 0.0
@@ -805,14 +806,14 @@ class Simulation:
                                           np.minimum(self.servo[walls, dem.S_MAXSPEED], 1e300),
                                           0.0))
 
-    def _reachable_overlap(self, delta, reach, r_star, ahead: float = 0.0) -> np.ndarray:
+    def _reachable_overlap(self, delta, reach, r_star) -> np.ndarray:
         """The overlap [L] an 'auto' estimate covers contacts at (their coefficients;
         the cover the pair loops compare with): from the overlap ``delta`` now (negative
         apart), ``reach`` = h (s_i + s_j) [L] the distance the two ends cover within the
         horizon h (:meth:`contact_set`), twice (a margin for speeding up), at most the
-        skin, at least ``ahead`` [L] (:meth:`_lookahead`); a non-linear law's at least
-        the TimeStep's relative ``overlap`` x ``r_star``."""
-        out = np.maximum(delta, 0.0) + np.maximum(np.minimum(2.0 * reach, self.skin), ahead)
+        skin; a non-linear law's at least the TimeStep's relative ``overlap`` x
+        ``r_star``."""
+        out = np.maximum(delta, 0.0) + np.minimum(2.0 * reach, self.skin)
         if self.law.law_id != 0:
             out = np.maximum(out, self.timestep.overlap * r_star)
         return out
@@ -1533,30 +1534,42 @@ class Simulation:
         # (the pair loops' cover arrays are part of the saved state: not synced here)
         self._cover_record = cover if cover or "ts_mode" in data else None
 
-    def _uncovered(self, apart: float = 0.0, ahead: float = 0.0):
+    def _uncovered(self, steps: float = 0.0):
         """Masks over the pair and wall lists of the closed contacts the last 'auto'
         estimate did not cover (or covered at a smaller overlap than they have now,
-        for a non-linear law); None when there was no estimate. With ``apart`` [L] also
-        those not covered that are closer than it to touching (+inf: all), with
-        ``ahead`` [L] also a non-linear law's covered at less than ``ahead`` beyond
-        their overlap now."""
+        for a non-linear law); None when there was no estimate. ``steps`` > 0: those
+        closing so within that many steps at the velocities now too
+        (:meth:`_step_moves`)."""
         cover = getattr(self, "_dt_cover", None)
         if cover is None:
             return None
         from demstep.timestep.certificate import uncovered_pairs, uncovered_walls
 
+        move, boundary = self._step_moves()
+        move *= steps
+        boundary *= steps
         nonlinear = self.law.law_id != 0  # a non-linear law stiffer than assumed
         none = (np.zeros(0, dtype=np.int64), np.zeros(0))
         known, assumed = cover.get("pairs", none)
         pair_mask = uncovered_pairs(self.x, self.r, self.pi, self.pj, self.periodic_len,
-                                    known, assumed, nonlinear, float(apart), float(ahead))
+                                    known, assumed, nonlinear, move, boundary)
         known, assumed = cover.get("walls", none)
         wall_mask = uncovered_walls(self.x, self.r, self.wp, self.ww, self.wall_point,
                                     self.wall_normal, self._walls_per_key,
                                     np.asarray(known, dtype=np.int64),
                                     np.asarray(assumed, dtype=np.float64), nonlinear,
-                                    float(apart), float(ahead))
+                                    move, boundary)
         return pair_mask, wall_mask
+
+    def _step_moves(self) -> tuple[np.ndarray, float]:
+        """(move (N,), boundary) [L]: how far each particle moves in a step of dt at its
+        velocity now, |v| dt, and how far the walls and the periodic box moved in the
+        last step (as :func:`demstep.kernels.dem.closing_beyond_cover` takes them)."""
+        dt = float(self.dt) if self.dt is not None else 0.0
+        move = dt * np.linalg.norm(self.v, axis=1)
+        boundary = (float(np.sqrt((self.wall_state.disp_prev ** 2).sum(axis=1)).max(initial=0.0))
+                    + float(np.abs(self.box.sums[5]).sum()))
+        return move, boundary
 
     @property
     def _dt_cover(self) -> dict | None:
@@ -1595,13 +1608,11 @@ class Simulation:
             self.counters[3] = 0.0
 
     def _uncovered_now(self):
-        """The contacts to add to the certificate before the next step: skipped (none)
-        when the pair loops counted no contact that may have closed beyond its cover
-        since the last check (:func:`demstep.kernels.dem._advance`); else every contact
-        not covered, closed or not (one addition per rebuild of the lists, not one per
-        contact that comes close), and a non-linear law's closer than
-        :meth:`_lookahead` to the overlap it was covered at. The cover is synced after a
-        check."""
+        """:meth:`_uncovered`, the contacts to add to the certificate before the next
+        step: skipped (none) when the steps counted no contact closed beyond its cover
+        since the last check (:func:`demstep.kernels.dem._advance` looks at the
+        positions each step ends with, and a rebuild at its new pairs). The cover is
+        synced after a check."""
         if getattr(self, "_dt_cover", None) is None:
             return None
         tracked = (len(self.pairs.cover) == len(self.pairs.i)
@@ -1609,32 +1620,26 @@ class Simulation:
         if tracked and self.counters[3] == 0:
             return np.zeros(len(self.pairs.i), dtype=bool), np.zeros(len(self.wall_state.p),
                                                                       dtype=bool)
-        return self._uncovered(apart=np.inf, ahead=self._lookahead())
+        return self._uncovered(self.LOOKAHEAD_STEPS)
 
-    #: :meth:`_lookahead`: how many steps' worth of closing an added contact is covered
-    #: for beyond its overlap now, at least (so that it is not at risk again at once)
-    LOOKAHEAD_STEPS = 4
-
-    def _lookahead(self) -> float:
-        """LOOKAHEAD_STEPS x the most a contact's gap closed in the last step [L], as the
-        pair loops bound it: both ends' moves (at most r_max x the largest |v| dt / r)
-        and the walls' or the box's."""
-        step = (2.0 * float(self.r.max(initial=0.0)) * float(self.counters[2])
-                + float(np.sqrt((self.wall_state.disp_prev ** 2).sum(axis=1)).max(initial=0.0))
-                + float(np.abs(self.box.sums[5]).sum()))
-        return self.LOOKAHEAD_STEPS * step
+    #: 'auto': a check finds the contacts closing beyond their cover within this many
+    #: steps at the velocities now (the steps look one ahead), and covers them that far
+    #: ahead (a non-linear law's stiffness taken there), so that a contact pressing on
+    #: is not found again at the next step
+    LOOKAHEAD_STEPS = 3
 
     def _still_certified(self) -> bool:
         """The check of the 'auto' control between estimates: False when there was no
-        estimate, or when a contact may close that the last one did not cover
+        estimate, or when a contact is closed that the last one did not cover
         (:meth:`_uncovered_now`) and :meth:`_certify_added` cannot add it, or when the
         covered contacts' normals turned so far that the certificate no longer holds at
         dt (:mod:`demstep.timestep.certificate`; checked every
         :meth:`_auto_check_every` steps: in between, the certificate has the slack of
         the safety factor). With clumps the certificate does not follow the drift (their
         members' arms turn with the bodies): there every check is a new estimate (a
-        forced one: it may only lower dt). The pair loops watch the contacts not covered
-        a step ahead; the lists are compared with the record only when they found some."""
+        forced one: it may only lower dt). The steps look for contacts closed beyond
+        their cover at the positions they end with; the lists are compared with the
+        record only when they found some."""
         masks = self._uncovered_now()
         if masks is None:
             return False
@@ -1701,17 +1706,17 @@ class Simulation:
     def _contacts_of(self, pair_mask, wall_mask) -> tuple[ContactSet, dict]:
         """The pairs and wall contacts selected by the masks (closed or not) as a
         ContactSet at their current geometry, with the coefficients of the overlap they
-        can reach (:meth:`_reachable_overlap` over the last estimate's horizon, at least
-        :meth:`_lookahead` beyond the overlap now); and those overlaps [L],
-        {'pairs': (P,), 'walls': (W,)}."""
+        reach in LOOKAHEAD_STEPS steps at the velocities now (:meth:`_step_moves`; if
+        they go on, the steps find them again and they are added again); and those
+        overlaps [L], {'pairs': (P,), 'walls': (W,)}."""
         dim = self.dim
         params = self.law.params()
         law_id = int(params.law)
         parts = []
         overlaps = {}
-        horizon = float(getattr(self, "dt_horizon", 0.0) or 0.0)
-        speed = self._reach_speed(horizon)
-        ahead = self._lookahead()
+        move, boundary = self._step_moves()
+        move *= self.LOOKAHEAD_STEPS
+        boundary *= self.LOOKAHEAD_STEPS
         if pair_mask.any():
             i, j = self.pi[pair_mask], self.pj[pair_mask]
             d, dist, delta, ai, aj, _ = pair_geometry_arrays(self.x, self.r, i, j,
@@ -1719,8 +1724,7 @@ class Simulation:
             r_star = self.r[i] * self.r[j] / (self.r[i] + self.r[j])
             inv = self.inv_m[i] + self.inv_m[j]
             m_star = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), self.m[i])
-            overlaps["pairs"] = self._reachable_overlap(delta, horizon * (speed[i] + speed[j]),
-                                                        r_star, ahead)
+            overlaps["pairs"] = np.maximum(delta, 0.0) + move[i] + move[j] + boundary
             kn, kt, cn, ct = self._coefficients(law_id, params, overlaps["pairs"], r_star,
                                                 m_star)
             parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
@@ -1729,8 +1733,7 @@ class Simulation:
             p, wi = self.wp[wall_mask], self.ww[wall_mask]
             _, dist, delta, arm = wall_geometry_arrays(self.x, self.r, p, wi, self.wall_point,
                                                        self.wall_normal)
-            overlaps["walls"] = self._reachable_overlap(
-                delta, horizon * (speed[p] + self._wall_speeds(wi)), self.r[p], ahead)
+            overlaps["walls"] = np.maximum(delta, 0.0) + move[p] + boundary
             kn, kt, cn, ct = self._coefficients(law_id, params, overlaps["walls"], self.r[p],
                                                 self.m[p])
             parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim],

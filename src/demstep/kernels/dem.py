@@ -1089,6 +1089,56 @@ rolling_forces, rolling_forces_serial = compile_parallel_and_serial(_rolling_loo
 wall_rolling, wall_rolling_serial = compile_parallel_and_serial(_wall_rolling_loop)
 
 
+@njit(inline="always")
+def _step_move(v, p, dt):
+    """|v_p| dt [L]: how far particle p moves in a step of ``dt`` at its velocity now."""
+    return dt * math.sqrt(v[p, 0] * v[p, 0] + v[p, 1] * v[p, 1] + v[p, 2] * v[p, 2])
+
+
+@njit(cache=True)
+def closing_beyond_cover(x, v, r, pi, pj, periodic_len, cover, wp, ww, wall_point, wall_normal,
+                         wall_cover, dt, boundary) -> int:
+    """How many pairs (pi, pj) and wall pairs (wp, ww) are closed at the positions ``x``
+    beyond the overlap [L] their cover allows (``cover``, ``wall_cover``: one per pair,
+    else none checked; +inf: any, skipped without reading the positions; 0: not
+    covered), or will be after one more step of ``dt`` at the velocities ``v`` (each
+    overlap taken (|v_i| + |v_j|) dt + ``boundary`` ahead, ``boundary`` the walls' and
+    the box's last move [L]): a pass of the geometry alone, which :func:`_advance`
+    makes only after a step whose headrooms left room for such a contact. The engine
+    covers them before the next step (:meth:`demstep.engine.Simulation._uncovered`
+    looks further ahead): a contact closed beyond its cover must not act in a step,
+    and a contact about to close had better close at a step certified for it (a light
+    particle that closes at a step certified for heavy ones only penetrates deep in
+    it, and its spring returns far more energy than it took)."""
+    count = 0
+    if cover.shape[0] == pi.shape[0]:
+        periodic = any_periodic(periodic_len)
+        for k in range(pi.shape[0]):
+            limit = cover[k]
+            if limit == np.inf:
+                continue
+            i, j = pi[k], pj[k]
+            delta = pair_geometry(x[i, 0], x[i, 1], x[i, 2], x[j, 0], x[j, 1], x[j, 2], r[i],
+                                  r[j], periodic_len[0], periodic_len[1], periodic_len[2],
+                                  periodic)[4]
+            delta += _step_move(v, i, dt) + _step_move(v, j, dt) + boundary
+            if delta > 0.0 and delta > limit:
+                count += 1
+    if wall_cover.shape[0] == wp.shape[0]:
+        for q in range(wp.shape[0]):
+            limit = wall_cover[q]
+            if limit == np.inf:
+                continue
+            p, w = wp[q], ww[q]
+            delta = wall_geometry(x[p, 0], x[p, 1], x[p, 2], r[p], wall_point[w, 0],
+                                  wall_point[w, 1], wall_point[w, 2], wall_normal[w, 0],
+                                  wall_normal[w, 1], wall_normal[w, 2])[4]
+            delta += _step_move(v, p, dt) + boundary
+            if delta > 0.0 and delta > limit:
+                count += 1
+    return count
+
+
 def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params):
     """Run up to ``n_steps`` steps of the documented order
     (:meth:`demstep.engine.Simulation.run`) on the bundles of :mod:`demstep.state`
@@ -1106,10 +1156,11 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
     (4,): particle-particle contacts, particle-wall contacts, largest jump |v| dt / r,
     and (added to, step after step) the contacts closed beyond the overlap the last
     certified time step covered them at (``pairs.cover``, ``walls.cover``; none counted
-    when those are empty), plus one for each step after which a contact may be closed
-    beyond it (the smallest headroom of the step's pair and wall loops, less the most
-    a gap can have closed in the step): the chunk then ends (STOP_UNCOVERED), so that
-    the engine covers that contact before any force of it acts (not one step late)."""
+    when those are empty), and those closed beyond it at the positions a step ends
+    with or closing in the next step (:func:`closing_beyond_cover`, looked for when the
+    smallest headroom of the step's pair and wall loops leaves room for one): the
+    chunk then ends (STOP_UNCOVERED), so that the engine covers such a contact before
+    any force of it acts (not one step late)."""
     x, v, w, r, m = sph.x, sph.v, sph.w, sph.r, sph.m
     inv_m, force, torque = sph.inv_m, sph.force, sph.torque
     acc, energy, counters = ledger.acc, ledger.energy, ledger.counters
@@ -1288,13 +1339,16 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         floor = ctl.energy_floor
         if ctl.runaway_factor > 0.0 and ke > ctl.runaway_factor * max(supplied + floor, floor):
             return step + 1, STOP_RUNAWAY
-        # a contact that may have closed beyond the cover of the certified step at the
-        # positions now (its headroom at the start of this step, less how far its gap
-        # can have closed in it: both ends' moves, at most r_max (|v| dt / r)_max each,
-        # and the walls' or the box's), or that closed beyond it in this step: the
-        # engine checks it before the next step's forces (after a rebuild too)
-        if min(pp_headroom, pw_headroom) <= 2.0 * r_max * out[7] + boundary_step:
-            counters[3] += 1.0
+        # contacts closed beyond the cover of the certified step at the positions now,
+        # or closing in the next step at these velocities, looked for when the
+        # smallest headroom at the start of this step leaves room for one (twice how
+        # far a gap can close in a step: both ends' moves, at most r_max (|v| dt / r)_max
+        # each, and the walls' or the box's); the engine covers them before the next
+        # step's forces (after a rebuild too)
+        if min(pp_headroom, pw_headroom) <= 2.0 * (2.0 * r_max * out[7] + boundary_step):
+            counters[3] += closing_beyond_cover(x, v, r, pairs.i, pairs.j, periodic_len,
+                                                pairs.cover, walls.p, walls.wall, wall_point,
+                                                wall_normal, walls.cover, dt, boundary_step)
         # neighbour lists expire after skin / 2 of particle, wall or box motion
         if math.sqrt(out[6]) + boundary_move > 0.5 * ctl.skin:
             return step + 1, STOP_REBUILD

@@ -234,27 +234,27 @@ def merge_cover(known, assumed, keys, overlaps):
 
 
 @njit(inline="always")
-def _not_covered(known, assumed, pos, key, delta, check_overlap, apart, ahead):
+def _not_covered(known, assumed, pos, key, delta, check_overlap):
     """One step of the merge of a sorted contact list with the sorted ``known`` keys
-    (from ``pos``): whether the contact ``key`` (overlap ``delta``, negative apart) is
-    missing from them and closer than ``apart`` to touching (delta > -apart) or, with
-    ``check_overlap``, covered at an overlap less than ``ahead`` beyond delta; and the
-    merge's new position."""
+    (from ``pos``): whether the touching contact ``key`` (overlap ``delta``) is missing
+    from them or, with ``check_overlap``, covered at a smaller overlap; and the merge's
+    new position."""
     while pos < known.shape[0] and known[pos] < key:
         pos += 1
     if pos == known.shape[0] or known[pos] != key:
-        return delta > -apart, pos
-    return check_overlap and delta + ahead > assumed[pos], pos
+        return True, pos
+    return check_overlap and delta > assumed[pos], pos
 
 
 @njit(cache=True)
-def uncovered_pairs(x, r, pi, pj, periodic_len, known, assumed, check_overlap, apart=0.0,
-                    ahead=0.0):
-    """Mask over the pair list (pi, pj), sorted by (i, j), of the pairs whose key
-    i N + j is not among ``known`` (sorted) and whose gap is below ``apart`` [L] (0:
-    the closed ones; +inf: all) or, with ``check_overlap``, whose overlap is within
-    ``ahead`` [L] of the one its coefficients ``assumed`` or beyond it (0: beyond):
-    one pass merging the two sorted lists."""
+def uncovered_pairs(x, r, pi, pj, periodic_len, known, assumed, check_overlap, move,
+                    boundary=0.0):
+    """Mask over the pair list (pi, pj), sorted by (i, j), of the closed pairs whose key
+    i N + j is not among ``known`` (sorted) or, with ``check_overlap``, whose overlap
+    exceeds the one its coefficients ``assumed``: one pass merging the two sorted
+    lists. Each pair's overlap is taken ``move[i] + move[j] + boundary`` [L] ahead
+    (``move`` (N,) how far each particle moves in the steps looked ahead, ``boundary``
+    the walls and the box; zeros: the pairs closed now)."""
     n = r.shape[0]
     mask = np.zeros(pi.shape[0], dtype=np.bool_)
     pos = 0
@@ -263,22 +263,22 @@ def uncovered_pairs(x, r, pi, pj, periodic_len, known, assumed, check_overlap, a
         p, q = pi[c], pj[c]
         delta = pair_geometry(x[p, 0], x[p, 1], x[p, 2], x[q, 0], x[q, 1], x[q, 2], r[p], r[q],
                               periodic_len[0], periodic_len[1], periodic_len[2], periodic)[4]
-        if delta <= -apart and delta <= -ahead:  # (the assumed overlaps are >= 0)
+        delta += move[p] + move[q] + boundary
+        if delta <= 0.0:
             continue
         key = p * n + q
-        mask[c], pos = _not_covered(known, assumed, pos, key, delta, check_overlap, apart,
-                                    ahead)
+        mask[c], pos = _not_covered(known, assumed, pos, key, delta, check_overlap)
     return mask
 
 
 @njit(cache=True)
 def uncovered_walls(x, r, wp, ww, wall_point, wall_normal, n_walls, known, assumed,
-                    check_overlap, apart=0.0, ahead=0.0):
-    """Mask over the particle-wall list (wp, ww), sorted by (p, w), of the contacts
-    whose key p n_walls + w is not among ``known`` (sorted; empty: none covered) and
-    whose gap is below ``apart`` or, with ``check_overlap``, whose overlap is within
-    ``ahead`` of the one ``assumed`` for it or beyond: one pass merging the two sorted
-    lists, as :func:`uncovered_pairs`."""
+                    check_overlap, move, boundary=0.0):
+    """Mask over the particle-wall list (wp, ww), sorted by (p, w), of the touching
+    contacts whose key p n_walls + w is not among ``known`` (sorted; empty: none
+    covered) or, with ``check_overlap``, whose overlap exceeds the one ``assumed`` for
+    it: one pass merging the two sorted lists, as :func:`uncovered_pairs` (overlaps
+    taken ``move[p] + boundary`` ahead)."""
     mask = np.zeros(wp.shape[0], dtype=np.bool_)
     pos = 0
     for c in range(wp.shape[0]):
@@ -286,11 +286,11 @@ def uncovered_walls(x, r, wp, ww, wall_point, wall_normal, n_walls, known, assum
         delta = wall_geometry(x[p, 0], x[p, 1], x[p, 2], r[p], wall_point[w, 0],
                               wall_point[w, 1], wall_point[w, 2], wall_normal[w, 0],
                               wall_normal[w, 1], wall_normal[w, 2])[4]
-        if delta <= -apart and delta <= -ahead:
+        delta += move[p] + boundary
+        if delta <= 0.0:
             continue
         key = p * n_walls + w
-        mask[c], pos = _not_covered(known, assumed, pos, key, delta, check_overlap, apart,
-                                    ahead)
+        mask[c], pos = _not_covered(known, assumed, pos, key, delta, check_overlap)
     return mask
 
 
