@@ -189,6 +189,73 @@ def test_moved_assembly_stays_below_the_drifted_certificate():
     assert exceeded > 0
 
 
+def test_drift_budget_keeps_the_step_certified_on_the_way():
+    """The heap of the test above, certified at sigma = 1.05 sigma_c: every particle then
+    moves by at most half the drift budget (so every pair's ends by at most the budget,
+    each in its own direction and amount): the drift still certifies sigma, and the
+    dense lambda_max(sigma C' + K') of the moved assembly (the touching pairs now, at
+    their geometry) stays below sigma^2. Without slack there is no budget."""
+    rng = np.random.default_rng(2)
+    x = rng.uniform(0, 3.2, (40, 3))
+    r = rng.uniform(0.45, 0.6, 40)
+    p = Particles.from_density(x, r, 2.0)
+    found = find_contacts(p, 1.0, contact_tol=0.25)
+    k_n = rng.uniform(1.0, 3.0, found.n)
+    ref = contacts_now(ContactSet(found.i, found.j, found.normal, r[found.i], r[found.j], k_n,
+                                  0.4 * k_n, c_n=0.2 * np.sqrt(k_n), c_t=0.05 * np.sqrt(k_n)),
+                       x, r, apart=True)
+    K = scaled(p, ref, True, (ref.k_n, ref.k_s))
+    C = scaled(p, ref, True, (ref.c_n, ref.c_t))
+    sigma_c = dense_root(K, C)
+    cert = StepCertificate.from_estimate(sigma_c, np.linalg.eigvalsh(C)[-1], ref, 1.0 / p.m,
+                                         1.0 / p.inertia, radius=r)
+    pos = np.array(x, dtype=np.float64)
+    sigma = 1.05 * sigma_c
+    cap = r.min()  # (out of the way: the bound itself limits the budget)
+    budget = cert.drift_budget(sigma, pos, np.zeros(3), e_cap=cap)
+    assert 1e-4 * r.min() < budget < cap
+    moved_far = 0.0
+    for trial in range(30):
+        step = 0.5 * budget * rng.uniform(0.5, 1.0, (40, 1)) * unit(rng.normal(size=(40, 3)))
+        moved = pos + step
+        assert cert.certifies(sigma, cert.drift(moved, np.zeros(3)))
+        now = contacts_now(ref, moved, r, apart=True)
+        K2 = scaled(p, now, True, (now.k_n, now.k_s))
+        C2 = scaled(p, now, True, (now.c_n, now.c_t))
+        assert np.linalg.eigvalsh(sigma * C2 + K2)[-1] <= sigma * sigma
+        moved_far = max(moved_far, np.abs(cert.drift(moved, np.zeros(3))).max())
+    assert moved_far > 0
+    assert cert.drift_budget(sigma_c * (1 + 1e-12), pos, np.zeros(3), e_cap=cap) < 1e-6 * budget
+
+
+@pytest.mark.parametrize("bond", [False, True])
+@pytest.mark.parametrize("rotation, k_t", [(True, 2.0), (False, 0.6)])
+def test_drift_budget_of_a_pure_turn_is_within_ten_times_the_limit(bond, rotation, k_t):
+    """Two touching spheres (k_t = k_n, where a pure turn attains the drift bound; or
+    without rotation, where only the turn counts), certified at sigma = 1.01 sigma_c, as
+    a contact or a bond: turning the pair by moving one sphere across the normal by the
+    budget keeps sigma certified; by ten times the budget it does not (the budget counts
+    each normal's turn twice, and the arms' move besides: measured limits 4-6x for a
+    contact, 8-10x for a bond, whose arms lengthen as it turns)."""
+    x = np.array([[0.0, 0, 0], [1.98, 0, 0]])
+    r = np.ones(2)
+    p = Particles.from_density(x, r, 1.0)
+    arm = 0.99 * np.ones(1)
+    pair = ContactSet(np.array([0]), np.array([1]), np.array([[1.0, 0, 0]]), arm, arm,
+                      np.array([2.0]), np.array([k_t]))
+    K = scaled(p, pair, rotation, (pair.k_n, pair.k_s))
+    sigma_c = np.sqrt(np.linalg.eigvalsh(K)[-1])
+    inv_I = 1.0 / p.inertia if rotation else np.zeros(2)
+    cert = StepCertificate.from_estimate(sigma_c, 0.0, pair, 1.0 / p.m, inv_I, radius=r,
+                                         bond=np.array([bond]))
+    sigma = 1.01 * sigma_c
+    budget = cert.drift_budget(sigma, x, np.zeros(3), e_cap=0.5)
+    assert 0.0 < budget < 0.5
+    across = np.array([[0.0, 0, 0], [0.0, 1.0, 0]])
+    assert cert.certifies(sigma, cert.drift(x + budget * across, np.zeros(3)))
+    assert not cert.certifies(sigma, cert.drift(x + 10.0 * budget * across, np.zeros(3)))
+
+
 def test_smallest_sigma_is_the_smallest_certified_root():
     rng = np.random.default_rng(4)
     for _ in range(200):
@@ -270,20 +337,21 @@ def test_a_refused_refresh_hands_its_contact_set_to_the_new_estimate(monkeypatch
 
 def test_normals_turned_too_far_force_a_new_estimate():
     """The same packing turned rigidly by 20 degrees about z after an estimate (masses
-    and contacts unchanged): the check the run loop makes after every chunk fails at a
-    multiple of AUTO_CHECK_EVERY (the drift term no longer certifies dt); a
-    translation alone keeps the certificate, and off the multiple the drift is not
+    and contacts unchanged): the check the run loop makes after every chunk fails once
+    the drift budget is spent (the drift term no longer certifies dt); a translation
+    alone keeps the certificate, and before the budget is spent the drift is not
     looked at."""
     sim = quiet_packing(safety=0.9, every=10**6)
-    sim.run(steps=sim.AUTO_CHECK_EVERY)
-    assert sim._still_certified()
+    sim.run(steps=50)
+    assert sim._still_certified() and 0 < sim._check_budget < np.inf
     sim.x[:] += [1e-3, 0.0, 0.0]
-    assert sim._still_certified()
+    sim.counters[4] = np.inf  # (the budget spent: checked, a new budget)
+    assert sim._still_certified() and sim.counters[4] == 0
     c, s = np.cos(np.radians(20)), np.sin(np.radians(20))
     sim.x[:] = sim.x @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
+    assert sim._still_certified()  # (budget not spent: not looked at)
+    sim.counters[4] = 1.01 * sim._check_budget
     assert not sim._still_certified()
-    sim.step += 1  # off the multiple: the drift is checked at the next one
-    assert sim._still_certified()
 
 
 def test_uncovered_masks_equal_a_numpy_search():

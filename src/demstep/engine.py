@@ -22,14 +22,18 @@ between its calls)::
     7. energy ledger: state terms at t (kinetic from the mean of the two half-step
        velocities, strain), accumulated work and dissipation over [t - dt, t]
     8. divergence checks (non-finite values, a particle jumping, runaway kinetic
-       energy); the neighbour lists expire after skin / 2 of motion: return
+       energy); 'auto': contacts closed beyond the last certificate's cover at the
+       new positions, or closing in the next step, and the drift budget; the
+       neighbour lists expire after skin / 2 of motion: return
     9. (Python) rebuild expired lists, carrying the contact history over
    10. (Python) energy balance monitor; writers and callbacks on their triggers
    11. (Python) 'auto' time step: a new estimate when scheduled (every N steps; the
-       last certificate is kept instead when it is still as good) or when a contact
-       closed that the last estimate did not cover and its certificate cannot absorb
-       (checked after every rebuild and every AUTO_CHECK_EVERY steps), or when the
-       covered contacts turned too far (checked every AUTO_CHECK_EVERY steps;
+       last certificate is kept instead when it is still as good), or when a contact
+       closed (or is closing) that the last estimate did not cover and its
+       certificate cannot absorb (found by step 8, and after every rebuild), before
+       any force of it acts; or when the covered contacts turned too far (checked
+       whenever the pairs' ends may have moved as far as the certificate's drift
+       budget allows; clumps: every AUTO_CHECK_EVERY steps;
        :mod:`demstep.timestep.certificate`)
 
 The half-step velocity is initialised at the first step by a half backward kick,
@@ -322,7 +326,8 @@ class Simulation:
         self._update_masses()
         self.backend = get_backend(backend)
         self.ledger = EnergyLedger()
-        self.counters = np.zeros(4)
+        self.counters = np.zeros(5)
+        self._check_budget = math.inf  # 'auto': see _renew_drift_budget
         self.pairs = Pairs.empty(n)
         self._neighbour_work = None  # the pair search's scratch, kept between rebuilds
         self._last_rebuild = 0  # the step of the last rebuild
@@ -1048,6 +1053,7 @@ class Simulation:
                 self.dt = min(target, self.dt * (1.0 + ts.growth))
             if scheduled:
                 self._next_dt_update = self.step + int(ts.every)
+            self._renew_drift_budget()  # (dt or the certificate changed)
 
     #: 'auto': the relative residual of the exact solves. The step stays certified (an
     #: upper bound on the largest root, whatever the residual); it is at most about
@@ -1518,6 +1524,8 @@ class Simulation:
         for name, (keys, assumed) in (getattr(self, "_dt_cover", None) or {}).items():
             out[f"ts_cover_{name}_keys"] = keys
             out[f"ts_cover_{name}_overlap"] = assumed
+        if out:
+            out["ts_check_budget"] = np.array([self._check_budget])
         return out
 
     def restore_timestep_state(self, data: dict):
@@ -1533,6 +1541,10 @@ class Simulation:
                                np.array(data[f"ts_cover_{name}_overlap"]))
         # (the pair loops' cover arrays are part of the saved state: not synced here)
         self._cover_record = cover if cover or "ts_mode" in data else None
+        budget = np.asarray(data.get("ts_check_budget", [0.0]), dtype=np.float64).reshape(-1)
+        if budget.size != 1 or not budget[0] >= 0.0:  # (older checkpoints: checked at once)
+            raise InputError(f"ts_check_budget: expected one number >= 0, got {budget}")
+        self._check_budget = float(budget[0])
 
     def _uncovered(self, steps: float = 0.0):
         """Masks over the pair and wall lists of the closed contacts the last 'auto'
@@ -1633,11 +1645,12 @@ class Simulation:
         estimate, or when a contact is closed that the last one did not cover
         (:meth:`_uncovered_now`) and :meth:`_certify_added` cannot add it, or when the
         covered contacts' normals turned so far that the certificate no longer holds at
-        dt (:mod:`demstep.timestep.certificate`; checked every
-        :meth:`_auto_check_every` steps: in between, the certificate has the slack of
-        the safety factor). With clumps the certificate does not follow the drift (their
-        members' arms turn with the bodies): there every check is a new estimate (a
-        forced one: it may only lower dt). The steps look for contacts closed beyond
+        dt (:mod:`demstep.timestep.certificate`; checked once the pairs' ends may have
+        moved as far as its drift budget allows, :meth:`_renew_drift_budget`: the
+        certificate holds at every step in between). With clumps the certificate does
+        not follow the drift (their members' arms turn with the bodies): there every
+        :meth:`_auto_check_every` steps is a new estimate (a forced one: it may only
+        lower dt; in between, the slack of the safety factor). The steps look for contacts closed beyond
         their cover at the positions they end with; the lists are compared with the
         record only when they found some."""
         masks = self._uncovered_now()
@@ -1651,11 +1664,42 @@ class Simulation:
         if self.counters[3]:
             self._sync_cover()
         cert = getattr(self, "_dt_cert", None)
-        if cert is None or self.dt is None or self.step % self._auto_check_every():
+        if cert is None or self.dt is None:
             return True
-        if not cert.bounded:
-            return False  # (clumps: a new estimate at every check)
-        return cert.certifies(self._certified_sigma(), self._drift(cert))
+        if not cert.bounded:  # (clumps: a new estimate at every check)
+            return bool(self.step % self._auto_check_every())
+        if self.counters[4] <= self._check_budget:
+            return True
+        return self._renew_drift_budget()
+
+    #: 'auto': the budget of relative motion between checks of the drift is at most
+    #: this fraction of the smallest radius (the bound on a bond's arms takes it)
+    DRIFT_BUDGET_CAP = 0.1
+
+    def _renew_drift_budget(self) -> bool:
+        """Check the drift of the 'auto' certificate now (whether it still certifies dt,
+        :meth:`demstep.timestep.certificate.StepCertificate.certifies`) and, if it does,
+        set the budget: how far [L] the pairs' ends may move relative to each other
+        before the next check with dt still certified at every position on the way
+        (:meth:`~demstep.timestep.certificate.StepCertificate.drift_budget`; the
+        kernels add up how far they can have moved, ``counters[4]``, and end their
+        chunk of steps there). No checks are counted in steps: a quasi-static packing
+        goes a long way between them, a fast flow checks often, and no drift relies on
+        the slack of the safety factor. False (a new estimate is due) when the
+        certificate fails now."""
+        cert = getattr(self, "_dt_cert", None)
+        self.counters[4] = 0.0
+        if cert is None or self.dt is None or not cert.bounded:
+            self._check_budget = math.inf
+            return True
+        sigma = self._certified_sigma()
+        if not cert.certifies(sigma, self._drift(cert)):
+            self._check_budget = 0.0
+            return False
+        self._check_budget = cert.drift_budget(
+            sigma, self.x, self.periodic_len, (self.wall_point, self.wall_normal),
+            self.DRIFT_BUDGET_CAP * float(self.r.min(initial=math.inf)))
+        return True
 
     def _contacts_covered(self) -> bool:
         """Whether every contact closed now was part of the last 'auto' estimate, at no
@@ -1701,7 +1745,7 @@ class Simulation:
             known, assumed = cover.get(name, (np.zeros(0, dtype=np.int64), np.zeros(0)))
             cover[name] = merge_cover(known, assumed, keys, overlaps[name])
         self.n_dt_extensions = getattr(self, "n_dt_extensions", 0) + 1
-        return True
+        return self._renew_drift_budget()
 
     def _contacts_of(self, pair_mask, wall_mask) -> tuple[ContactSet, dict]:
         """The pairs and wall contacts selected by the masks (closed or not) as a
@@ -1822,15 +1866,19 @@ class Simulation:
             if until is not None:
                 chunk = min(chunk, next_check - self.step)
             if self.timestep.mode == "auto":
-                chunk = min(chunk, max(1, self._next_dt_update - self.step),
-                            self._auto_check_every() - self.step % self._auto_check_every())
+                chunk = min(chunk, max(1, self._next_dt_update - self.step))
+                cert = getattr(self, "_dt_cert", None)
+                if cert is not None and not cert.bounded:  # (clumps: checks in steps)
+                    every = self._auto_check_every()
+                    chunk = min(chunk, every - self.step % every)
             chunk = max(1, chunk)
             controls = Controls(
                 float(self.dt), float(self.dt_prev), bool(self._first), float(self.skin),
                 int(self.dim), self.gravity, float(self.damping.local),
                 float(self.damping.viscous), bool(damped or self._damping_history),
                 bool(dashpot or self._dashpot_history), float(self.jump_limit),
-                float(self.runaway_factor), float(self.energy_floor), bool(parallel))
+                float(self.runaway_factor), float(self.energy_floor), bool(parallel),
+                float(self._check_budget) if self.timestep.mode == "auto" else math.inf)
             self.pairs = self._work_space(parallel)
             n_done, reason = self.backend.advance(
                 chunk, controls, self.spheres, self.bodies, self.pairs, self.bonds, self.wall_state,
@@ -1876,19 +1924,17 @@ class Simulation:
                     break
         return done
 
-    #: 'auto': steps between checks that every closed contact was in the last estimate
-    #: (also after every rebuild of the lists) and that the certificate still holds
+    #: 'auto' with clumps (whose certificate does not follow the drift): steps between
+    #: new estimates (other runs check the drift by its budget, :meth:`_renew_drift_budget`)
     AUTO_CHECK_EVERY = 50
-    #: 'auto': from this safety x local damping factor on, the certificate is checked at
-    #: every step: between checks only the slack of the safety factor covers the normals'
-    #: and arms' drift (at safety 1 a pair pushing itself apart, or a bonded V flapping,
-    #: went 2e-4 to 9e-4 above the critical step within the 50 steps)
+    #: 'auto' with clumps: from this safety x local damping factor on, a new estimate at
+    #: every step (between them only the slack of the safety factor covers the drift)
     AUTO_FULL_SAFETY = 0.99
 
     def _auto_check_every(self) -> int:
-        """Steps between the checks of the 'auto' certificate: every step at a safety
-        (times :meth:`_local_damping_factor`) above :data:`AUTO_FULL_SAFETY`, else
-        :data:`AUTO_CHECK_EVERY`."""
+        """Steps between the new estimates of the 'auto' control with clumps: every step
+        at a safety (times :meth:`_local_damping_factor`) above :data:`AUTO_FULL_SAFETY`,
+        else :data:`AUTO_CHECK_EVERY`."""
         full = self.timestep.safety * self._local_damping_factor() > self.AUTO_FULL_SAFETY
         return 1 if full else self.AUTO_CHECK_EVERY
 

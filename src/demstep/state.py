@@ -254,10 +254,11 @@ class Box(NamedTuple):
 
 class Ledger(NamedTuple):
     """The energy ledger's arrays, laid out by :mod:`demstep.energy`: accumulated terms
-    ``acc`` and state terms ``energy``; ``counters`` (4,): particle-particle contacts,
-    particle-wall contacts, the largest jump |v| dt / r of the last step, and the
-    contacts counted closed beyond their cover since the engine last reset it
-    (:func:`demstep.kernels.dem.advance`)."""
+    ``acc`` and state terms ``energy``; ``counters`` (5,): particle-particle contacts,
+    particle-wall contacts, the largest jump |v| dt / r of the last step, the
+    contacts counted closed beyond their cover since the engine last reset it, and the
+    distance [L] the pairs' ends may have moved relative to each other since the last
+    check of the drift (:func:`demstep.kernels.dem.advance`)."""
 
     acc: np.ndarray
     energy: np.ndarray
@@ -287,3 +288,6 @@ class Controls(NamedTuple):
     runaway_factor: float
     energy_floor: float
     parallel: bool
+    #: 'auto': how far [L] the pairs' ends may move relative to each other from the
+    #: last check of the drift before the next one (+inf: none due)
+    check_budget: float = float("inf")

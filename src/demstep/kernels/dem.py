@@ -43,7 +43,8 @@ from demstep.energy import (  # the ledger's layout is the energy module's
 ROLL_M, ROLL_TWIST, ROLL_VISCOUS, ROLL_ENERGY = 0, 3, 4, 7
 
 # stop reasons returned by advance()
-STOP_DONE, STOP_REBUILD, STOP_NONFINITE, STOP_RUNAWAY, STOP_JUMP, STOP_UNCOVERED = range(6)
+STOP_DONE, STOP_REBUILD, STOP_NONFINITE, STOP_RUNAWAY, STOP_JUMP, STOP_UNCOVERED, STOP_CHECK = \
+    range(7)
 
 # wall motions
 WALL_FIXED, WALL_VELOCITY, WALL_SERVO = 0, 1, 2
@@ -1153,14 +1154,19 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
     the columns of the wall ``servo`` (rate in the gain column for BOX_RATE: dL/dt
     [L/T]); ``box.sums`` (6, 3): virial, crossing sum, crossing contacts, their k_n
     sum, the previous crossing sum and the last change of length. ``ledger.counters``
-    (4,): particle-particle contacts, particle-wall contacts, largest jump |v| dt / r,
+    (5,): particle-particle contacts, particle-wall contacts, largest jump |v| dt / r,
     and (added to, step after step) the contacts closed beyond the overlap the last
     certified time step covered them at (``pairs.cover``, ``walls.cover``; none counted
     when those are empty), and those closed beyond it at the positions a step ends
     with or closing in the next step (:func:`closing_beyond_cover`, looked for when the
     smallest headroom of the step's pair and wall loops leaves room for one): the
     chunk then ends (STOP_UNCOVERED), so that the engine covers such a contact before
-    any force of it acts (not one step late)."""
+    any force of it acts (not one step late). With a finite
+    ``ctl.check_budget`` [L], ``counters[4]`` adds up, step after step, how far the
+    ends of any pair or wall contact can have moved relative to each other (2 r_max
+    (|v| dt / r)_max plus the walls' and the box's moves), and the chunk ends
+    (STOP_CHECK) once it exceeds the budget: the engine then checks the drift of the
+    certified step (:meth:`demstep.engine.Simulation._still_certified`)."""
     x, v, w, r, m = sph.x, sph.v, sph.w, sph.r, sph.m
     inv_m, force, torque = sph.inv_m, sph.force, sph.torque
     acc, energy, counters = ledger.acc, ledger.energy, ledger.counters
@@ -1179,8 +1185,9 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
     nw = wall_point.shape[0]
     n_chunks = pairs.force_band.shape[0]
     force_band, torque_band = pairs.force_band, pairs.torque_band
+    budget = ctl.check_budget
     r_max = 0.0
-    if pairs.cover.shape[0] > 0 or walls.cover.shape[0] > 0:
+    if pairs.cover.shape[0] > 0 or walls.cover.shape[0] > 0 or budget < np.inf:
         for p in range(r.shape[0]):
             r_max = max(r_max, r[p])
     for step in range(n_steps):
@@ -1324,6 +1331,8 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         counters[1] = wc
         counters[2] = out[7]
         counters[3] += pp_uncovered + pw_uncovered
+        if budget < np.inf:  # how far any pair's ends can have moved relative to each other
+            counters[4] += 2.0 * r_max * out[7] + boundary_step
         if first:
             # the energy held at t = 0 is the ledger's initial input
             acc[A_INITIAL] = out[4] + out[5] + e_n + we_n + e_t + we_t + er_s + eb_s
@@ -1354,6 +1363,9 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
             return step + 1, STOP_REBUILD
         if counters[3] > 0:
             return step + 1, STOP_UNCOVERED
+        # the drift of the certified step is due for a check
+        if counters[4] > budget:
+            return step + 1, STOP_CHECK
     return n_steps, STOP_DONE
 
 

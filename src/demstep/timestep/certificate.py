@@ -180,6 +180,96 @@ def _drift_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, sum
 
 
 @njit(cache=True)
+def _lookahead_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, e_cap,
+                    up_k, up_c, rate_k, rate_c):
+    """Adds per particle, over its covered pairs (i, j), what bounds their drift terms
+    (:func:`_drift_sums`) at any positions x' whose pairs' relative displacements from
+    ``x`` are at most E <= ``e_cap`` [L]: ``up_k``, ``up_c`` the terms at ``x`` with
+    the turn factors and l taken at the longest arms a pair can have then (a contact's
+    radii, a bond's arms now + e_cap; both at least the estimate's), a contact apart
+    taken with the radii for arms (those it would close with); ``rate_k``, ``rate_c``
+    [1/(T^2 L)], [1/(T L)] their growth per unit of E. A normal turns by at most
+    2 E / |d| (|d| the centre distance now: |a/|a| - b/|b|| <= 2 |a - b| / |a|), and the
+    arms, half the overlap from the radii, move by at most E / 2, so that eta grows by
+    at most E sqrt(1/I_i + 1/I_j) (module doc)."""
+    planar = normal_ref.shape[1] == 2
+    for c in range(i.shape[0]):
+        a, b = i[c], j[c]
+        d0 = x[b, 0] - x[a, 0]
+        d1 = x[b, 1] - x[a, 1]
+        d2 = x[b, 2] - x[a, 2]
+        d0 -= periodic_len[0] * image_count(d0, periodic_len[0])
+        d1 -= periodic_len[1] * image_count(d1, periodic_len[1])
+        d2 -= periodic_len[2] * image_count(d2, periodic_len[2])
+        dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if dist > 0.0:
+            t0 = d0 / dist - normal_ref[c, 0]
+            t1 = d1 / dist - normal_ref[c, 1]
+            t2 = (d2 / dist - normal_ref[c, 2]) if normal_ref.shape[1] == 3 else 0.0
+            turn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+            per_length = 2.0 / dist
+        else:
+            turn = 2.0
+            per_length = math.inf
+        ref_i, ref_j = factors[c, 0], factors[c, 1]
+        r_a, r_b = particles[a, 0], particles[b, 0]
+        if bond[c]:
+            arm_i, arm_j = contact_arms(r_a, r_b, dist)
+            up_i, up_j = max(arm_i + e_cap, ref_i), max(arm_j + e_cap, ref_j)
+        else:
+            if dist < r_a + r_b:
+                arm_i, arm_j = contact_arms(r_a, r_b, dist)
+            else:
+                arm_i, arm_j = r_a, r_b
+            up_i, up_j = max(r_a, ref_i), max(r_b, ref_j)
+        trans = particles[a, 1] + particles[b, 1]
+        inv_ia, inv_ib = particles[a, 2], particles[b, 2]
+        rot_up = up_i * up_i * inv_ia + up_j * up_j * inv_ib
+        width = (math.sqrt(trans + ref_i * ref_i * inv_ia + ref_j * ref_j * inv_ib)
+                 + math.sqrt(trans + rot_up))
+        eta = math.sqrt((arm_i - ref_i) ** 2 * inv_ia + (arm_j - ref_j) ** 2 * inv_ib)
+        spread = math.sqrt(inv_ia + inv_ib)
+        k_n, k_t, c_n, c_t = factors[c, 2], factors[c, 3], factors[c, 4], factors[c, 5]
+        tf_k = _turn_factor(trans, rot_up, k_n, k_t, planar) + factors[c, 6]
+        tf_c = _turn_factor(trans, rot_up, c_n, c_t, planar) + factors[c, 7]
+        f_k = turn * tf_k + eta * width * k_t
+        f_c = turn * tf_c + eta * width * c_t
+        g_k = per_length * tf_k + spread * width * k_t
+        g_c = per_length * tf_c + spread * width * c_t
+        up_k[a] += f_k
+        up_k[b] += f_k
+        up_c[a] += f_c
+        up_c[b] += f_c
+        rate_k[a] += g_k
+        rate_k[b] += g_k
+        rate_c[a] += g_c
+        rate_c[b] += g_c
+
+
+@njit(cache=True)
+def _wall_lookahead_sums(x, p, w, point, normal, wall_factors, particles, up_k, up_c, rate_k,
+                         rate_c):
+    """:func:`_lookahead_sums` for the covered wall contacts (their arm terms: the arm,
+    the distance from the centre to the wall, moves by at most E)."""
+    for c in range(p.shape[0]):
+        a, b = p[c], w[c]
+        geo = wall_geometry(x[a, 0], x[a, 1], x[a, 2], particles[a, 0], point[b, 0],
+                            point[b, 1], point[b, 2], normal[b, 0], normal[b, 1],
+                            normal[b, 2])
+        ref = wall_factors[c, 0]
+        r_a = particles[a, 0]
+        arm = geo[5] if geo[4] > 0.0 else r_a
+        up = max(r_a, ref)
+        inv_m, inv_i = particles[a, 1], particles[a, 2]
+        spread = math.sqrt(inv_i)
+        width = math.sqrt(inv_m + up * up * inv_i) + math.sqrt(inv_m + ref * ref * inv_i)
+        up_k[a] += abs(arm - ref) * spread * width * wall_factors[c, 1]
+        up_c[a] += abs(arm - ref) * spread * width * wall_factors[c, 2]
+        rate_k[a] += spread * width * wall_factors[c, 1]
+        rate_c[a] += spread * width * wall_factors[c, 2]
+
+
+@njit(cache=True)
 def _wall_drift_sums(x, p, w, point, normal, wall_factors, particles, sum_k, sum_c):
     """Adds to ``sum_k`` and ``sum_c`` (N,) the arm terms of the covered wall contacts
     (p, w) (walls keep their normals): eta (l_ref + l) b_t, eta the change of
@@ -447,6 +537,33 @@ class StepCertificate:
             _wall_drift_sums(x, self.wall_p, self.wall_w, point, normal, self.wall_factors,
                              part, sum_k, sum_c)
         return float(sum_k.max()), float(sum_c.max())
+
+    def drift_budget(self, sigma: float, x, periodic_len, walls=None,
+                     e_cap: float = math.inf) -> float:
+        """How far [L] the pairs' ends (and the walls) may move relative to each other
+        from the positions ``x`` now, at most ``e_cap``, with the step 2 / ``sigma``
+        still certified at every position reached (:func:`_lookahead_sums`): the
+        largest E with sigma^2 >= :meth:`bound` at the drift D_up + E G. 0 when even
+        D_up does not leave room; +inf with nothing covered."""
+        if not self.bounded:
+            return 0.0
+        if len(self.pair_i) == 0 and len(self.wall_p) == 0:
+            return math.inf if self.certifies(sigma) else 0.0
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        up_k, up_c, rate_k, rate_c = (np.zeros(x.shape[0]) for _ in range(4))
+        _lookahead_sums(x, self.pair_i, self.pair_j, self.pair_bond, self.normal, self.factors,
+                        self.particles, np.asarray(periodic_len, dtype=np.float64),
+                        float(e_cap), up_k, up_c, rate_k, rate_c)
+        if len(self.wall_p):
+            point, normal = (np.ascontiguousarray(a, dtype=np.float64) for a in walls)
+            _wall_lookahead_sums(x, self.wall_p, self.wall_w, point, normal, self.wall_factors,
+                                 self.particles, up_k, up_c, rate_k, rate_c)
+        slack = sigma * sigma - self.bound(sigma, (float(up_k.max()), float(up_c.max())))
+        if not slack > 0.0:
+            return 0.0
+        rate = float(rate_k.max()) + sigma * float(rate_c.max())
+        # (a relative margin for the rounding of the sums)
+        return float(min(e_cap, (1.0 - 1e-9) * slack / rate)) if rate > 0.0 else float(e_cap)
 
     def bound(self, sigma: float, drift=(0.0, 0.0)) -> float:
         """Upper bound on lambda_max(sigma C^ + K^) [1/T^2] of the covered and added
