@@ -1672,8 +1672,9 @@ class Simulation:
             return True
         return self._renew_drift_budget()
 
-    #: 'auto': the budget of relative motion between checks of the drift is at most
-    #: this fraction of the smallest radius (the bound on a bond's arms takes it)
+    #: 'auto' with bonds: the budget of relative motion between checks of the drift is
+    #: at most this fraction of the smallest radius (the bound on a bond's arms takes
+    #: it; a contact's arms are at most the radii, whatever the motion)
     DRIFT_BUDGET_CAP = 0.1
 
     def _renew_drift_budget(self) -> bool:
@@ -1696,9 +1697,10 @@ class Simulation:
         if not cert.certifies(sigma, self._drift(cert)):
             self._check_budget = 0.0
             return False
+        cap = (self.DRIFT_BUDGET_CAP * float(self.r.min(initial=math.inf))
+               if cert.pair_bond.any() else math.inf)
         self._check_budget = cert.drift_budget(
-            sigma, self.x, self.periodic_len, (self.wall_point, self.wall_normal),
-            self.DRIFT_BUDGET_CAP * float(self.r.min(initial=math.inf)))
+            sigma, self.x, self.periodic_len, (self.wall_point, self.wall_normal), cap)
         return True
 
     def _contacts_covered(self) -> bool:
