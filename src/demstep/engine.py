@@ -540,7 +540,7 @@ class Simulation:
             wcover, = be.transfer_history(ws.p, ws.wall, wp, ww, wcover)
         self.wall_state = ws._replace(p=wp, wall=ww, shear=wshear, dashpot=wdash,
                                       shear_energy=wenergy, roll=wroll, cover=wcover)
-        if self._closed_uncovered_new(cover, wcover):
+        if self._new_pairs_closing(cover, wcover):
             self.counters[3] += 1.0  # (the 'auto' control covers them before the next step)
         if self.sort_every is not None and (
                 not built or self.step - self._last_sort >= self.sort_every):
@@ -551,26 +551,29 @@ class Simulation:
         self._pairs_built = True
         self.n_rebuilds = getattr(self, "n_rebuilds", 0) + 1
 
-    def _closed_uncovered_new(self, cover, wall_cover) -> bool:
+    def _new_pairs_closing(self, cover, wall_cover) -> bool:
         """At a rebuild, with the 'auto' control's cover tracked (``cover``,
         ``wall_cover`` per pair and wall pair of the new lists): whether a pair not
-        covered (a new one) is closed already. The steps look for such contacts among
-        the pairs they know at the positions they end with; those the rebuild brought
-        they have not seen."""
+        covered (a new one) is closed already or closing in the next step (as
+        :func:`demstep.kernels.dem.closing_beyond_cover` looks at the pairs the steps
+        know at the positions they end with; those the rebuild brought they have not
+        seen)."""
         found = False
+        move, boundary = self._step_moves()
         if len(cover) and len(cover) == len(self.pairs.i):
             new = cover == 0.0
             if new.any():
-                delta = pair_geometry_arrays(self.x, self.r, self.pairs.i[new], self.pairs.j[new],
-                                             self.periodic_len)[2]
-                found = bool((delta > 0.0).any())
+                i, j = self.pairs.i[new], self.pairs.j[new]
+                delta = pair_geometry_arrays(self.x, self.r, i, j, self.periodic_len)[2]
+                found = bool((delta + move[i] + move[j] + boundary > 0.0).any())
         ws = self.wall_state
         if not found and len(wall_cover) and len(wall_cover) == len(ws.p):
             new = wall_cover == 0.0
             if new.any():
-                delta = wall_geometry_arrays(self.x, self.r, ws.p[new], ws.wall[new], ws.point,
+                p = ws.p[new]
+                delta = wall_geometry_arrays(self.x, self.r, p, ws.wall[new], ws.point,
                                              ws.normal)[2]
-                found = bool((delta > 0.0).any())
+                found = bool((delta + move[p] + boundary > 0.0).any())
         return found
 
     #: a sort is done when it brings the pairs' ends closer in memory by at least this
