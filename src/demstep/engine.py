@@ -1653,9 +1653,9 @@ class Simulation:
         certificate holds at every step in between). With clumps the certificate does
         not follow the drift (their members' arms turn with the bodies): there every
         :meth:`_auto_check_every` steps is a new estimate (a forced one: it may only
-        lower dt; in between, the slack of the safety factor). The steps look for contacts closed beyond
-        their cover at the positions they end with; the lists are compared with the
-        record only when they found some."""
+        lower dt; in between, the slack of the safety factor). The steps look for
+        contacts closed beyond their cover at the positions they end with; the lists
+        are compared with the record only when they found some."""
         masks = self._uncovered_now()
         if masks is None:
             return False
