@@ -517,3 +517,28 @@ def test_at_full_safety_the_certificate_is_checked_at_every_step():
     sim.add_bonds(ParallelBonds(normal_stiffness=1e4, shear_stiffness=0.3e4,
                                 radius_multiplier=0.5, gap=1e-9))
     assert worst(sim, 300) <= 1 + 1e-9
+
+
+@pytest.mark.parametrize("restitution", [None, 0.5])
+def test_contacts_that_move_nothing_leave_auto_at_its_free_flight_step(restitution):
+    """A fixed particle resting on a wall: its contact has no moving degree of freedom,
+    so its critical step is infinite (the exact solve says so, damped or not, instead of
+    dividing by zero), and 'auto' steps at the step it takes for free flight, the same
+    as with the wall removed. A finite, unchanged falling particle proves it."""
+    def sim(walls):
+        x = np.array([[0.0, 0.99], [5.0, 3.0]])
+        p = Particles.from_density(x, np.ones(2), 1.0, fixed=[True, False])
+        law = LinearSpring(k_n=1e4, restitution=restitution)
+        return Simulation(p, law, walls=walls, gravity=[0.0, -9.81],
+                          timestep=TimeStep.auto(safety=0.9))
+
+    on_wall = sim([Wall([0.0, 0.0], [0.0, 1.0], motion="velocity", velocity=[0.0, 0.1])])
+    on_wall.prepare()
+    assert on_wall.contact_set().n == 1
+    assert on_wall.critical_dt("exact") == np.inf
+    free = sim([])
+    on_wall.run(steps=20)
+    free.run(steps=20)
+    assert np.isfinite(on_wall.dt) and on_wall.dt == free.dt
+    np.testing.assert_array_equal(on_wall.x[1], free.x[1])
+    assert on_wall.x[1, 1] < 3.0

@@ -1045,7 +1045,9 @@ class Simulation:
                                             _contacts=prepared)
                 if estimate is not None and ts.method == "exact":
                     self.n_dt_solves += 1
-            if estimate is None:
+            if estimate is None or not math.isfinite(estimate):
+                # (no contact can close, or none moves anything: a fixed particle on a
+                # wall has an infinite critical step; free flight takes the fallback)
                 estimate = fallback
             self.dt_estimate = estimate
             self.n_dt_estimates = getattr(self, "n_dt_estimates", 0) + 1

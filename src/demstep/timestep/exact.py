@@ -439,9 +439,12 @@ def _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver,
     matvecs = top.matvecs
     lam = top.value
     dt_undamped = 2.0 / np.sqrt(top.upper) if top.upper > 0 else np.inf
-    if not damped:
+    if not damped or not top.upper > 0:
+        # (K = 0 on the moving degrees of freedom, e.g. contacts only between fixed
+        # particles and walls: damping alone, (I + dt C/2)^-1 (I - dt C/2) with C >= 0,
+        # is stable at any dt)
         return ExactStep(float(dt_undamped), float(dt_undamped), float(np.sqrt(lam)), lam,
-                         top.vector, 0, False, op, matvecs, undamped_tol)
+                         top.vector, 0, bool(damped), op, matvecs, undamped_tol)
     a1 = op.damping.mass
     lam_c = op.damping_bound()
 
