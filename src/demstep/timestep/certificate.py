@@ -124,6 +124,26 @@ def _turn_factor(trans, rot, b_n, b_t, planar):
     return x * (1.0 + TURN_FACTOR_MARGIN)
 
 
+@njit(cache=True, inline="always")
+def _pair_turn(x, a, b, normal_ref, c, periodic_len):
+    """(|d|, turn) of pair c = (a, b): its centre distance [L] now (nearest periodic
+    image) and |d/|d| - n_ref| [-], how far its normal turned from ``normal_ref[c]``
+    (2, a half turn, for coincident centres: any normal)."""
+    d0 = x[b, 0] - x[a, 0]
+    d1 = x[b, 1] - x[a, 1]
+    d2 = x[b, 2] - x[a, 2]
+    d0 -= periodic_len[0] * image_count(d0, periodic_len[0])
+    d1 -= periodic_len[1] * image_count(d1, periodic_len[1])
+    d2 -= periodic_len[2] * image_count(d2, periodic_len[2])
+    dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    if not dist > 0.0:
+        return dist, 2.0
+    t0 = d0 / dist - normal_ref[c, 0]
+    t1 = d1 / dist - normal_ref[c, 1]
+    t2 = (d2 / dist - normal_ref[c, 2]) if normal_ref.shape[1] == 3 else 0.0
+    return dist, math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+
+
 @njit(cache=True)
 def _drift_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, sum_k, sum_c):
     """Adds to ``sum_k`` [1/T^2] and ``sum_c`` [1/T] (N,), per particle, over its covered
@@ -141,20 +161,7 @@ def _drift_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len, sum
     planar = normal_ref.shape[1] == 2
     for c in range(i.shape[0]):
         a, b = i[c], j[c]
-        d0 = x[b, 0] - x[a, 0]
-        d1 = x[b, 1] - x[a, 1]
-        d2 = x[b, 2] - x[a, 2]
-        d0 -= periodic_len[0] * image_count(d0, periodic_len[0])
-        d1 -= periodic_len[1] * image_count(d1, periodic_len[1])
-        d2 -= periodic_len[2] * image_count(d2, periodic_len[2])
-        dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        if dist > 0.0:
-            t0 = d0 / dist - normal_ref[c, 0]
-            t1 = d1 / dist - normal_ref[c, 1]
-            t2 = (d2 / dist - normal_ref[c, 2]) if normal_ref.shape[1] == 3 else 0.0
-            turn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
-        else:  # coincident centres: any normal, at most a half turn
-            turn = 2.0
+        dist, turn = _pair_turn(x, a, b, normal_ref, c, periodic_len)
         ref_i, ref_j = factors[c, 0], factors[c, 1]
         r_a, r_b = particles[a, 0], particles[b, 0]
         if bond[c] or dist < r_a + r_b:
@@ -195,22 +202,8 @@ def _lookahead_sums(x, i, j, bond, normal_ref, factors, particles, periodic_len,
     planar = normal_ref.shape[1] == 2
     for c in range(i.shape[0]):
         a, b = i[c], j[c]
-        d0 = x[b, 0] - x[a, 0]
-        d1 = x[b, 1] - x[a, 1]
-        d2 = x[b, 2] - x[a, 2]
-        d0 -= periodic_len[0] * image_count(d0, periodic_len[0])
-        d1 -= periodic_len[1] * image_count(d1, periodic_len[1])
-        d2 -= periodic_len[2] * image_count(d2, periodic_len[2])
-        dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        if dist > 0.0:
-            t0 = d0 / dist - normal_ref[c, 0]
-            t1 = d1 / dist - normal_ref[c, 1]
-            t2 = (d2 / dist - normal_ref[c, 2]) if normal_ref.shape[1] == 3 else 0.0
-            turn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
-            per_length = 2.0 / dist
-        else:
-            turn = 2.0
-            per_length = math.inf
+        dist, turn = _pair_turn(x, a, b, normal_ref, c, periodic_len)
+        per_length = 2.0 / dist if dist > 0.0 else math.inf
         ref_i, ref_j = factors[c, 0], factors[c, 1]
         r_a, r_b = particles[a, 0], particles[b, 0]
         if bond[c]:
