@@ -186,6 +186,19 @@ def pebble_over_a_row(safety, graze=None, speed=2.0):
                       timestep=TimeStep.auto(safety=safety, every=500))
 
 
+def worst_step_ratio(sim, steps):
+    """Runs ``steps`` single steps; returns the largest dt / the exact critical step of
+    the state a step started from."""
+    worst = 0.0
+    for _ in range(steps):
+        sim.prepare()
+        crit = sim.critical_dt("exact")
+        if crit is not None:
+            worst = max(worst, sim.dt / crit)
+        sim.run(steps=1)
+    return worst
+
+
 def steps_above_the_exact_step(sim, steps):
     """Runs ``steps`` single steps; returns the steps whose dt exceeded the exact
     critical step of the state they started from, and the number of states in which
@@ -248,13 +261,7 @@ def test_the_drift_between_checks_keeps_the_step_certified(safety, shear, speed)
                      timestep=TimeStep.auto(safety=safety, every=500))
     sim.add_bonds(ParallelBonds(normal_stiffness=1e4, shear_stiffness=shear * 1e4,
                                 radius_multiplier=0.5, gap=1e-9))
-    worst = 0.0
-    for _ in range(400):
-        sim.prepare()
-        crit = sim.critical_dt("exact")
-        if crit is not None:
-            worst = max(worst, sim.dt / crit)
-        sim.run(steps=1)
+    worst = worst_step_ratio(sim, 400)
     assert safety * 0.99 < worst <= 1.0
 
 
@@ -274,13 +281,7 @@ def test_a_tipping_clump_is_re_estimated_at_every_check():
     sim = Simulation(None, LinearSpring(k_n=1e5, k_s=2e4, mu=0.8, restitution=0.5),
                      walls=[Wall([0.0, 0.0], [0.0, 1.0])], gravity=[0, -9.81], clumps=cs,
                      timestep=TimeStep.auto(safety=0.8, every=500))
-    worst = 0.0
-    for _ in range(500):
-        sim.prepare()
-        crit = sim.critical_dt("exact")
-        if crit is not None:
-            worst = max(worst, sim.dt / crit)
-        sim.run(steps=1)
+    worst = worst_step_ratio(sim, 500)
     assert 0.5 < worst <= 1.0
     assert sim.n_dt_estimates >= 500 // Simulation.AUTO_CHECK_EVERY
 
