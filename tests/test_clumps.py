@@ -7,6 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import scipy.linalg
+import scipy.spatial.transform
 
 from demstep.clumps import (ClumpTemplate, _integrate_union, _separate, mass_properties, place,
                             principal_frame, quat_to_matrix, random_quaternions)
@@ -186,7 +187,13 @@ def test_dimer_rolls_down_an_incline_at_the_analytic_acceleration():
     assert abs(a @ np.array([0, 1.0, 0])) < 1e-6 * theory
 
 
-def test_clump_restart_is_bit_identical(tmp_path):
+@pytest.mark.parametrize("auto", [False, True])
+def test_clump_restart_is_bit_identical(tmp_path, auto):
+    """A clump run restarted from a checkpoint continues bit for bit; with the 'auto'
+    time step the certificate (with its clumps' rows) comes back with it, so the
+    restarted run estimates when the uninterrupted one does (and not at its start),
+    and a checkpoint whose
+    certificate rows are corrupted is refused naming the array."""
     from demstep.io.checkpoint import load_checkpoint, save_checkpoint
 
     def build():
@@ -195,12 +202,14 @@ def test_clump_restart_is_bit_identical(tmp_path):
         cs = place([ASYM], [0] * len(pos), pos + [0, 0, 2.0], random_quaternions(len(pos), rng), 1.0)
         return Simulation(None, LinearSpring(k_n=1e4, mu=0.4, restitution=0.5),
                           walls=[Wall(np.zeros(3), np.array([0, 0, 1.0]), name="floor")],
-                          gravity=[0, 0, -9.81], clumps=cs, timestep=TimeStep.from_alpha(0.1),
+                          gravity=[0, 0, -9.81], clumps=cs,
+                          timestep=TimeStep.auto(safety=0.8) if auto else TimeStep.from_alpha(0.1),
                           clump_velocities=rng.normal(0, 0.5, (len(pos), 3)))
 
     a = build()
     a.run(steps=300)
     save_checkpoint(a, tmp_path / "c.npz")
+    before = a.n_dt_estimates if auto else 0
     a.run(steps=400)
     b = build()
     load_checkpoint(b, tmp_path / "c.npz")
@@ -208,6 +217,20 @@ def test_clump_restart_is_bit_identical(tmp_path):
     assert np.array_equal(a.bodies.x, b.bodies.x) and np.array_equal(a.bodies.q, b.bodies.q)
     assert np.array_equal(a.x, b.x) and np.array_equal(a.ledger.acc, b.ledger.acc)
     assert a.n_contacts > 0
+    if not auto:
+        return
+    assert a.dt == b.dt and b._dt_cert.has_bodies and len(b._dt_cert.body_pairs)
+    assert a.n_dt_estimates - before == b.n_dt_estimates > 0  # (b: none at its start)
+    data = dict(np.load(tmp_path / "c.npz"))
+    assert len(data["ts_cert_body_pairs"])
+    for key, value, needle in (("ts_cert_body_pairs", lambda p: p + [0, 0, 5, 0], "wall"),
+                               ("ts_cert_body_q", lambda q: q[:-1], "expected"),
+                               ("ts_cert_body_ref", lambda r: r * np.nan, "non-finite")):
+        bad = dict(data)
+        bad[key] = value(bad[key])
+        np.savez(tmp_path / "bad.npz", **bad)
+        with pytest.raises(InputError, match=f"{key}.*{needle}"):
+            load_checkpoint(build(), tmp_path / "bad.npz")
 
 
 # -------------------------------------------------------------- the certificate
@@ -285,6 +308,101 @@ def test_damped_exact_step_of_clumps_is_the_amplification_threshold(seed):
     e = exact_critical_step(p, c, True, damping=GlobalDamping(0.05), bodies=bodies)
     assert e.dt == pytest.approx(lo, rel=1e-6) and e.dt <= lo * (1 + 1e-9)
     assert body_element_dt(p, c, bodies, True, 0.05).min() <= e.dt
+
+
+def scaled_body_matrices(p, c, bodies):
+    """M^-1/2 (G^T K G) M^-1/2 and likewise for the dashpots (dense, reference)."""
+    Kb, Cb, M = body_matrices(p, c, bodies)
+    w, V = np.linalg.eigh(M)
+    W = V @ np.diag(w ** -0.5) @ V.T
+    return W @ Kb @ W, W @ Cb @ W
+
+
+def dense_damped_root(K, C):
+    """The largest sigma with lambda_max(sigma C + K) = sigma^2 (bisection)."""
+    f = lambda s: np.linalg.eigvalsh(s * C + K)[-1] - s * s  # noqa: E731
+    lo, hi = 0.0, 1.0
+    while f(hi) > 0:
+        hi *= 2.0
+    for _ in range(200):
+        lo, hi = (0.5 * (lo + hi), hi) if f(0.5 * (lo + hi)) > 0 else (lo, 0.5 * (lo + hi))
+    return hi
+
+
+@pytest.mark.parametrize("seed", [6, 7, 8])
+def test_turned_clumps_stay_below_the_drifted_certificate(seed):
+    """Five clumps of four spheres, their touching contacts with springs and dashpots,
+    certified at their dense damped root; then every body turns by up to 0.08 rad about
+    its centre and moves by up to 3 % of the smallest radius (the contacts' normals and
+    arms those of the new geometry, their lever arms and the world inertia turned with
+    the bodies): the dense lambda_max(sigma C' + K') of the moved bodies stays below the
+    certificate's bound with its drift (demstep.timestep.certificate, Clumps) for every
+    sigma above sigma_c, the bound without drift does not always (the drift is needed),
+    and a translation of every body drifts by nothing."""
+    from conftest import contacts_now
+    from demstep.clumps import expand
+    from demstep.timestep.certificate import BodyPose, StepCertificate
+
+    p, c, bodies, rng = clump_assembly(seed, inflate=1.3)
+    ref = contacts_now(replace(c, c_n=0.2 * np.sqrt(c.k_n), c_t=0.1 * np.sqrt(c.k_n)),
+                       p.x, p.r)
+    assert ref.n >= 4
+    K, C = scaled_body_matrices(p, ref, bodies)
+    sigma_c = dense_damped_root(K, C)
+    lam_c = np.linalg.eigvalsh(C)[-1]
+    n_bodies = bodies.n
+    cs = place([ASYM], [0] * n_bodies, np.zeros((n_bodies, 3)), np.tile([1.0, 0, 0, 0],
+                                                                      (n_bodies, 1)), 1.0)
+    _, _, body, offset = expand(cs)
+    R0 = np.zeros((n_bodies, 3, 3))
+    # the orientation of each body from its members' world arms and body-frame offsets
+    for b in range(n_bodies):
+        m = body == b
+        u, _, vt = np.linalg.svd(bodies.arm[m].T @ offset[m])
+        R0[b] = u @ np.diag([1, 1, np.linalg.det(u @ vt)]) @ vt
+    assert np.allclose(np.einsum("mij,mj->mi", R0[body], offset), bodies.arm, atol=1e-12)
+    q0 = np.array([quat_of(R) for R in R0])
+    cert = StepCertificate.from_estimate(sigma_c, lam_c, ref, 1.0 / p.m, 1.0 / p.inertia,
+                                         radius=p.r, sphere_body=body, body_q=q0)
+    assert cert.has_bodies and len(cert.body_pairs) == ref.n
+    moments = np.array([cs.frames[0][1]] * n_bodies)
+    centre = p.x - bodies.arm
+
+    def pose(q):
+        return BodyPose(body, offset, q, 1.0 / bodies.mass, 1.0 / moments)
+
+    shift = p.x + [0.3, -0.2, 0.1]
+    assert max(cert.drift(shift, np.zeros(3), None, pose(q0))) < 1e-12 * sigma_c ** 2
+    exceeded = 0
+    for trial in range(12):
+        axis = rng.normal(size=(n_bodies, 3))
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        angle = rng.uniform(0.0, 0.08, n_bodies)
+        turn = np.array([scipy.spatial.transform.Rotation.from_rotvec(a * e).as_matrix()
+                         for a, e in zip(angle, axis)])
+        R1 = turn @ R0
+        q1 = np.array([quat_of(R) for R in R1])
+        move = 0.03 * p.r.min() * rng.uniform(-1, 1, (n_bodies, 3))
+        arm1 = np.einsum("mij,mj->mi", R1[body], offset)
+        x1 = centre + move[body] + arm1
+        drift = cert.drift(x1, np.zeros(3), None, pose(q1))
+        assert drift[0] > 0 and drift[1] > 0
+        moved = RigidBodies(body, arm1, bodies.mass,
+                            np.einsum("bij,bj,bkj->bik", R1, moments, R1), bodies.fixed)
+        now = contacts_now(ref, x1, p.r)
+        p1 = Particles.from_density(x1, p.r, 1.0)
+        K1, C1 = scaled_body_matrices(p1, now, moved)
+        for sigma in sigma_c * np.array([1.0, 1.1, 1.5, 3.0]):
+            actual = np.linalg.eigvalsh(sigma * C1 + K1)[-1]
+            assert actual <= cert.bound(sigma, drift) * (1 + 1e-12)
+            exceeded += actual > cert.bound(sigma) * (1 + 1e-12)
+    assert exceeded > 0
+
+
+def quat_of(R):
+    """The unit quaternion (w, x, y, z) of a rotation matrix."""
+    x, y, z, w = scipy.spatial.transform.Rotation.from_matrix(R).as_quat()
+    return np.array([w, x, y, z])
 
 
 # -------------------------------------------------------------------- bad input

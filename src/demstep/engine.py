@@ -33,7 +33,7 @@ between its calls)::
        certificate cannot absorb (found by step 8, and after every rebuild), before
        any force of it acts; or when the covered contacts turned too far (checked
        whenever the pairs' ends may have moved as far as the certificate's drift
-       budget allows; clumps: every AUTO_CHECK_EVERY steps;
+       budget allows; with clumps at every step;
        :mod:`demstep.timestep.certificate`)
 
 The half-step velocity is initialised at the first step by a half backward kick,
@@ -941,15 +941,32 @@ class Simulation:
         inv_I = self.inv_I if self.rotation else np.zeros_like(self.inv_I)
         # (contact_set puts the intact bonds last)
         bond = np.arange(contacts.n) >= contacts.n - int(np.count_nonzero(self.bonds.intact == 1))
-        self._dt_cert = StepCertificate.from_estimate(sigma, lam_c, contacts, self.inv_m, inv_I,
-                                                      bounded=bodies is None,
-                                                      inputs=self.certificate_inputs(),
-                                                      radius=self.r, bond=bond)
+        b = self.bodies
+        self._dt_cert = StepCertificate.from_estimate(
+            sigma, lam_c, contacts, self.inv_m, inv_I, inputs=self.certificate_inputs(),
+            radius=self.r, bond=bond, sphere_body=b.sphere_body if b.n else None,
+            body_q=b.q.copy() if b.n else None)
 
     def _drift(self, cert) -> tuple[float, float]:
         """The drift (D_K, D_C) of the certificate ``cert`` at the state now
         (:meth:`demstep.timestep.certificate.StepCertificate.drift`)."""
-        return cert.drift(self.x, self.periodic_len, (self.wall_point, self.wall_normal))
+        return cert.drift(self.x, self.periodic_len, (self.wall_point, self.wall_normal),
+                          self._body_pose() if cert.has_bodies else None)
+
+    def _body_pose(self):
+        """The clumps now as the certificate's drift takes them
+        (:class:`demstep.timestep.certificate.BodyPose`)."""
+        from demstep.timestep.certificate import BodyPose
+
+        b = self.bodies
+        offset = np.zeros((len(self.r), 3))
+        offset[b.member] = b.offset
+        inv_I = np.array(b.inv_I, dtype=np.float64)
+        if self.dim == 2:  # (disks turn about z only)
+            inv_I[:, :2] = 0.0
+        if not self.rotation:
+            inv_I[:] = 0.0
+        return BodyPose(b.sphere_body, offset, b.q, b.inv_m, inv_I)
 
     def certificate_inputs(self) -> np.ndarray:
         """What an 'auto' estimate depends on besides the geometry, the masses and the
@@ -1461,14 +1478,16 @@ class Simulation:
                     raise fail(key, "is empty")
                 finite(key)
         if "ts_cert" in data:
-            self._check_certificate_state(data, numbers, in_range, finite, fail, n, n_walls)
+            self._check_certificate_state(data, numbers, in_range, finite, fail, n, n_walls,
+                                          self.bodies.n)
         return data
 
     @staticmethod
-    def _check_certificate_state(data, numbers, in_range, finite, fail, n, n_walls):
+    def _check_certificate_state(data, numbers, in_range, finite, fail, n, n_walls, n_bodies):
         """The 'auto' time step's certificate of a checkpoint (:meth:`timestep_state`):
         the covered pairs' and wall contacts' indices in range and their rows, as
-        :meth:`demstep.timestep.certificate.StepCertificate.from_state` reads them."""
+        :meth:`demstep.timestep.certificate.StepCertificate.from_state` reads them, and
+        with clumps the bodies' and their contacts' rows."""
         values = numbers("ts_cert").reshape(-1)
         finite("ts_cert", nan_only=True)
         if len(values) < 5 or "ts_cert_particles" not in data \
@@ -1482,13 +1501,18 @@ class Simulation:
             raise fail("ts_cert_walls", f"has shape {walls.shape}, expected (2, contacts)")
         k, kw = pairs.shape[1], walls.size // 2
         walls = walls.reshape(2, -1)
+        kb = 0
+        if "ts_cert_body_q" in data:
+            kb = Simulation._check_body_certificate(data, numbers, in_range, finite, fail, n,
+                                                    n_walls, n_bodies)
         in_range("ts_cert_pairs", n, "particle", pairs[:2])
         in_range("ts_cert_walls", n, "particle", walls[0])
         in_range("ts_cert_walls", n_walls, "wall", walls[1])
         for key, size, shape in (("ts_cert_normal", None, None),
                                  ("ts_cert_coefficients", 8 * k, f"({k}, 8)"),
                                  ("ts_cert_wall_factors", 3 * kw, f"({kw}, 3)"),
-                                 ("ts_cert_particles", 3 * n if k or kw else None, f"({n}, 3)")):
+                                 ("ts_cert_particles", 3 * n if k or kw or kb else None,
+                                  f"({n}, 3)")):
             a = numbers(key)
             if key == "ts_cert_normal":
                 if a.size and (a.ndim != 2 or a.shape[0] != k or a.shape[1] not in (2, 3)) \
@@ -1497,6 +1521,37 @@ class Simulation:
             elif size is not None and a.size != size:
                 raise fail(key, f"has shape {a.shape}, expected {shape}")
             finite(key)
+
+    @staticmethod
+    def _check_body_certificate(data, numbers, in_range, finite, fail, n, n_walls,
+                                n_bodies) -> int:
+        """The clumps' rows of a checkpoint's certificate
+        (:meth:`demstep.timestep.certificate.StepCertificate.state`): the bodies'
+        orientations one per body, the contacts' spheres, walls and bond flags in range,
+        their arms, normals and coefficients finite. Returns the number of contacts."""
+        q = numbers("ts_cert_body_q")
+        finite("ts_cert_body_q")
+        if q.ndim != 2 or q.shape != (n_bodies, 4):
+            raise fail("ts_cert_body_q", f"has shape {q.shape}, expected ({n_bodies}, 4)")
+        rows = numbers("ts_cert_body_pairs", np.zeros(0, dtype=np.int64))
+        if rows.ndim != 2 or rows.shape[1] != 4:
+            raise fail("ts_cert_body_pairs", f"has shape {rows.shape}, expected (contacts, 4)")
+        kb = rows.shape[0]
+        in_range("ts_cert_body_pairs", n, "particle", rows[:, 0])
+        in_range("ts_cert_body_pairs", n + 1, "particle", rows[:, 1] + 1)
+        in_range("ts_cert_body_pairs", n_walls + 1, "wall", rows[:, 2] + 1)
+        if np.any((rows[:, 1] < 0) == (rows[:, 2] < 0)) or np.any((rows[:, 3] != 0) & (rows[:, 3] != 1)):
+            raise fail("ts_cert_body_pairs", "holds a row that is neither a pair nor a wall "
+                                             "contact, or a bond flag other than 0 or 1")
+        for key, width in (("ts_cert_body_ref", 5), ("ts_cert_body_coef", 8)):
+            a = numbers(key)
+            if a.size != width * kb:
+                raise fail(key, f"has shape {a.shape}, expected ({kb}, {width})")
+            finite(key)
+        dim = numbers("ts_cert_body_dim").reshape(-1)
+        if dim.size != 1 or dim[0] not in (2, 3):
+            raise fail("ts_cert_body_dim", f"holds {dim.tolist()}, expected [2] or [3]")
+        return kb
 
     def _order_as(self, source_index, source: str):
         """Renumber the particles as a checkpoint's (its ``source_index``: the input row
@@ -1652,10 +1707,9 @@ class Simulation:
         covered contacts' normals turned so far that the certificate no longer holds at
         dt (:mod:`demstep.timestep.certificate`; checked once the pairs' ends may have
         moved as far as its drift budget allows, :meth:`_renew_drift_budget`: the
-        certificate holds at every step in between). With clumps the certificate does
-        not follow the drift (their members' arms turn with the bodies): there every
-        :meth:`_auto_check_every` steps is a new estimate (a forced one: it may only
-        lower dt; in between, the slack of the safety factor). The steps look for
+        certificate holds at every step in between; with clumps, whose turns are not
+        budgeted, at every step). A certificate restored without what its drift needs
+        asks for a new estimate. The steps look for
         contacts closed beyond their cover at the positions they end with; the lists
         are compared with the record only when they found some."""
         masks = self._uncovered_now()
@@ -1671,9 +1725,9 @@ class Simulation:
         cert = getattr(self, "_dt_cert", None)
         if cert is None or self.dt is None:
             return True
-        if not cert.bounded:  # (clumps: a new estimate at every check)
-            return bool(self.step % self._auto_check_every())
-        if self.counters[4] <= self._check_budget:
+        if not cert.bounded:
+            return False
+        if self.counters[4] <= self._check_budget and not cert.has_bodies:
             return True
         return self._renew_drift_budget()
 
@@ -1702,6 +1756,9 @@ class Simulation:
         if not cert.certifies(sigma, self._drift(cert)):
             self._check_budget = 0.0
             return False
+        if cert.has_bodies:  # (checked at every step)
+            self._check_budget = math.inf
+            return True
         cap = (self.DRIFT_BUDGET_CAP * float(self.r.min(initial=math.inf))
                if cert.pair_bond.any() else math.inf)
         self._check_budget = cert.drift_budget(
@@ -1875,9 +1932,8 @@ class Simulation:
             if self.timestep.mode == "auto":
                 chunk = min(chunk, max(1, self._next_dt_update - self.step))
                 cert = getattr(self, "_dt_cert", None)
-                if cert is not None and not cert.bounded:  # (clumps: checks in steps)
-                    every = self._auto_check_every()
-                    chunk = min(chunk, every - self.step % every)
+                if cert is not None and cert.has_bodies:  # (clumps: a check at every step)
+                    chunk = 1
             chunk = max(1, chunk)
             controls = Controls(
                 float(self.dt), float(self.dt_prev), bool(self._first), float(self.skin),
@@ -1930,20 +1986,6 @@ class Simulation:
                 if until(self):
                     break
         return done
-
-    #: 'auto' with clumps (whose certificate does not follow the drift): steps between
-    #: new estimates (other runs check the drift by its budget, :meth:`_renew_drift_budget`)
-    AUTO_CHECK_EVERY = 50
-    #: 'auto' with clumps: from this safety x local damping factor on, a new estimate at
-    #: every step (between them only the slack of the safety factor covers the drift)
-    AUTO_FULL_SAFETY = 0.99
-
-    def _auto_check_every(self) -> int:
-        """Steps between the new estimates of the 'auto' control with clumps: every step
-        at a safety (times :meth:`_local_damping_factor`) above :data:`AUTO_FULL_SAFETY`,
-        else :data:`AUTO_CHECK_EVERY`."""
-        full = self.timestep.safety * self._local_damping_factor() > self.AUTO_FULL_SAFETY
-        return 1 if full else self.AUTO_CHECK_EVERY
 
     #: below this many particles the serial kernels are faster than threaded ones
     PARALLEL_MIN_PARTICLES = 5000

@@ -160,7 +160,7 @@ class OwnerMap:
 
 
 # ---------------------------------------------------------- element bounds for bodies
-def _cross(v):
+def cross_matrix(v):
     """[v]x (C, 3, 3)."""
     X = np.zeros(v.shape[:-1] + (3, 3))
     X[..., 0, 1], X[..., 0, 2] = -v[..., 2], v[..., 1]
@@ -236,7 +236,7 @@ def body_element_matrices(particles, contacts, bodies, rotation: bool):
     ri, rj = contact_arms_from_owner(contacts, bodies, dim)
     W = (mi + mj)[:, None, None] * np.eye(3)
     if rotation:
-        Xi, Xj = _cross(ri), _cross(rj)
+        Xi, Xj = cross_matrix(ri), cross_matrix(rj)
         W = W + np.einsum("cij,cjk,clk->cil", Xi, Ii, Xi) + np.einsum("cij,cjk,clk->cil", Xj, Ij, Xj)
     n3 = np.zeros((contacts.n, 3))
     n3[:, :dim] = contacts.normal
@@ -333,7 +333,7 @@ def body_stiffness_diagonal(particles, contacts, bodies, rotation: bool, springs
         dt_ = np.einsum("cii->ci", D)[ok, :dim]
         np.add.at(diag, (o, slice(0, dim)), dt_)
         if rotation:
-            X = _cross(r[ok])
+            X = cross_matrix(r[ok])
             rot = np.einsum("cji,cjk,cki->ci", X, D[ok], X)  # diag of X^T D X
             if dim == 2:
                 np.add.at(diag, (o, slice(dim, nd)), rot[:, 2:3])

@@ -14,7 +14,9 @@ sigma = 2 / dt stays certified as long as
 where
 
 * the first two terms bound the covered contacts at the estimate's geometry (the
-  left side is convex in sigma with slope at most Lambda_C, and does not decrease);
+  left side is convex in sigma with slope at most lambda_max(C^), and does not
+  decrease; Lambda_C stands for min(Lambda_C, sigma_c) there, as
+  sigma_c lambda_max(C^) <= lambda_max(sigma_c C^ + K^) <= sigma_c^2);
 * A_K + sigma A_C bounds the contacts added since (:meth:`StepCertificate.add`; each
   group by the largest of its coupled elements, the particles' masses split among the
   group's contacts, Rayleigh's theorem on the group alone, and Weyl's inequality for
@@ -73,8 +75,37 @@ where
   (D_C): every term is at most the sum of its spring and sigma times its viscous part.
 
 Removed contacts only lower lambda_max (each element is positive semi-definite).
-With clumps the members' arms turn with their bodies, which this bound does not
-follow: their certificate has no drift term (``bounded`` False).
+
+Clumps. A contact with a member sphere acts on its body's motion: the arm from the
+body's centre to the contact point is r = R o + a n (o the member's centre in the body
+frame, R the body's rotation, a the member's arm; -a n on side j), and the body's
+scaled rotation w maps to omega = S w with S = R I^-1/2 R^T (I the principal
+moments), so the element's map is L x = sum of u/sqrt(m) + A w over its sides (signs
+aside) with A = -[r]x S, and E = S_e^T S_e with S_e = B^1/2 L. The body turns by
+dR = R' R^T between the estimate and now. lambda_max is unchanged by an orthogonal
+change of coordinates Q, and with Q = dR on each body's rotation (the identity
+elsewhere) S' Q = dR S: the rotation block of L' Q - L is A' - A with A' = -[r']x dR S.
+Its norm is computed per side (3 x 3: |M|_2^2 = lambda_max(M^T M), closed form,
+rounded up), eta^2 = the sum over the sides of |A' - A|^2 (the translations do not
+change), and |L| <= l = sqrt(tau^2 + |A_i|^2 + |A_j|^2), likewise l' now. A free
+sphere's side has S = I^-1/2 and Q = 1: |A' - A| = |a' n' - a n| / sqrt(I); a
+disk's rotation is about z, which dR leaves alone (its S has the zz entry only). With
+|B'^1/2 - B^1/2| <= |sqrt(b_n) - sqrt(b_t)| |n' - n|,
+
+    x.(Q^T E' Q - E) x <= |S_e' Q - S_e| (|S_e'| + |S_e|) |x|^2
+                       <= (l + l') (|b_n - b_t| |n' - n| l' + max(b_n, b_t) eta) |x|^2
+
+(|sqrt(b_n) - sqrt(b_t)| sqrt(max(b_n, b_t)) <= |b_n - b_t|): linear in b, so split
+into springs and viscous parts as above. A rolling and twisting element on
+phi = omega_j - omega_i, with L_phi = (-S_i, S_j) and R = b_r (I - n n^T) + b_w n n^T,
+adds 2 l_phi (|b_w - b_r| |n' - n| l_phi + max(b_r, b_w) eta_phi) with
+l_phi^2 = sum |S|^2 and eta_phi^2 = sum |(dR - I) S|^2 (S' Q - S = (dR - I) S); a
+disk's R does not turn. These bounds hold per element as above, summed per owner (a
+free sphere or a body) and the largest sum taken: :func:`_body_drift_sums`. A contact
+apart has no element now (its change, -E, lowers lambda_max): it counts once it
+touches. Contacts added with clumps are bounded at any orientation of the bodies
+(:func:`added_contacts_bound`), so they need no drift term. The check of a
+certificate with clumps is made at every step: how far a body turns is not budgeted.
 """
 
 from __future__ import annotations
@@ -283,6 +314,199 @@ def _wall_drift_sums(x, p, w, point, normal, wall_factors, particles, sum_k, sum
         sum_c[a] += term * wall_factors[c, 2]
 
 
+@njit(inline="always")
+def _sym3_top(a00, a01, a02, a11, a12, a22):
+    """The largest eigenvalue of a symmetric 3 x 3 matrix (closed form, trigonometric),
+    raised by a relative 1e-9 past its rounding (an upper bound for the certificate)."""
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
+    if not p2 > 0.0:
+        return q * (1.0 + 1e-9) if q > 0.0 else q
+    p = math.sqrt(p2 / 6.0)
+    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+    b01, b02, b12 = a01 / p, a02 / p, a12 / p
+    half_det = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02)
+                      + b02 * (b01 * b12 - b11 * b02))
+    half_det = min(1.0, max(-1.0, half_det))
+    top = q + 2.0 * p * math.cos(math.acos(half_det) / 3.0)
+    return top + 1e-9 * abs(top)
+
+
+@njit(inline="always")
+def _norm2(m):
+    """|m|_2^2 = lambda_max(m^T m) of a 3 x 3 matrix, from above."""
+    g = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            g[i, j] = m[0, i] * m[0, j] + m[1, i] * m[1, j] + m[2, i] * m[2, j]
+    return _sym3_top(g[0, 0], g[0, 1], g[0, 2], g[1, 1], g[1, 2], g[2, 2])
+
+
+@njit(inline="always")
+def _cross_times(r0, r1, r2, a, out):
+    """out = [r]x a for a 3 x 3 matrix a."""
+    for k in range(3):
+        out[0, k] = r1 * a[2, k] - r2 * a[1, k]
+        out[1, k] = r2 * a[0, k] - r0 * a[2, k]
+        out[2, k] = r0 * a[1, k] - r1 * a[0, k]
+
+
+@njit(inline="always")
+def _arm_side(s, sign, arm_ref, arm, n_ref, n_now, particles, sphere_body, offset, frames,
+              body_scalars, a_ref, a_now):
+    """One side of a contact in :func:`_body_drift_sums`: (owner index offset by N for
+    a body, inverse mass, |A_ref|^2, |A_now|^2, |A_now - A_ref|^2, |S|^2,
+    |(dR - I) S|^2) with A = [r]x S the map of the owner's scaled rotation to the
+    contact point's motion (now, in the coordinates turned by dR), r the arm from the
+    owner's centre to the contact point (``sign`` -1 for side j)."""
+    k = sphere_body[s]
+    if k < 0:
+        inv_i = particles[s, 2]
+        d0 = arm * n_now[0] - arm_ref * n_ref[0]
+        d1 = arm * n_now[1] - arm_ref * n_ref[1]
+        d2 = arm * n_now[2] - arm_ref * n_ref[2]
+        return (-1, particles[s, 1], inv_i * arm_ref * arm_ref, inv_i * arm * arm,
+                inv_i * (d0 * d0 + d1 * d1 + d2 * d2), inv_i, 0.0)
+    r_ref, r_now = frames[k, 0], frames[k, 1]
+    o0, o1, o2 = offset[s, 0], offset[s, 1], offset[s, 2]
+    ref = np.empty(3)
+    now = np.empty(3)
+    for i in range(3):
+        ref[i] = (r_ref[i, 0] * o0 + r_ref[i, 1] * o1 + r_ref[i, 2] * o2
+                  + sign * arm_ref * n_ref[i])
+        now[i] = (r_now[i, 0] * o0 + r_now[i, 1] * o1 + r_now[i, 2] * o2
+                  + sign * arm * n_now[i])
+    _cross_times(ref[0], ref[1], ref[2], frames[k, 2], a_ref)
+    _cross_times(now[0], now[1], now[2], frames[k, 3], a_now)
+    size_ref = _norm2(a_ref)
+    size_now = _norm2(a_now)
+    for i in range(3):
+        for j in range(3):
+            a_now[i, j] -= a_ref[i, j]
+    return (k, body_scalars[k, 0], size_ref, size_now, _norm2(a_now), body_scalars[k, 1],
+            body_scalars[k, 2])
+
+
+@njit(cache=True)
+def _body_drift_sums(x, pairs, ref, coef, particles, sphere_body, offset, frames,
+                     body_scalars, wall_point, wall_normal, periodic_len, planar, sum_k,
+                     sum_c):
+    """Adds to ``sum_k`` [1/T^2] and ``sum_c`` [1/T] (N + B,), per owner (the free
+    spheres, then the bodies), the bounds of the module doc (Clumps) on how far the
+    elements of the covered contacts with a member moved since the estimate:
+    ``pairs`` (C, 4) the spheres i, j (-1: a wall contact), the wall (-1: a pair) and 1
+    for a bond; ``ref`` (C, 5) the estimate's arms a_i, a_j [L] and unit normal (3
+    components); ``coef`` (C, 8) k_n, k_t, c_n, c_t, k_r, k_w, c_r, c_w; ``particles``
+    (N, 3) radius, inverse mass, inverse moment of inertia (free spheres); per sphere
+    its ``sphere_body`` (-1: free) and member ``offset`` (N, 3) [L] in the body frame;
+    per body ``frames`` (B, 4, 3, 3): R at the estimate, R now, S at the estimate and
+    dR S, and ``body_scalars`` (B, 3): 1/m, |S|^2 and |(dR - I) S|^2 (:meth:`BodyPose.
+    frames`)."""
+    n = x.shape[0]
+    a_ref = np.empty((3, 3))
+    a_now = np.empty((3, 3))
+    n_now = np.zeros(3)
+    for c in range(pairs.shape[0]):
+        a, b, w = pairs[c, 0], pairs[c, 1], pairs[c, 2]
+        arm_ref_i, arm_ref_j = ref[c, 0], ref[c, 1]
+        n_ref = ref[c, 2:]
+        if b >= 0:
+            d0 = x[b, 0] - x[a, 0]
+            d1 = x[b, 1] - x[a, 1]
+            d2 = x[b, 2] - x[a, 2]
+            d0 -= periodic_len[0] * image_count(d0, periodic_len[0])
+            d1 -= periodic_len[1] * image_count(d1, periodic_len[1])
+            d2 -= periodic_len[2] * image_count(d2, periodic_len[2])
+            dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            if not dist > 0.0:
+                return False  # (coincident centres: no normal, a new estimate)
+            if pairs[c, 3] == 0 and not dist < particles[a, 0] + particles[b, 0]:
+                continue  # (apart: no element now)
+            n_now[0], n_now[1], n_now[2] = d0 / dist, d1 / dist, d2 / dist
+            arm_i, arm_j = contact_arms(particles[a, 0], particles[b, 0], dist)
+        else:
+            geo = wall_geometry(x[a, 0], x[a, 1], x[a, 2], particles[a, 0], wall_point[w, 0],
+                                wall_point[w, 1], wall_point[w, 2], wall_normal[w, 0],
+                                wall_normal[w, 1], wall_normal[w, 2])
+            if not geo[4] > 0.0:
+                continue
+            n_now[0], n_now[1], n_now[2] = geo[0], geo[1], geo[2]
+            arm_i, arm_j = geo[5], 0.0
+        turn = math.sqrt((n_now[0] - n_ref[0]) ** 2 + (n_now[1] - n_ref[1]) ** 2
+                         + (n_now[2] - n_ref[2]) ** 2)
+        oa, trans, rot_ref, rot_now, eta2, phi2, phi_eta2 = _arm_side(
+            a, 1.0, arm_ref_i, arm_i, n_ref, n_now, particles, sphere_body, offset, frames,
+            body_scalars, a_ref, a_now)
+        oa = a if oa < 0 else n + oa
+        ob = -1
+        if b >= 0:
+            ob, inv_m, r_ref2, r_now2, e2, p2, pe2 = _arm_side(
+                b, -1.0, arm_ref_j, arm_j, n_ref, n_now, particles, sphere_body, offset,
+                frames, body_scalars, a_ref, a_now)
+            ob = b if ob < 0 else n + ob
+            trans += inv_m
+            rot_ref += r_ref2
+            rot_now += r_now2
+            eta2 += e2
+            phi2 += p2
+            phi_eta2 += pe2
+        l_now = math.sqrt(trans + rot_now)
+        width = l_now + math.sqrt(trans + rot_ref)
+        eta = math.sqrt(eta2)
+        k_n, k_t, c_n, c_t = coef[c, 0], coef[c, 1], coef[c, 2], coef[c, 3]
+        f_k = width * (abs(k_n - k_t) * turn * l_now + max(k_n, k_t) * eta)
+        f_c = width * (abs(c_n - c_t) * turn * l_now + max(c_n, c_t) * eta)
+        k_r, k_w, c_r, c_w = coef[c, 4], coef[c, 5], coef[c, 6], coef[c, 7]
+        if k_r > 0.0 or k_w > 0.0 or c_r > 0.0 or c_w > 0.0:
+            l_phi = math.sqrt(phi2)
+            eta_phi = math.sqrt(phi_eta2)
+            swing = 0.0 if planar else turn * l_phi  # (disks: R does not turn)
+            f_k += 2.0 * l_phi * (abs(k_w - k_r) * swing + max(k_r, k_w) * eta_phi)
+            f_c += 2.0 * l_phi * (abs(c_w - c_r) * swing + max(c_r, c_w) * eta_phi)
+        sum_k[oa] += f_k
+        sum_c[oa] += f_c
+        if ob >= 0:
+            sum_k[ob] += f_k
+            sum_c[ob] += f_c
+    return True
+
+
+@dataclass
+class BodyPose:
+    """The clumps now, as a certificate's drift takes them: ``sphere_body`` (N,) each
+    sphere's body (-1: free), ``offset`` (N, 3) [L] each member's centre in its body's
+    frame (zeros for free spheres), ``q`` (B, 4) the bodies' orientations (w, x, y, z),
+    ``inv_m`` (B,) [1/M] and ``inv_I`` (B, 3) [1/(M L^2)] their inverse mass and
+    principal moments (zeros: fixed, rotation locked; disks: only the third)."""
+
+    sphere_body: np.ndarray
+    offset: np.ndarray
+    q: np.ndarray
+    inv_m: np.ndarray
+    inv_I: np.ndarray
+
+    def frames(self, q_ref) -> tuple[np.ndarray, np.ndarray]:
+        """(frames (B, 4, 3, 3), scalars (B, 3)) of :func:`_body_drift_sums` from the
+        orientations ``q_ref`` of the estimate: R_ref, R now, S_ref = R_ref I^-1/2
+        R_ref^T, dR S_ref (dR = R R_ref^T); 1/m, |S|^2, |(dR - I) S_ref|^2."""
+        from demstep.clumps import quat_to_matrix
+
+        r_ref = quat_to_matrix(np.asarray(q_ref, dtype=np.float64))
+        r_now = quat_to_matrix(np.asarray(self.q, dtype=np.float64))
+        root = np.sqrt(np.asarray(self.inv_I, dtype=np.float64))
+        s_ref = np.einsum("bij,bj,bkj->bik", r_ref, root, r_ref)
+        turn = np.einsum("bij,bkj->bik", r_now, r_ref)
+        ds = turn @ s_ref
+        frames = np.ascontiguousarray(np.stack([r_ref, r_now, s_ref, ds], axis=1))
+        gs = ds - s_ref
+        top = np.linalg.eigvalsh(np.einsum("bji,bjk->bik", gs, gs))[:, -1]
+        scalars = np.stack([np.asarray(self.inv_m, dtype=np.float64),
+                            np.max(np.asarray(self.inv_I, dtype=np.float64), axis=1),
+                            np.abs(top) * (1.0 + 1e-9)], axis=1)
+        return frames, np.ascontiguousarray(scalars)
+
+
 def cover_limits(keys, known, assumed, nonlinear: bool) -> np.ndarray:
     """The record of covered contacts (sorted ``known`` keys, the overlaps ``assumed``
     for them) per contact of sorted ``keys``: the largest overlap it is covered at (any,
@@ -400,9 +624,15 @@ def added_contacts_bound(particles, added, rotation: bool, bodies=None) -> tuple
     of ``added`` contacts alone (a ContactSet; with their longest possible arms), the
     largest of their coupled elements with the particles' masses split uniformly among
     the group's contacts (Rayleigh's theorem): springs and dashpots, rolling and
-    twisting ones included (with ``rotation``). With ``bodies`` (RigidBodies) the
-    elements of :func:`demstep.timestep.bodies.body_element_matrices`. Add them with
-    :meth:`StepCertificate.add`."""
+    twisting ones included (with ``rotation``). With ``bodies`` (RigidBodies) a bound
+    that holds at any orientation of the bodies (module doc, Clumps): an element's
+    |L M_e^-1/2|^2 is at most w = tau^2 + rho_i^2 + rho_j^2 (+ |S_i|^2 + |S_j|^2 with
+    rolling and twisting), taken with the owners' shares
+    (:func:`demstep.timestep.bodies.owner_mass_shares`, S^2 the share's inverse
+    inertia) and rho = |[o]x S| + r |S| >= |[o + r n]x S| for any normal n (o the
+    member's arm from its body's centre, r its radius; both norms the same in any
+    orientation of the body); times the largest of the element's springs (dashpots).
+    Add them with :meth:`StepCertificate.add`."""
     if added.n == 0:
         return 0.0, 0.0
     if bodies is None:
@@ -413,14 +643,33 @@ def added_contacts_bound(particles, added, rotation: bool, bodies=None) -> tuple
         add_k = float(np.max(coupled_element_lambda(added, mass, rotation)))
         add_c = float(np.max(coupled_element_lambda(added.dashpot_springs(), mass, rotation)))
         return add_k, add_c
-    from demstep.timestep.bodies import body_element_matrices
+    from demstep.timestep.bodies import cross_matrix, owner_mass_shares
 
-    W, D, G = body_element_matrices(particles, added, bodies, rotation)
-    w, V = np.linalg.eigh(W)
-    Wh = np.einsum("cij,cj,ckj->cik", V, np.sqrt(np.clip(w, 0.0, None)), V)
-    add_k = float(np.linalg.eigvalsh(Wh @ D @ Wh)[:, -1].max())
-    add_c = float(np.linalg.eigvalsh(Wh @ G @ Wh)[:, -1].max())
-    return add_k, add_c
+    mi, Ii, mj, Ij = owner_mass_shares(particles, added, bodies, rotation)
+    pair = added.j >= 0
+    j = np.maximum(added.j, 0)
+    top_i = np.clip(np.linalg.eigvalsh(Ii)[:, -1], 0.0, None)
+    top_j = np.where(pair, np.clip(np.linalg.eigvalsh(Ij)[:, -1], 0.0, None), 0.0)
+
+    def reach(side, share, top):  # rho of the side (free spheres: arm 0)
+        X = cross_matrix(bodies.arm[side])
+        lever = np.clip(np.linalg.eigvalsh(X @ share @ X.transpose(0, 2, 1))[:, -1], 0.0, None)
+        return np.sqrt(lever) + particles.r[side] * np.sqrt(top)
+
+    width = (mi + mj + reach(added.i, Ii, top_i) ** 2
+             + np.where(pair, reach(j, Ij, top_j) ** 2, 0.0)) * (1.0 + 1e-12)
+    rolling = rotation and added.has_rolling
+    if rolling:
+        width = width + top_i + top_j
+
+    def largest(*coefficients):
+        present = [np.zeros(added.n) if c is None else np.asarray(c, dtype=np.float64)
+                   for c in coefficients]
+        return np.max(present, axis=0)
+
+    springs = largest(added.k_n, added.k_s, *((added.k_r, added.k_w) if rolling else ()))
+    dashpots = largest(added.c_n, added.c_t, *((added.c_r, added.c_w) if rolling else ()))
+    return float(np.max(width * springs)), float(np.max(width * dashpots))
 
 
 @dataclass
@@ -433,8 +682,11 @@ class StepCertificate:
     rolling and twisting turn factors (springs, viscous parts); the covered wall
     contacts (``wall_p``, ``wall_w``) with ``wall_factors`` (W, 3): reference arm,
     k_t, c_t; per particle ``particles`` (N, 3): radius, inverse
-    mass and inverse moment of inertia; ``bounded`` False when the drift is not
-    followed (clumps)."""
+    mass and inverse moment of inertia; with clumps, the covered contacts with a member
+    (``body_pairs``, ``body_ref``, ``body_coef``: :func:`_body_drift_sums`) and the
+    bodies' orientations ``body_q`` (B, 4) at the estimate; ``bounded`` False when the
+    drift is not followed (a certificate restored from a checkpoint that did not
+    record it)."""
 
     sigma: float
     lam_c: float
@@ -455,11 +707,23 @@ class StepCertificate:
     wall_w: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     wall_factors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     particles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    body_q: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    body_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), dtype=np.int64))
+    body_ref: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
+    body_coef: np.ndarray = field(default_factory=lambda: np.zeros((0, 8)))
+    #: the dimension of the contacts with a member (disks: their rolling does not turn)
+    body_dim: int = 3
+
+    @property
+    def has_bodies(self) -> bool:
+        """Whether the estimate was made with clumps (the drift then needs their pose:
+        :meth:`drift`'s ``bodies``)."""
+        return self.body_q.shape[0] > 0
 
     @classmethod
     def from_estimate(cls, sigma: float, lam_c: float, contacts, inv_m, inv_I,
                       bounded: bool = True, inputs=(), radius=None,
-                      bond=None) -> "StepCertificate":
+                      bond=None, sphere_body=None, body_q=None) -> "StepCertificate":
         """The certificate of an estimate: its certified root ``sigma``, ``lam_c`` and the
         covered ``contacts`` (a ContactSet at the estimate's geometry: pairs have
         ``j`` >= 0, their rolling and twisting springs count in the drift; walls
@@ -467,7 +731,12 @@ class StepCertificate:
         inverse moments of inertia (zero for fixed particles, and for rotations when
         rotation is off) and radii ``radius`` (N,) [L] (the arms now follow from them),
         ``bond`` (C,) true for the elements that are bonds (None: none), made with
-        ``inputs`` (:attr:`inputs`)."""
+        ``inputs`` (:attr:`inputs`). With clumps, ``sphere_body`` (N,) each sphere's body
+        (-1: free) and ``body_q`` (B, 4) the bodies' orientations: the contacts with a
+        member are followed by :func:`_body_drift_sums`, the others as without."""
+        if body_q is not None and len(body_q) and bounded:
+            return cls._with_bodies(sigma, lam_c, contacts, inv_m, inv_I, inputs, radius,
+                                    bond, np.asarray(sphere_body, dtype=np.int64), body_q)
         cert = cls(float(sigma), float(lam_c), bounded=bounded,
                    inputs=np.array(inputs, dtype=np.float64).reshape(-1))
         if not bounded or contacts.n == 0:
@@ -511,16 +780,69 @@ class StepCertificate:
                 axis=1), dtype=np.float64)
         return cert
 
-    def drift(self, x, periodic_len, walls=None) -> tuple[float, float]:
+    @classmethod
+    def _with_bodies(cls, sigma, lam_c, contacts, inv_m, inv_I, inputs, radius, bond,
+                     sphere_body, body_q) -> "StepCertificate":
+        """:meth:`from_estimate` with clumps: the contacts without a member as without
+        clumps, those with one in the ``body_*`` arrays."""
+        if radius is None:
+            raise ValueError("from_estimate: the radii are needed to follow the arms")
+        bond = np.zeros(contacts.n, dtype=bool) if bond is None else np.asarray(bond, bool)
+        pair = contacts.j >= 0
+        j = np.maximum(contacts.j, 0)
+        member = (sphere_body[contacts.i] >= 0) | (pair & (sphere_body[j] >= 0))
+        cert = cls.from_estimate(sigma, lam_c, contacts.subset(~member), inv_m, inv_I,
+                                 inputs=inputs, radius=radius, bond=bond[~member])
+        cert.particles = np.ascontiguousarray(np.stack(
+            [np.asarray(radius, dtype=np.float64), np.asarray(inv_m, dtype=np.float64),
+             np.asarray(inv_I, dtype=np.float64)], axis=1))
+        cert.body_q = np.array(body_q, dtype=np.float64).reshape(-1, 4)
+        cert.body_dim = int(contacts.dim)
+        near = contacts.subset(member)
+        k = near.n
+        wall = np.full(k, -1, dtype=np.int64)
+        if near.wall is not None:
+            wall = np.where(near.j < 0, near.wall, -1).astype(np.int64)
+        cert.body_pairs = np.ascontiguousarray(np.stack(
+            [near.i, np.where(near.j >= 0, near.j, -1), wall,
+             bond[member].astype(np.int64)], axis=1), dtype=np.int64).reshape(k, 4)
+        ref = np.zeros((k, 5))
+        ref[:, 0], ref[:, 1] = near.arm_i, near.arm_j
+        ref[:, 2:2 + near.dim] = near.normal
+        cert.body_ref = ref
+        cert.body_coef = np.ascontiguousarray(np.concatenate(
+            [_normal_tangential(near.k_n, near.k_s, k), _normal_tangential(near.c_n, near.c_t, k),
+             _normal_tangential(near.k_r, near.k_w, k), _normal_tangential(near.c_r, near.c_w, k)],
+            axis=1), dtype=np.float64)
+        return cert
+
+    def drift(self, x, periodic_len, walls=None, bodies: BodyPose | None = None
+              ) -> tuple[float, float]:
         """(D_K [1/T^2], D_C [1/T]): D(sigma) <= D_K + sigma D_C for the positions ``x``
         (N, 3) now and ``walls`` = (points, unit normals) (n_walls, 3) of the walls now
-        (needed when wall contacts are covered); zero when not ``bounded``."""
-        if not self.bounded or (len(self.pair_i) == 0 and len(self.wall_p) == 0):
+        (needed when wall contacts are covered) and, with clumps, their pose now
+        ``bodies``; zero when not ``bounded``."""
+        if not self.bounded or (len(self.pair_i) == 0 and len(self.wall_p) == 0
+                                and len(self.body_pairs) == 0):
             return 0.0, 0.0
         x = np.ascontiguousarray(x, dtype=np.float64)
         part = self.particles
-        sum_k = np.zeros(x.shape[0])
-        sum_c = np.zeros(x.shape[0])
+        size = x.shape[0] + len(self.body_q)
+        sum_k = np.zeros(size)
+        sum_c = np.zeros(size)
+        if len(self.body_pairs):
+            if bodies is None:
+                raise ValueError("drift: the bodies' pose is needed (clumps are covered)")
+            point, normal = ((np.zeros((1, 3)), np.zeros((1, 3))) if walls is None else
+                             (np.ascontiguousarray(a, dtype=np.float64) for a in walls))
+            frames, scalars = bodies.frames(self.body_q)
+            if not _body_drift_sums(x, self.body_pairs, self.body_ref, self.body_coef, part,
+                                    np.asarray(bodies.sphere_body, dtype=np.int64),
+                                    np.ascontiguousarray(bodies.offset, dtype=np.float64),
+                                    frames, scalars, point, normal,
+                                    np.asarray(periodic_len, dtype=np.float64),
+                                    self.body_dim == 2, sum_k, sum_c):
+                return math.inf, math.inf
         _drift_sums(x, self.pair_i, self.pair_j, self.pair_bond, self.normal, self.factors,
                     part, np.asarray(periodic_len, dtype=np.float64), sum_k, sum_c)
         if len(self.wall_p):
@@ -538,7 +860,7 @@ class StepCertificate:
         still certified at every position reached (:func:`_lookahead_sums`): the
         largest E with sigma^2 >= :meth:`bound` at the drift D_up + E G. 0 when even
         D_up does not leave room; +inf with nothing covered."""
-        if not self.bounded:
+        if not self.bounded or self.has_bodies:  # (clumps: a check at every step)
             return 0.0
         if len(self.pair_i) == 0 and len(self.wall_p) == 0:
             return math.inf if self.certifies(sigma) else 0.0
@@ -558,11 +880,19 @@ class StepCertificate:
         # (a relative margin for the rounding of the sums)
         return float(min(e_cap, (1.0 - 1e-9) * slack / rate)) if rate > 0.0 else float(e_cap)
 
+    @property
+    def slope(self) -> float:
+        """The slope [1/T] the covered contacts' lambda_max(sigma C^ + K^) grows with at
+        most: min(Lambda_C, sigma_c), as lambda_max(C^) <= sigma_c (sigma_c
+        lambda_max(C^) <= lambda_max(sigma_c C^ + K^) <= sigma_c^2, K^ being positive
+        semi-definite): a step above sigma_c's keeps its room whatever Lambda_C."""
+        return min(self.lam_c, self.sigma)
+
     def bound(self, sigma: float, drift=(0.0, 0.0)) -> float:
         """Upper bound on lambda_max(sigma C^ + K^) [1/T^2] of the covered and added
         contacts now, for the drift (D_K, D_C) of :meth:`drift`."""
         d_k, d_c = drift
-        return (self.sigma ** 2 + max(sigma - self.sigma, 0.0) * self.lam_c
+        return (self.sigma ** 2 + max(sigma - self.sigma, 0.0) * self.slope
                 + sigma * (self.add_c + d_c) + self.add_k + d_k)
 
     def certifies(self, sigma: float, drift=(0.0, 0.0)) -> bool:
@@ -574,8 +904,8 @@ class StepCertificate:
         sigma^2 = :meth:`bound` (at least sigma_c, below which the bound exceeds
         sigma^2), nudged up past rounding."""
         d_k, d_c = drift
-        slope = self.lam_c + self.add_c + d_c
-        const = self.sigma ** 2 - self.sigma * self.lam_c + self.add_k + d_k
+        slope = self.slope + self.add_c + d_c
+        const = self.sigma ** 2 - self.sigma * self.slope + self.add_k + d_k
         s = max(0.5 * (slope + math.sqrt(max(slope * slope + 4.0 * const, 0.0))), self.sigma)
         while not self.certifies(s, drift):
             s = math.nextafter(s, math.inf)
@@ -589,6 +919,12 @@ class StepCertificate:
             self.pair_i, self.pair_j = inv[self.pair_i], inv[self.pair_j]
         if len(self.wall_p):
             self.wall_p = inv[self.wall_p]
+        if len(self.body_pairs):
+            moved = self.body_pairs.copy()
+            moved[:, 0] = inv[moved[:, 0]]
+            pair = moved[:, 1] >= 0
+            moved[pair, 1] = inv[moved[pair, 1]]
+            self.body_pairs = moved
         if len(self.particles):
             self.particles = np.ascontiguousarray(self.particles[order])
 
@@ -607,7 +943,12 @@ class StepCertificate:
                 "ts_cert_walls": np.stack([self.wall_p, self.wall_w]),
                 "ts_cert_wall_factors": self.wall_factors,
                 "ts_cert_particles": self.particles,
-                "ts_cert_inputs": self.inputs}
+                "ts_cert_inputs": self.inputs,
+                "ts_cert_body_q": self.body_q,
+                "ts_cert_body_pairs": self.body_pairs,
+                "ts_cert_body_ref": self.body_ref,
+                "ts_cert_body_coef": self.body_coef,
+                "ts_cert_body_dim": np.array([self.body_dim])}
 
     def made_with(self, inputs) -> bool:
         """Whether the estimate was made with these ``inputs`` (:attr:`inputs`; a
@@ -632,10 +973,18 @@ class StepCertificate:
             return np.ascontiguousarray(np.asarray(data[key], dtype=np.float64)
                                         .reshape(-1, width))
 
-        return cls(values[0], values[1], values[2], values[3],
+        cert = cls(values[0], values[1], values[2], values[3],
                    np.ascontiguousarray(pairs[0]), np.ascontiguousarray(pairs[1]),
                    np.ascontiguousarray(pairs[2]),
                    np.ascontiguousarray(data["ts_cert_normal"], dtype=np.float64),
                    rows("ts_cert_coefficients", 8), bool(values[4]), inputs.reshape(-1),
                    np.ascontiguousarray(walls[0]), np.ascontiguousarray(walls[1]),
                    rows("ts_cert_wall_factors", 3), rows("ts_cert_particles", 3))
+        if "ts_cert_body_q" in data:
+            cert.body_q = rows("ts_cert_body_q", 4)
+            cert.body_pairs = np.ascontiguousarray(
+                np.asarray(data["ts_cert_body_pairs"], dtype=np.int64).reshape(-1, 4))
+            cert.body_ref = rows("ts_cert_body_ref", 5)
+            cert.body_coef = rows("ts_cert_body_coef", 8)
+            cert.body_dim = int(np.asarray(data["ts_cert_body_dim"]).reshape(-1)[0])
+        return cert
