@@ -399,6 +399,136 @@ def test_turned_clumps_stay_below_the_drifted_certificate(seed):
     assert exceeded > 0
 
 
+def body_drift_reference(cert, x, walls, pose):
+    """(D_K, D_C) of the clumps' contacts of ``cert`` by the module doc (Clumps), in
+    plain numpy with dense 3 x 3 norms: the slow reference of _body_drift_sums."""
+    n = len(x)
+    sums = np.zeros((2, n + len(pose.q)))
+    root = np.sqrt(pose.inv_I)
+    planar = cert.body_dim == 2
+
+    def side(s, sign, a_ref, a_now, n_ref, n_now):
+        b = pose.sphere_body[s]
+        if b < 0:
+            S_ref = S_now = np.sqrt(cert.particles[s, 2]) * np.eye(3)
+            o_ref = o_now = np.zeros(3)
+            inv_m, owner = cert.particles[s, 1], s
+        else:
+            R_ref, R_now = quat_to_matrix(cert.body_q[b]), quat_to_matrix(pose.q[b])
+            S_ref = R_ref @ np.diag(root[b]) @ R_ref.T
+            S_now = R_now @ R_ref.T @ S_ref  # (S' Q)
+            o_ref, o_now = R_ref @ pose.offset[s], R_now @ pose.offset[s]
+            inv_m, owner = pose.inv_m[b], n + b
+        A_ref = cross_of(o_ref + sign * a_ref * n_ref) @ S_ref
+        A_now = cross_of(o_now + sign * a_now * n_now) @ S_now
+        norm = lambda m: np.linalg.norm(m, 2) ** 2  # noqa: E731
+        return (owner, inv_m, norm(A_ref), norm(A_now), norm(A_now - A_ref), norm(S_ref),
+                norm(S_now - S_ref))
+
+    for c, (a, b, w, bond) in enumerate(cert.body_pairs):
+        n_ref = cert.body_ref[c, 2:]
+        if b >= 0:
+            d = x[b] - x[a]
+            dist = np.linalg.norm(d)
+            if not bond and dist >= cert.particles[a, 0] + cert.particles[b, 0]:
+                continue
+            n_now = d / dist
+            half = 0.5 * (cert.particles[a, 0] + cert.particles[b, 0] - dist)
+            arms = (cert.particles[a, 0] - half, cert.particles[b, 0] - half)
+        else:
+            point, normal = walls[0][w], walls[1][w]
+            dist = (x[a] - point) @ normal
+            if dist >= cert.particles[a, 0]:
+                continue
+            n_now, arms = -normal, (dist, 0.0)
+        turn = np.linalg.norm(n_now - n_ref)
+        rows = [side(a, 1.0, cert.body_ref[c, 0], arms[0], n_ref, n_now)]
+        if b >= 0:
+            rows.append(side(b, -1.0, cert.body_ref[c, 1], arms[1], n_ref, n_now))
+        owners = [row[0] for row in rows]
+        trans, rot_ref, rot_now, eta2, phi2, phi_eta2 = np.sum([row[1:] for row in rows], axis=0)
+        l_ref, l_now, eta = np.sqrt(trans + rot_ref), np.sqrt(trans + rot_now), np.sqrt(eta2)
+        k_n, k_t, c_n, c_t, k_r, k_w, c_r, c_w = cert.body_coef[c]
+        for row, (bn, bt, br, bw) in enumerate(((k_n, k_t, k_r, k_w), (c_n, c_t, c_r, c_w))):
+            f = (l_ref + l_now) * (abs(bn - bt) * turn * l_now + max(bn, bt) * eta)
+            if (k_r, k_w, c_r, c_w) != (0, 0, 0, 0):
+                swing = 0.0 if planar else turn * np.sqrt(phi2)
+                f += 2 * np.sqrt(phi2) * (abs(bw - br) * swing + max(br, bw) * np.sqrt(phi_eta2))
+            for o in owners:
+                sums[row, o] += f
+    return sums[0].max(), sums[1].max()
+
+
+def cross_of(v):
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_body_drift_equals_a_numpy_reference(dim):
+    """The compiled drift of the clumps' contacts (free spheres, members of several
+    bodies, walls, a bond, springs, dashpots, rolling and twisting) equals a plain
+    numpy evaluation of the module doc's bound with dense 3 x 3 norms, for random
+    turns and moves (the soundness of the bound: the dense eigenvalue test above)."""
+    from demstep.timestep.certificate import BodyPose, StepCertificate
+
+    rng = np.random.default_rng(dim)
+    n, n_bodies = 14, 4
+    x = np.zeros((n, 3))
+    x[:, :dim] = rng.uniform(0, 1.5, (n, dim))
+    body = np.array([-1, -1, -1, 0, 0, 1, 1, 1, 2, 2, 3, 3, 3, 3])
+    offset = np.zeros((n, 3))
+    offset[body >= 0, :dim] = rng.uniform(-0.6, 0.6, (np.count_nonzero(body >= 0), dim))
+    radius = rng.uniform(0.9, 1.2, n)
+    axis = np.zeros((n_bodies, 3))
+    if dim == 2:
+        axis[:, 2] = 1.0
+    else:
+        axis = rng.normal(size=(n_bodies, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = rng.uniform(0, np.pi, n_bodies)
+    q_ref = np.column_stack([np.cos(angle / 2), np.sin(angle / 2)[:, None] * axis])
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)
+             if body[i] < 0 or body[i] != body[j]]
+    pairs = [pairs[k] for k in rng.choice(len(pairs), 20, replace=False)]
+    walls = (np.array([[0.0, -0.5, 0.0], [-0.5, 0.0, 0.0]]),
+             np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]))
+    wall_rows = [(s, w) for s in (0, 4, 6, 9, 12) for w in (0, 1)]
+    m = len(pairs) + len(wall_rows)
+    rows = np.array([(i, j, -1, 0) for i, j in pairs] + [(s, -1, w, 0) for s, w in wall_rows])
+    rows[0, 3] = 1  # (a bond)
+    ref = np.zeros((m, 5))
+    ref[:, :2] = rng.uniform(0.5, 1.0, (m, 2))
+    ref[:, 2:2 + dim] = rng.normal(size=(m, dim))
+    ref[:, 2:] /= np.linalg.norm(ref[:, 2:], axis=1, keepdims=True)
+    coef = rng.uniform(0.1, 2.0, (m, 8))
+    if dim == 2:
+        coef[:, 5] = coef[:, 7] = 0.0  # (disks do not twist)
+    cert = StepCertificate(1.0, 0.5, body_q=q_ref, body_pairs=rows, body_ref=ref,
+                           body_coef=coef, body_dim=dim,
+                           particles=np.column_stack([radius, rng.uniform(0.5, 2, n),
+                                                      rng.uniform(0.5, 2, n)]))
+    inv_I = rng.uniform(0.3, 3.0, (n_bodies, 3))
+    if dim == 2:
+        inv_I[:, :2] = 0.0
+    for trial in range(5):
+        turn = rng.uniform(0, 0.3, n_bodies)
+        dq = np.column_stack([np.cos(turn / 2), np.sin(turn / 2)[:, None] * axis])
+        q = np.array([quat_product(a, b) for a, b in zip(dq, q_ref)])
+        pose = BodyPose(body, offset, q, rng.uniform(0.2, 1.0, n_bodies), inv_I)
+        moved = x.copy()
+        moved[:, :dim] += rng.uniform(-0.1, 0.1, (n, dim))
+        got = cert.drift(moved, np.zeros(3), walls, pose)
+        want = body_drift_reference(cert, moved, walls, pose)
+        assert want[0] > 0 and want[1] > 0
+        assert got == pytest.approx(want, rel=1e-8)
+
+
+def quat_product(a, b):
+    """The quaternion product a b (w, x, y, z)."""
+    w1, v1, w2, v2 = a[0], a[1:], b[0], b[1:]
+    return np.concatenate([[w1 * w2 - v1 @ v2], w1 * v2 + w2 * v1 + np.cross(v1, v2)])
+
+
 def quat_of(R):
     """The unit quaternion (w, x, y, z) of a rotation matrix."""
     x, y, z, w = scipy.spatial.transform.Rotation.from_matrix(R).as_quat()

@@ -269,6 +269,41 @@ def test_smallest_sigma_is_the_smallest_certified_root():
         assert s == sigma_c or not cert.certifies(s * (1 - 1e-12), drift)
 
 
+@pytest.mark.parametrize("damping", [0.05, 1.0, 20.0])
+def test_covered_contacts_grow_no_faster_than_sigma_c(damping):
+    """lambda_max(sigma C^ + K^) grows with sigma at a slope of at most lambda_max(C^)
+    <= sigma_c (sigma_c lambda_max(C^) <= lambda_max(sigma_c C^ + K^) = sigma_c^2): the
+    bound with the slope min(Lambda_C, sigma_c) stays above the dense lambda_max for
+    every sigma above sigma_c, however loose Lambda_C, and certifies every such sigma
+    (a step chosen below the estimate's is certified by it; with Lambda_C alone it was
+    not once Lambda_C > 2 sigma_c). Heavy dashpots (``damping``) bring lambda_max(C^)
+    close to sigma_c, where a smaller slope would fail."""
+    rng = np.random.default_rng(11)
+    x = rng.uniform(0, 2.6, (25, 3))
+    r = rng.uniform(0.45, 0.6, 25)
+    p = Particles.from_density(x, r, 2.0)
+    found = find_contacts(p, 1.0)
+    assert found.n > 10
+    k_n = rng.uniform(1.0, 3.0, found.n)
+    c = ContactSet(found.i, found.j, found.normal, found.arm_i, found.arm_j, k_n, 0.4 * k_n,
+                   c_n=damping * np.sqrt(k_n), c_t=0.3 * damping * np.sqrt(k_n))
+    K = scaled(p, c, True, (c.k_n, c.k_s))
+    C = scaled(p, c, True, (c.c_n, c.c_t))
+    sigma_c = dense_root(K, C)
+    top_c = np.linalg.eigvalsh(C)[-1]
+    assert top_c <= sigma_c * (1 + 1e-9)
+    for lam_c in (top_c, 10.0 * top_c + 3.0 * sigma_c):
+        cert = StepCertificate(sigma_c, lam_c)
+        for sigma in sigma_c * np.array([1.0, 1.01, 1.25, 2.0, 10.0]):
+            actual = np.linalg.eigvalsh(sigma * C + K)[-1]
+            assert actual <= cert.bound(sigma) * (1 + 1e-12)
+            assert cert.certifies(sigma * (1 + 1e-12))
+    if damping >= 20.0:  # (overdamped: the slope is close to sigma_c)
+        sigma = 2.0 * sigma_c
+        actual = np.linalg.eigvalsh(sigma * C + K)[-1]
+        assert actual > sigma_c ** 2 + (sigma - sigma_c) * 0.9 * sigma_c
+
+
 def quiet_packing(safety=0.8, every=100):
     """A settled-looking square packing of 6 x 6 x 4 spheres, slightly pre-compressed in
     a fixed box, with small random velocities: contacts stay, normals barely turn."""
