@@ -463,15 +463,13 @@ def cross_of(v):
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
-@pytest.mark.parametrize("dim", [2, 3])
-def test_body_drift_equals_a_numpy_reference(dim):
-    """The compiled drift of the clumps' contacts (free spheres, members of several
-    bodies, walls, a bond, springs, dashpots, rolling and twisting) equals a plain
-    numpy evaluation of the module doc's bound with dense 3 x 3 norms, for random
-    turns and moves (the soundness of the bound: the dense eigenvalue test above)."""
+def synthetic_body_certificate(dim, rng):
+    """A certificate of 14 overlapping spheres (3 free, 11 members of 4 bodies), 20
+    random pairs (one a bond) and 10 wall contacts with random arms, normals, springs,
+    dashpots, rolling and twisting at the estimate: (cert, x, walls, axes of the
+    bodies' turns, a function making the BodyPose of orientations q)."""
     from demstep.timestep.certificate import BodyPose, StepCertificate
 
-    rng = np.random.default_rng(dim)
     n, n_bodies = 14, 4
     x = np.zeros((n, 3))
     x[:, :dim] = rng.uniform(0, 1.5, (n, dim))
@@ -510,17 +508,75 @@ def test_body_drift_equals_a_numpy_reference(dim):
     inv_I = rng.uniform(0.3, 3.0, (n_bodies, 3))
     if dim == 2:
         inv_I[:, :2] = 0.0
+    inv_m = rng.uniform(0.2, 1.0, n_bodies)
+    return cert, x, walls, axis, lambda q: BodyPose(body, offset, q, inv_m, inv_I)
+
+
+def turned(q, axis, angle):
+    """The orientations q turned further by ``angle`` (B,) about ``axis`` (B, 3)."""
+    dq = np.column_stack([np.cos(angle / 2), np.sin(angle / 2)[:, None] * axis])
+    return np.array([quat_product(a, b) for a, b in zip(dq, q)])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_body_drift_equals_a_numpy_reference(dim):
+    """The compiled drift of the clumps' contacts (free spheres, members of several
+    bodies, walls, a bond, springs, dashpots, rolling and twisting) equals a plain
+    numpy evaluation of the module doc's bound with dense 3 x 3 norms, for random
+    turns and moves (the soundness of the bound: the dense eigenvalue test above)."""
+    rng = np.random.default_rng(dim)
+    cert, x, walls, axis, pose = synthetic_body_certificate(dim, rng)
     for trial in range(5):
-        turn = rng.uniform(0, 0.3, n_bodies)
-        dq = np.column_stack([np.cos(turn / 2), np.sin(turn / 2)[:, None] * axis])
-        q = np.array([quat_product(a, b) for a, b in zip(dq, q_ref)])
-        pose = BodyPose(body, offset, q, rng.uniform(0.2, 1.0, n_bodies), inv_I)
+        q = turned(cert.body_q, axis, rng.uniform(0, 0.3, len(axis)))
         moved = x.copy()
-        moved[:, :dim] += rng.uniform(-0.1, 0.1, (n, dim))
-        got = cert.drift(moved, np.zeros(3), walls, pose)
-        want = body_drift_reference(cert, moved, walls, pose)
+        moved[:, :dim] += rng.uniform(-0.1, 0.1, (len(x), dim))
+        got = cert.drift(moved, np.zeros(3), walls, pose(q))
+        want = body_drift_reference(cert, moved, walls, pose(q))
         assert want[0] > 0 and want[1] > 0
         assert got == pytest.approx(want, rel=1e-8)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_body_budgets_keep_the_step_certified_on_the_way(dim):
+    """From a turned and moved state, the budgets (E, Theta) of a step with room left:
+    at any state whose pairs' ends moved by at most E relative to each other (each
+    sphere by at most E / 2, each in its own direction) and whose bodies turned by at
+    most Theta further, the drift still certifies the step; the budgets are not
+    vanishingly small, and vanish without room."""
+    rng = np.random.default_rng(10 + dim)
+    cert, x, walls, axis, pose = synthetic_body_certificate(dim, rng)
+    q_now = turned(cert.body_q, axis, rng.uniform(0, 0.2, len(axis)))
+    now = x.copy()
+    now[:, :dim] += rng.uniform(-0.05, 0.05, (len(x), dim))
+    drift = cert.drift(now, np.zeros(3), walls, pose(q_now))
+    sigma = 1.3 * cert.smallest_sigma(drift)
+    e_cap, angle_cap = 0.02, 0.02  # (the engine's caps, times the radii ~ 1)
+    budget, turn = cert.body_budgets(sigma, now, np.zeros(3), walls, pose(q_now), e_cap,
+                                     angle_cap)
+    assert 1e-4 < budget <= e_cap and 1e-4 < turn <= angle_cap
+    used = 0.0
+    for trial in range(40):
+        step = np.zeros_like(now)
+        direction = rng.normal(size=(len(x), dim))
+        step[:, :dim] = (0.5 * budget * rng.uniform(0.5, 1.0, (len(x), 1)) * direction
+                         / np.linalg.norm(direction, axis=1, keepdims=True))
+        # |dR_x - I| = 2 sin(angle / 2) <= turn
+        q = turned(q_now, axis if dim == 2 else unit_rows(rng.normal(size=axis.shape)),
+                   2 * np.arcsin(0.5 * turn * rng.uniform(0.5, 1.0, len(axis))))
+        later = cert.drift(now + step, np.zeros(3), walls, pose(q))
+        assert cert.certifies(sigma, later)
+        used = max(used, (cert.bound(sigma, later) - cert.bound(sigma, drift))
+                   / (sigma * sigma - cert.bound(sigma, drift)))
+    # (the states reached use some of the room: random moves and turns are far from
+    # the worst case the budgets allow for, a few percent of it)
+    assert used > 0.005
+    tight = cert.smallest_sigma(cert.drift(now, np.zeros(3), walls, pose(q_now)))
+    assert cert.body_budgets(tight, now, np.zeros(3), walls, pose(q_now), e_cap,
+                             angle_cap) == (0.0, 0.0)
+
+
+def unit_rows(v):
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
 def quat_product(a, b):

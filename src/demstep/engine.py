@@ -328,6 +328,7 @@ class Simulation:
         self.ledger = EnergyLedger()
         self.counters = np.zeros(5)
         self._check_budget = math.inf  # 'auto': see _renew_drift_budget
+        self._turn_budget = 0.0  # (with clumps)
         self.pairs = Pairs.empty(n)
         self._neighbour_work = None  # the pair search's scratch, kept between rebuilds
         self._last_rebuild = 0  # the step of the last rebuild
@@ -1586,6 +1587,9 @@ class Simulation:
             out[f"ts_cover_{name}_overlap"] = assumed
         if out:
             out["ts_check_budget"] = np.array([self._check_budget])
+            if cert is not None and cert.has_bodies:
+                out["ts_turn_budget"] = np.array([self._turn_budget])
+                out["ts_check_q"] = self._check_q
         return out
 
     def restore_timestep_state(self, data: dict):
@@ -1605,6 +1609,16 @@ class Simulation:
         if budget.size != 1 or not budget[0] >= 0.0:  # (older checkpoints: checked at once)
             raise InputError(f"ts_check_budget: expected one number >= 0, got {budget}")
         self._check_budget = float(budget[0])
+        self._turn_budget = 0.0  # (older checkpoints: checked at once)
+        if "ts_turn_budget" in data and "ts_check_q" in data:
+            turn = np.asarray(data["ts_turn_budget"], dtype=np.float64).reshape(-1)
+            q = np.asarray(data["ts_check_q"], dtype=np.float64)
+            if turn.size != 1 or not turn[0] >= 0.0:
+                raise InputError(f"ts_turn_budget: expected one number >= 0, got {turn}")
+            if q.shape != self.bodies.q.shape or not np.isfinite(q).all():
+                raise InputError(f"ts_check_q: expected {self.bodies.q.shape[0]} finite "
+                                 f"orientations (bodies, 4), got shape {q.shape}")
+            self._turn_budget, self._check_q = float(turn[0]), q
 
     def _uncovered(self, steps: float = 0.0):
         """Masks over the pair and wall lists of the closed contacts the last 'auto'
@@ -1707,9 +1721,9 @@ class Simulation:
         covered contacts' normals turned so far that the certificate no longer holds at
         dt (:mod:`demstep.timestep.certificate`; checked once the pairs' ends may have
         moved as far as its drift budget allows, :meth:`_renew_drift_budget`: the
-        certificate holds at every step in between; with clumps, whose turns are not
-        budgeted, at every step). A certificate restored without what its drift needs
-        asks for a new estimate. The steps look for
+        certificate holds at every step in between; with clumps, also once the bodies
+        may have turned as far as it allows, looked at after every step). A certificate
+        restored without what its drift needs asks for a new estimate. The steps look for
         contacts closed beyond their cover at the positions they end with; the lists
         are compared with the record only when they found some."""
         masks = self._uncovered_now()
@@ -1727,9 +1741,26 @@ class Simulation:
             return True
         if not cert.bounded:
             return False
-        if self.counters[4] <= self._check_budget and not cert.has_bodies:
+        if self.counters[4] <= self._check_budget and (
+                not cert.has_bodies or self._turned_since_check() <= self._turn_budget):
             return True
         return self._renew_drift_budget()
+
+    #: 'auto' with clumps: the most the bodies may turn (|dR - I|) and the pairs' ends
+    #: move relative to each other (this fraction of the smallest radius) between two
+    #: checks of the drift (the look-ahead's lever arms take them at these caps: small
+    #: caps keep its bound close to the drift now, which it stands for at each check)
+    BODY_TURN_CAP = 0.02
+    BODY_MOVE_CAP = 0.02
+
+    def _turned_since_check(self) -> float:
+        """How far the bodies turned since the last check of the drift: the largest
+        |dR - I| = 2 sin(theta / 2), twice the vector part of q q_check^* (over the
+        two lengths)."""
+        q, p = self.bodies.q, self._check_q
+        vec = p[:, :1] * q[:, 1:] - q[:, :1] * p[:, 1:] - np.cross(q[:, 1:], p[:, 1:])
+        size = np.linalg.norm(q, axis=1) * np.linalg.norm(p, axis=1)
+        return float(np.max(2.0 * np.linalg.norm(vec, axis=1) / size, initial=0.0))
 
     #: 'auto' with bonds: the budget of relative motion between checks of the drift is
     #: at most this fraction of the smallest radius (the bound on a bond's arms takes
@@ -1753,12 +1784,18 @@ class Simulation:
             self._check_budget = math.inf
             return True
         sigma = self._certified_sigma()
+        if cert.has_bodies:  # the bodies' turn budgeted too (looked at after every step)
+            self._check_q = self.bodies.q.copy()
+            self._check_budget, self._turn_budget = cert.body_budgets(
+                sigma, self.x, self.periodic_len, (self.wall_point, self.wall_normal),
+                self._body_pose(), self.BODY_MOVE_CAP * float(self.r.min(initial=math.inf)),
+                self.BODY_TURN_CAP)
+            if self._check_budget > 0.0 or self._turn_budget > 0.0:
+                return True  # (room left at the look-ahead's bound, above the drift now)
+            return cert.certifies(sigma, self._drift(cert))
         if not cert.certifies(sigma, self._drift(cert)):
             self._check_budget = 0.0
             return False
-        if cert.has_bodies:  # (checked at every step)
-            self._check_budget = math.inf
-            return True
         cap = (self.DRIFT_BUDGET_CAP * float(self.r.min(initial=math.inf))
                if cert.pair_bond.any() else math.inf)
         self._check_budget = cert.drift_budget(

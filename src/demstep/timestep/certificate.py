@@ -104,8 +104,12 @@ disk's R does not turn. These bounds hold per element as above, summed per owner
 free sphere or a body) and the largest sum taken: :func:`_body_drift_sums`. A contact
 apart has no element now (its change, -E, lowers lambda_max): it counts once it
 touches. Contacts added with clumps are bounded at any orientation of the bodies
-(:func:`added_contacts_bound`), so they need no drift term. The check of a
-certificate with clumps is made at every step: how far a body turns is not budgeted.
+(:func:`added_contacts_bound`), so they need no drift term. Between checks, a
+certificate with clumps holds while the pairs' ends moved by at most E relative to
+each other and the bodies turned by at most Theta since the last check
+(:meth:`StepCertificate.body_budgets`): from the state of the check, a side's A moves
+by at most |S| (Theta (|o| + a) + |a'' n'' - a' n'|) (the same decomposition, dR_x
+the further turn), so the drift terms grow at most linearly in E and Theta.
 """
 
 from __future__ import annotations
@@ -336,11 +340,13 @@ def _sym3_top(a00, a01, a02, a11, a12, a22):
 @njit(inline="always")
 def _norm2(m):
     """|m|_2^2 = lambda_max(m^T m) of a 3 x 3 matrix, from above."""
-    g = np.zeros((3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            g[i, j] = m[0, i] * m[0, j] + m[1, i] * m[1, j] + m[2, i] * m[2, j]
-    return _sym3_top(g[0, 0], g[0, 1], g[0, 2], g[1, 1], g[1, 2], g[2, 2])
+    g00 = m[0, 0] * m[0, 0] + m[1, 0] * m[1, 0] + m[2, 0] * m[2, 0]
+    g01 = m[0, 0] * m[0, 1] + m[1, 0] * m[1, 1] + m[2, 0] * m[2, 1]
+    g02 = m[0, 0] * m[0, 2] + m[1, 0] * m[1, 2] + m[2, 0] * m[2, 2]
+    g11 = m[0, 1] * m[0, 1] + m[1, 1] * m[1, 1] + m[2, 1] * m[2, 1]
+    g12 = m[0, 1] * m[0, 2] + m[1, 1] * m[1, 2] + m[2, 1] * m[2, 2]
+    g22 = m[0, 2] * m[0, 2] + m[1, 2] * m[1, 2] + m[2, 2] * m[2, 2]
+    return _sym3_top(g00, g01, g02, g11, g12, g22)
 
 
 @njit(inline="always")
@@ -353,10 +359,100 @@ def _cross_times(r0, r1, r2, a, out):
 
 
 @njit(inline="always")
+def _rotation(q, out):
+    """out = R(q) (3 x 3) of a quaternion (w, x, y, z), normalised."""
+    size = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    w, x, y, z = q[0] / size, q[1] / size, q[2] / size, q[3] / size
+    out[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    out[0, 1] = 2.0 * (x * y - w * z)
+    out[0, 2] = 2.0 * (x * z + w * y)
+    out[1, 0] = 2.0 * (x * y + w * z)
+    out[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    out[1, 2] = 2.0 * (y * z - w * x)
+    out[2, 0] = 2.0 * (x * z - w * y)
+    out[2, 1] = 2.0 * (y * z + w * x)
+    out[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+
+
+@njit(cache=True)
+def body_frames(q_ref, q, inv_m, inv_I):
+    """(frames (B, 5, 3, 3), scalars (B, 3)) of :func:`_body_drift_sums` for bodies
+    turned from the orientations ``q_ref`` to ``q`` (B, 4) with inverse masses
+    ``inv_m`` (B,) and principal inverse moments ``inv_I`` (B, 3): R_ref, R now,
+    S_ref = R_ref I^-1/2 R_ref^T, dR S_ref (dR = R R_ref^T) and the world inverse
+    inertia now R I^-1 R^T; 1/m, |S|^2 and |(dR - I) S_ref|^2."""
+    n = q.shape[0]
+    frames = np.zeros((n, 5, 3, 3))
+    scalars = np.zeros((n, 3))
+    diff = np.empty((3, 3))
+    for b in range(n):
+        r_ref, r_now, s_ref, ds = frames[b, 0], frames[b, 1], frames[b, 2], frames[b, 3]
+        _rotation(q_ref[b], r_ref)
+        _rotation(q[b], r_now)
+        for i in range(3):
+            for j in range(3):
+                acc = 0.0
+                for k in range(3):
+                    acc += r_ref[i, k] * math.sqrt(inv_I[b, k]) * r_ref[j, k]
+                s_ref[i, j] = acc
+        for i in range(3):  # dR S_ref = R_now (R_ref^T S_ref) = R_now I^-1/2 R_ref^T
+            for j in range(3):
+                acc = 0.0
+                for k in range(3):
+                    acc += r_now[i, k] * math.sqrt(inv_I[b, k]) * r_ref[j, k]
+                ds[i, j] = acc
+                diff[i, j] = acc - s_ref[i, j]
+        inertia_now = frames[b, 4]  # (I^-1 now: R_now I^-1 R_now^T)
+        for i in range(3):
+            for j in range(3):
+                acc = 0.0
+                for k in range(3):
+                    acc += r_now[i, k] * inv_I[b, k] * r_now[j, k]
+                inertia_now[i, j] = acc
+        scalars[b, 0] = inv_m[b]
+        scalars[b, 1] = max(inv_I[b, 0], inv_I[b, 1], inv_I[b, 2])
+        scalars[b, 2] = _norm2(diff)
+    return frames, scalars
+
+
+@njit(inline="always")
+def _lever_norm2(r0, r1, r2, w):
+    """|[r]x W^1/2|^2 = |r|^2 lambda_max(P W P) (P the projection across r, W a symmetric
+    3 x 3 inverse inertia): the 2 x 2 eigenvalue problem in the plane across r, in
+    closed form, raised by a relative 1e-9 past its rounding."""
+    size2 = r0 * r0 + r1 * r1 + r2 * r2
+    if not size2 > 0.0:
+        return 0.0
+    size = math.sqrt(size2)
+    e0, e1, e2 = r0 / size, r1 / size, r2 / size
+    # u across e: e x (the axis least along e), v = e x u
+    if abs(e0) <= abs(e1) and abs(e0) <= abs(e2):
+        u0, u1, u2 = 0.0, e2, -e1
+    elif abs(e1) <= abs(e2):
+        u0, u1, u2 = -e2, 0.0, e0
+    else:
+        u0, u1, u2 = e1, -e0, 0.0
+    un = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    u0, u1, u2 = u0 / un, u1 / un, u2 / un
+    v0, v1, v2 = e1 * u2 - e2 * u1, e2 * u0 - e0 * u2, e0 * u1 - e1 * u0
+    wu0 = w[0, 0] * u0 + w[0, 1] * u1 + w[0, 2] * u2
+    wu1 = w[1, 0] * u0 + w[1, 1] * u1 + w[1, 2] * u2
+    wu2 = w[2, 0] * u0 + w[2, 1] * u1 + w[2, 2] * u2
+    wv0 = w[0, 0] * v0 + w[0, 1] * v1 + w[0, 2] * v2
+    wv1 = w[1, 0] * v0 + w[1, 1] * v1 + w[1, 2] * v2
+    wv2 = w[2, 0] * v0 + w[2, 1] * v1 + w[2, 2] * v2
+    a = u0 * wu0 + u1 * wu1 + u2 * wu2
+    b = u0 * wv0 + u1 * wv1 + u2 * wv2
+    c = v0 * wv0 + v1 * wv1 + v2 * wv2
+    top = 0.5 * (a + c) + math.sqrt(0.25 * (a - c) ** 2 + b * b)
+    return size2 * top * (1.0 + 1e-9)
+
+
+@njit(inline="always")
 def _arm_side(s, sign, arm_ref, arm, n_ref, n_now, particles, sphere_body, offset, frames,
-              body_scalars, a_ref, a_now):
-    """One side of a contact in :func:`_body_drift_sums`: (owner index offset by N for
-    a body, inverse mass, |A_ref|^2, |A_now|^2, |A_now - A_ref|^2, |S|^2,
+              body_scalars, a_ref, a_now, cache, c, at):
+    """One side of a contact in :func:`_body_drift_sums`: (owner: -1 for a free sphere,
+    else its body; inverse mass, |A_ref|^2, |A_now|^2, |A_now - A_ref|^2, |S|^2,
     |(dR - I) S|^2) with A = [r]x S the map of the owner's scaled rotation to the
     contact point's motion (now, in the coordinates turned by dR), r the arm from the
     owner's centre to the contact point (``sign`` -1 for side j)."""
@@ -370,17 +466,18 @@ def _arm_side(s, sign, arm_ref, arm, n_ref, n_now, particles, sphere_body, offse
                 inv_i * (d0 * d0 + d1 * d1 + d2 * d2), inv_i, 0.0)
     r_ref, r_now = frames[k, 0], frames[k, 1]
     o0, o1, o2 = offset[s, 0], offset[s, 1], offset[s, 2]
-    ref = np.empty(3)
-    now = np.empty(3)
-    for i in range(3):
-        ref[i] = (r_ref[i, 0] * o0 + r_ref[i, 1] * o1 + r_ref[i, 2] * o2
-                  + sign * arm_ref * n_ref[i])
-        now[i] = (r_now[i, 0] * o0 + r_now[i, 1] * o1 + r_now[i, 2] * o2
-                  + sign * arm * n_now[i])
-    _cross_times(ref[0], ref[1], ref[2], frames[k, 2], a_ref)
-    _cross_times(now[0], now[1], now[2], frames[k, 3], a_now)
-    size_ref = _norm2(a_ref)
-    size_now = _norm2(a_now)
+    f0 = r_ref[0, 0] * o0 + r_ref[0, 1] * o1 + r_ref[0, 2] * o2 + sign * arm_ref * n_ref[0]
+    f1 = r_ref[1, 0] * o0 + r_ref[1, 1] * o1 + r_ref[1, 2] * o2 + sign * arm_ref * n_ref[1]
+    f2 = r_ref[2, 0] * o0 + r_ref[2, 1] * o1 + r_ref[2, 2] * o2 + sign * arm_ref * n_ref[2]
+    _cross_times(f0, f1, f2, frames[k, 2], a_ref)
+    size_ref = cache[c, at]  # (the estimate's: computed once)
+    if not size_ref >= 0.0:
+        size_ref = cache[c, at] = _norm2(a_ref)
+    f0 = r_now[0, 0] * o0 + r_now[0, 1] * o1 + r_now[0, 2] * o2 + sign * arm * n_now[0]
+    f1 = r_now[1, 0] * o0 + r_now[1, 1] * o1 + r_now[1, 2] * o2 + sign * arm * n_now[1]
+    f2 = r_now[2, 0] * o0 + r_now[2, 1] * o1 + r_now[2, 2] * o2 + sign * arm * n_now[2]
+    _cross_times(f0, f1, f2, frames[k, 3], a_now)
+    size_now = _lever_norm2(f0, f1, f2, frames[k, 4])
     for i in range(3):
         for j in range(3):
             a_now[i, j] -= a_ref[i, j]
@@ -389,20 +486,35 @@ def _arm_side(s, sign, arm_ref, arm, n_ref, n_now, particles, sphere_body, offse
 
 
 @njit(cache=True)
-def _body_drift_sums(x, pairs, ref, coef, particles, sphere_body, offset, frames,
+def _body_drift_sums(x, pairs, ref, coef, cache, particles, sphere_body, offset, frames,
                      body_scalars, wall_point, wall_normal, periodic_len, planar, sum_k,
-                     sum_c):
+                     sum_c, lookahead, e_cap, angle_cap, rate_ek, rate_ec, rate_ak, rate_ac):
     """Adds to ``sum_k`` [1/T^2] and ``sum_c`` [1/T] (N + B,), per owner (the free
     spheres, then the bodies), the bounds of the module doc (Clumps) on how far the
     elements of the covered contacts with a member moved since the estimate:
     ``pairs`` (C, 4) the spheres i, j (-1: a wall contact), the wall (-1: a pair) and 1
     for a bond; ``ref`` (C, 5) the estimate's arms a_i, a_j [L] and unit normal (3
-    components); ``coef`` (C, 8) k_n, k_t, c_n, c_t, k_r, k_w, c_r, c_w; ``particles``
+    components); ``coef`` (C, 8) k_n, k_t, c_n, c_t, k_r, k_w, c_r, c_w; ``cache``
+    (C, 2) the estimate's |A|^2 of each member side (NaN: not yet computed; filled);
+    ``particles``
     (N, 3) radius, inverse mass, inverse moment of inertia (free spheres); per sphere
     its ``sphere_body`` (-1: free) and member ``offset`` (N, 3) [L] in the body frame;
-    per body ``frames`` (B, 4, 3, 3): R at the estimate, R now, S at the estimate and
-    dR S, and ``body_scalars`` (B, 3): 1/m, |S|^2 and |(dR - I) S|^2 (:meth:`BodyPose.
-    frames`)."""
+    per body ``frames`` (B, 5, 3, 3): R at the estimate, R now, S at the estimate,
+    dR S and I^-1 now (world), and ``body_scalars`` (B, 3): 1/m, |S|^2 and |(dR - I) S|^2 (:meth:`BodyPose.
+    frames`).
+
+    With ``lookahead``, what bounds these terms at any state whose pairs' ends moved by
+    at most E <= ``e_cap`` [L] relative to each other and whose bodies turned by at most
+    Theta <= ``angle_cap`` (|dR_x - I|) from the state ``x`` now: ``sum_k``, ``sum_c``
+    the terms at E = Theta = 0 with l' at its largest (below), ``rate_ek``, ``rate_ec``
+    their growth per unit of E and ``rate_ak``, ``rate_ac`` per unit of Theta (module
+    doc, Clumps). A normal turns by at most 2 E / |d|, an arm by E / 2 (a wall's by E),
+    up to the radius (a bond's: its arm now + E); a side's A moves from A now by at
+    most |S| (Theta (|o| + a) + |a'' n'' - a' n'|) (the decomposition of the module doc
+    from the state now; a free sphere's without Theta), so |A'' - A_ref| by at most
+    that more than |A' - A_ref|, and l'' is at most its value with both caps. A contact
+    apart is taken with the radii for arms (those it would close with), unless its gap
+    is at least ``e_cap`` (it cannot close within the budget)."""
     n = x.shape[0]
     a_ref = np.empty((3, 3))
     a_now = np.empty((3, 3))
@@ -421,29 +533,53 @@ def _body_drift_sums(x, pairs, ref, coef, particles, sphere_body, offset, frames
             dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
             if not dist > 0.0:
                 return False  # (coincident centres: no normal, a new estimate)
-            if pairs[c, 3] == 0 and not dist < particles[a, 0] + particles[b, 0]:
-                continue  # (apart: no element now)
+            bond = pairs[c, 3] != 0
+            touching = dist < particles[a, 0] + particles[b, 0]
+            if not (bond or touching or (
+                    lookahead and dist - particles[a, 0] - particles[b, 0] < e_cap)):
+                continue  # (apart: no element now, nor within the look-ahead's reach)
             n_now[0], n_now[1], n_now[2] = d0 / dist, d1 / dist, d2 / dist
-            arm_i, arm_j = contact_arms(particles[a, 0], particles[b, 0], dist)
+            if bond or touching:
+                arm_i, arm_j = contact_arms(particles[a, 0], particles[b, 0], dist)
+            else:
+                arm_i, arm_j = particles[a, 0], particles[b, 0]
+            per_length = 2.0 / dist
+            move_i = 0.5 + per_length * (arm_i + e_cap if bond else particles[a, 0])
+            move_j = 0.5 + per_length * (arm_j + e_cap if bond else particles[b, 0])
+            top_i = max(arm_i + e_cap, arm_ref_i) if bond else particles[a, 0]
+            top_j = max(arm_j + e_cap, arm_ref_j) if bond else particles[b, 0]
         else:
             geo = wall_geometry(x[a, 0], x[a, 1], x[a, 2], particles[a, 0], wall_point[w, 0],
                                 wall_point[w, 1], wall_point[w, 2], wall_normal[w, 0],
                                 wall_normal[w, 1], wall_normal[w, 2])
-            if not geo[4] > 0.0:
+            if not (geo[4] > 0.0 or (lookahead and -geo[4] < e_cap)):
                 continue
             n_now[0], n_now[1], n_now[2] = geo[0], geo[1], geo[2]
-            arm_i, arm_j = geo[5], 0.0
+            arm_i, arm_j = (geo[5] if geo[4] > 0.0 else particles[a, 0]), 0.0
+            per_length, move_i, move_j = 0.0, 1.0, 0.0
+            top_i, top_j = particles[a, 0], 0.0
         turn = math.sqrt((n_now[0] - n_ref[0]) ** 2 + (n_now[1] - n_ref[1]) ** 2
                          + (n_now[2] - n_ref[2]) ** 2)
         oa, trans, rot_ref, rot_now, eta2, phi2, phi_eta2 = _arm_side(
             a, 1.0, arm_ref_i, arm_i, n_ref, n_now, particles, sphere_body, offset, frames,
-            body_scalars, a_ref, a_now)
+            body_scalars, a_ref, a_now, cache, c, 0)
+        # (lookahead: per side |S| (Theta (|o| + a) + E move) bounds how far A moves)
+        spin_a = 0.0 if oa < 0 else math.sqrt(phi2) * (_length(offset, a) + top_i)
+        shift_a = math.sqrt(phi2) * move_i
+        grow2 = (math.sqrt(rot_now) + angle_cap * spin_a + e_cap * shift_a) ** 2
+        spin_phi2 = 0.0 if oa < 0 else phi2
         oa = a if oa < 0 else n + oa
         ob = -1
         if b >= 0:
             ob, inv_m, r_ref2, r_now2, e2, p2, pe2 = _arm_side(
                 b, -1.0, arm_ref_j, arm_j, n_ref, n_now, particles, sphere_body, offset,
-                frames, body_scalars, a_ref, a_now)
+                frames, body_scalars, a_ref, a_now, cache, c, 1)
+            spin_b = 0.0 if ob < 0 else math.sqrt(p2) * (_length(offset, b) + top_j)
+            shift_b = math.sqrt(p2) * move_j
+            grow2 += (math.sqrt(r_now2) + angle_cap * spin_b + e_cap * shift_b) ** 2
+            spin_a += spin_b
+            shift_a += shift_b
+            spin_phi2 += 0.0 if ob < 0 else p2
             ob = b if ob < 0 else n + ob
             trans += inv_m
             rot_ref += r_ref2
@@ -451,12 +587,16 @@ def _body_drift_sums(x, pairs, ref, coef, particles, sphere_body, offset, frames
             eta2 += e2
             phi2 += p2
             phi_eta2 += pe2
-        l_now = math.sqrt(trans + rot_now)
+        l_now = math.sqrt(trans + (grow2 if lookahead else rot_now))
         width = l_now + math.sqrt(trans + rot_ref)
         eta = math.sqrt(eta2)
         k_n, k_t, c_n, c_t = coef[c, 0], coef[c, 1], coef[c, 2], coef[c, 3]
         f_k = width * (abs(k_n - k_t) * turn * l_now + max(k_n, k_t) * eta)
         f_c = width * (abs(c_n - c_t) * turn * l_now + max(c_n, c_t) * eta)
+        g_ek = width * (abs(k_n - k_t) * per_length * l_now + max(k_n, k_t) * shift_a)
+        g_ec = width * (abs(c_n - c_t) * per_length * l_now + max(c_n, c_t) * shift_a)
+        g_ak = width * max(k_n, k_t) * spin_a
+        g_ac = width * max(c_n, c_t) * spin_a
         k_r, k_w, c_r, c_w = coef[c, 4], coef[c, 5], coef[c, 6], coef[c, 7]
         if k_r > 0.0 or k_w > 0.0 or c_r > 0.0 or c_w > 0.0:
             l_phi = math.sqrt(phi2)
@@ -464,12 +604,33 @@ def _body_drift_sums(x, pairs, ref, coef, particles, sphere_body, offset, frames
             swing = 0.0 if planar else turn * l_phi  # (disks: R does not turn)
             f_k += 2.0 * l_phi * (abs(k_w - k_r) * swing + max(k_r, k_w) * eta_phi)
             f_c += 2.0 * l_phi * (abs(c_w - c_r) * swing + max(c_r, c_w) * eta_phi)
+            swing_rate = 0.0 if planar else per_length * l_phi
+            g_ek += 2.0 * l_phi * abs(k_w - k_r) * swing_rate
+            g_ec += 2.0 * l_phi * abs(c_w - c_r) * swing_rate
+            g_ak += 2.0 * l_phi * max(k_r, k_w) * math.sqrt(spin_phi2)
+            g_ac += 2.0 * l_phi * max(c_r, c_w) * math.sqrt(spin_phi2)
         sum_k[oa] += f_k
         sum_c[oa] += f_c
         if ob >= 0:
             sum_k[ob] += f_k
             sum_c[ob] += f_c
+        if lookahead:
+            rate_ek[oa] += g_ek
+            rate_ec[oa] += g_ec
+            rate_ak[oa] += g_ak
+            rate_ac[oa] += g_ac
+            if ob >= 0:
+                rate_ek[ob] += g_ek
+                rate_ec[ob] += g_ec
+                rate_ak[ob] += g_ak
+                rate_ac[ob] += g_ac
     return True
+
+
+@njit(inline="always")
+def _length(offset, s):
+    """|o| [L] of sphere s's offset in its body (0 for a free sphere)."""
+    return math.sqrt(offset[s, 0] ** 2 + offset[s, 1] ** 2 + offset[s, 2] ** 2)
 
 
 @dataclass
@@ -487,24 +648,11 @@ class BodyPose:
     inv_I: np.ndarray
 
     def frames(self, q_ref) -> tuple[np.ndarray, np.ndarray]:
-        """(frames (B, 4, 3, 3), scalars (B, 3)) of :func:`_body_drift_sums` from the
-        orientations ``q_ref`` of the estimate: R_ref, R now, S_ref = R_ref I^-1/2
-        R_ref^T, dR S_ref (dR = R R_ref^T); 1/m, |S|^2, |(dR - I) S_ref|^2."""
-        from demstep.clumps import quat_to_matrix
-
-        r_ref = quat_to_matrix(np.asarray(q_ref, dtype=np.float64))
-        r_now = quat_to_matrix(np.asarray(self.q, dtype=np.float64))
-        root = np.sqrt(np.asarray(self.inv_I, dtype=np.float64))
-        s_ref = np.einsum("bij,bj,bkj->bik", r_ref, root, r_ref)
-        turn = np.einsum("bij,bkj->bik", r_now, r_ref)
-        ds = turn @ s_ref
-        frames = np.ascontiguousarray(np.stack([r_ref, r_now, s_ref, ds], axis=1))
-        gs = ds - s_ref
-        top = np.linalg.eigvalsh(np.einsum("bji,bjk->bik", gs, gs))[:, -1]
-        scalars = np.stack([np.asarray(self.inv_m, dtype=np.float64),
-                            np.max(np.asarray(self.inv_I, dtype=np.float64), axis=1),
-                            np.abs(top) * (1.0 + 1e-9)], axis=1)
-        return frames, np.ascontiguousarray(scalars)
+        """:func:`body_frames` from the orientations ``q_ref`` of the estimate to now."""
+        return body_frames(np.ascontiguousarray(q_ref, dtype=np.float64),
+                           np.ascontiguousarray(self.q, dtype=np.float64),
+                           np.ascontiguousarray(self.inv_m, dtype=np.float64),
+                           np.ascontiguousarray(self.inv_I, dtype=np.float64))
 
 
 def cover_limits(keys, known, assumed, nonlinear: bool) -> np.ndarray:
@@ -831,17 +979,9 @@ class StepCertificate:
         sum_k = np.zeros(size)
         sum_c = np.zeros(size)
         if len(self.body_pairs):
-            if bodies is None:
-                raise ValueError("drift: the bodies' pose is needed (clumps are covered)")
-            point, normal = ((np.zeros((1, 3)), np.zeros((1, 3))) if walls is None else
-                             (np.ascontiguousarray(a, dtype=np.float64) for a in walls))
-            frames, scalars = bodies.frames(self.body_q)
-            if not _body_drift_sums(x, self.body_pairs, self.body_ref, self.body_coef, part,
-                                    np.asarray(bodies.sphere_body, dtype=np.int64),
-                                    np.ascontiguousarray(bodies.offset, dtype=np.float64),
-                                    frames, scalars, point, normal,
-                                    np.asarray(periodic_len, dtype=np.float64),
-                                    self.body_dim == 2, sum_k, sum_c):
+            none = np.zeros(0)
+            if not self._body_sums(x, periodic_len, walls, bodies, sum_k, sum_c, False, 0.0,
+                                   0.0, none, none, none, none):
                 return math.inf, math.inf
         _drift_sums(x, self.pair_i, self.pair_j, self.pair_bond, self.normal, self.factors,
                     part, np.asarray(periodic_len, dtype=np.float64), sum_k, sum_c)
@@ -852,6 +992,57 @@ class StepCertificate:
             _wall_drift_sums(x, self.wall_p, self.wall_w, point, normal, self.wall_factors,
                              part, sum_k, sum_c)
         return float(sum_k.max()), float(sum_c.max())
+
+    def _body_sums(self, x, periodic_len, walls, bodies, *sums) -> bool:
+        """:func:`_body_drift_sums` of the clumps' contacts at ``x`` and the ``bodies``'
+        pose now (False: coincident centres, no bound)."""
+        if bodies is None:
+            raise ValueError("drift: the bodies' pose is needed (clumps are covered)")
+        point, normal = ((np.zeros((1, 3)), np.zeros((1, 3))) if walls is None else
+                         (np.ascontiguousarray(a, dtype=np.float64) for a in walls))
+        frames, scalars = bodies.frames(self.body_q)
+        cache = getattr(self, "_body_norms", None)
+        if cache is None or cache.shape[0] != len(self.body_pairs):
+            cache = self._body_norms = np.full((len(self.body_pairs), 2), np.nan)
+        return _body_drift_sums(x, self.body_pairs, self.body_ref, self.body_coef, cache,
+                                self.particles, np.asarray(bodies.sphere_body, dtype=np.int64),
+                                np.ascontiguousarray(bodies.offset, dtype=np.float64), frames,
+                                scalars, point, normal,
+                                np.asarray(periodic_len, dtype=np.float64), self.body_dim == 2,
+                                *sums)
+
+    def body_budgets(self, sigma: float, x, periodic_len, walls, bodies: BodyPose,
+                     e_cap: float, angle_cap: float) -> tuple[float, float]:
+        """With clumps: (E [L], Theta): how far the pairs' ends (and the walls) may move
+        relative to each other from the positions ``x`` now, at most ``e_cap``, and the
+        bodies turn from their pose ``bodies`` now (|dR - I|), at most ``angle_cap``,
+        with the step 2 / ``sigma`` still certified at every state reached: the drift
+        there is at most D_up + E G_E + Theta G_Theta (:func:`_lookahead_sums`,
+        :func:`_body_drift_sums` with its lookahead), and half the room left goes to
+        each. (0, 0) when even D_up leaves no room."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        size = x.shape[0] + len(self.body_q)
+        up_k, up_c, rate_ek, rate_ec, rate_ak, rate_ac = (np.zeros(size) for _ in range(6))
+        lengths = np.asarray(periodic_len, dtype=np.float64)
+        if len(self.pair_i):
+            _lookahead_sums(x, self.pair_i, self.pair_j, self.pair_bond, self.normal,
+                            self.factors, self.particles, lengths, float(e_cap), up_k, up_c,
+                            rate_ek, rate_ec)
+        if len(self.wall_p):
+            point, normal = (np.ascontiguousarray(a, dtype=np.float64) for a in walls)
+            _wall_lookahead_sums(x, self.wall_p, self.wall_w, point, normal, self.wall_factors,
+                                 self.particles, up_k, up_c, rate_ek, rate_ec)
+        if not self._body_sums(x, periodic_len, walls, bodies, up_k, up_c, True, float(e_cap),
+                               float(angle_cap), rate_ek, rate_ec, rate_ak, rate_ac):
+            return 0.0, 0.0
+        slack = sigma * sigma - self.bound(sigma, (float(up_k.max()), float(up_c.max())))
+        if not slack > 0.0:
+            return 0.0, 0.0
+        share = 0.5 * (1.0 - 1e-9) * slack  # (a relative margin for the rounding)
+        rate_e = float(rate_ek.max()) + sigma * float(rate_ec.max())
+        rate_a = float(rate_ak.max()) + sigma * float(rate_ac.max())
+        return (float(min(e_cap, share / rate_e)) if rate_e > 0.0 else float(e_cap),
+                float(min(angle_cap, share / rate_a)) if rate_a > 0.0 else float(angle_cap))
 
     def drift_budget(self, sigma: float, x, periodic_len, walls=None,
                      e_cap: float = math.inf) -> float:
