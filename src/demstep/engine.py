@@ -328,7 +328,8 @@ class Simulation:
         self.ledger = EnergyLedger()
         self.counters = np.zeros(5)
         self._check_budget = math.inf  # 'auto': see _renew_drift_budget
-        self._turn_budget = 0.0  # (with clumps)
+        self._turn_budget = 0.0  # (with clumps; and the bodies' orientations then:)
+        self._check_q = None
         self.pairs = Pairs.empty(n)
         self._neighbour_work = None  # the pair search's scratch, kept between rebuilds
         self._last_rebuild = 0  # the step of the last rebuild
@@ -1587,7 +1588,7 @@ class Simulation:
             out[f"ts_cover_{name}_overlap"] = assumed
         if out:
             out["ts_check_budget"] = np.array([self._check_budget])
-            if cert is not None and cert.has_bodies:
+            if cert is not None and cert.has_bodies and self._check_q is not None:
                 out["ts_turn_budget"] = np.array([self._turn_budget])
                 out["ts_check_q"] = self._check_q
         return out
@@ -1609,7 +1610,7 @@ class Simulation:
         if budget.size != 1 or not budget[0] >= 0.0:  # (older checkpoints: checked at once)
             raise InputError(f"ts_check_budget: expected one number >= 0, got {budget}")
         self._check_budget = float(budget[0])
-        self._turn_budget = 0.0  # (older checkpoints: checked at once)
+        self._turn_budget, self._check_q = 0.0, None  # (older checkpoints: checked at once)
         if "ts_turn_budget" in data and "ts_check_q" in data:
             turn = np.asarray(data["ts_turn_budget"], dtype=np.float64).reshape(-1)
             q = np.asarray(data["ts_check_q"], dtype=np.float64)
@@ -1758,6 +1759,8 @@ class Simulation:
         |dR - I| = 2 sin(theta / 2), twice the vector part of q q_check^* (over the
         two lengths)."""
         q, p = self.bodies.q, self._check_q
+        if p is None:
+            return math.inf
         vec = p[:, :1] * q[:, 1:] - q[:, :1] * p[:, 1:] - np.cross(q[:, 1:], p[:, 1:])
         size = np.linalg.norm(q, axis=1) * np.linalg.norm(p, axis=1)
         return float(np.max(2.0 * np.linalg.norm(vec, axis=1) / size, initial=0.0))
