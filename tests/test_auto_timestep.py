@@ -511,19 +511,9 @@ def test_at_full_safety_the_certificate_is_checked_at_every_step():
     above it)."""
     from demstep.contact.bonds import ParallelBonds
 
-    def worst(sim, steps):
-        ratio = 0.0
-        for _ in range(steps):
-            sim.prepare()
-            crit = sim.critical_dt("exact")
-            if crit is not None:
-                ratio = max(ratio, sim.dt / crit)
-            sim.run(steps=1)
-        return ratio
-
     p = Particles.from_density(np.array([[0.0, 0, 0], [1.999, 0, 0]]), np.ones(2), 1.0)
     sim = Simulation(p, LinearSpring(k_n=1e4), timestep=TimeStep.auto(safety=1.0, every=500))
-    assert worst(sim, 5) <= 1 + 1e-9
+    assert worst_step_ratio(sim, 5) <= 1 + 1e-9
     a = np.radians(60)
     x = np.array([[-2 * np.sin(a), -2 * np.cos(a)], [0.0, 0.0], [2 * np.sin(a), -2 * np.cos(a)]])
     v = np.array([[-np.cos(a), np.sin(a)], [0, 0], [np.cos(a), np.sin(a)]])
@@ -532,7 +522,7 @@ def test_at_full_safety_the_certificate_is_checked_at_every_step():
                      timestep=TimeStep.auto(safety=1.0, every=500))
     sim.add_bonds(ParallelBonds(normal_stiffness=1e4, shear_stiffness=0.3e4,
                                 radius_multiplier=0.5, gap=1e-9))
-    assert worst(sim, 300) <= 1 + 1e-9
+    assert worst_step_ratio(sim, 300) <= 1 + 1e-9
 
 
 @pytest.mark.parametrize("restitution", [None, 0.5])

@@ -159,18 +159,25 @@ def _turn_factor(trans, rot, b_n, b_t, planar):
     return x * (1.0 + TURN_FACTOR_MARGIN)
 
 
-@njit(cache=True, inline="always")
-def _pair_turn(x, a, b, normal_ref, c, periodic_len):
-    """(|d|, turn) of pair c = (a, b): its centre distance [L] now (nearest periodic
-    image) and |d/|d| - n_ref| [-], how far its normal turned from ``normal_ref[c]``
-    (2, a half turn, for coincident centres: any normal)."""
+@njit(inline="always")
+def _branch(x, a, b, periodic_len):
+    """(d0, d1, d2, |d|): the branch vector [L] from a's centre to b's (nearest periodic
+    image) and its length."""
     d0 = x[b, 0] - x[a, 0]
     d1 = x[b, 1] - x[a, 1]
     d2 = x[b, 2] - x[a, 2]
     d0 -= periodic_len[0] * image_count(d0, periodic_len[0])
     d1 -= periodic_len[1] * image_count(d1, periodic_len[1])
     d2 -= periodic_len[2] * image_count(d2, periodic_len[2])
-    dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    return d0, d1, d2, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+
+
+@njit(cache=True, inline="always")
+def _pair_turn(x, a, b, normal_ref, c, periodic_len):
+    """(|d|, turn) of pair c = (a, b): its centre distance [L] now (nearest periodic
+    image) and |d/|d| - n_ref| [-], how far its normal turned from ``normal_ref[c]``
+    (2, a half turn, for coincident centres: any normal)."""
+    d0, d1, d2, dist = _branch(x, a, b, periodic_len)
     if not dist > 0.0:
         return dist, 2.0
     t0 = d0 / dist - normal_ref[c, 0]
@@ -524,13 +531,7 @@ def _body_drift_sums(x, pairs, ref, coef, cache, particles, sphere_body, offset,
         arm_ref_i, arm_ref_j = ref[c, 0], ref[c, 1]
         n_ref = ref[c, 2:]
         if b >= 0:
-            d0 = x[b, 0] - x[a, 0]
-            d1 = x[b, 1] - x[a, 1]
-            d2 = x[b, 2] - x[a, 2]
-            d0 -= periodic_len[0] * image_count(d0, periodic_len[0])
-            d1 -= periodic_len[1] * image_count(d1, periodic_len[1])
-            d2 -= periodic_len[2] * image_count(d2, periodic_len[2])
-            dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            d0, d1, d2, dist = _branch(x, a, b, periodic_len)
             if not dist > 0.0:
                 return False  # (coincident centres: no normal, a new estimate)
             bond = pairs[c, 3] != 0
