@@ -561,6 +561,10 @@ class Simulation:
         know at the positions they end with; those the rebuild brought they have not
         seen)."""
         found = False
+        ws = self.wall_state
+        if not (len(cover) and len(cover) == len(self.pairs.i)) and not (
+                len(wall_cover) and len(wall_cover) == len(ws.p)):
+            return found  # no cover tracked (no 'auto' estimate): nothing to look at
         move, boundary = self._step_moves()
         if len(cover) and len(cover) == len(self.pairs.i):
             new = cover == 0.0
@@ -568,7 +572,6 @@ class Simulation:
                 i, j = self.pairs.i[new], self.pairs.j[new]
                 delta = pair_geometry_arrays(self.x, self.r, i, j, self.periodic_len)[2]
                 found = bool((delta + move[i] + move[j] + boundary > 0.0).any())
-        ws = self.wall_state
         if not found and len(wall_cover) and len(wall_cover) == len(ws.p):
             new = wall_cover == 0.0
             if new.any():
