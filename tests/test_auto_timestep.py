@@ -548,3 +548,101 @@ def test_contacts_that_move_nothing_leave_auto_at_its_free_flight_step(restituti
     assert np.isfinite(on_wall.dt) and on_wall.dt == free.dt
     np.testing.assert_array_equal(on_wall.x[1], free.x[1])
     assert on_wall.x[1, 1] < 3.0
+
+
+def soft_free_fall(motion=0.1, jump_limit=0.25):
+    """48 heavy spheres (r = 0.5, 1309 kg) on soft springs (k = 1e6) dropped 30 m onto
+    the floor of a box, 'auto' (safety 0.8): the certified step of such contacts is so
+    long that the free fall at it moves a sphere 0.3 r per step before it lands."""
+    g = np.stack(np.meshgrid(np.arange(4), np.arange(4), np.arange(3), indexing="ij"), -1)
+    x = (g.reshape(-1, 3) + 0.5) * 1.5 + [0.0, 0.0, 30.0]
+    p = Particles.from_density(x, np.full(len(x), 0.5), 2500.0)
+    law = LinearSpring(k_n=1e6, k_s=1e6, mu=0.5, restitution=0.5)
+    return Simulation(p, law, walls=box_walls([-0.5, -0.5, -0.5], [6.5, 6.5, 60.0]),
+                      gravity=[0, 0, -9.81], jump_limit=jump_limit,
+                      timestep=TimeStep.auto(safety=0.8, motion=motion))
+
+
+def run_recording(sim, steps):
+    """Run ``steps``; per chunk of steps the largest |v| dt / r of its last step and
+    dt / dt_certified."""
+    moves, ratios = [], []
+
+    def record(s, n):
+        moves.append(float(s.counters[2]))
+        ratios.append(s.dt / s.dt_certified)
+
+    sim.run(steps=steps, progress=record)
+    return np.array(moves), np.array(ratios)
+
+
+def test_the_auto_step_holds_a_free_fall_to_the_motion_limit():
+    """Without the motion limit the certified step of soft contacts moves a falling
+    sphere 0.3 r per step, beyond the divergence check's 0.25 r. With it (0.1 r) the
+    run goes through at the default check, every step at most the certified one, and
+    dt goes back to the certified step once the spheres have settled. The limit looks
+    at the speeds of the last step: a contact that speeds a sphere up can take it a
+    little past the limit for a step, not near the check."""
+    unlimited = soft_free_fall(motion=1e9, jump_limit=1e10)
+    moves, _ = run_recording(unlimited, 3000)
+    assert moves.max() > 0.25
+    sim = soft_free_fall()
+    moves, ratios = run_recording(sim, 3000)
+    assert sim.step == 3000
+    assert moves.max() <= 0.15
+    assert ratios.max() <= 1.0 and ratios.min() < 0.5  # (the limit held the step)
+    assert sim.dt == sim.dt_certified and np.abs(sim.v).max() < 0.05  # settled: released
+
+
+def test_the_first_auto_step_limits_the_motion_of_initial_velocities():
+    """Before the first step the limit takes the initial velocities: a sphere launched
+    at 200 m/s and a clump spinning at 400 rad/s (its members' speed is the body's
+    rotation times their arm) move 0.1 r in their first step, within the band the limit
+    keeps the step in (at most 5 % below), with no step from before to look at."""
+    from demstep.clumps import ClumpTemplate, place
+
+    law = LinearSpring(k_n=1e3, k_s=1e3, mu=0.5)
+    ball = Simulation(Particles.from_density(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]]),
+                                             np.full(2, 0.5), 1.0), law,
+                      velocities=[[0.0, 0.0, 200.0], [0.0, 0.0, 0.0]],
+                      timestep=TimeStep.auto(motion=0.1))
+    tetra = ClumpTemplate("tetra", np.array([[0, 0, 0], [0.8, 0, 0], [0.4, 0.7, 0],
+                                             [0.4, 0.23, 0.65]]), np.full(4, 0.5))
+    clump = Simulation(None, law, clumps=place([tetra], [0], [[0.0, 0.0, 0.0]],
+                                               [[1.0, 0.0, 0.0, 0.0]], 1.0),
+                       clump_angular_velocities=[[0.0, 0.0, 400.0]],
+                       timestep=TimeStep.auto(motion=0.1))
+    for sim in (ball, clump):
+        sim.run(steps=1)
+        assert sim.dt_prev < 0.5 * sim.dt_certified
+        assert 0.1 / 1.05 * (1 - 1e-3) <= sim.counters[2] <= 0.1 * (1 + 1e-3)
+
+
+def test_a_restart_while_the_motion_limit_holds_continues_bit_for_bit():
+    """The certified step is part of the saved state: a run restarted in the middle of
+    the fall (dt held below it) continues bit for bit; a checkpoint from before the
+    limit (no certified step saved) takes dt as the certified step."""
+    first = soft_free_fall()
+    first.run(steps=500)
+    assert first.dt < 0.8 * first.dt_certified
+    state = {k: np.array(v, copy=True) for k, v in first.state_dict().items()}
+    first.run(steps=600)
+    second = soft_free_fall()
+    second.load_state_dict(state)
+    second.run(steps=600)
+    assert second.dt == first.dt and second.dt_certified == first.dt_certified
+    assert np.array_equal(second.x, first.x) and np.array_equal(second.v, first.v)
+    older = soft_free_fall()
+    older.load_state_dict({k: v for k, v in state.items() if k != "ts_dt_certified"})
+    assert older.dt_certified == older.dt == state["scalars"][2]
+
+
+@pytest.mark.parametrize("motion, jump_limit, field", [
+    (0.0, 0.25, "timestep motion"), (np.nan, 0.25, "timestep motion"),
+    (0.25, 0.25, "timestep motion: must be below jump_limit"),
+    (0.1, np.nan, "jump_limit"), (0.1, -1.0, "jump_limit")])
+def test_bad_motion_limits_are_refused(motion, jump_limit, field):
+    from demstep.errors import InputError
+
+    with pytest.raises(InputError, match=field):
+        soft_free_fall(motion=motion, jump_limit=jump_limit)

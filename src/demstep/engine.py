@@ -108,6 +108,13 @@ class TimeStep:
       new contact, the rule that it only lowers dt) holds dt at or below ``safety`` x
       the kept certificate's step or the contacts' coupled element bound, that bound
       is the estimate (both are lower bounds on the exact step).
+      The step taken is also held where no particle moves more than ``motion`` of its
+      radius in a step (at its speed in the last step; before the first, at its
+      initial velocity), as LAMMPS' ``fix dt/reset`` limits the distance per step: a
+      free fall at the certified step of soft contacts would move particles by a large
+      part of their radius per step (resolving contacts late, and stopped by the
+      ``jump_limit`` divergence check). The certified step (:attr:`Simulation.dt_certified`)
+      is the ceiling; the step returns to it as the motion slows.
     """
 
     mode: str = "alpha"
@@ -118,6 +125,7 @@ class TimeStep:
     every: int = 500
     growth: float = 0.05
     overlap: float = 0.01
+    motion: float = 0.1
 
     @classmethod
     def fixed(cls, dt: float) -> "TimeStep":
@@ -129,9 +137,9 @@ class TimeStep:
 
     @classmethod
     def auto(cls, safety: float = 0.8, method: str = "exact", every: int = 500,
-             growth: float = 0.05, overlap: float = 0.01) -> "TimeStep":
+             growth: float = 0.05, overlap: float = 0.01, motion: float = 0.1) -> "TimeStep":
         return cls(mode="auto", safety=safety, method=method, every=every, growth=growth,
-                   overlap=overlap)
+                   overlap=overlap, motion=motion)
 
     def validate(self):
         if self.mode not in ("fixed", "alpha", "auto"):
@@ -149,6 +157,8 @@ class TimeStep:
                 raise InputError(f"timestep every: must be >= 1, got {self.every!r}")
             if not (self.growth >= 0):
                 raise InputError(f"timestep growth: must be >= 0, got {self.growth!r}")
+            if not (self.motion > 0):  # (inf: no limit)
+                raise InputError(f"timestep motion: must be > 0, got {self.motion!r}")
 
 
 def _sorted_keys(keys, values):
@@ -276,6 +286,7 @@ class Simulation:
         self.rotation = bool(rotation)
         self.parallel = parallel
         self.jump_limit = float(jump_limit)
+        self._check_motion_limit()
         self.runaway_factor = float(runaway_factor)
         self.checkpoint_dir = checkpoint_dir
         n = particles.n
@@ -337,6 +348,7 @@ class Simulation:
         self.step = 0
         self.time = 0.0
         self.dt = None
+        self.dt_certified = None  # 'auto': the certified step [T], the ceiling of dt
         self.dt_estimate = None  # the certified step of the last 'auto' estimate [T]
         self.n_dt_solves = 0  # 'auto' estimates by an exact solve
         self.n_dt_element = 0  # 'exact' estimates the coupled element bound decided
@@ -1049,16 +1061,20 @@ class Simulation:
         elif ts.mode == "alpha":
             self.dt = ts.alpha * math.sqrt(self.m_min / self.stiffness_max())
         else:
+            if self.dt is None:  # (a reset: no step certified either)
+                self.dt_certified = None
             if not force and self.dt is not None and self.step < self._next_dt_update:
                 return
             fallback = self._densest_packing_dt()
-            horizon = int(ts.every) * (self.dt if self.dt is not None else ts.safety * fallback)
+            certified = self.dt_certified
+            horizon = int(ts.every) * (certified if certified is not None else
+                                       ts.safety * fallback)
             self.dt_horizon = horizon
             estimate = None
             prepared = None  # the contact set a refused shortcut built, for the new estimate
-            if scheduled and self.dt is not None:
+            if scheduled and certified is not None:
                 estimate, prepared = self._refreshed_estimate(horizon)
-            if (estimate is None and self._pairs_built and self.dt is not None
+            if (estimate is None and self._pairs_built and certified is not None
                     and ts.method == "exact"):
                 estimate, prepared = self._element_estimate(horizon, scheduled, prepared)
             if estimate is None and self._pairs_built:
@@ -1074,13 +1090,82 @@ class Simulation:
             self.dt_estimate = estimate
             self.n_dt_estimates = getattr(self, "n_dt_estimates", 0) + 1
             target = ts.safety * self._local_damping_factor() * estimate
-            if self.dt is None or target < self.dt:
-                self.dt = target
+            if certified is None or target < certified:
+                certified = target
             elif scheduled:
-                self.dt = min(target, self.dt * (1.0 + ts.growth))
+                certified = min(target, certified * (1.0 + ts.growth))
+            self.dt_certified = certified
+            self.dt = self._motion_limited_dt()
             if scheduled:
                 self._next_dt_update = self.step + int(ts.every)
             self._renew_drift_budget()  # (dt or the certificate changed)
+
+    #: 'auto': the step held by the motion limit sits this far below it (so that it is
+    #: not changed at every chunk of steps while the particles speed up or slow down)
+    MOTION_SLACK = 0.05
+
+    def _check_motion_limit(self):
+        """The divergence limit ``jump_limit`` must be > 0 (inf: none), and above the
+        'auto' motion limit (else the control would choose steps the check stops)."""
+        if not self.jump_limit > 0.0:  # (inf: no check)
+            raise InputError(f"jump_limit: must be > 0, got {self.jump_limit!r}")
+        ts = self.timestep
+        if ts.mode == "auto" and not ts.motion < self.jump_limit:
+            raise InputError(f"timestep motion: must be below jump_limit = {self.jump_limit:g} "
+                             f"(the divergence check), got {ts.motion!r}")
+
+    def _motion_rate(self) -> float:
+        """How fast the fastest particle moves in radii per unit time [1/T]: from the
+        kernels' largest |v| dt / r of the last step (``counters[2]``), or before the
+        first step from the initial velocities (clump members: of their bodies'
+        translation and rotation)."""
+        if not self._first and self.dt_prev > 0.0:
+            return float(self.counters[2]) / self.dt_prev
+        if len(self.r) == 0:
+            return 0.0
+        speed = np.sqrt(np.einsum("ij,ij->i", self.v, self.v))
+        b = self.bodies
+        if b.n:  # |V + omega x arm|, omega = R I^-1 R^T L (principal I^-1: 0 where locked)
+            from demstep.clumps import quat_to_matrix
+
+            R = quat_to_matrix(b.q)
+            omega = np.einsum("bij,bj->bi", R, b.inv_I * np.einsum("bji,bj->bi", R, b.L))
+            member = b.member
+            body = b.sphere_body[member]
+            speed[member] = np.linalg.norm(
+                b.v[body] + np.cross(omega[body], self.rigid_bodies().arm[member]), axis=1)
+        return float(np.max(speed / self.r))
+
+    def _motion_limited_dt(self) -> float:
+        """The step [T] to take: the certified one (:attr:`dt_certified`), or less where
+        a particle would move more than ``timestep.motion`` of its radius in a step at
+        its speed now (:meth:`_motion_rate`). While the limit holds the step, it is
+        kept within :data:`MOTION_SLACK` below the limit, and changed only when the limit
+        leaves that band."""
+        certified = self.dt_certified
+        rate = self._motion_rate()
+        limit = self.timestep.motion / rate if rate > 0.0 else math.inf
+        if limit >= certified * (1.0 + self.MOTION_SLACK):
+            return certified
+        dt = self.dt
+        if dt is not None and limit / (1.0 + self.MOTION_SLACK) <= dt <= min(limit, certified):
+            return dt
+        return min(certified, limit / (1.0 + self.MOTION_SLACK))
+
+    def _limit_motion(self):
+        """'auto', between estimates: the step the motion limit allows now
+        (:meth:`_motion_limited_dt`). A smaller step keeps the certificate and its drift
+        budget (made for a larger one); a larger one (at most the certified step)
+        checks the budget anew, and a new estimate follows if the certificate fails."""
+        if self.dt_certified is None or self.dt is None:
+            return
+        dt = self._motion_limited_dt()
+        if dt == self.dt:
+            return
+        raised = dt > self.dt
+        self.dt = dt
+        if raised and not self._renew_drift_budget():
+            self._choose_dt(force=True, scheduled=False)
 
     #: 'auto': the relative residual of the exact solves. The step stays certified (an
     #: upper bound on the largest root, whatever the residual); it is at most about
@@ -1142,7 +1227,7 @@ class Simulation:
         only lowers dt holds dt at or below ``safety`` x ``estimate``."""
         ts = self.timestep
         return (ts.safety * self._local_damping_factor() * estimate
-                >= self.dt * ((1.0 + ts.growth) if scheduled else 1.0))
+                >= self.dt_certified * ((1.0 + ts.growth) if scheduled else 1.0))
 
     def _local_damping_factor(self) -> float:
         """1 / sqrt(1 + local): what local (Cundall) damping takes off the certified
@@ -1352,6 +1437,13 @@ class Simulation:
         self._last_sort = int(np.asarray(data.get("last_sort", [step]))[0])
         self.time = float(time)
         self.dt = None if np.isnan(dt) else float(dt)
+        # (older checkpoints: dt was the certified step)
+        certified = np.asarray(data.get("ts_dt_certified", [np.nan if self.dt is None else dt]),
+                               dtype=np.float64).reshape(-1)
+        if certified.size != 1 or not (np.isnan(certified[0]) or certified[0] > 0.0):
+            raise InputError(f"ts_dt_certified: expected one number > 0, got {certified}")
+        self.dt_certified = (None if self.timestep.mode != "auto" or np.isnan(certified[0])
+                             else float(certified[0]))
         self.dt_prev = float(dt_prev)
         self._first = bool(first)
         self.monitor.max_error = float(max_err)
@@ -1594,6 +1686,8 @@ class Simulation:
             if cert is not None and cert.has_bodies and self._check_q is not None:
                 out["ts_turn_budget"] = np.array([self._turn_budget])
                 out["ts_check_q"] = self._check_q
+        if self.dt_certified is not None:  # (the motion limit may hold dt below it)
+            out["ts_dt_certified"] = np.array([self.dt_certified])
         return out
 
     def restore_timestep_state(self, data: dict):
@@ -1925,7 +2019,8 @@ class Simulation:
                 and not cert.made_with(self.certificate_inputs())):
             self._dt_cert = None  # made with another law or damping
             self.dt = None
-        if self.dt is None or self.timestep.mode != "auto":
+        self._check_motion_limit()
+        if self.dt is None or self.timestep.mode != "auto" or self.dt_certified is None:
             self._choose_dt(force=True)
 
     def run(self, steps: int | None = None, until: Callable[["Simulation"], bool] | None = None,
@@ -2024,6 +2119,8 @@ class Simulation:
                     self._choose_dt(force=True)
                 elif not self._still_certified():
                     self._choose_dt(force=True, scheduled=False)
+                else:
+                    self._limit_motion()
             if until is not None and self.step >= next_check:
                 next_check = self.step + check_every
                 if until(self):

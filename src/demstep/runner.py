@@ -499,12 +499,14 @@ class _Runner:
 
     def _steps_within(self, remaining: float, cap: int) -> int:
         """Steps that surely end before ``remaining`` [T] with auto dt (dt may grow by
-        the factor 1 + growth once per 'every' steps); at least 1."""
+        the factor 1 + growth once per 'every' steps, from the certified step: the
+        motion limit may hold it below and let it go back up at once); at least 1."""
         ts = self.sim.timestep
+        dt = max(self.sim.dt, self.sim.dt_certified or 0.0)
         n = cap
         while n > 1:
             growth = (1.0 + ts.growth) ** (n // max(1, int(ts.every)) + 2)
-            if n * self.sim.dt * growth < remaining:
+            if n * dt * growth < remaining:
                 return n
             n //= 2
         return 1

@@ -171,7 +171,7 @@ def build_timestep(ts: TimestepSection):
 
     return TimeStep(mode=ts.mode, dt=ts.dt, alpha=ts.alpha if ts.alpha is not None else 0.1,
                     safety=ts.safety, method=ts.method, every=ts.every, growth=ts.growth,
-                    overlap=ts.overlap)
+                    overlap=ts.overlap, motion=ts.motion)
 
 
 def build_walls(case: Case, x: np.ndarray, r: np.ndarray) -> list:

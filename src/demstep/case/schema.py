@@ -94,8 +94,9 @@ a1 [1/T]).
 ``[timestep]``: ``mode`` = "fixed" (``dt`` [T]), "alpha" (dt = ``alpha``
 sqrt(m_min/K_max), default alpha 0.1) or "auto" (``safety`` x the critical step by
 ``method`` exact|element-coupled, re-evaluated ``every`` steps, growth capped at
-``growth`` per update); ``overlap`` is the relative overlap at which Hertz K_max is
-taken (Hertz law only). ``mode`` may be omitted: "fixed" when ``dt`` is given, else
+``growth`` per update, and held where no particle moves more than ``motion`` of its
+radius in a step, default 0.1, below ``[numerics] jump_limit``); ``overlap`` is the
+relative overlap at which Hertz K_max is taken (Hertz law only). ``mode`` may be omitted: "fixed" when ``dt`` is given, else
 "alpha".
 
 ``[energy]``: the balance monitor (paper eq. 22): ``eps`` (default 1e-2), ``every``
@@ -391,6 +392,7 @@ class TimestepSection(_Section):
     every: PositiveInt = 500
     growth: NonNegative = 0.05
     overlap: Positive = 0.01
+    motion: Positive = 0.1
 
 
 class EnergySection(_Section):
@@ -1043,7 +1045,7 @@ def _file_format(case: Case) -> str:
 
 
 #: the [timestep] keys only the 'auto' mode reads
-AUTO_ONLY = ("safety", "method", "every", "growth")
+AUTO_ONLY = ("safety", "method", "every", "growth", "motion")
 
 
 def _resolve_timestep(key: str, ts: "TimestepSection") -> None:

@@ -2,7 +2,8 @@
 
 Columns, in order:
 
-* ``step``, ``time`` [T], ``dt`` [T] (the step in use), ``dt_estimate`` [T] (the
+* ``step``, ``time`` [T], ``dt`` [T] (the step in use; in 'auto' mode below the
+  certified one where the motion limit holds it), ``dt_estimate`` [T] (the
   certified step of the last estimate of ``TimeStep(mode='auto')``, a lower bound on
   the critical step: the exact one, or a cheaper bound where the growth cap made the
   exact solve unable to change dt; NaN otherwise);
