@@ -256,6 +256,37 @@ def test_rolling_acts_on_pairs_that_form_after_an_empty_start_and_over_runs():
     assert sim.ledger.energy[E_STRAIN_R] > 0
 
 
+def test_switching_rolling_on_mid_run_steps_as_a_run_that_starts_with_it():
+    """A pile settled without rolling resistance, then the law changed to one with it:
+    the next steps equal those of a new simulation with that law loaded from the same
+    state, to the bit (the pair loop's work space, with its rolling geometry, is sized
+    anew after the switch; kept from before it, the rolling loop read an empty
+    geometry and the run diverged)."""
+    from demstep.walls import box_walls
+
+    def pile(law):
+        rng = np.random.default_rng(5)
+        grid = np.stack(np.meshgrid(np.arange(3), np.arange(3), np.arange(4), indexing="ij"), -1)
+        x = grid.reshape(-1, 3) * 3.0 + 1.5 + rng.uniform(-0.1, 0.1, (36, 3))
+        return Simulation(Particles.from_density(x, rng.uniform(0.8, 1.0, 36), 2.0), law,
+                          walls=box_walls([0, 0, 0], [9.0, 9.0, 30.0]), gravity=[0, 0, -9.81],
+                          timestep=TimeStep.fixed(2e-4))
+
+    common = dict(k_n=2e5, k_s=1e5, mu=0.4, restitution=0.5)
+    rolling = LinearSpring(**common, rolling_convention="beta", rolling_stiffness=0.5)
+    switched = pile(LinearSpring(**common))
+    switched.run(steps=6000)
+    assert switched.n_contacts > 0 and len(switched.pairs.roll) == 0
+    state = {k: np.array(v, copy=True) for k, v in switched.state_dict().items()}
+    switched.law = rolling
+    switched.run(steps=300)
+    fresh = pile(rolling)
+    fresh.load_state_dict(state)
+    fresh.run(steps=300)
+    assert np.abs(switched.pairs.roll).sum() > 0
+    assert np.array_equal(switched.x, fresh.x) and np.array_equal(switched.w, fresh.w)
+
+
 @pytest.mark.parametrize("kwargs, key", [
     ({"rolling_friction": 0.1}, "rolling_friction"),
     ({"rolling_convention": "beta"}, "rolling_stiffness"),
