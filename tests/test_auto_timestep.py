@@ -230,6 +230,22 @@ def test_a_pair_a_rebuild_brings_is_covered_before_its_first_touching_step(safet
     assert above == []
 
 
+def test_a_pair_closing_when_a_rebuild_brings_it_is_covered_before_it_acts():
+    """The pebble with a thin skin (0.02, a fiftieth of the row's radius) and the
+    motion limit at 0.24 of its radius: it crosses the skin in one step, so a rebuild
+    can bring its pair with the row closed already or closing in the next step (the
+    steps before looked only at the pairs of the old lists). The rebuild flags such
+    pairs, and the steps are certified with them before they act. Without the flag, or
+    with it for closed pairs only, the pebble's contact acted at the row's dt and the
+    run was stopped by the runaway alarm."""
+    sim = pebble_over_a_row(0.8)
+    sim.skin = 0.02
+    sim.timestep = TimeStep.auto(safety=0.8, every=500, motion=0.24)
+    above, touched = steps_above_the_exact_step(sim, 200)
+    assert touched >= 1
+    assert above == []
+
+
 def test_a_contact_that_opens_again_within_its_step_is_covered_too():
     """A fast pebble grazing the top of the first disk of the row (default safety)
     touches it for a step or two: a check after the step could find the contact open
