@@ -651,6 +651,26 @@ def test_a_restart_while_the_motion_limit_holds_continues_bit_for_bit():
     older = soft_free_fall()
     older.load_state_dict({k: v for k, v in state.items() if k != "ts_dt_certified"})
     assert older.dt_certified == older.dt == state["scalars"][2]
+    from demstep.errors import InputError
+
+    for bad in (0.5 * state["scalars"][2], -1.0):  # below the step taken; not a step
+        with pytest.raises(InputError, match="ts_dt_certified"):
+            soft_free_fall().load_state_dict({**state, "ts_dt_certified": np.array([bad])})
+
+
+def test_an_auto_stage_after_a_fixed_one_estimates_before_its_first_step():
+    """'auto', then a fixed step, then 'auto' again: the second 'auto' phase does not
+    inherit the first one's certified step (the fixed phase may have changed the
+    state): it estimates anew before its first step."""
+    sim = soft_free_fall()
+    sim.run(steps=100)
+    estimates = sim.n_dt_estimates
+    sim.timestep = TimeStep.fixed(1e-3)
+    sim.run(steps=10)
+    assert sim.dt_certified is None
+    sim.timestep = TimeStep.auto(safety=0.8)
+    sim.prepare()
+    assert sim.n_dt_estimates == estimates + 1 and sim.dt <= sim.dt_certified
 
 
 @pytest.mark.parametrize("motion, jump_limit, field", [

@@ -1056,6 +1056,8 @@ class Simulation:
         closes that the last one did not include (``scheduled`` False: it may only lower
         dt and leaves the schedule of the regular estimates alone)."""
         ts = self.timestep
+        if ts.mode != "auto":  # (an 'auto' mode after this one estimates anew)
+            self.dt_certified = None
         if ts.mode == "fixed":
             self.dt = float(ts.dt)
         elif ts.mode == "alpha":
@@ -1444,6 +1446,10 @@ class Simulation:
             raise InputError(f"ts_dt_certified: expected one number > 0, got {certified}")
         self.dt_certified = (None if self.timestep.mode != "auto" or np.isnan(certified[0])
                              else float(certified[0]))
+        if self.dt_certified is not None and not (self.dt is not None
+                                                  and self.dt <= self.dt_certified):
+            raise InputError(f"{source}: the step dt = {self.dt!r} is above the certified "
+                             f"one ts_dt_certified = {self.dt_certified!r}")
         self.dt_prev = float(dt_prev)
         self._first = bool(first)
         self.monitor.max_error = float(max_err)
