@@ -337,7 +337,7 @@ class Simulation:
         self._update_masses()
         self.backend = get_backend(backend)
         self.ledger = EnergyLedger()
-        self.counters = np.zeros(5)
+        self.counters = np.zeros(dem.N_COUNTERS)
         self._check_budget = math.inf  # 'auto': see _renew_drift_budget
         self._turn_budget = 0.0  # (with clumps; and the bodies' orientations then:)
         self._check_q = None
@@ -492,8 +492,27 @@ class Simulation:
                           f"(x[demstep.packings.spatial_order(x, 2 * r.max())]): up to 2.5x "
                           f"faster", RuntimeWarning, stacklevel=4)
 
+    def _displacements(self) -> tuple[float, float]:
+        """(D, B) [L] now: the largest displacement of a particle from its position at
+        the last rebuild, and how far the walls and the periodic box moved since then
+        (as the kernels' boundary move); (-1, 0) before the first build."""
+        if not self._pairs_built:
+            return -1.0, 0.0
+        d = self.x - self.x_ref
+        moved = float(np.sqrt(np.einsum("ij,ij->i", d, d).max(initial=0.0)))
+        ws = self.wall_state
+        walls = float(np.sqrt(((ws.point - ws.ref) ** 2).sum(axis=1)).max(initial=0.0))
+        return moved, walls + float(np.abs(self.box.length - self.box.ref).sum())
+
     def _rebuild_lists(self):
         be = self.backend
+        c = self.counters  # the drift's displacement bound (dem.drift_used): each
+        if c[dem.DRIFT_OFFSET] >= 0.0:  # path goes through its reference at each rebuild
+            if self._pairs_built:  # (the kernels' D and B of the last step: its positions)
+                c[dem.DRIFT_OFFSET] += c[dem.DRIFT_NOW]
+                c[dem.DRIFT_WALL_OFFSET] += c[dem.DRIFT_WALL_NOW]
+            else:
+                c[dem.DRIFT_OFFSET] = -1.0
         for k in range(3):
             if self.periodic_len[k] > 0:
                 np.mod(self.x[:, k], self.periodic_len[k], out=self.x[:, k])
@@ -562,6 +581,7 @@ class Simulation:
         be.copy_positions(self.x, self.x_ref)
         self.wall_state.ref[:] = self.wall_state.point
         self.box.ref[:] = self.box.length
+        self.counters[dem.DRIFT_NOW] = self.counters[dem.DRIFT_WALL_NOW] = 0.0
         self._pairs_built = True
         self.n_rebuilds = getattr(self, "n_rebuilds", 0) + 1
 
@@ -1427,6 +1447,8 @@ class Simulation:
         self.ledger.energy[:len(data["ledger.energy"])] = data["ledger.energy"]
         self.counters[:] = 0.0  # older checkpoints: the first three
         self.counters[:len(data["ledger.counters"])] = data["ledger.counters"]
+        if len(data["ledger.counters"]) <= dem.DRIFT_OFFSET:  # (from before the
+            self.counters[dem.DRIFT_OFFSET] = -1.0  # displacement bound: unknown)
         self.gravity = np.ascontiguousarray(data["gravity"], dtype=np.float64)
         if "monitor" in data:
             self.monitor.restore_state(data["monitor"])
@@ -1845,7 +1867,7 @@ class Simulation:
             return True
         if not cert.bounded:
             return False
-        if self.counters[4] <= self._check_budget and (
+        if dem.drift_used(self.counters) <= self._check_budget and (
                 not cert.has_bodies or self._turned_since_check() <= self._turn_budget):
             return True
         return self._renew_drift_budget()
@@ -1885,7 +1907,9 @@ class Simulation:
         the slack of the safety factor. False (a new estimate is due) when the
         certificate fails now."""
         cert = getattr(self, "_dt_cert", None)
-        self.counters[4] = 0.0
+        self.counters[dem.DRIFT_SUM] = 0.0
+        self.counters[dem.DRIFT_OFFSET], self.counters[dem.DRIFT_WALL_OFFSET] = \
+            self._displacements()
         if cert is None or self.dt is None or not cert.bounded:
             self._check_budget = math.inf
             return True

@@ -254,11 +254,12 @@ class Box(NamedTuple):
 
 class Ledger(NamedTuple):
     """The energy ledger's arrays, laid out by :mod:`demstep.energy`: accumulated terms
-    ``acc`` and state terms ``energy``; ``counters`` (5,): particle-particle contacts,
+    ``acc`` and state terms ``energy``; ``counters`` (9,): particle-particle contacts,
     particle-wall contacts, the largest jump |v| dt / r of the last step, the
-    contacts counted closed beyond their cover since the engine last reset it, and the
+    contacts counted closed beyond their cover since the engine last reset it, the
     distance [L] the pairs' ends may have moved relative to each other since the last
-    check of the drift (:func:`demstep.kernels.dem.advance`)."""
+    check of the drift, summed step by step, and the terms of its displacement bound
+    (:func:`demstep.kernels.dem.drift_used`; :func:`demstep.kernels.dem.advance`)."""
 
     acc: np.ndarray
     energy: np.ndarray

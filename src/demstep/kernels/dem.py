@@ -1140,6 +1140,32 @@ def closing_beyond_cover(x, v, r, pi, pj, periodic_len, cover, wp, ww, wall_poin
     return count
 
 
+#: ``ledger.counters``: the slots of the drift's displacement bound (:func:`drift_used`)
+DRIFT_SUM, DRIFT_OFFSET, DRIFT_WALL_OFFSET, DRIFT_NOW, DRIFT_WALL_NOW = 4, 5, 6, 7, 8
+N_COUNTERS = 9
+
+
+@njit(inline="always")
+def drift_used(counters):
+    """How far [L] the ends of any pair or wall contact can have moved relative to each
+    other since the last check of the certified step's drift: the smaller of two
+    bounds. (1) The sum over the steps of 2 r_max (|v| dt / r)_max plus the walls' and
+    the box's moves (``counters[4]``): a path length, which grows without bound while
+    the particles vibrate in place. (2) Each end moved by at most its displacement,
+    |x - x_check| <= |x - x_ref| + |x_ref - x_check| (``x_ref``: the positions of the
+    last rebuild; across rebuilds, the displacement of each at its rebuild): 2 (D_check
+    + D_rebuilds + D_now) + the walls' and the box's (B_check + B_rebuilds + B_now), D the
+    largest particle displacement from its reference, B the kernels' boundary move;
+    ``counters[5]``, ``counters[6]`` hold the check's and the rebuilds' D and B (the
+    engine sets them; negative: unknown, bound (2) unused), ``counters[7]``,
+    ``counters[8]`` D and B after the last step."""
+    used = counters[DRIFT_SUM]
+    if counters[DRIFT_OFFSET] >= 0.0:
+        used = min(used, 2.0 * (counters[DRIFT_OFFSET] + counters[DRIFT_NOW])
+                   + counters[DRIFT_WALL_OFFSET] + counters[DRIFT_WALL_NOW])
+    return used
+
+
 def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params):
     """Run up to ``n_steps`` steps of the documented order
     (:meth:`demstep.engine.Simulation.run`) on the bundles of :mod:`demstep.state`
@@ -1164,8 +1190,10 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
     any force of it acts (not one step late). With a finite
     ``ctl.check_budget`` [L], ``counters[4]`` adds up, step after step, how far the
     ends of any pair or wall contact can have moved relative to each other (2 r_max
-    (|v| dt / r)_max plus the walls' and the box's moves), and the chunk ends
-    (STOP_CHECK) once it exceeds the budget: the engine then checks the drift of the
+    (|v| dt / r)_max plus the walls' and the box's moves), ``counters[7]``, ``[8]``
+    keep the largest displacement since the lists were built and the boundaries' move,
+    and the chunk ends (STOP_CHECK) once the smaller of the two bounds of
+    :func:`drift_used` exceeds the budget: the engine then checks the drift of the
     certified step (:meth:`demstep.engine.Simulation._still_certified`)."""
     x, v, w, r, m = sph.x, sph.v, sph.w, sph.r, sph.m
     inv_m, force, torque = sph.inv_m, sph.force, sph.torque
@@ -1331,8 +1359,10 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         counters[1] = wc
         counters[2] = out[7]
         counters[3] += pp_uncovered + pw_uncovered
+        counters[DRIFT_NOW] = math.sqrt(out[6])
+        counters[DRIFT_WALL_NOW] = boundary_move
         if budget < np.inf:  # how far any pair's ends can have moved relative to each other
-            counters[4] += 2.0 * r_max * out[7] + boundary_step
+            counters[DRIFT_SUM] += 2.0 * r_max * out[7] + boundary_step
         if first:
             # the energy held at t = 0 is the ledger's initial input
             acc[A_INITIAL] = out[4] + out[5] + e_n + we_n + e_t + we_t + er_s + eb_s
@@ -1364,7 +1394,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         if counters[3] > 0:
             return step + 1, STOP_UNCOVERED
         # the drift of the certified step is due for a check
-        if counters[4] > budget:
+        if drift_used(counters) > budget:
             return step + 1, STOP_CHECK
     return n_steps, STOP_DONE
 
