@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import subprocess
 import sys
@@ -48,7 +47,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 SHAPES = ("dimer", "square", "cube8")
 K = 1.0e6
@@ -150,18 +148,13 @@ def yade_threshold(spec, exact_alpha: float, yade: str = "yade", steps: int = ST
                    rtol: float = RTOL, seed: int = 2) -> dict:
     """YADE's threshold (alpha) on the packing ``spec`` (a ClumpSpecimen), bisected within
     [0.8, 1.25] x ``exact_alpha``; with the probe of the scene YADE built."""
-    from demstep.clumps import expand, place
+    from demstep.clumps import expand
+    from demstep.experiments.clump_stability import perturbation, specimen_clumps
 
-    cs = place([spec.template], np.zeros(len(spec.x), dtype=np.int64), np.zeros_like(spec.x),
-               np.tile([1.0, 0, 0, 0], (len(spec.x), 1)), 1.0)
-    cs.x[:] = spec.x
-    cs.q[:] = spec.q
+    cs = specimen_clumps(spec)
     xm, rm, body, _ = expand(cs)
     m = float(cs.frames[0][2])
-    rng = np.random.default_rng(seed)
-    amplitude = 1e-6 * math.sqrt(K / m)
-    vel = rng.normal(0, amplitude, (len(spec.x), 3))
-    omega = rng.normal(0, amplitude, (len(spec.x), 3))
+    vel, omega = perturbation(len(spec.x), m, K, seed)  # (as demstep's runs start)
     with tempfile.TemporaryDirectory() as tmp:
         params = {"k": K, "mu": 0.5, "density": 1.0, "radius": float(rm[0]),
                   "body_mass": m, "box": [float(v) for v in spec.box[:3]],

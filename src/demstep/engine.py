@@ -594,11 +594,9 @@ class Simulation:
         seen)."""
         found = False
         ws = self.wall_state
-        if not (len(cover) and len(cover) == len(self.pairs.i)) and not (
-                len(wall_cover) and len(wall_cover) == len(ws.p)):
-            return found  # no cover tracked (no 'auto' estimate): nothing to look at
-        # (the moves of the new pairs' particles only: a rebuild comes every few steps in
-        # a fast flow, and all N of them were 2 ms of a 9 ms rebuild at 1e5)
+        # (no cover tracked, no 'auto' estimate: nothing looked at; the moves of the new
+        # pairs' particles only: a rebuild comes every few steps in a fast flow, and all
+        # N of them were 2 ms of a 9 ms rebuild at 1e5)
         if len(cover) and len(cover) == len(self.pairs.i):
             new = cover == 0.0
             if new.any():
@@ -1142,24 +1140,12 @@ class Simulation:
     def _motion_rate(self) -> float:
         """How fast the fastest particle moves in radii per unit time [1/T]: from the
         kernels' largest |v| dt / r of the last step (``counters[2]``), or before the
-        first step from the initial velocities (clump members: of their bodies'
-        translation and rotation)."""
+        first step from the initial velocities (clump members' are their bodies' V +
+        omega x arm from the start: :func:`demstep.kernels.bodies.member_velocities`)."""
         if not self._first and self.dt_prev > 0.0:
             return float(self.counters[2]) / self.dt_prev
-        if len(self.r) == 0:
-            return 0.0
         speed = np.sqrt(np.einsum("ij,ij->i", self.v, self.v))
-        b = self.bodies
-        if b.n:  # |V + omega x arm|, omega = R I^-1 R^T L (principal I^-1: 0 where locked)
-            from demstep.clumps import quat_to_matrix
-
-            R = quat_to_matrix(b.q)
-            omega = np.einsum("bij,bj->bi", R, b.inv_I * np.einsum("bji,bj->bi", R, b.L))
-            member = b.member
-            body = b.sphere_body[member]
-            speed[member] = np.linalg.norm(
-                b.v[body] + np.cross(omega[body], self.rigid_bodies().arm[member]), axis=1)
-        return float(np.max(speed / self.r))
+        return float(np.max(speed / self.r, initial=0.0))
 
     def _motion_limited_dt(self) -> float:
         """The step [T] to take: the certified one (:attr:`dt_certified`), or less where

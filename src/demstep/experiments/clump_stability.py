@@ -85,21 +85,33 @@ def lattice_packing(shape: str, spacing: float = 1.0, per_axis: int = 4,
     return spec
 
 
-def specimen_simulation(spec: ClumpSpecimen, alpha: float, k: float = 1.0e6, density: float = 1.0,
-                        rotation: bool = True, seed: int = 2) -> Simulation:
-    """The jammed packing at rest, friction 0.5, a small random perturbation, and
-    dt = alpha sqrt(m_min / K)."""
+def specimen_clumps(spec: ClumpSpecimen, density: float = 1.0):
+    """The packing's bodies as a ClumpSet (:func:`demstep.clumps.place`) of ``density``."""
     cs = place([spec.template], np.zeros(len(spec.x), dtype=np.int64), np.zeros_like(spec.x),
                np.tile([1.0, 0, 0, 0], (len(spec.x), 1)), density)
     cs.x[:] = spec.x
     cs.q[:] = spec.q
-    m = cs.frames[0][2]
+    return cs
+
+
+def perturbation(n: int, m: float, k: float, seed: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """The small random velocities [L/T] and spins [1/T] (``n``, 3) of the bodies, of
+    amplitude 1e-6 sqrt(k / m)."""
     rng = np.random.default_rng(seed)
     amplitude = 1e-6 * math.sqrt(k / m)
+    return rng.normal(0, amplitude, (n, 3)), rng.normal(0, amplitude, (n, 3))
+
+
+def specimen_simulation(spec: ClumpSpecimen, alpha: float, k: float = 1.0e6, density: float = 1.0,
+                        rotation: bool = True, seed: int = 2) -> Simulation:
+    """The jammed packing at rest, friction 0.5, a small random perturbation, and
+    dt = alpha sqrt(m_min / K)."""
+    cs = specimen_clumps(spec, density)
+    m = cs.frames[0][2]
+    velocities, spins = perturbation(len(spec.x), m, k, seed)
     sim = Simulation(None, LinearSpring(k_n=k, k_s=k, mu=0.5), periodic=list(spec.box[:3]),
-                     clumps=cs, clump_velocities=rng.normal(0, amplitude, (len(spec.x), 3)),
-                     clump_angular_velocities=rng.normal(0, amplitude, (len(spec.x), 3))
-                     if rotation else None, rotation=rotation,
+                     clumps=cs, clump_velocities=velocities,
+                     clump_angular_velocities=spins if rotation else None, rotation=rotation,
                      timestep=TimeStep.fixed(alpha * math.sqrt(m / k)),
                      energy=EnergyMonitor(every=10**9), runaway_factor=0.0, jump_limit=np.inf)
     return sim
