@@ -726,10 +726,12 @@ class Simulation:
         (:meth:`demstep.timestep.certificate.StepCertificate.renumber`) and the
         critical mode (a warm start: dropped with clumps, whose modes are per body)."""
         n = len(order)
-        cover = self.__dict__.get("_cover_record")
-        if cover:
+        for attr in ("_cover_record", "_added_record"):  # (same form: keys and overlaps)
+            record = self.__dict__.get(attr)
+            if not record:
+                continue
             renamed = {}
-            for name, (keys, assumed) in cover.items():
+            for name, (keys, assumed) in record.items():
                 if name == "pairs":
                     a, b = inv[keys // n], inv[keys % n]
                     keys = self._pair_keys(np.minimum(a, b), np.maximum(a, b))
@@ -738,7 +740,7 @@ class Simulation:
                     keys = self._wall_keys(inv[keys // base], keys % base)
                 rows = np.argsort(keys, kind="stable")
                 renamed[name] = (keys[rows], np.asarray(assumed)[rows])
-            self._cover_record = renamed
+            setattr(self, attr, renamed)
         cert = getattr(self, "_dt_cert", None)
         if cert is not None:
             cert.renumber(order, inv)
@@ -980,6 +982,7 @@ class Simulation:
         # (contact_set puts the intact bonds last)
         bond = np.arange(contacts.n) >= contacts.n - int(np.count_nonzero(self.bonds.intact == 1))
         b = self.bodies
+        self._added_record = {}  # (contacts added to this certificate: none yet)
         self._dt_cert = StepCertificate.from_estimate(
             sigma, lam_c, contacts, self.inv_m, inv_I, inputs=self.certificate_inputs(),
             radius=self.r, bond=bond, sphere_body=b.sphere_body if b.n else None,
@@ -1270,14 +1273,40 @@ class Simulation:
         contacts, cover = prepared
         if contacts.n == 0:
             return None, prepared
-        dt, kept = self._element_coupled_dt(
-            contacts, self.rotation,
-            keep=lambda dt: self._estimate_cannot_change_dt(dt, scheduled))
+        keep = lambda dt: self._estimate_cannot_change_dt(dt, scheduled)  # noqa: E731
+        if self._element_bound_falls_short(contacts, keep):
+            return None, prepared
+        dt, kept = self._element_coupled_dt(contacts, self.rotation, keep=keep)
         if not kept:
             return None, prepared
         self._dt_cover = cover
         self.n_dt_element += 1
         return dt, None
+
+    #: 'auto' with clumps: the elements an element estimate looks at first (twice this
+    #: many: :func:`demstep.timestep.bodies.likely_stiffest_elements`)
+    ELEMENT_SCREEN = 32
+
+    def _element_bound_falls_short(self, contacts, keep) -> bool:
+        """With clumps, whose element bound solves a small dense eigenproblem per
+        contact: whether it cannot be kept (``keep(dt)`` false), decided on an upper
+        bound on it, the smallest step of the elements likeliest to be the stiffest
+        (:func:`demstep.timestep.bodies.likely_stiffest_elements`). False: not decided
+        (to be computed in full)."""
+        bodies = self.rigid_bodies()
+        if bodies is None or contacts.n <= 4 * self.ELEMENT_SCREEN:
+            return False
+        from demstep.timestep.bodies import body_element_dt, likely_stiffest_elements
+
+        p = self.particles_now(check=False)
+        d = self._global_damping()
+        rows = likely_stiffest_elements(p, contacts, bodies, self.rotation,
+                                        self.ELEMENT_SCREEN)
+        dt = float(body_element_dt(p, contacts, bodies, self.rotation, d.mass, d.stiffness,
+                                   rows).min())
+        if d.mass > 0:
+            dt = min(dt, 2.0 / d.mass)  # (as element_coupled_dt)
+        return not keep(dt)
 
     def _element_coupled_dt(self, contacts, rotation: bool, keep) -> tuple[float, bool]:
         """(dt, kept): the coupled element bound dt [T] of ``contacts`` now (a rigorous
@@ -1698,6 +1727,12 @@ class Simulation:
         for name, (keys, assumed) in (getattr(self, "_dt_cover", None) or {}).items():
             out[f"ts_cover_{name}_keys"] = keys
             out[f"ts_cover_{name}_overlap"] = assumed
+        added = self.__dict__.get("_added_record")
+        if cert is not None and added is not None:  # (None: not known, not saved)
+            out["ts_added_known"] = np.array([1.0])
+            for name, (keys, assumed) in added.items():
+                out[f"ts_added_{name}_keys"] = keys
+                out[f"ts_added_{name}_overlap"] = assumed
         if out:
             out["ts_check_budget"] = np.array([self._check_budget])
             if cert is not None and cert.has_bodies and self._check_q is not None:
@@ -1706,6 +1741,29 @@ class Simulation:
         if self.dt_certified is not None:  # (the motion limit may hold dt below it)
             out["ts_dt_certified"] = np.array([self.dt_certified])
         return out
+
+    def _restored_added_record(self, data: dict) -> dict | None:
+        """The record of the contacts added to the certificate since its estimate
+        (:meth:`timestep_state`; None: not known, so not used: a checkpoint from before
+        it was saved), its keys checked against the particles and walls."""
+        if "ts_added_known" not in data:
+            return None
+        record = {}
+        n = len(self.r)
+        for name, size in (("pairs", n * n), ("walls", n * self._walls_per_key)):
+            key = f"ts_added_{name}_keys"
+            if key not in data:
+                continue
+            keys = np.asarray(data[key])
+            overlap = np.asarray(data.get(f"ts_added_{name}_overlap", np.zeros(0)))
+            if (keys.ndim != 1 or keys.dtype.kind not in "iu" or overlap.shape != keys.shape
+                    or (len(keys) and not (keys.min() >= 0 and keys.max() < size))
+                    or not np.isfinite(overlap).all()):
+                raise InputError(f"{key}: expected keys in [0, {size}) and one finite "
+                                 f"overlap each, got {len(keys)} keys and shape "
+                                 f"{overlap.shape}")
+            record[name] = (keys.astype(np.int64), overlap.astype(np.float64))
+        return record
 
     def restore_timestep_state(self, data: dict):
         """Inverse of :meth:`timestep_state`."""
@@ -1720,6 +1778,7 @@ class Simulation:
                                np.array(data[f"ts_cover_{name}_overlap"]))
         # (the pair loops' cover arrays are part of the saved state: not synced here)
         self._cover_record = cover if cover or "ts_mode" in data else None
+        self._added_record = self._restored_added_record(data)
         budget = np.asarray(data.get("ts_check_budget", [0.0]), dtype=np.float64).reshape(-1)
         if budget.size != 1 or not budget[0] >= 0.0:  # (older checkpoints: checked at once)
             raise InputError(f"ts_check_budget: expected one number >= 0, got {budget}")
@@ -1948,25 +2007,49 @@ class Simulation:
                         arm_j=np.where(added.j >= 0, self.r[np.maximum(added.j, 0)], 0.0))
         from demstep.timestep.certificate import added_contacts_bound, merge_cover
 
-        add_k, add_c = added_contacts_bound(self.particles_now(check=False), added,
-                                            self.rotation, self.rigid_bodies())
+        particles, bodies = self.particles_now(check=False), self.rigid_bodies()
+        add_k, add_c = added_contacts_bound(particles, added, self.rotation, bodies)
+        # Weyl: this group on top of the groups added before
+        add_k, add_c = cert.add_k + add_k, cert.add_c + add_c
+        keys = {}
+        for name, mask in (("pairs", pair_mask), ("walls", wall_mask)):
+            if mask.any():
+                keys[name] = (self._pair_keys(self.pi[mask], self.pj[mask]) if name == "pairs"
+                              else self._wall_keys(self.wp[mask], self.ww[mask]))
+        record = self.__dict__.get("_added_record")
+        if record is not None:  # or all the contacts added since the estimate as one group
+            record = dict(record)
+            for name, k in keys.items():
+                record[name] = merge_cover(*record.get(name, _NO_COVER), k, overlaps[name])
+            union_k, union_c = added_contacts_bound(particles, self._added_contacts(record),
+                                                    self.rotation, bodies)
+            add_k, add_c = min(add_k, union_k), min(add_c, union_c)
         drift = self._drift(cert)
-        if sigma * sigma < cert.bound(sigma, drift) + add_k + sigma * add_c:
+        if sigma * sigma < cert.bound(sigma, drift, added=(add_k, add_c)):
             return False
-        cert.add(add_k, add_c)
+        cert.set_added(add_k, add_c)
+        self._added_record = record
         # certified at sigma for the enlarged set: extend the cover
         cover = self._dt_cover
-        for name, mask in (("pairs", pair_mask), ("walls", wall_mask)):
-            if not mask.any():
-                continue
-            if name == "pairs":
-                keys = self._pair_keys(self.pi[mask], self.pj[mask])
-            else:
-                keys = self._wall_keys(self.wp[mask], self.ww[mask])
-            known, assumed = cover.get(name, (np.zeros(0, dtype=np.int64), np.zeros(0)))
-            cover[name] = merge_cover(known, assumed, keys, overlaps[name])
+        for name, k in keys.items():
+            cover[name] = merge_cover(*cover.get(name, _NO_COVER), k, overlaps[name])
         self.n_dt_extensions = getattr(self, "n_dt_extensions", 0) + 1
         return self._renew_drift_budget()
+
+    def _added_contacts(self, record: dict) -> ContactSet:
+        """The contacts of a record of added ones ({'pairs': (keys, overlaps), 'walls':
+        ...}, as the cover's) as a ContactSet for :func:`added_contacts_bound
+        <demstep.timestep.certificate.added_contacts_bound>`: the coefficients of the
+        overlaps recorded, the normals of the geometry now, the longest arms (the radii)."""
+        pairs, walls = record.get("pairs", _NO_COVER), record.get("walls", _NO_COVER)
+        n, base = len(self.r), self._walls_per_key
+        keys = np.asarray(pairs[0], dtype=np.int64)
+        wkeys = np.asarray(walls[0], dtype=np.int64)
+        added = self._contact_elements(keys // n, keys % n, np.asarray(pairs[1], dtype=float),
+                                       wkeys // base, wkeys % base,
+                                       np.asarray(walls[1], dtype=float))
+        return replace(added, arm_i=self.r[added.i].copy(),
+                       arm_j=np.where(added.j >= 0, self.r[np.maximum(added.j, 0)], 0.0))
 
     def _contacts_of(self, pair_mask, wall_mask) -> tuple[ContactSet, dict]:
         """The pairs and wall contacts selected by the masks (closed or not) as a
@@ -1974,40 +2057,51 @@ class Simulation:
         reach in LOOKAHEAD_STEPS steps at the velocities now (:meth:`_step_moves`; if
         they go on, the steps find them again and they are added again); and those
         overlaps [L], {'pairs': (P,), 'walls': (W,)}."""
-        dim = self.dim
-        params = self.law.params()
-        law_id = int(params.law)
-        parts = []
         overlaps = {}
         move, boundary = self._step_moves()
         move *= self.LOOKAHEAD_STEPS
         boundary *= self.LOOKAHEAD_STEPS
-        if pair_mask.any():
-            i, j = self.pi[pair_mask], self.pj[pair_mask]
-            d, dist, delta, ai, aj, _ = pair_geometry_arrays(self.x, self.r, i, j,
-                                                             self.periodic_len)
+        i, j = self.pi[pair_mask], self.pj[pair_mask]
+        p, wi = self.wp[wall_mask], self.ww[wall_mask]
+        if len(i):
+            delta = pair_geometry_arrays(self.x, self.r, i, j, self.periodic_len)[2]
+            overlaps["pairs"] = np.maximum(delta, 0.0) + move[i] + move[j] + boundary
+        if len(p):
+            delta = wall_geometry_arrays(self.x, self.r, p, wi, self.wall_point,
+                                         self.wall_normal)[2]
+            overlaps["walls"] = np.maximum(delta, 0.0) + move[p] + boundary
+        return self._contact_elements(i, j, overlaps.get("pairs"), p, wi,
+                                      overlaps.get("walls")), overlaps
+
+    def _contact_elements(self, i, j, pair_overlaps, p, w, wall_overlaps) -> ContactSet:
+        """The pairs (i, j) and the wall contacts (particle p, wall w) as a ContactSet at
+        their geometry now (normals, arms), with the law's coefficients at the overlaps
+        given [L] (and its rolling and twisting springs)."""
+        dim = self.dim
+        params = self.law.params()
+        law_id = int(params.law)
+        parts = []
+        if len(i):
+            d, dist, _, ai, aj, _ = pair_geometry_arrays(self.x, self.r, i, j,
+                                                         self.periodic_len)
             r_star = self.r[i] * self.r[j] / (self.r[i] + self.r[j])
             inv = self.inv_m[i] + self.inv_m[j]
             m_star = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), self.m[i])
-            overlaps["pairs"] = np.maximum(delta, 0.0) + move[i] + move[j] + boundary
-            kn, kt, cn, ct = self._coefficients(law_id, params, overlaps["pairs"], r_star,
-                                                m_star)
+            kn, kt, cn, ct = self._coefficients(law_id, params, pair_overlaps, r_star, m_star)
             parts.append(ContactSet(i, j, (d / dist[:, None])[:, :dim], ai, aj, kn, kt,
                                     c_n=cn, c_t=ct))
-        if wall_mask.any():
-            p, wi = self.wp[wall_mask], self.ww[wall_mask]
-            _, dist, delta, arm = wall_geometry_arrays(self.x, self.r, p, wi, self.wall_point,
-                                                       self.wall_normal)
-            overlaps["walls"] = np.maximum(delta, 0.0) + move[p] + boundary
-            kn, kt, cn, ct = self._coefficients(law_id, params, overlaps["walls"], self.r[p],
+        if len(p):
+            _, dist, _, arm = wall_geometry_arrays(self.x, self.r, p, w, self.wall_point,
+                                                   self.wall_normal)
+            kn, kt, cn, ct = self._coefficients(law_id, params, wall_overlaps, self.r[p],
                                                 self.m[p])
-            parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[wi][:, :dim],
-                                    arm, np.zeros(len(p)), kn, kt, wi, c_n=cn, c_t=ct))
+            parts.append(ContactSet(p, np.full(len(p), -1), -self.wall_normal[w][:, :dim],
+                                    arm, np.zeros(len(p)), kn, kt, w, c_n=cn, c_t=ct))
         if not parts:
             return ContactSet(np.zeros(0), np.zeros(0), np.zeros((0, dim)), np.zeros(0),
-                              np.zeros(0), 0.0, 0.0), overlaps
+                              np.zeros(0), 0.0, 0.0)
         return with_rolling(ContactSet.concatenate(parts), self.r, self.m, self.inertia,
-                            self.inv_m > 0, params), overlaps
+                            self.inv_m > 0, params)
 
     # --------------------------------------------------------------- running
     def every(self, n: int, callback: Callable[["Simulation"], None]):

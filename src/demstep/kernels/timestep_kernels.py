@@ -370,6 +370,157 @@ def contact_matvec(contacts, k_n, k_t, rotation: bool, x: np.ndarray, k_r=None,
     return y
 
 
+# --- products through rigid bodies (clumps) ----------------------------------------
+
+@njit(inline="always")
+def _body_rotation(body_rot, b, q, o, dim):
+    """theta = body_rot[b] q[o, dim:] (3D; 2D: the one entry times q[o, 2], as
+    (0, 0, theta_z))."""
+    if dim == 2:
+        return 0.0, 0.0, body_rot[b, 0, 0] * q[o, 2]
+    a0 = q[o, 3]
+    a1 = q[o, 4]
+    a2 = q[o, 5]
+    return (body_rot[b, 0, 0] * a0 + body_rot[b, 0, 1] * a1 + body_rot[b, 0, 2] * a2,
+            body_rot[b, 1, 0] * a0 + body_rot[b, 1, 1] * a1 + body_rot[b, 1, 2] * a2,
+            body_rot[b, 2, 0] * a0 + body_rot[b, 2, 1] * a1 + body_rot[b, 2, 2] * a2)
+
+
+@njit
+def _owner_expand(q, free_index, free_scale, member_index, member_body, member_arm,
+                  body_trans, body_rot, rotation, dim, u):
+    """u (N, nd): the spheres' physical DOFs of the owners' scaled DOFs q (owners, nd)
+    (free spheres first, then the bodies): a free sphere's scaled by its M^-1/2, a
+    member's u = v + theta x a and its rotation theta, with (v, theta) =
+    (m^-1/2 q_t, I_w^-1/2 q_r) of its body and a its arm (N_m, 3)."""
+    nd = u.shape[1]
+    n_free = free_index.shape[0]
+    for s in range(n_free):
+        p = free_index[s]
+        for a in range(nd):
+            u[p, a] = free_scale[s, a] * q[s, a]
+    for s in range(member_index.shape[0]):
+        p = member_index[s]
+        b = member_body[s]
+        o = n_free + b
+        t = body_trans[b]
+        for a in range(dim):
+            u[p, a] = t * q[o, a]
+        if rotation:
+            th0, th1, th2 = _body_rotation(body_rot, b, q, o, dim)
+            a0 = member_arm[s, 0]
+            a1 = member_arm[s, 1]
+            if dim == 2:
+                u[p, 0] -= th2 * a1
+                u[p, 1] += th2 * a0
+                u[p, 2] = th2
+            else:
+                a2 = member_arm[s, 2]
+                u[p, 0] += th1 * a2 - th2 * a1
+                u[p, 1] += th2 * a0 - th0 * a2
+                u[p, 2] += th0 * a1 - th1 * a0
+                u[p, 3] = th0
+                u[p, 4] = th1
+                u[p, 5] = th2
+
+
+@njit
+def _owner_reduce(y, free_index, free_scale, member_index, member_body, member_arm,
+                  body_trans, body_rot, rotation, dim, sums, out):
+    """out (owners, nd) = the transpose of :func:`_owner_expand` applied to sphere
+    forces y (N, nd): a free sphere's scaled, a body's force and torque summed over its
+    members (torque + a x f of each) in member order, then scaled by m^-1/2 and
+    I_w^-1/2; ``sums`` (B, nd) scratch."""
+    nd = y.shape[1]
+    n_free = free_index.shape[0]
+    for s in range(n_free):
+        p = free_index[s]
+        for a in range(nd):
+            out[s, a] = free_scale[s, a] * y[p, a]
+    sums[:] = 0.0
+    for s in range(member_index.shape[0]):
+        p = member_index[s]
+        b = member_body[s]
+        for a in range(dim):
+            sums[b, a] += y[p, a]
+        if rotation:
+            a0 = member_arm[s, 0]
+            a1 = member_arm[s, 1]
+            if dim == 2:
+                sums[b, 2] += y[p, 2] + (a0 * y[p, 1] - a1 * y[p, 0])
+            else:
+                a2 = member_arm[s, 2]
+                sums[b, 3] += y[p, 3] + (a1 * y[p, 2] - a2 * y[p, 1])
+                sums[b, 4] += y[p, 4] + (a2 * y[p, 0] - a0 * y[p, 2])
+                sums[b, 5] += y[p, 5] + (a0 * y[p, 1] - a1 * y[p, 0])
+    for b in range(sums.shape[0]):
+        o = n_free + b
+        for a in range(dim):
+            out[o, a] = body_trans[b] * sums[b, a]
+        if rotation:
+            if dim == 2:
+                out[o, 2] = body_rot[b, 0, 0] * sums[b, 2]
+            else:
+                for r in range(3):
+                    out[o, 3 + r] = (body_rot[b, r, 0] * sums[b, 3]
+                                     + body_rot[b, r, 1] * sums[b, 4]
+                                     + body_rot[b, r, 2] * sums[b, 5])
+
+
+@njit
+def _owner_contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
+                          free_index, free_scale, member_index, member_body, member_arm,
+                          body_trans, body_rot, q, u, y, sums, out):
+    """out = S G^T K G S q in one call: :func:`_owner_expand` of the owners' scaled DOFs
+    q (owners, nd) into u (N, nd), the contact product y = K u (:func:`_contact_matvec`),
+    then :func:`_owner_reduce` into out (owners, nd)."""
+    dim = normal.shape[1]
+    _owner_expand(q, free_index, free_scale, member_index, member_body, member_arm,
+                  body_trans, body_rot, rotation, dim, u)
+    y[:] = 0.0
+    _contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, u, y)
+    _owner_reduce(y, free_index, free_scale, member_index, member_body, member_arm,
+                  body_trans, body_rot, rotation, dim, sums, out)
+
+
+def owner_expand(owner_map, q, u):
+    """u (N, nd) = the spheres' physical DOFs of owner DOFs q (owners, nd) scaled by
+    M^1/2 (:class:`demstep.timestep.bodies.OwnerMap`)."""
+    om = owner_map
+    _owner_expand(np.ascontiguousarray(q, dtype=np.float64), om.free_index, om.free_scale,
+                  om.member_index, om.member_body, om.arm, om.body_trans, om.body_rot,
+                  om.rotation, om.dim, u)
+    return u
+
+
+def owner_reduce(owner_map, y, sums, out):
+    """out (owners, nd) = the transpose of :func:`owner_expand` applied to y (N, nd);
+    ``sums`` (bodies, nd) scratch."""
+    om = owner_map
+    _owner_reduce(np.ascontiguousarray(y, dtype=np.float64), om.free_index, om.free_scale,
+                  om.member_index, om.member_body, om.arm, om.body_trans, om.body_rot,
+                  om.rotation, om.dim, sums, out)
+    return out
+
+
+def owner_contact_matvec(owner_map, contacts, k_n, k_t, rotation: bool, q, u, y, sums, out,
+                         k_r=None, k_w=None):
+    """out (owners, nd) = S G^T K G S q for owner DOFs q (owners, nd): K the contact
+    stiffness with springs ``k_n``, ``k_t`` (and, when given, ``k_r``, ``k_w``) of
+    the spheres, G the map from the owners' DOFs to the spheres' (members move with
+    their bodies), S = M^-1/2 of the owners; u, y (N, nd) and ``sums`` (bodies, nd)
+    scratch."""
+    om = owner_map
+    rolling = k_r is not None and bool(rotation)
+    _owner_contact_matvec(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
+                          contacts.arm_j, k_n, k_t, k_r if rolling else _NO_ROLLING,
+                          k_w if rolling else _NO_ROLLING, rolling, bool(rotation),
+                          om.free_index, om.free_scale, om.member_index, om.member_body,
+                          om.arm, om.body_trans, om.body_rot,
+                          np.ascontiguousarray(q, dtype=np.float64), u, y, sums, out)
+    return out
+
+
 def contact_energies(contacts, k_n, k_t, rotation: bool, x: np.ndarray, k_r=None,
                      k_w=None) -> np.ndarray:
     """Strain energy (C,) of each contact's springs ``k_n``, ``k_t`` (and, when given,

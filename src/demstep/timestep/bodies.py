@@ -122,41 +122,21 @@ class OwnerMap:
                          else np.zeros((bodies.n, 0, 0)))
         self.n_bodies = bodies.n
 
-    def expand(self, q: np.ndarray, n_spheres: int) -> np.ndarray:
-        nd, dim = self.nd, self.dim
-        u = np.zeros((n_spheres, nd))
-        u[self.free_index] = self.free_scale * q[:self.n_free]
-        qb = q[self.n_free:]
-        ut = qb[:, :dim] * self.body_trans[:, None]
-        member_u = ut[self.member_body]
-        if self.rotation:
-            th = np.einsum("bij,bj->bi", self.body_rot, qb[:, dim:])
-            tm = th[self.member_body]
-            if dim == 2:  # theta z x arm
-                member_u = member_u + tm[:, 0:1] * np.stack([-self.arm[:, 1], self.arm[:, 0]], 1)
-            else:
-                member_u = member_u + np.cross(tm, self.arm)
-            u[self.member_index, dim:] = tm
-        u[self.member_index, :dim] = member_u
-        return u
+    def expand(self, q: np.ndarray, n_spheres: int, out: np.ndarray | None = None) -> np.ndarray:
+        """The spheres' physical DOFs (N, nd) of scaled owner DOFs q (owners, nd) (into
+        ``out`` when given): :func:`demstep.kernels.timestep_kernels.owner_expand`."""
+        from demstep.kernels.timestep_kernels import owner_expand
 
-    def reduce(self, y: np.ndarray) -> np.ndarray:
-        nd, dim = self.nd, self.dim
-        out = np.zeros((self.n_owners, nd))
-        out[:self.n_free] = self.free_scale * y[self.free_index]
-        ym = y[self.member_index]
-        f = np.zeros((self.n_bodies, dim))
-        np.add.at(f, self.member_body, ym[:, :dim])
-        out[self.n_free:, :dim] = f * self.body_trans[:, None]
-        if self.rotation:
-            if dim == 2:
-                tau_m = ym[:, 2:3] + (self.arm[:, 0] * ym[:, 1] - self.arm[:, 1] * ym[:, 0])[:, None]
-            else:
-                tau_m = ym[:, dim:] + np.cross(self.arm, ym[:, :dim])
-            tau = np.zeros((self.n_bodies, tau_m.shape[1]))
-            np.add.at(tau, self.member_body, tau_m)
-            out[self.n_free:, dim:] = np.einsum("bij,bj->bi", self.body_rot, tau)
-        return out
+        u = np.empty((n_spheres, self.nd)) if out is None else out
+        return owner_expand(self, q, u)
+
+    def reduce(self, y: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """The transpose of :meth:`expand`: sphere forces y (N, nd) to scaled owner
+        forces (owners, nd) (into ``out`` when given)."""
+        from demstep.kernels.timestep_kernels import owner_reduce
+
+        out = np.empty((self.n_owners, self.nd)) if out is None else out
+        return owner_reduce(self, y, np.empty((self.n_bodies, self.nd)), out)
 
 
 # ---------------------------------------------------------- element bounds for bodies
@@ -220,7 +200,7 @@ def owner_mass_shares(particles, contacts, bodies: RigidBodies | None, rotation:
     return mi, Ii, mj, Ij
 
 
-def body_element_matrices(particles, contacts, bodies, rotation: bool):
+def body_element_matrices(particles, contacts, bodies, rotation: bool, rows=None):
     """W = B M_e^-1 B^T (C, s, s) of every contact element with owners' shares
     (:func:`owner_mass_shares`) and the local spring and dashpot matrices D, G (C, s, s)
     (k_n n n^T + k_t (I - n n^T), likewise c_n, c_t), global frame; 2D in the plane.
@@ -230,9 +210,14 @@ def body_element_matrices(particles, contacts, bodies, rotation: bool):
     omega_i the relative rotation of the owners (a member rotates with its body): then
     D and G hold also k_r (I - n n^T) + k_w n n^T and c_r, c_w on phi (2D: k_r, c_r on
     phi_z), and W = J M^-1 J^T with, per side, dDelta/domega = +/-[r]x and
-    dphi/domega = -/+I (``r`` the arm from the owner's centre to the contact point)."""
+    dphi/domega = -/+I (``r`` the arm from the owner's centre to the contact point).
+
+    ``rows`` (indices): the elements of those contacts only, with the shares of all."""
     dim = particles.dim
     mi, Ii, mj, Ij = owner_mass_shares(particles, contacts, bodies, rotation)
+    if rows is not None:
+        mi, Ii, mj, Ij = mi[rows], Ii[rows], mj[rows], Ij[rows]
+        contacts = contacts.subset(rows)
     ri, rj = contact_arms_from_owner(contacts, bodies, dim)
     W = (mi + mj)[:, None, None] * np.eye(3)
     if rotation:
@@ -278,14 +263,15 @@ def body_element_matrices(particles, contacts, bodies, rotation: bool):
 
 
 def body_element_dt(particles, contacts, bodies, rotation: bool, mass_damping: float = 0.0,
-                    stiffness_damping: float = 0.0) -> np.ndarray:
+                    stiffness_damping: float = 0.0, rows=None) -> np.ndarray:
     """Critical step (C,) [T] of each contact element of an assembly with bodies, the
     owners' masses and inertia tensors split uniformly among their contacts (Rayleigh's
     partition, rigorous as :func:`demstep.timestep.elements.coupled_element_damped_dt`):
     the largest root sigma of det(sigma^2 I - sigma (a1 I + W^1/2 (a2 D + G) W^1/2) -
     W^1/2 D W^1/2) = 0 on the element's strain space (the slip, and with rolling
-    resistance the relative rotation: :func:`body_element_matrices`), dt = 2 / sigma."""
-    W, D, G = body_element_matrices(particles, contacts, bodies, rotation)
+    resistance the relative rotation: :func:`body_element_matrices`), dt = 2 / sigma.
+    ``rows`` (indices): of those contacts only (the shares still of all of them)."""
+    W, D, G = body_element_matrices(particles, contacts, bodies, rotation, rows)
     w, V = np.linalg.eigh(W)
     w = np.clip(w, 0.0, None)
     Wh = np.einsum("cij,cj,ckj->cik", V, np.sqrt(w), V)
@@ -295,7 +281,7 @@ def body_element_dt(particles, contacts, bodies, rotation: bool, mass_damping: f
         lam = np.linalg.eigvalsh(B)[:, -1]
         with np.errstate(divide="ignore"):
             return np.where(lam > 0, 2.0 / np.sqrt(lam), np.inf)
-    c = contacts.n
+    c = W.shape[0]
     s = W.shape[1]  # 3, or 6 with rolling resistance
     L = np.zeros((c, 2 * s, 2 * s))
     L[:, :s, s:] = np.eye(s)
@@ -307,6 +293,23 @@ def body_element_dt(particles, contacts, bodies, rotation: bool, mass_damping: f
     sigma = real.max(axis=1)
     with np.errstate(divide="ignore"):
         return np.where(sigma > 0, 2.0 / sigma, np.inf)
+
+
+def likely_stiffest_elements(particles, contacts, bodies, rotation: bool,
+                             count: int = 32) -> np.ndarray:
+    """Rows of the contacts (at most 2 ``count``) whose elements are likely the stiffest
+    and the most damped: the ``count`` largest k_max (m_i^-1 + m_j^-1) and c_max (m_i^-1 +
+    m_j^-1) with the owners' mass shares (:func:`owner_mass_shares`; k_max, c_max the
+    largest spring and dashpot of each contact). The min of :func:`body_element_dt` over
+    any rows is at least the min over all (an upper bound on it, for a quick test that
+    the bound cannot be large enough); these rows make it close."""
+    mi, _, mj, _ = owner_mass_shares(particles, contacts, bodies, rotation)
+    width = mi + mj
+    picks = []
+    for coefficients in ((contacts.k_n, contacts.k_s), (contacts.c_n, contacts.c_t)):
+        score = width * np.maximum(*coefficients)
+        picks.append(np.argsort(score)[-count:])
+    return np.unique(np.concatenate(picks))
 
 
 def body_stiffness_diagonal(particles, contacts, bodies, rotation: bool, springs="k"):

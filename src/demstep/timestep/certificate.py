@@ -1080,12 +1080,14 @@ class StepCertificate:
         semi-definite): a step above sigma_c's keeps its room whatever Lambda_C."""
         return min(self.lam_c, self.sigma)
 
-    def bound(self, sigma: float, drift=(0.0, 0.0)) -> float:
+    def bound(self, sigma: float, drift=(0.0, 0.0), added=None) -> float:
         """Upper bound on lambda_max(sigma C^ + K^) [1/T^2] of the covered and added
-        contacts now, for the drift (D_K, D_C) of :meth:`drift`."""
+        contacts now, for the drift (D_K, D_C) of :meth:`drift`; ``added`` (A_K, A_C):
+        with these bounds of the added contacts in place of the certificate's."""
         d_k, d_c = drift
+        add_k, add_c = (self.add_k, self.add_c) if added is None else added
         return (self.sigma ** 2 + max(sigma - self.sigma, 0.0) * self.slope
-                + sigma * (self.add_c + d_c) + self.add_k + d_k)
+                + sigma * (add_c + d_c) + add_k + d_k)
 
     def certifies(self, sigma: float, drift=(0.0, 0.0)) -> bool:
         """Whether the step 2 / ``sigma`` is certified (its square bounds the bound)."""
@@ -1120,10 +1122,12 @@ class StepCertificate:
         if len(self.particles):
             self.particles = np.ascontiguousarray(self.particles[order])
 
-    def add(self, k: float, c: float):
-        """Contacts added since the estimate: their group bound k + sigma c."""
-        self.add_k += float(k)
-        self.add_c += float(c)
+    def set_added(self, k: float, c: float):
+        """All the contacts added since the estimate: bounds on lambda_max(K^) [1/T^2]
+        and lambda_max(C^) [1/T] of them together (Weyl's inequality adds them to the
+        certificate's bound)."""
+        self.add_k = float(k)
+        self.add_c = float(c)
 
     # ---------------------------------------------------------------- checkpoints
     def state(self) -> dict:

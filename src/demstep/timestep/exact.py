@@ -44,8 +44,9 @@ import scipy.sparse.linalg as spla
 from demstep.contacts import ContactSet
 from demstep.errors import InputError
 from demstep.kernels.timestep_kernels import (chunked_scaled_contact_matvec, contact_chunks,
-                                              contact_energies, contact_gram, contact_matvec,
-                                              contact_quadratic_forms, scaled_contact_matvec)
+                                              contact_energies, contact_gram,
+                                              contact_quadratic_forms, owner_contact_matvec,
+                                              scaled_contact_matvec)
 from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
 from demstep.timestep.damping import GlobalDamping
@@ -148,12 +149,16 @@ class ScaledContactOperator:
         self._work = self.workspace.array("operator_work", self.scale.shape)
         self.bodies = bodies if bodies is not None and bodies.n else None
         self.owner_map = None
+        self._damping_bound = None
         if self.bodies is not None:
             from demstep.timestep.bodies import OwnerMap, check_bodies
 
             check_bodies(particles, self.bodies)
             self.owner_map = OwnerMap(self.scale, self.bodies, particles.dim, self.rotation)
             self.size = self.owner_map.n_owners * self.nd
+            self._body_forces = self.workspace.array("operator_body_forces", self.scale.shape)
+            self._body_sums = self.workspace.array("operator_body_sums",
+                                                   (self.bodies.n, self.nd))
         if threads is None:
             import numba
 
@@ -189,13 +194,12 @@ class ScaledContactOperator:
         k_n, k_t, k_r, k_w = springs
         if self.owner_map is not None:
             om = self.owner_map
-            u = om.expand(np.asarray(x).reshape(om.n_owners, self.nd), self.particles.n)
-            y = om.reduce(contact_matvec(self.contacts, k_n, k_t, self.rotation, u,
-                                         k_r, k_w)).reshape(-1)
-            if out is None:
-                return y
-            out[:] = y
-            return out
+            y = np.empty(self.size) if out is None else out
+            owner_contact_matvec(om, self.contacts, k_n, k_t, self.rotation,
+                                 np.asarray(x).reshape(om.n_owners, self.nd), self._work,
+                                 self._body_forces, self._body_sums,
+                                 y.reshape(om.n_owners, self.nd), k_r, k_w)
+            return y
         if self.threads > 1:
             return chunked_scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation,
                                                  self.scale, x, self._work, self._chunks,
@@ -284,7 +288,12 @@ class ScaledContactOperator:
     def damping_bound(self) -> float:
         """An upper bound on lambda_max(C^) [1/T] (C^ with a1, a2 and the dashpots, rolling
         and twisting ones included) from Rayleigh's theorem on the coupled elements
-        (uniform mass split)."""
+        (uniform mass split); computed once per operator."""
+        if self._damping_bound is None:
+            self._damping_bound = self._element_damping_bound()
+        return self._damping_bound
+
+    def _element_damping_bound(self) -> float:
         from demstep.timestep.elements import coupled_element_lambda
         from demstep.timestep.mass_split import element_mass
 
@@ -294,14 +303,22 @@ class ScaledContactOperator:
             from demstep.timestep.bodies import body_element_matrices
 
             # with rolling resistance W, D, G act on the strains (Delta, phi)
-            # lambda_max(W^1/2 X W^1/2) <= lambda_max(X) lambda_max(W) per element
-            W, D, G = body_element_matrices(self.particles, self.contacts, self.bodies,
-                                            self.rotation)
+            # lambda_max(W^1/2 X W^1/2) <= lambda_max(X) lambda_max(W) per element; D and
+            # G are springs (dashpots) times complementary projectors (n n^T, I - n n^T on
+            # each strain), so lambda_max(D) is the largest spring of the contact
+            c = self.contacts
+            W = body_element_matrices(self.particles, c, self.bodies, self.rotation)[0]
             wmax = np.linalg.eigvalsh(W)[:, -1]
+            rolling = self.rotation and c.has_rolling
+            twist = c.dim == 3  # (disks: no twisting strain)
             if d.stiffness:
-                bound += d.stiffness * float(np.max(np.linalg.eigvalsh(D)[:, -1] * wmax))
-            if self.contacts.damped:
-                bound += float(np.max(np.linalg.eigvalsh(G)[:, -1] * wmax))
+                springs = (c.k_n, c.k_s) + ((c.k_r,) + ((c.k_w,) if twist else ())
+                                            if rolling else ())
+                bound += d.stiffness * float(np.max(np.max(springs, axis=0) * wmax))
+            if c.damped:
+                dashpots = (c.c_n, c.c_t) + ((c.c_r,) + ((c.c_w,) if twist else ())
+                                             if rolling else ())
+                bound += float(np.max(np.max(dashpots, axis=0) * wmax))
         elif self.contacts.n:
             mass = element_mass(self.particles, self.contacts)
             if d.stiffness:
