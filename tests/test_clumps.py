@@ -12,7 +12,7 @@ import scipy.spatial.transform
 from demstep.clumps import (ClumpTemplate, _integrate_union, _separate, mass_properties, place,
                             principal_frame, quat_to_matrix, random_quaternions)
 from demstep.contact.laws import LinearSpring
-from demstep.contacts import find_contacts
+from demstep.contacts import ContactSet, find_contacts
 from demstep.engine import Damping, Simulation, TimeStep
 from demstep.errors import InputError
 from demstep.particles import Particles
@@ -761,3 +761,120 @@ def test_dt_on_a_file_with_a_body_column(tmp_path, capsys):
     data = json.loads(out)
     assert any("clumps" in n for n in data["notes"])
     assert "element-paper" not in [e["method"] for e in data["estimates"]]
+
+
+def mixed_owner_assembly(dim, seed):
+    """Free spheres (one fixed), four bodies of 2-3 members (one fixed), random pair
+    and wall contacts between different owners with springs, dashpots and rolling and
+    twisting springs; the bodies' inertia tensors random (SPD)."""
+    rng = np.random.default_rng(seed)
+    body = np.array([-1, -1, 0, 0, -1, 1, 1, 1, 2, 2, -1, 3, 3])
+    n = len(body)
+    x = rng.uniform(0.0, 3.0, (n, dim))
+    r = rng.uniform(0.3, 0.6, n)
+    fixed = np.zeros(n, bool)
+    fixed[4] = True
+    p = Particles(x, r, rng.uniform(0.5, 2.0, n), rng.uniform(0.1, 0.5, n), fixed)
+    n_bodies = 4
+    A = rng.normal(size=(n_bodies, 3, 3))
+    inertia = np.einsum("bij,bkj->bik", A, A) + 0.5 * np.eye(3)
+    arm = np.zeros((n, 3))
+    arm[body >= 0, :dim] = rng.normal(scale=0.4, size=(int((body >= 0).sum()), dim))
+    bodies = RigidBodies(body, arm, rng.uniform(1.0, 3.0, n_bodies), inertia,
+                         np.array([False, False, True, False]))
+    owner = np.where(body >= 0, 100 + body, np.arange(n))
+    pairs = [(a, b) for a in range(n) for b in range(a + 1, n) if owner[a] != owner[b]]
+    pick = rng.choice(len(pairs), 18, replace=False)
+    i = np.array([pairs[k][0] for k in pick] + [1, 6, 9])
+    j = np.array([pairs[k][1] for k in pick] + [-1, -1, -1])
+    c = len(i)
+    normal = rng.normal(size=(c, dim))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    contacts = ContactSet(i, j, normal, rng.uniform(0.2, 0.6, c),
+                          np.where(j >= 0, rng.uniform(0.2, 0.6, c), 0.0),
+                          rng.uniform(0.5, 2.0, c), rng.uniform(0.1, 1.0, c),
+                          c_n=rng.uniform(0.0, 0.5, c), c_t=rng.uniform(0.0, 0.5, c),
+                          k_r=rng.uniform(0.0, 0.3, c), k_w=rng.uniform(0.0, 0.3, c),
+                          c_r=rng.uniform(0.0, 0.1, c), c_w=rng.uniform(0.0, 0.1, c))
+    return p, contacts, bodies
+
+
+def owner_reference(p, bodies):
+    """Dense G (spheres' DOFs from the owners') and the owners' M^-1/2 (zero: fixed),
+    free spheres first in their order, then the bodies."""
+    dim = p.dim
+    nd = 3 if dim == 2 else 6
+    body = bodies.sphere_body
+    free = np.flatnonzero(body < 0)
+    n_owners = len(free) + bodies.n
+    G = np.zeros((p.n * nd, n_owners * nd))
+    S = np.zeros((n_owners * nd, n_owners * nd))
+    for o, s in enumerate(free):
+        G[nd * s:nd * s + nd, nd * o:nd * o + nd] = np.eye(nd)
+        if not p.fixed[s]:
+            S[nd * o:nd * o + nd, nd * o:nd * o + nd] = np.diag(
+                [p.m[s] ** -0.5] * dim + [p.inertia[s] ** -0.5] * (nd - dim))
+    for s in np.flatnonzero(body >= 0):
+        o = len(free) + body[s]
+        a = bodies.arm[s]
+        G[nd * s:nd * s + dim, nd * o:nd * o + dim] = np.eye(dim)
+        if dim == 2:  # u = v + theta_z x a
+            G[nd * s:nd * s + 2, nd * o + 2] = [-a[1], a[0]]
+            G[nd * s + 2, nd * o + 2] = 1.0
+        else:
+            X = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+            G[nd * s:nd * s + 3, nd * o + 3:nd * o + 6] = -X
+            G[nd * s + 3:nd * s + 6, nd * o + 3:nd * o + 6] = np.eye(3)
+    for b in range(bodies.n):
+        if bodies.fixed[b]:
+            continue
+        o = len(free) + b
+        S[nd * o:nd * o + dim, nd * o:nd * o + dim] = bodies.mass[b] ** -0.5 * np.eye(dim)
+        if dim == 2:
+            S[nd * o + 2, nd * o + 2] = bodies.inertia[b, 2, 2] ** -0.5
+        else:
+            w, V = np.linalg.eigh(bodies.inertia[b])
+            S[nd * o + 3:nd * o + 6, nd * o + 3:nd * o + 6] = V @ np.diag(w ** -0.5) @ V.T
+    return G, S
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_compiled_owner_product_equals_dense_body_matrices(dim):
+    """S G^T K G S x of the compiled product (expand, contact product, reduce in one
+    kernel) against the dense matrices, with free spheres (one fixed), bodies (one
+    fixed), wall contacts and rolling and twisting springs; and the expansion of a mode
+    (the owners' DOFs to the spheres') against G S."""
+    from demstep.timestep.exact import ScaledContactOperator
+
+    p, contacts, bodies = mixed_owner_assembly(dim, 11 + dim)
+    G, S = owner_reference(p, bodies)
+    K = assemble_stiffness(p, contacts, True).toarray()
+    C = assemble_stiffness(p, replace(contacts, k_n=contacts.c_n, k_s=contacts.c_t,
+                                      k_r=contacts.c_r, k_w=contacts.c_w), True).toarray()
+    op = ScaledContactOperator(p, contacts, True, bodies=bodies, threads=1)
+    assert op.size == S.shape[0]
+    rng = np.random.default_rng(dim)
+    for _ in range(3):
+        q = rng.normal(size=op.size)
+        np.testing.assert_allclose(op.stiffness(q), S @ G.T @ K @ G @ S @ q, rtol=1e-12,
+                                   atol=1e-12 * np.abs(K).max() * np.abs(q).max())
+        np.testing.assert_allclose(op.dashpots(q), S @ G.T @ C @ G @ S @ q, rtol=1e-12,
+                                   atol=1e-12 * np.abs(C).max() * np.abs(q).max())
+        np.testing.assert_allclose(op.displacement(q).reshape(-1), G @ S @ q, rtol=1e-13,
+                                   atol=1e-13 * np.abs(q).max())
+
+
+def test_element_steps_of_some_rows_take_the_mass_shares_of_all_contacts():
+    """body_element_dt on rows: the steps of those elements in the whole assembly (the
+    owners' masses split among all their contacts, not the rows' only), so their min is
+    an upper bound on the min over all (the 'auto' control's screen of an element
+    estimate); the rows likeliest stiffest hold the smallest step here."""
+    from demstep.timestep.bodies import likely_stiffest_elements
+
+    p, contacts, bodies = mixed_owner_assembly(3, 5)
+    every = body_element_dt(p, contacts, bodies, True, 0.05, 0.01)
+    rows = np.array([0, 3, 7, 20])
+    np.testing.assert_array_equal(body_element_dt(p, contacts, bodies, True, 0.05, 0.01, rows),
+                                  every[rows])
+    likely = likely_stiffest_elements(p, contacts, bodies, True, count=3)
+    assert len(likely) <= 6 and np.argmin(every) in likely
