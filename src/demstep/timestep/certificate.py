@@ -17,10 +17,12 @@ where
   left side is convex in sigma with slope at most lambda_max(C^), and does not
   decrease; Lambda_C stands for min(Lambda_C, sigma_c) there, as
   sigma_c lambda_max(C^) <= lambda_max(sigma_c C^ + K^) <= sigma_c^2);
-* A_K + sigma A_C bounds the contacts added since (:meth:`StepCertificate.add`; each
-  group by the largest of its coupled elements, the particles' masses split among the
-  group's contacts, Rayleigh's theorem on the group alone, and Weyl's inequality for
-  the sum: :func:`added_contacts_bound`, rolling and twisting springs included);
+* A_K + sigma A_C bounds the contacts added since (:meth:`StepCertificate.set_added`;
+  all of them as one group, by the largest of their coupled elements with the
+  particles' masses split among them, Rayleigh's theorem on the group alone, and
+  Weyl's inequality for the sum with the rest: :func:`added_contacts_bound`, rolling
+  and twisting springs included; or, when smaller, the sum of the bounds of the groups
+  as they were added, each with its own split: both bound them);
 * D(sigma) bounds how far the covered contacts' normals have turned (Weyl's inequality
   again): a contact's mass-scaled element matrix is E(n) = L(n)^T B(n) L(n) with
   B = b_n n n^T + b_t (I - n n^T) (b = sigma c + k) and L the map from the two
@@ -781,7 +783,7 @@ def added_contacts_bound(particles, added, rotation: bool, bodies=None) -> tuple
     inertia) and rho = |[o]x S| + r |S| >= |[o + r n]x S| for any normal n (o the
     member's arm from its body's centre, r its radius; both norms the same in any
     orientation of the body); times the largest of the element's springs (dashpots).
-    Add them with :meth:`StepCertificate.add`."""
+    Set them with :meth:`StepCertificate.set_added`."""
     if added.n == 0:
         return 0.0, 0.0
     if bodies is None:
