@@ -803,3 +803,33 @@ def test_the_record_of_added_contacts_restarts_bit_for_bit():
     bad["ts_added_pairs_keys"] = state["ts_added_pairs_keys"] + len(first.r) ** 2
     with pytest.raises(InputError, match="ts_added_pairs_keys"):
         settling_simulation(law, 0.5).load_state_dict(bad)
+
+
+def test_the_record_of_added_contacts_follows_a_renumbering():
+    """Re-sorting the particles renames the record of the contacts added since the
+    estimate with them: the same contacts (new names of the old pairs and wall
+    contacts), the same overlaps, the same bound."""
+    from demstep.timestep.certificate import added_contacts_bound
+
+    law = LinearSpring(k_n=2e5, k_s=1e5, mu=0.4, restitution=0.5, restitution_tangential=0.5)
+    sim = settling_simulation(law, 0.5)
+    sim.run(steps=300)
+    for _ in range(100):
+        if len((sim._added_record or {}).get("pairs", ((),))[0]) >= 3:
+            break
+        sim.run(steps=5)
+    before = sim._added_contacts(sim._added_record)
+    bound = added_contacts_bound(sim.particles_now(), before, True)
+    order = np.random.default_rng(4).permutation(len(sim.r))
+    inv = np.argsort(order)  # old particle p is new particle inv[p]
+    sim.reorder(order)
+    after = sim._added_contacts(sim._added_record)
+
+    def named(c, rename):
+        return sorted((min(rename[a], rename[b]) if b >= 0 else rename[a],
+                       max(rename[a], rename[b]) if b >= 0 else -1 - w, round(k, 9))
+                      for a, b, w, k in zip(c.i, c.j, c.wall, c.k_n))
+
+    assert named(after, np.arange(len(sim.r))) == named(before, inv)
+    assert added_contacts_bound(sim.particles_now(), after, True) == pytest.approx(bound,
+                                                                                  rel=1e-12)
