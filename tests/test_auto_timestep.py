@@ -833,3 +833,4 @@ def test_the_record_of_added_contacts_follows_a_renumbering():
     assert named(after, np.arange(len(sim.r))) == named(before, inv)
     assert added_contacts_bound(sim.particles_now(), after, True) == pytest.approx(bound,
                                                                                   rel=1e-12)
+
