@@ -769,7 +769,8 @@ def test_the_record_of_added_contacts_restarts_bit_for_bit():
     """The contacts added since the last estimate are saved with the certificate: a run
     restarted while the record holds several groups continues bit for bit; a checkpoint
     without the record (older) loads with it unknown (the groups' bounds summed until
-    the next estimate); a record naming a particle out of range is refused in one line."""
+    the next estimate); a record naming a particle out of range, or a pair i > j, is
+    refused in one line before anything is restored."""
     from demstep.errors import InputError
 
     law = LinearSpring(k_n=2e5, k_s=1e5, mu=0.4, restitution=0.5, restitution_tangential=0.5)
@@ -799,10 +800,14 @@ def test_the_record_of_added_contacts_restarts_bit_for_bit():
     assert third._added_record is None
     third.run(steps=50)
 
-    bad = dict(state)
-    bad["ts_added_pairs_keys"] = state["ts_added_pairs_keys"] + len(first.r) ** 2
-    with pytest.raises(InputError, match="ts_added_pairs_keys"):
-        settling_simulation(law, 0.5).load_state_dict(bad)
+    n = len(first.r)
+    keys = state["ts_added_pairs_keys"]
+    for wrong in (keys + n * n, (keys % n) * n + keys // n):  # (out of range; i > j)
+        fresh = settling_simulation(law, 0.5)
+        x0 = fresh.x.copy()
+        with pytest.raises(InputError, match="ts_added_pairs_keys.*holds the key"):
+            fresh.load_state_dict(dict(state, ts_added_pairs_keys=wrong))
+        assert fresh.step == 0 and np.array_equal(fresh.x, x0)  # (nothing restored)
 
 
 def test_the_record_of_added_contacts_follows_a_renumbering():

@@ -194,11 +194,15 @@ class ScaledContactOperator:
         k_n, k_t, k_r, k_w = springs
         if self.owner_map is not None:
             om = self.owner_map
-            y = np.empty(self.size) if out is None else out
+            contiguous = out is not None and out.flags.c_contiguous
+            y = out if contiguous else np.empty(self.size)
             owner_contact_matvec(om, self.contacts, k_n, k_t, self.rotation,
                                  np.asarray(x).reshape(om.n_owners, self.nd), self._work,
                                  self._body_forces, self._body_sums,
                                  y.reshape(om.n_owners, self.nd), k_r, k_w)
+            if out is not None and not contiguous:
+                out[:] = y
+                return out
             return y
         if self.threads > 1:
             return chunked_scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation,
