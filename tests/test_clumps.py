@@ -841,7 +841,8 @@ def owner_reference(p, bodies):
 @pytest.mark.parametrize("dim", [2, 3])
 def test_the_compiled_owner_product_equals_dense_body_matrices(dim):
     """S G^T K G S x of the compiled product (expand, contact product, reduce in one
-    kernel) against the dense matrices, with free spheres (one fixed), bodies (one
+    kernel; serial, and threaded in runs of contacts with the bodies reduced in
+    parallel) against the dense matrices, with free spheres (one fixed), bodies (one
     fixed), wall contacts and rolling and twisting springs; and the expansion of a mode
     (the owners' DOFs to the spheres') against G S."""
     from demstep.timestep.exact import ScaledContactOperator
@@ -851,10 +852,10 @@ def test_the_compiled_owner_product_equals_dense_body_matrices(dim):
     K = assemble_stiffness(p, contacts, True).toarray()
     C = assemble_stiffness(p, replace(contacts, k_n=contacts.c_n, k_s=contacts.c_t,
                                       k_r=contacts.c_r, k_w=contacts.c_w), True).toarray()
-    op = ScaledContactOperator(p, contacts, True, bodies=bodies, threads=1)
-    assert op.size == S.shape[0]
     rng = np.random.default_rng(dim)
-    for _ in range(3):
+    for threads, _ in ((1, 0), (1, 1), (2, 0), (2, 1), (3, 0)):
+        op = ScaledContactOperator(p, contacts, True, bodies=bodies, threads=threads)
+        assert op.size == S.shape[0] and op.threads == threads
         q = rng.normal(size=op.size)
         np.testing.assert_allclose(op.stiffness(q), S @ G.T @ K @ G @ S @ q, rtol=1e-12,
                                    atol=1e-12 * np.abs(K).max() * np.abs(q).max())

@@ -115,6 +115,11 @@ class OwnerMap:
         self.free_index = np.flatnonzero(sb < 0)
         self.member_index = np.flatnonzero(sb >= 0)
         self.member_body = sb[self.member_index]
+        #: the member rows of body b: body_members[body_start[b]:body_start[b + 1]]
+        #: (in member order)
+        self.body_members = np.argsort(self.member_body, kind="stable")
+        self.body_start = np.searchsorted(self.member_body[self.body_members],
+                                          np.arange(bodies.n + 1))
         self.arm = bodies.arm[self.member_index]
         self.free_scale = sphere_scale[self.free_index]
         self.body_trans = np.where(bodies.fixed, 0.0, 1.0 / np.sqrt(bodies.mass))

@@ -199,7 +199,9 @@ class ScaledContactOperator:
             owner_contact_matvec(om, self.contacts, k_n, k_t, self.rotation,
                                  np.asarray(x).reshape(om.n_owners, self.nd), self._work,
                                  self._body_forces, self._body_sums,
-                                 y.reshape(om.n_owners, self.nd), k_r, k_w)
+                                 y.reshape(om.n_owners, self.nd), k_r, k_w,
+                                 runs=(self._chunks, self._spans, self._buf)
+                                 if self.threads > 1 else None)
             if out is not None and not contiguous:
                 out[:] = y
                 return out
