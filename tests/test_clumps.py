@@ -965,3 +965,47 @@ def test_solves_under_the_motion_limit_run_to_a_looser_residual():
     sim.critical_dt = checked
     sim.run(steps=400)
     assert seen["loose"] >= 10 and seen["tight"] >= 10
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_owner_mass_shares_split_each_owner_among_its_contacts(dim):
+    """Each side's share: the owner's inverse mass and inverse inertia (world; 2D: the
+    zz moment) times its number of contacts in the set (walls: none; fixed: zero), for
+    the whole set and for a part of it, against a loop over the contacts."""
+    from demstep.timestep.bodies import owner_mass_shares
+
+    p, contacts, bodies = mixed_owner_assembly(dim, 7)
+    body = bodies.sphere_body
+
+    def owner(s):
+        return ("body", body[s]) if body[s] >= 0 else ("sphere", s)
+
+    def inverse(o):
+        kind, k = o
+        if kind == "sphere":
+            return (0.0, np.zeros((3, 3))) if p.fixed[k] else (1 / p.m[k],
+                                                               np.eye(3) / p.inertia[k])
+        if bodies.fixed[k]:
+            return 0.0, np.zeros((3, 3))
+        inertia = (np.eye(3) / bodies.inertia[k, 2, 2] if dim == 2
+                   else np.linalg.inv(bodies.inertia[k]))
+        return 1 / bodies.mass[k], inertia
+
+    for rows in (np.arange(contacts.n), np.array([0, 2, 3, 5, 19, 20])):
+        part = contacts.subset(rows)
+        count = {}
+        for a, b in zip(part.i, part.j):
+            for s in ((a, b) if b >= 0 else (a,)):
+                count[owner(s)] = count.get(owner(s), 0) + 1
+        mi, Ii, mj, Ij = owner_mass_shares(p, part, bodies, True)
+        for c, (a, b) in enumerate(zip(part.i, part.j)):
+            m, inertia = inverse(owner(a))
+            assert mi[c] == pytest.approx(m * count[owner(a)], rel=1e-14)
+            np.testing.assert_allclose(Ii[c], inertia * count[owner(a)], rtol=1e-12, atol=0)
+            if b < 0:
+                assert mj[c] == 0.0 and not Ij[c].any()
+            else:
+                m, inertia = inverse(owner(b))
+                assert mj[c] == pytest.approx(m * count[owner(b)], rel=1e-14)
+                np.testing.assert_allclose(Ij[c], inertia * count[owner(b)], rtol=1e-12,
+                                           atol=0)

@@ -173,35 +173,38 @@ def owner_mass_shares(particles, contacts, bodies: RigidBodies | None, rotation:
     """The uniform Rayleigh partition over owners: each owner's mass and inertia
     (3x3, world) divided by its number of contacts (walls included). Returns for sides
     i and j the reciprocal mass (C,) and the inverse inertia share (C, 3, 3) (zero:
-    walls, fixed)."""
-    n = particles.n
-    owner, n_free, n_owners = owners(n, bodies)
-    inv_m = np.zeros(n_owners)
-    inv_I = np.zeros((n_owners, 3, 3))
-    free = np.flatnonzero(owner < n_free) if bodies is not None and bodies.n else np.arange(n)
-    fo = owner[free]
-    inv_m[fo] = np.where(particles.fixed[free], 0.0, 1.0 / particles.m[free])
-    if rotation:
-        iso = np.where(particles.fixed[free], 0.0, 1.0 / particles.inertia[free])
-        inv_I[fo] = iso[:, None, None] * np.eye(3)
-    if bodies is not None and bodies.n:
-        b = np.arange(bodies.n) + n_free
-        inv_m[b] = np.where(bodies.fixed, 0.0, 1.0 / bodies.mass)
-        if rotation:
-            if particles.dim == 2:
-                inv_I[b] = (1.0 / bodies.inertia[:, 2, 2])[:, None, None] * np.eye(3)
-            else:
-                inv_I[b] = np.linalg.inv(bodies.inertia)
-            inv_I[b[bodies.fixed]] = 0.0
+    walls, fixed). Only the owners the contacts touch are looked at (a group of added
+    contacts touches a few of them)."""
+    owner, n_free, _ = owners(particles.n, bodies)
     oi = owner[contacts.i]
     pp = contacts.j >= 0
-    oj = np.where(pp, owner[np.maximum(contacts.j, 0)], -1)
-    counts = np.bincount(oi, minlength=n_owners) + np.bincount(oj[pp], minlength=n_owners)
-    counts = np.maximum(counts, 1)
-    mi = inv_m[oi] * counts[oi]
-    Ii = inv_I[oi] * counts[oi][:, None, None]
-    mj = np.where(pp, inv_m[np.maximum(oj, 0)] * counts[np.maximum(oj, 0)], 0.0)
-    Ij = np.where(pp[:, None, None], inv_I[np.maximum(oj, 0)] * counts[np.maximum(oj, 0)][:, None, None], 0.0)
+    oj = owner[np.maximum(contacts.j, 0)]
+    used, slot = np.unique(np.concatenate([oi, oj[pp]]), return_inverse=True)
+    counts = np.bincount(slot, minlength=len(used)).astype(np.float64)
+    si, sj = slot[:contacts.n], np.zeros(contacts.n, dtype=np.int64)
+    sj[pp] = slot[contacts.n:]
+    inv_m = np.zeros(len(used))
+    inv_I = np.zeros((len(used), 3, 3))
+    free = used < n_free
+    spheres = (np.flatnonzero(owner < n_free)[used[free]] if bodies is not None and bodies.n
+               else used[free])
+    inv_m[free] = np.where(particles.fixed[spheres], 0.0, 1.0 / particles.m[spheres])
+    if rotation:
+        iso = np.where(particles.fixed[spheres], 0.0, 1.0 / particles.inertia[spheres])
+        inv_I[free] = iso[:, None, None] * np.eye(3)
+    if bodies is not None and bodies.n and not free.all():
+        b = used[~free] - n_free
+        inv_m[~free] = np.where(bodies.fixed[b], 0.0, 1.0 / bodies.mass[b])
+        if rotation:
+            if particles.dim == 2:
+                inv_I[~free] = (1.0 / bodies.inertia[b, 2, 2])[:, None, None] * np.eye(3)
+            else:
+                inv_I[~free] = np.linalg.inv(bodies.inertia[b])
+            inv_I[np.flatnonzero(~free)[bodies.fixed[b]]] = 0.0
+    mi = inv_m[si] * counts[si]
+    Ii = inv_I[si] * counts[si][:, None, None]
+    mj = np.where(pp, inv_m[sj] * counts[sj], 0.0)
+    Ij = np.where(pp[:, None, None], inv_I[sj] * counts[sj][:, None, None], 0.0)
     return mi, Ii, mj, Ij
 
 
