@@ -386,143 +386,114 @@ def _body_rotation(body_rot, b, q, o, dim):
             body_rot[b, 2, 0] * a0 + body_rot[b, 2, 1] * a1 + body_rot[b, 2, 2] * a2)
 
 
+@njit(inline="always")
+def _expand_member(s, q, member_index, member_body, member_arm, body_trans, body_rot,
+                   n_free, rotation, dim, u):
+    """Member s's row of u: u = v + theta x a and its rotation theta, with (v, theta)
+    = (m^-1/2 q_t, I_w^-1/2 q_r) of its body (owner n_free + b) and a its arm."""
+    p = member_index[s]
+    b = member_body[s]
+    o = n_free + b
+    t = body_trans[b]
+    for a in range(dim):
+        u[p, a] = t * q[o, a]
+    if rotation:
+        th0, th1, th2 = _body_rotation(body_rot, b, q, o, dim)
+        a0 = member_arm[s, 0]
+        a1 = member_arm[s, 1]
+        if dim == 2:
+            u[p, 0] -= th2 * a1
+            u[p, 1] += th2 * a0
+            u[p, 2] = th2
+        else:
+            a2 = member_arm[s, 2]
+            u[p, 0] += th1 * a2 - th2 * a1
+            u[p, 1] += th2 * a0 - th0 * a2
+            u[p, 2] += th0 * a1 - th1 * a0
+            u[p, 3] = th0
+            u[p, 4] = th1
+            u[p, 5] = th2
+
+
+@njit(inline="always")
+def _reduce_body(b, y, member_index, member_arm, body_trans, body_rot, body_start,
+                 body_members, n_free, rotation, dim, out):
+    """Body b's row of out: the force and the torque (+ a x f of each member) of its
+    members' rows of y, summed in member order, scaled by m^-1/2 and I_w^-1/2."""
+    f0 = 0.0
+    f1 = 0.0
+    f2 = 0.0
+    m0 = 0.0
+    m1 = 0.0
+    m2 = 0.0
+    for k in range(body_start[b], body_start[b + 1]):
+        s = body_members[k]
+        p = member_index[s]
+        f0 += y[p, 0]
+        f1 += y[p, 1]
+        if dim == 3:
+            f2 += y[p, 2]
+        if rotation:
+            a0 = member_arm[s, 0]
+            a1 = member_arm[s, 1]
+            if dim == 2:
+                m2 += y[p, 2] + (a0 * y[p, 1] - a1 * y[p, 0])
+            else:
+                a2 = member_arm[s, 2]
+                m0 += y[p, 3] + (a1 * y[p, 2] - a2 * y[p, 1])
+                m1 += y[p, 4] + (a2 * y[p, 0] - a0 * y[p, 2])
+                m2 += y[p, 5] + (a0 * y[p, 1] - a1 * y[p, 0])
+    o = n_free + b
+    t = body_trans[b]
+    out[o, 0] = t * f0
+    out[o, 1] = t * f1
+    if dim == 3:
+        out[o, 2] = t * f2
+    if rotation:
+        if dim == 2:
+            out[o, 2] = body_rot[b, 0, 0] * m2
+        else:
+            for r in range(3):
+                out[o, 3 + r] = (body_rot[b, r, 0] * m0 + body_rot[b, r, 1] * m1
+                                 + body_rot[b, r, 2] * m2)
+
+
 @njit
 def _owner_expand(q, free_index, free_scale, member_index, member_body, member_arm,
                   body_trans, body_rot, rotation, dim, u):
     """u (N, nd): the spheres' physical DOFs of the owners' scaled DOFs q (owners, nd)
     (free spheres first, then the bodies): a free sphere's scaled by its M^-1/2, a
-    member's u = v + theta x a and its rotation theta, with (v, theta) =
-    (m^-1/2 q_t, I_w^-1/2 q_r) of its body and a its arm (N_m, 3)."""
+    member's by :func:`_expand_member`."""
     nd = u.shape[1]
     n_free = free_index.shape[0]
     for s in range(n_free):
-        p = free_index[s]
         for a in range(nd):
-            u[p, a] = free_scale[s, a] * q[s, a]
+            u[free_index[s], a] = free_scale[s, a] * q[s, a]
     for s in range(member_index.shape[0]):
-        p = member_index[s]
-        b = member_body[s]
-        o = n_free + b
-        t = body_trans[b]
-        for a in range(dim):
-            u[p, a] = t * q[o, a]
-        if rotation:
-            th0, th1, th2 = _body_rotation(body_rot, b, q, o, dim)
-            a0 = member_arm[s, 0]
-            a1 = member_arm[s, 1]
-            if dim == 2:
-                u[p, 0] -= th2 * a1
-                u[p, 1] += th2 * a0
-                u[p, 2] = th2
-            else:
-                a2 = member_arm[s, 2]
-                u[p, 0] += th1 * a2 - th2 * a1
-                u[p, 1] += th2 * a0 - th0 * a2
-                u[p, 2] += th0 * a1 - th1 * a0
-                u[p, 3] = th0
-                u[p, 4] = th1
-                u[p, 5] = th2
-
-
-@njit
-def _owner_reduce(y, free_index, free_scale, member_index, member_body, member_arm,
-                  body_trans, body_rot, rotation, dim, sums, out):
-    """out (owners, nd) = the transpose of :func:`_owner_expand` applied to sphere
-    forces y (N, nd): a free sphere's scaled, a body's force and torque summed over its
-    members (torque + a x f of each) in member order, then scaled by m^-1/2 and
-    I_w^-1/2; ``sums`` (B, nd) scratch."""
-    nd = y.shape[1]
-    n_free = free_index.shape[0]
-    for s in range(n_free):
-        p = free_index[s]
-        for a in range(nd):
-            out[s, a] = free_scale[s, a] * y[p, a]
-    sums[:] = 0.0
-    for s in range(member_index.shape[0]):
-        p = member_index[s]
-        b = member_body[s]
-        for a in range(dim):
-            sums[b, a] += y[p, a]
-        if rotation:
-            a0 = member_arm[s, 0]
-            a1 = member_arm[s, 1]
-            if dim == 2:
-                sums[b, 2] += y[p, 2] + (a0 * y[p, 1] - a1 * y[p, 0])
-            else:
-                a2 = member_arm[s, 2]
-                sums[b, 3] += y[p, 3] + (a1 * y[p, 2] - a2 * y[p, 1])
-                sums[b, 4] += y[p, 4] + (a2 * y[p, 0] - a0 * y[p, 2])
-                sums[b, 5] += y[p, 5] + (a0 * y[p, 1] - a1 * y[p, 0])
-    for b in range(sums.shape[0]):
-        o = n_free + b
-        for a in range(dim):
-            out[o, a] = body_trans[b] * sums[b, a]
-        if rotation:
-            if dim == 2:
-                out[o, 2] = body_rot[b, 0, 0] * sums[b, 2]
-            else:
-                for r in range(3):
-                    out[o, 3 + r] = (body_rot[b, r, 0] * sums[b, 3]
-                                     + body_rot[b, r, 1] * sums[b, 4]
-                                     + body_rot[b, r, 2] * sums[b, 5])
-
-
-@njit
-def _owner_contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
-                          free_index, free_scale, member_index, member_body, member_arm,
-                          body_trans, body_rot, q, u, y, sums, out):
-    """out = S G^T K G S q in one call: :func:`_owner_expand` of the owners' scaled DOFs
-    q (owners, nd) into u (N, nd), the contact product y = K u (:func:`_contact_matvec`),
-    then :func:`_owner_reduce` into out (owners, nd)."""
-    dim = normal.shape[1]
-    _owner_expand(q, free_index, free_scale, member_index, member_body, member_arm,
-                  body_trans, body_rot, rotation, dim, u)
-    y[:] = 0.0
-    _contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, u, y)
-    _owner_reduce(y, free_index, free_scale, member_index, member_body, member_arm,
-                  body_trans, body_rot, rotation, dim, sums, out)
+        _expand_member(s, q, member_index, member_body, member_arm, body_trans, body_rot,
+                       n_free, rotation, dim, u)
 
 
 def _owner_contact_matvec_runs(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling,
                                rotation, free_index, free_scale, member_index, member_body,
                                member_arm, body_trans, body_rot, body_start, body_members, q,
                                u, y, chunks, spans, buf, out):
-    """:func:`_owner_contact_matvec` with the work split among threads: the expansion
-    per sphere, the contact product in runs of contacts each summed into its own buffer
-    over its particle range (the first run into y, run c > 0 into ``buf[c - 1]``, added
-    in run order: :func:`_chunked_scaled_matvec`), the reduction per body over its
-    members (``body_members[body_start[b]:body_start[b + 1]]``, rows of the member
-    arrays in member order: each body's sums as the serial kernel's)."""
+    """out (owners, nd) = S G^T K G S q: the owners' scaled DOFs q expanded to the
+    spheres' u (N, nd) (per sphere, :func:`_expand_member`), the contact product y = K u
+    in runs of contacts each summed into its own buffer over its particle range (the
+    first run into y, run c > 0 into ``buf[c - 1]``, added in run order:
+    :func:`_chunked_scaled_matvec`), then reduced per owner (a body over its members
+    ``body_members[body_start[b]:body_start[b + 1]]``: :func:`_reduce_body`). One run:
+    the serial product."""
     dim = normal.shape[1]
     nd = u.shape[1]
     n_free = free_index.shape[0]
     for s in prange(n_free):
-        p = free_index[s]
         for a in range(nd):
-            u[p, a] = free_scale[s, a] * q[s, a]
+            u[free_index[s], a] = free_scale[s, a] * q[s, a]
     for s in prange(member_index.shape[0]):
-        p = member_index[s]
-        b = member_body[s]
-        o = n_free + b
-        t = body_trans[b]
-        for a in range(dim):
-            u[p, a] = t * q[o, a]
-        if rotation:
-            th0, th1, th2 = _body_rotation(body_rot, b, q, o, dim)
-            a0 = member_arm[s, 0]
-            a1 = member_arm[s, 1]
-            if dim == 2:
-                u[p, 0] -= th2 * a1
-                u[p, 1] += th2 * a0
-                u[p, 2] = th2
-            else:
-                a2 = member_arm[s, 2]
-                u[p, 0] += th1 * a2 - th2 * a1
-                u[p, 1] += th2 * a0 - th0 * a2
-                u[p, 2] += th0 * a1 - th1 * a0
-                u[p, 3] = th0
-                u[p, 4] = th1
-                u[p, 5] = th2
+        _expand_member(s, q, member_index, member_body, member_arm, body_trans, body_rot,
+                       n_free, rotation, dim, u)
     n_chunks = chunks.shape[0] - 1
     for c in prange(n_chunks):
         part = y if c == 0 else buf[c - 1]
@@ -531,7 +502,7 @@ def _owner_contact_matvec_runs(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, r
                 part[p, a] = 0.0
         _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling,
                               rotation, u, part, chunks[c], chunks[c + 1])
-    for p in prange(y.shape[0]):
+    for p in prange(y.shape[0]):  # (rows outside every run's range: zero)
         in_first = spans[0, 0] <= p and p < spans[0, 1]
         for a in range(nd):
             total = y[p, a] if in_first else 0.0
@@ -540,49 +511,15 @@ def _owner_contact_matvec_runs(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, r
                     total += buf[c - 1, p, a]
             y[p, a] = total
     for s in prange(n_free):
-        p = free_index[s]
         for a in range(nd):
-            out[s, a] = free_scale[s, a] * y[p, a]
+            out[s, a] = free_scale[s, a] * y[free_index[s], a]
     for b in prange(body_start.shape[0] - 1):
-        f0 = 0.0
-        f1 = 0.0
-        f2 = 0.0
-        m0 = 0.0
-        m1 = 0.0
-        m2 = 0.0
-        for k in range(body_start[b], body_start[b + 1]):
-            s = body_members[k]
-            p = member_index[s]
-            f0 += y[p, 0]
-            f1 += y[p, 1]
-            if dim == 3:
-                f2 += y[p, 2]
-            if rotation:
-                a0 = member_arm[s, 0]
-                a1 = member_arm[s, 1]
-                if dim == 2:
-                    m2 += y[p, 2] + (a0 * y[p, 1] - a1 * y[p, 0])
-                else:
-                    a2 = member_arm[s, 2]
-                    m0 += y[p, 3] + (a1 * y[p, 2] - a2 * y[p, 1])
-                    m1 += y[p, 4] + (a2 * y[p, 0] - a0 * y[p, 2])
-                    m2 += y[p, 5] + (a0 * y[p, 1] - a1 * y[p, 0])
-        o = n_free + b
-        t = body_trans[b]
-        out[o, 0] = t * f0
-        out[o, 1] = t * f1
-        if dim == 3:
-            out[o, 2] = t * f2
-        if rotation:
-            if dim == 2:
-                out[o, 2] = body_rot[b, 0, 0] * m2
-            else:
-                for r in range(3):
-                    out[o, 3 + r] = (body_rot[b, r, 0] * m0 + body_rot[b, r, 1] * m1
-                                     + body_rot[b, r, 2] * m2)
+        _reduce_body(b, y, member_index, member_arm, body_trans, body_rot, body_start,
+                     body_members, n_free, rotation, dim, out)
 
 
-_owner_matvec_parallel, _ = compile_parallel_and_serial(_owner_contact_matvec_runs)
+_owner_matvec_parallel, _owner_matvec_serial = \
+    compile_parallel_and_serial(_owner_contact_matvec_runs)
 
 
 def owner_expand(owner_map, q, u):
@@ -595,37 +532,22 @@ def owner_expand(owner_map, q, u):
     return u
 
 
-def owner_reduce(owner_map, y, sums, out):
-    """out (owners, nd) = the transpose of :func:`owner_expand` applied to y (N, nd);
-    ``sums`` (bodies, nd) scratch."""
-    om = owner_map
-    _owner_reduce(np.ascontiguousarray(y, dtype=np.float64), om.free_index, om.free_scale,
-                  om.member_index, om.member_body, om.arm, om.body_trans, om.body_rot,
-                  om.rotation, om.dim, sums, out)
-    return out
-
-
-def owner_contact_matvec(owner_map, contacts, k_n, k_t, rotation: bool, q, u, y, sums, out,
-                         k_r=None, k_w=None, runs=None):
+def owner_contact_matvec(owner_map, contacts, k_n, k_t, rotation: bool, q, u, y, out, runs,
+                         k_r=None, k_w=None):
     """out (owners, nd) = S G^T K G S q for owner DOFs q (owners, nd): K the contact
     stiffness with springs ``k_n``, ``k_t`` (and, when given, ``k_r``, ``k_w``) of
     the spheres, G the map from the owners' DOFs to the spheres' (members move with
-    their bodies), S = M^-1/2 of the owners; u, y (N, nd) and ``sums`` (bodies, nd)
-    scratch. ``runs`` (chunks, spans, buffers) of :func:`contact_chunks`, more than one:
-    threaded (:func:`_owner_contact_matvec_runs`)."""
+    their bodies), S = M^-1/2 of the owners; u, y (N, nd) scratch. ``runs`` (chunks,
+    spans, buffers) of :func:`contact_chunks`: more than one run, threaded."""
     om = owner_map
     rolling = k_r is not None and bool(rotation)
-    args = (contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j, k_n, k_t,
-            k_r if rolling else _NO_ROLLING, k_w if rolling else _NO_ROLLING, rolling,
-            bool(rotation), om.free_index, om.free_scale, om.member_index, om.member_body,
-            om.arm, om.body_trans, om.body_rot)
-    q = np.ascontiguousarray(q, dtype=np.float64)
-    if runs is not None and len(runs[0]) > 2:
-        chunks, spans, buf = runs
-        _owner_matvec_parallel(*args, om.body_start, om.body_members, q, u, y, chunks, spans,
-                               buf, out)
-    else:
-        _owner_contact_matvec(*args, q, u, y, sums, out)
+    chunks, spans, buf = runs
+    kernel = _owner_matvec_parallel if len(chunks) > 2 else _owner_matvec_serial
+    kernel(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j, k_n, k_t,
+           k_r if rolling else _NO_ROLLING, k_w if rolling else _NO_ROLLING, rolling,
+           bool(rotation), om.free_index, om.free_scale, om.member_index, om.member_body,
+           om.arm, om.body_trans, om.body_rot, om.body_start, om.body_members,
+           np.ascontiguousarray(q, dtype=np.float64), u, y, chunks, spans, buf, out)
     return out
 
 

@@ -100,10 +100,11 @@ def _inv_sqrt_blocks(inertia: np.ndarray, dim: int, fixed) -> np.ndarray:
 
 
 class OwnerMap:
-    """Scaled owner DOFs <-> sphere DOFs. ``expand`` takes q (owners, nd), the DOFs
-    scaled by M^1/2, to physical sphere displacements (N, nd); ``reduce`` takes sphere
-    forces back to scaled owner forces (the transpose). Spheres' own scales come from
-    ``sphere_scale`` (N, nd) (M^-1/2 of free spheres)."""
+    """Scaled owner DOFs <-> sphere DOFs, the arrays of the compiled owner product
+    (:func:`demstep.kernels.timestep_kernels.owner_contact_matvec`, which also reduces
+    sphere forces back to scaled owner forces). ``expand`` takes q (owners, nd), the
+    DOFs scaled by M^1/2, to physical sphere displacements (N, nd). Spheres' own scales
+    come from ``sphere_scale`` (N, nd) (M^-1/2 of free spheres)."""
 
     def __init__(self, sphere_scale: np.ndarray, bodies: RigidBodies, dim: int, rotation: bool):
         n = sphere_scale.shape[0]
@@ -125,7 +126,6 @@ class OwnerMap:
         self.body_trans = np.where(bodies.fixed, 0.0, 1.0 / np.sqrt(bodies.mass))
         self.body_rot = (_inv_sqrt_blocks(bodies.inertia, dim, bodies.fixed) if rotation
                          else np.zeros((bodies.n, 0, 0)))
-        self.n_bodies = bodies.n
 
     def expand(self, q: np.ndarray, n_spheres: int, out: np.ndarray | None = None) -> np.ndarray:
         """The spheres' physical DOFs (N, nd) of scaled owner DOFs q (owners, nd) (into
@@ -134,14 +134,6 @@ class OwnerMap:
 
         u = np.empty((n_spheres, self.nd)) if out is None else out
         return owner_expand(self, q, u)
-
-    def reduce(self, y: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """The transpose of :meth:`expand`: sphere forces y (N, nd) to scaled owner
-        forces (owners, nd) (into ``out`` when given)."""
-        from demstep.kernels.timestep_kernels import owner_reduce
-
-        out = np.empty((self.n_owners, self.nd)) if out is None else out
-        return owner_reduce(self, y, np.empty((self.n_bodies, self.nd)), out)
 
 
 # ---------------------------------------------------------- element bounds for bodies

@@ -157,8 +157,6 @@ class ScaledContactOperator:
             self.owner_map = OwnerMap(self.scale, self.bodies, particles.dim, self.rotation)
             self.size = self.owner_map.n_owners * self.nd
             self._body_forces = self.workspace.array("operator_body_forces", self.scale.shape)
-            self._body_sums = self.workspace.array("operator_body_sums",
-                                                   (self.bodies.n, self.nd))
         if threads is None:
             import numba
 
@@ -196,12 +194,12 @@ class ScaledContactOperator:
             om = self.owner_map
             contiguous = out is not None and out.flags.c_contiguous
             y = out if contiguous else np.empty(self.size)
+            runs = (self._chunks, self._spans,
+                    self._buf if self._buf is not None else np.zeros((0, 0, self.nd)))
             owner_contact_matvec(om, self.contacts, k_n, k_t, self.rotation,
                                  np.asarray(x).reshape(om.n_owners, self.nd), self._work,
-                                 self._body_forces, self._body_sums,
-                                 y.reshape(om.n_owners, self.nd), k_r, k_w,
-                                 runs=(self._chunks, self._spans, self._buf)
-                                 if self.threads > 1 else None)
+                                 self._body_forces, y.reshape(om.n_owners, self.nd), runs,
+                                 k_r, k_w)
             if out is not None and not contiguous:
                 out[:] = y
                 return out
