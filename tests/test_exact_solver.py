@@ -12,8 +12,11 @@ import scipy.linalg
 from conftest import random_polydisperse
 from demstep.kernels.timestep_kernels import (_chunked_scaled_matvec_parallel,
                                               _chunked_scaled_matvec_serial, contact_chunks,
+                                              contact_matvec,
                                               contact_gram, contact_quadratic_forms)
+from demstep.contacts import ContactSet
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
+from demstep.timestep.elements import dofs_per_particle
 from demstep.timestep.damping import GlobalDamping
 from demstep.errors import InputError
 from demstep.timestep.eigen import EIGSH_TOL, lanczos_top, top_eigenpair
@@ -65,6 +68,38 @@ def test_threaded_product_equals_serial_and_assembled(dim, rotation, shuffle):
     assert threaded.threads == 3
     np.testing.assert_allclose(threaded.dashpots(x), assembled(p, c, rotation, c.c_n, c.c_t) @ x,
                                rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("rotation,rolling", [(True, True), (True, False), (False, False)])
+def test_product_holding_a_row_matches_assembled_in_any_order(dim, rotation, rolling):
+    """The product keeps the current contact's first particle's rows in registers while
+    the contacts share it: in the search's order, reversed (each row's runs come after
+    its rows were written as second particles), shuffled (a held row is left and taken
+    up again) and with contacts of a particle with itself (the second row is the held
+    one), it equals the assembled K x."""
+    p, c = random_polydisperse(11 + dim, dim, n=40, walls=True)
+    rng = np.random.default_rng(3)
+    if rolling:
+        c = replace(c, k_r=rng.uniform(0.1, 1.0, c.n), k_w=rng.uniform(0.1, 1.0, c.n))
+    own = c.subset(np.flatnonzero(c.j >= 0)[::4])
+    own = replace(own, j=own.i.copy())
+    nd = dofs_per_particle(dim, rotation)
+    x = rng.standard_normal((p.n, nd))
+    for order in ("search", "reversed", "shuffled", "with self-contacts"):
+        cc = c
+        if order == "reversed":
+            cc = c.subset(np.arange(c.n)[::-1])
+        elif order == "shuffled":
+            cc = c.subset(rng.permutation(c.n))
+        elif order == "with self-contacts":
+            cc = ContactSet.concatenate([c, own])
+            cc = cc.subset(np.argsort(cc.i, kind="stable"))
+        k_r, k_w = (cc.k_r, cc.k_w) if rolling else (None, None)
+        y = contact_matvec(cc, cc.k_n, cc.k_s, rotation, x, k_r, k_w)
+        ref = (assemble_stiffness(p, cc, rotation) @ x.ravel()).reshape(y.shape)
+        np.testing.assert_allclose(y, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max(),
+                                   err_msg=order)
 
 
 @pytest.mark.parametrize("dim", [2, 3])

@@ -190,6 +190,19 @@ def _contact_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rot
 
 
 @njit(inline="always")
+def _store_row(y, p, nd, v0, v1, v2, v3, v4, v5):
+    """Row ``p`` of ``y`` (n, nd) = the first ``nd`` of the values."""
+    y[p, 0] = v0
+    y[p, 1] = v1
+    if nd > 2:
+        y[p, 2] = v2
+    if nd == 6:
+        y[p, 3] = v3
+        y[p, 4] = v4
+        y[p, 5] = v5
+
+
+@njit(inline="always")
 def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, dim,
                       x, y, start, stop):
     """y += K_c x summed over the contacts c = ``start`` ... ``stop`` - 1 (in order).
@@ -201,19 +214,35 @@ def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, r
     ``rotation`` and ``rolling`` as constants (:func:`_contact_matvec_range`).
 
     The particles' rows are taken as values (:func:`_row_values`), the second one only
-    when it exists, and the results added in place (no views)."""
+    when it exists. The first particle's row of x and of y stay in registers while
+    consecutive contacts share it (a contact list sorted by ``i``, as the contact
+    search gives it: 1.27x on the 3D product with rotation, measured): y's row is
+    written back when the next contact's first particle differs, and a contact whose
+    second particle is the held one adds into the held row. Every row receives the
+    same operations in the same order as when each contact reads and writes memory,
+    so the result is the same bit for bit, in any contact order. ``x`` and ``y`` are
+    distinct arrays."""
     nd = x.shape[1]
+    held = -1
+    x0 = x1 = x2 = x3 = x4 = x5 = 0.0
+    y0 = y1 = y2 = y3 = y4 = y5 = 0.0
     for c in range(start, stop):
         p = i[c]
         q = j[c]
         has_q = q >= 0
+        if p != held:
+            if held >= 0:
+                _store_row(y, held, nd, y0, y1, y2, y3, y4, y5)
+            held = p
+            x0, x1, x2, x3, x4, x5 = _row_values(x, p, nd)
+            y0, y1, y2, y3, y4, y5 = _row_values(y, p, nd)
         n0 = normal[c, 0]
         n1 = normal[c, 1]
         n2 = normal[c, 2] if dim == 3 else 0.0
         r0 = 0.0
         r1 = 0.0
         r2 = 0.0
-        xp = _row_values(x, p, nd)
+        xp = (x0, x1, x2, x3, x4, x5)
         xq = _row_values(x, q, nd) if has_q else xp
         d0, d1, d2 = _slip_of_rows(xp, xq, has_q, n0, n1, n2, arm_i[c], arm_j[c], dim,
                                    rotation)
@@ -235,31 +264,46 @@ def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, r
         m2 = 0.0
         if rotation and rolling:
             m0, m1, m2 = _rolling_moment(k_r[c], k_w[c], r0, r1, r2, n0, n1, n2, dim)
-        y[p, 0] -= f0
-        y[p, 1] -= f1
+        y0 -= f0
+        y1 -= f1
         if dim == 3:
-            y[p, 2] -= f2
+            y2 -= f2
         if rotation:
             ai = arm_i[c]
             if dim == 3:
-                y[p, 3] -= ai * c0 + m0
-                y[p, 4] -= ai * c1 + m1
-                y[p, 5] -= ai * c2 + m2
+                y3 -= ai * c0 + m0
+                y4 -= ai * c1 + m1
+                y5 -= ai * c2 + m2
             else:
-                y[p, 2] -= ai * tf + m2
+                y2 -= ai * tf + m2
         if has_q:
-            y[q, 0] += f0
-            y[q, 1] += f1
-            if dim == 3:
-                y[q, 2] += f2
-            if rotation:
-                aj = arm_j[c]
+            aj = arm_j[c] if rotation else 0.0
+            if q == held:  # (i == j: not from a contact search, but kept exact)
+                y0 += f0
+                y1 += f1
                 if dim == 3:
-                    y[q, 3] += m0 - aj * c0
-                    y[q, 4] += m1 - aj * c1
-                    y[q, 5] += m2 - aj * c2
-                else:
-                    y[q, 2] += m2 - aj * tf
+                    y2 += f2
+                if rotation:
+                    if dim == 3:
+                        y3 += m0 - aj * c0
+                        y4 += m1 - aj * c1
+                        y5 += m2 - aj * c2
+                    else:
+                        y2 += m2 - aj * tf
+            else:
+                y[q, 0] += f0
+                y[q, 1] += f1
+                if dim == 3:
+                    y[q, 2] += f2
+                if rotation:
+                    if dim == 3:
+                        y[q, 3] += m0 - aj * c0
+                        y[q, 4] += m1 - aj * c1
+                        y[q, 5] += m2 - aj * c2
+                    else:
+                        y[q, 2] += m2 - aj * tf
+    if held >= 0:
+        _store_row(y, held, nd, y0, y1, y2, y3, y4, y5)
 
 
 @njit(fastmath=CONTRACT)
