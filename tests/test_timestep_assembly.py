@@ -152,3 +152,24 @@ def test_inverse_sqrt_mass_is_the_lumped_mass_to_the_minus_half(dim, rotation):
     out = np.full(len(expect), np.nan)
     assert inverse_sqrt_mass(p, rotation, out) is out
     np.testing.assert_array_equal(out, expect)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("tol", [0.0, 1e-6, 0.05])
+def test_compiled_contact_search_finds_the_k_d_trees_contacts(dim, tol):
+    """Large assemblies search their contacts with the engine's cell list instead of
+    scipy's k-d tree: the same contacts in the same order, for touching lattice
+    neighbours (tol 0: a distance exactly r_i + r_j) and polydisperse gaps within tol."""
+    from demstep.contacts import _pair_contacts
+    from demstep.packings import jittered_polydisperse
+
+    for x, r in ((lattice("fcc" if dim == 3 else "hex", 0.5).block(6), None),
+                 jittered_polydisperse(400, dim, seed=3, jitter=0.08, spread=0.3,
+                                       overlap=0.0)):
+        r = np.full(len(x), 0.5) if r is None else r
+        tree = _pair_contacts(x, r, tol, None, compiled_min=len(x) + 1)
+        cells = _pair_contacts(x, r, tol, None, compiled_min=0)
+        assert tree.n > 0
+        for field in ("i", "j", "normal", "arm_i", "arm_j"):
+            np.testing.assert_array_equal(getattr(cells, field), getattr(tree, field),
+                                          err_msg=field)
