@@ -12,7 +12,8 @@ import scipy.linalg
 from conftest import random_polydisperse
 from demstep.kernels.timestep_kernels import (_chunked_scaled_matvec_parallel,
                                               _chunked_scaled_matvec_serial, contact_chunks,
-                                              contact_matvec,
+                                              contact_matvec, ordered_contact_runs,
+                                              ordered_scaled_contact_matvec,
                                               contact_gram, contact_quadratic_forms)
 from demstep.contacts import ContactSet
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
@@ -68,6 +69,43 @@ def test_threaded_product_equals_serial_and_assembled(dim, rotation, shuffle):
     assert threaded.threads == 3
     np.testing.assert_allclose(threaded.dashpots(x), assembled(p, c, rotation, c.c_n, c.c_t) @ x,
                                rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("rotation,rolling", [(True, True), (True, False), (False, False)])
+def test_ordered_product_writes_every_row_once_and_scaled(dim, rotation, rolling):
+    """A contact list sorted by i with j above i (the search's pairs) on several threads:
+    each run writes its own rows complete and scaled, terms on later runs' rows into its
+    band. On 2, 3 and 7 runs (bands spanning runs), with a fixed particle and particles
+    that are no contact's i (scaled after the runs), the product equals the assembled
+    S K S x, and the parallel and serial compilations agree bit for bit. Lists with
+    walls after the pairs, or shuffled, are not ordered and keep the summed runs."""
+    p, c = random_polydisperse(21 + dim, dim, n=60, fixed=True)
+    rng = np.random.default_rng(5)
+    if rolling:
+        c = replace(c, k_r=rng.uniform(0.1, 1.0, c.n), k_w=rng.uniform(0.1, 1.0, c.n))
+    assert ordered_contact_runs(c, p.n, 2) is not None
+    unheld = ordered_contact_runs(c, p.n, 2)[2]
+    assert len(unheld) >= 2 and unheld[-1] == p.n - 1
+    s = inverse_sqrt_mass(p, rotation)
+    x = rng.standard_normal(len(s))
+    ref = assemble_stiffness(p, c, rotation, scale=s) @ x
+    springs = (c.k_n, c.k_s, c.k_r, c.k_w) if rolling else (c.k_n, c.k_s, None, None)
+    for runs in (2, 3, 7):
+        op = ScaledContactOperator(p, c, rotation, threads=runs)
+        assert op._ordered is not None and op._buf is None
+        assert np.count_nonzero(op._ordered[1][:-1, 1] > op._ordered[1][1:, 0]) >= 1
+        y = op.stiffness(x)
+        np.testing.assert_allclose(y, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max(),
+                                   err_msg=f"{runs} runs")
+        y_serial = ordered_scaled_contact_matvec(c, *springs[:2], rotation, op.scale, x,
+                                                 op._work, op._ordered, op._band,
+                                                 parallel=False, k_r=springs[2],
+                                                 k_w=springs[3])
+        np.testing.assert_array_equal(y_serial, y)
+    walls = random_polydisperse(21 + dim, dim, n=60, walls=True)[1]
+    assert (walls.j < 0).any() and ordered_contact_runs(walls, p.n, 2) is None
+    assert ordered_contact_runs(c.subset(rng.permutation(c.n)), p.n, 2) is None
 
 
 @pytest.mark.parametrize("dim", [2, 3])

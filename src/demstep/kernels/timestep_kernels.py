@@ -203,8 +203,42 @@ def _store_row(y, p, nd, v0, v1, v2, v3, v4, v5):
 
 
 @njit(inline="always")
+def _flush_row(y, p, nd, final_scale, v0, v1, v2, v3, v4, v5):
+    """:func:`_store_row`, times row ``p`` of ``final_scale`` unless it is empty."""
+    if final_scale is None:
+        _store_row(y, p, nd, v0, v1, v2, v3, v4, v5)
+        return
+    s = final_scale
+    y[p, 0] = v0 * s[p, 0]
+    y[p, 1] = v1 * s[p, 1]
+    if nd > 2:
+        y[p, 2] = v2 * s[p, 2]
+    if nd == 6:
+        y[p, 3] = v3 * s[p, 3]
+        y[p, 4] = v4 * s[p, 4]
+        y[p, 5] = v5 * s[p, 5]
+
+
+@njit(inline="always")
+def _add_second_row(y, q, dim, rotation, f0, f1, f2, m0, m1, m2, aj, c0, c1, c2, tf):
+    """The terms of a contact on its second particle's row ``q`` of ``y``: the force f and
+    with ``rotation`` the moment m - a_j (n x f) (2D: m_z - a_j t.f)."""
+    y[q, 0] += f0
+    y[q, 1] += f1
+    if dim == 3:
+        y[q, 2] += f2
+    if rotation:
+        if dim == 3:
+            y[q, 3] += m0 - aj * c0
+            y[q, 4] += m1 - aj * c1
+            y[q, 5] += m2 - aj * c2
+        else:
+            y[q, 2] += m2 - aj * tf
+
+
+@njit(inline="always")
 def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, dim,
-                      x, y, start, stop):
+                      x, y, start, stop, final_scale, band, own_hi):
     """y += K_c x summed over the contacts c = ``start`` ... ``stop`` - 1 (in order).
 
     Per contact: the translational springs on the slip Delta at the contact point (as
@@ -221,7 +255,14 @@ def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, r
     second particle is the held one adds into the held row. Every row receives the
     same operations in the same order as when each contact reads and writes memory,
     so the result is the same bit for bit, in any contact order. ``x`` and ``y`` are
-    distinct arrays."""
+    distinct arrays.
+
+    For a run of an ordered list (:func:`ordered_contact_runs`: sorted by i, each j
+    above its i or a wall) a held row is complete when it is written back: with
+    ``final_scale`` (n, nd) not empty it is written back times its row of
+    ``final_scale``, and second particles from ``own_hi`` on are added into ``band``
+    (their row minus ``own_hi``) instead of y (an empty ``final_scale`` and ``own_hi``
+    = n otherwise)."""
     nd = x.shape[1]
     held = -1
     x0 = x1 = x2 = x3 = x4 = x5 = 0.0
@@ -232,7 +273,7 @@ def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, r
         has_q = q >= 0
         if p != held:
             if held >= 0:
-                _store_row(y, held, nd, y0, y1, y2, y3, y4, y5)
+                _flush_row(y, held, nd, final_scale, y0, y1, y2, y3, y4, y5)
             held = p
             x0, x1, x2, x3, x4, x5 = _row_values(x, p, nd)
             y0, y1, y2, y3, y4, y5 = _row_values(y, p, nd)
@@ -290,63 +331,69 @@ def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, r
                         y5 += m2 - aj * c2
                     else:
                         y2 += m2 - aj * tf
-            else:
-                y[q, 0] += f0
-                y[q, 1] += f1
-                if dim == 3:
-                    y[q, 2] += f2
-                if rotation:
-                    if dim == 3:
-                        y[q, 3] += m0 - aj * c0
-                        y[q, 4] += m1 - aj * c1
-                        y[q, 5] += m2 - aj * c2
-                    else:
-                        y[q, 2] += m2 - aj * tf
+            elif q < own_hi:
+                _add_second_row(y, q, dim, rotation, f0, f1, f2, m0, m1, m2, aj, c0, c1, c2,
+                                tf)
+            else:  # (a branch of its own: no array chosen per contact, no reference counts)
+                _add_second_row(band, q - own_hi, dim, rotation, f0, f1, f2, m0, m1, m2, aj,
+                                c0, c1, c2, tf)
     if held >= 0:
-        _store_row(y, held, nd, y0, y1, y2, y3, y4, y5)
+        _flush_row(y, held, nd, final_scale, y0, y1, y2, y3, y4, y5)
 
 
 @njit(fastmath=CONTRACT)
-def _products_3d_rotation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop):
+def _products_3d_rotation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop, final_scale, band, own_hi):
     _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, _NO_ROLLING, _NO_ROLLING, False,
-                      True, 3, x, y, start, stop)
+                      True, 3, x, y, start, stop, final_scale, band, own_hi)
 
 
 @njit(fastmath=CONTRACT)
-def _products_3d_rolling(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, x, y, start, stop):
+def _products_3d_rolling(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, x, y, start, stop, final_scale, band, own_hi):
     _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, True, True, 3, x, y,
-                      start, stop)
+                      start, stop, final_scale, band, own_hi)
 
 
 @njit(fastmath=CONTRACT)
-def _products_3d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop):
+def _products_3d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop, final_scale, band, own_hi):
     _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, _NO_ROLLING, _NO_ROLLING, False,
-                      False, 3, x, y, start, stop)
+                      False, 3, x, y, start, stop, final_scale, band, own_hi)
 
 
 @njit(fastmath=CONTRACT)
 def _products_2d(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, x, y,
-                 start, stop):
+                 start, stop, final_scale, band, own_hi):
     _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, 2,
-                      x, y, start, stop)
+                      x, y, start, stop, final_scale, band, own_hi)
 
 
 @njit
 def _contact_matvec_range(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
                           x, y, start, stop):
+    """y += K_c x summed over the contacts c = ``start`` ... ``stop`` - 1 (in order):
+    :func:`_contact_range_products`, every row written back as summed, no band."""
+    _contact_range_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
+                            x, y, start, stop, None, y, y.shape[0])
+
+
+@njit
+def _contact_range_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling,
+                            rotation, x, y, start, stop, final_scale, band, own_hi):
     """y += K_c x summed over the contacts c = ``start`` ... ``stop`` - 1 (in order), by
     a driver compiled for the dimension and the DOFs (:func:`_contact_products` with
     them as constants: 2.2x on the 3D product with rotation, measured), with
     multiply-adds fused (:data:`~demstep._numba.CONTRACT`: 3-4 % on that loop)."""
     if normal.shape[1] == 2:
         _products_2d(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, x, y,
-                     start, stop)
+                     start, stop, final_scale, band, own_hi)
     elif not rotation:
-        _products_3d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop)
+        _products_3d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop,
+                                 final_scale, band, own_hi)
     elif rolling:
-        _products_3d_rolling(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, x, y, start, stop)
+        _products_3d_rolling(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, x, y, start, stop,
+                             final_scale, band, own_hi)
     else:
-        _products_3d_rotation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop)
+        _products_3d_rotation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop,
+                              final_scale, band, own_hi)
 
 
 @njit
@@ -700,6 +747,88 @@ def chunked_scaled_contact_matvec(contacts, k_n, k_t, rotation: bool, scale, x, 
         kernel(*args, k_r, k_w)
     else:
         kernel(*args)
+    return y
+
+
+def ordered_contact_runs(contacts, n_particles: int, n_runs: int):
+    """The runs of an *ordered* contact list (sorted by i, each j above its i or a wall:
+    the contact search's pairs) for :func:`ordered_scaled_contact_matvec`, or None when
+    the list is not ordered: (chunks (n_runs + 1,), spans (n_runs, 2), unheld, band
+    rows). Run c starts at a particle's first contact and owns the particles from its
+    first i to the next run's (:func:`demstep.kernels.dem.pair_chunks`); a row of its
+    own is complete once its contacts are done, except for second particles of earlier
+    runs (their bands). ``unheld``: the particles that are no contact's i (their rows
+    get second-particle terms only)."""
+    from demstep.kernels.dem import band_rows, pair_chunks
+
+    i, j = contacts.i, contacts.j
+    if contacts.n and not (np.all(i[1:] >= i[:-1]) and np.all((j > i) | (j < 0))):
+        return None
+    chunks, spans = pair_chunks(i, j, n_particles, max(1, int(n_runs)))
+    held = np.zeros(n_particles, dtype=bool)
+    held[i] = True
+    return chunks, spans, np.flatnonzero(~held), band_rows(spans, n_particles)
+
+
+def _ordered_scaled_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
+                           scale, x, work, chunks, spans, unheld, band, y):
+    """y = S K S x for flat x, y (n nd,) of an ordered contact list cut into runs
+    (:func:`ordered_contact_runs`), one per thread: x scaled into ``work`` (n, nd); each
+    run zeroes its own rows and writes them, each complete when its first particle's
+    contacts are done, scaled as it is written back; terms on rows of later runs go to
+    the run's band ``band[c]`` (rows from the next run's first particle). Then the
+    unheld rows (second-particle terms only) are scaled, and the bands added scaled, in
+    run order (fixed: the result does not depend on the scheduling). No pass over all
+    rows to sum buffers or scale the result."""
+    n, nd = work.shape
+    n_runs = chunks.shape[0] - 1
+    for p in prange(n):
+        for a in range(nd):
+            work[p, a] = scale[p, a] * x[p * nd + a]
+    out = y.reshape((n, nd))
+    for c in prange(n_runs):
+        own_lo = spans[c, 0]
+        own_hi = spans[c + 1, 0] if c + 1 < n_runs else n
+        for p in range(own_lo, own_hi):
+            for a in range(nd):
+                out[p, a] = 0.0
+        b = band[c]
+        for p in range(spans[c, 1] - own_hi):
+            for a in range(nd):
+                b[p, a] = 0.0
+        _contact_range_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling,
+                                rotation, work, out, chunks[c], chunks[c + 1], scale, b,
+                                own_hi)
+    for u in prange(unheld.shape[0]):
+        p = unheld[u]
+        for a in range(nd):
+            out[p, a] *= scale[p, a]
+    for c in range(n_runs - 1):
+        own_hi = spans[c + 1, 0]
+        b = band[c]
+        for p in range(own_hi, spans[c, 1]):
+            for a in range(nd):
+                out[p, a] += scale[p, a] * b[p - own_hi, a]
+
+
+_ordered_scaled_matvec_parallel, _ordered_scaled_matvec_serial = \
+    compile_parallel_and_serial(_ordered_scaled_matvec)
+
+
+def ordered_scaled_contact_matvec(contacts, k_n, k_t, rotation: bool, scale, x, work, runs,
+                                  band, out=None, parallel: bool = True, k_r=None,
+                                  k_w=None):
+    """S K S x for flat x like :func:`scaled_contact_matvec` (rolling and twisting springs
+    ``k_r``, ``k_w`` when given), for an ordered contact list and its ``runs``
+    (:func:`ordered_contact_runs`), with ``band`` (n_runs, band rows, nd) scratch."""
+    y = np.empty(x.shape[0]) if out is None else out
+    chunks, spans, unheld, _ = runs
+    rolling = k_r is not None and bool(rotation)
+    kernel = _ordered_scaled_matvec_parallel if parallel else _ordered_scaled_matvec_serial
+    kernel(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j, k_n, k_t,
+           k_r if rolling else _NO_ROLLING, k_w if rolling else _NO_ROLLING, rolling,
+           bool(rotation), scale, np.ascontiguousarray(x, dtype=np.float64), work, chunks,
+           spans, unheld, band, y)
     return y
 
 

@@ -45,8 +45,9 @@ from demstep.contacts import ContactSet
 from demstep.errors import InputError
 from demstep.kernels.timestep_kernels import (chunked_scaled_contact_matvec, contact_chunks,
                                               contact_energies, contact_gram,
-                                              contact_quadratic_forms, owner_contact_matvec,
-                                              scaled_contact_matvec)
+                                              contact_quadratic_forms, ordered_contact_runs,
+                                              ordered_scaled_contact_matvec,
+                                              owner_contact_matvec, scaled_contact_matvec)
 from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
 from demstep.timestep.damping import GlobalDamping
@@ -164,9 +165,21 @@ class ScaledContactOperator:
         #: number of contact runs summed in parallel (1: the serial product)
         self.threads = max(1, min(int(threads), max(contacts.n, 1)))
         self._chunks, self._spans = contact_chunks(contacts, particles.n, self.threads)
-        self._buf = (self.workspace.array("operator_runs",
-                                          (self.threads - 1, particles.n, self.nd))
-                     if self.threads > 1 else None)
+        #: on several threads, the runs of an ordered contact list (sorted by i, j above
+        #: i: the contact search's pairs), whose product writes each row once, complete
+        #: and scaled (:func:`~demstep.kernels.timestep_kernels.ordered_scaled_contact_matvec`:
+        #: no buffer of every row per thread, no pass to sum and scale them: 1.14-1.18x
+        #: on two threads at 1e6 spheres, 0.92x on one, where the loop is the limit);
+        #: None for other lists, one thread and bodies
+        self._ordered = (ordered_contact_runs(contacts, particles.n, self.threads)
+                         if self.bodies is None and self.threads > 1 else None)
+        self._buf = None
+        if self._ordered is not None:
+            self._band = self.workspace.array("operator_band",
+                                              (self.threads, self._ordered[3], self.nd))
+        elif self.threads > 1:
+            self._buf = self.workspace.array("operator_runs",
+                                             (self.threads - 1, particles.n, self.nd))
 
     def springs(self, sigma: float) -> Springs:
         """The per-contact coefficients of the pencil at ``sigma``: each spring k
@@ -204,6 +217,10 @@ class ScaledContactOperator:
                 out[:] = y
                 return out
             return y
+        if self._ordered is not None:
+            return ordered_scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation,
+                                                 self.scale, x, self._work, self._ordered,
+                                                 self._band, out, self.threads > 1, k_r, k_w)
         if self.threads > 1:
             return chunked_scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation,
                                                  self.scale, x, self._work, self._chunks,
