@@ -216,3 +216,15 @@ def test_a_case_with_tangential_restitution_alone_is_damped(tmp_path, capsys):
         steps[name] = json.loads(out)["estimates"][0]["dt"]
     assert steps["alone"] == pytest.approx(steps["normal-1"], rel=1e-9)
     assert steps["alone"] < 0.5 * steps["undamped"]
+
+
+def test_largest_first_is_the_head_of_a_stable_descending_sort():
+    """The report's top particles and contacts, chosen in O(n): the same indices in the
+    same order as a stable argsort of -values, ties (many here) in index order."""
+    from demstep.cli.dt import largest_first
+
+    rng = np.random.default_rng(4)
+    for values in (rng.integers(0, 5, 200).astype(float), rng.random(50), np.zeros(30)):
+        for top in (1, 3, 10, 29, 30, 200, 250):
+            np.testing.assert_array_equal(largest_first(values, top),
+                                          np.argsort(-values, kind="stable")[:top])

@@ -453,6 +453,22 @@ def _print(text: str):
     sys.stdout.flush()
 
 
+def largest_first(values: np.ndarray, top: int) -> np.ndarray:
+    """Indices of the ``top`` largest of ``values``, largest first, ties in index order:
+    the first ``top`` of a stable argsort of -values, in O(n) (a million particles' and
+    six million contacts' shares: 1.1 s sorted)."""
+    n = len(values)
+    if top >= n:
+        return np.argsort(-values, kind="stable")
+    if top <= 0:
+        return np.zeros(0, dtype=np.int64)
+    threshold = np.partition(values, n - top)[n - top]  # the top-th largest
+    above = np.flatnonzero(values > threshold)
+    ties = np.flatnonzero(values == threshold)[:top - len(above)]
+    picked = np.concatenate((above, ties))
+    return picked[np.argsort(-values[picked], kind="stable")]
+
+
 def critical_mode_report(report, data, top: int) -> dict | None:
     """Where the danger is: the particles carrying most of the critical mode (share of
     its kinetic energy, translation and rotation) and the contacts carrying most of its
@@ -465,7 +481,7 @@ def critical_mode_report(report, data, top: int) -> dict | None:
     trans, rot, contact_share = op.mode_shares(report.exact.mode)
     share = trans + rot
     p = data.particles
-    order = np.argsort(-share, kind="stable")[:top]
+    order = largest_first(share, top)
     counts = data.contacts.count_per_particle(p.n)
     if data.bodies is not None and data.bodies.n:  # owners: free spheres, then bodies
         from demstep.timestep.bodies import owners
@@ -492,7 +508,7 @@ def critical_mode_report(report, data, top: int) -> dict | None:
                       "share": float(share[k]), "translation": float(trans[k]),
                       "rotation": float(rot[k]), "contacts": int(counts[k])} for k in order]
     c = data.contacts
-    corder = np.argsort(-contact_share, kind="stable")[:top]
+    corder = largest_first(contact_share, top)
     contacts = [{"i": data.particle_id(c.i[k]),
                  "j": data.particle_id(c.j[k]) if c.j[k] >= 0 else None,
                  "wall": int(c.wall[k]) if c.j[k] < 0 else None, "k_n": float(c.k_n[k]),
