@@ -78,7 +78,8 @@ def test_ordered_product_writes_every_row_once_and_scaled(dim, rotation, rolling
     each run writes its own rows complete and scaled, terms on later runs' rows into its
     band. On 2, 3 and 7 runs (bands spanning runs), with a fixed particle and particles
     that are no contact's i (scaled after the runs), the product equals the assembled
-    S K S x, and the parallel and serial compilations agree bit for bit. Lists with
+    S K S x, and so does x.(S K S x) the product gathers on its way, and the
+    parallel and serial compilations agree bit for bit. Lists with
     walls after the pairs, or shuffled, are not ordered and keep the summed runs."""
     p, c = random_polydisperse(21 + dim, dim, n=60, fixed=True)
     rng = np.random.default_rng(5)
@@ -98,11 +99,13 @@ def test_ordered_product_writes_every_row_once_and_scaled(dim, rotation, rolling
         y = op.stiffness(x)
         np.testing.assert_allclose(y, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max(),
                                    err_msg=f"{runs} runs")
-        y_serial = ordered_scaled_contact_matvec(c, *springs[:2], rotation, op.scale, x,
-                                                 op._work, op._ordered, op._band,
-                                                 parallel=False, k_r=springs[2],
-                                                 k_w=springs[3])
+        y_serial, quad = ordered_scaled_contact_matvec(c, *springs[:2], rotation, op.scale, x,
+                                                       op._work, op._ordered, op._band,
+                                                       parallel=False, k_r=springs[2],
+                                                       k_w=springs[3])
         np.testing.assert_array_equal(y_serial, y)
+        # the quadratic form gathered on the way: written rows, unheld rows and bands
+        assert quad == pytest.approx(x @ ref, rel=1e-12)
     walls = random_polydisperse(21 + dim, dim, n=60, walls=True)[1]
     assert (walls.j < 0).any() and ordered_contact_runs(walls, p.n, 2) is None
     assert ordered_contact_runs(c.subset(rng.permutation(c.n)), p.n, 2) is None
@@ -272,22 +275,27 @@ def test_second_pass_skipped_exactly_when_semi_orthogonal(monkeypatch, n):
 
 
 @pytest.mark.parametrize("tol", [1e-6, 1e-10])
-def test_lanczos_basis_stays_semi_orthogonal_to_the_kept_vectors(monkeypatch, tol):
+@pytest.mark.parametrize("recurrence", [False, True])
+def test_lanczos_basis_stays_semi_orthogonal_to_the_kept_vectors(monkeypatch, tol, recurrence):
     """Every new Lanczos vector is at most min(sqrt(eps), 0.1 tol) from orthogonal to
     the rows it is checked against (the kept Ritz vectors and its predecessors), with
-    the second pass skipped for most of them, and the top eigenpair is still found."""
+    the second pass skipped for most of them, and the top eigenpair is still found;
+    also when the product gives x.(A x) and the first pass takes the three-term
+    recurrence's coefficients instead of its dots (then on every step past a restart's
+    first)."""
     from demstep.kernels import timestep_kernels as tk
     from demstep.timestep import eigen
 
     A, w = spectrum_matrix(600, [1.0, 1.0 - 1e-4, 0.999], 3)
     semi = min(eigen.LANCZOS_SEMI, eigen.LANCZOS_SEMI_PER_TOL * tol)
     kernel = tk.lanczos_orthogonalize
-    worst, skipped, calls = [], [0], [0]
+    worst, skipped, calls, recurred = [], [0], [0], [0]
 
-    def checked(V, s, local, rows, w_, w_scale, h, h2, semi_):
+    def checked(V, s, local, rows, w_, w_scale, h, h2, semi_, known=False):
         assert semi_ == semi
-        beta2 = kernel(V, s, local, rows, w_, w_scale, h, h2, semi_)
+        beta2 = kernel(V, s, local, rows, w_, w_scale, h, h2, semi_, known)
         calls[0] += 1
+        recurred[0] += known
         skipped[0] += not h2[:len(rows)].any()
         basis = s[rows, None] * V[rows]  # the basis vectors (stored with factors apart)
         # the vector just expanded is a unit Lanczos vector through its factor
@@ -297,10 +305,15 @@ def test_lanczos_basis_stays_semi_orthogonal_to_the_kept_vectors(monkeypatch, to
 
     monkeypatch.setattr(tk, "lanczos_orthogonalize", checked)
     start = np.random.default_rng(1).standard_normal(600)
-    theta, y, _, _ = lanczos_top(lambda x, out: np.matmul(A, x, out=out), start, tol=tol,
-                                 basis=12, keep=4)
+
+    def matvec(x, out):
+        np.matmul(A, x, out=out)
+        return float(x @ out) if recurrence else None
+
+    theta, y, _, _ = lanczos_top(matvec, start, tol=tol, basis=12, keep=4)
     assert max(worst) <= semi * (1 + 1e-6)
     assert skipped[0] > calls[0] // 2
+    assert (recurred[0] > calls[0] // 2) == recurrence
     assert theta == pytest.approx(w[-1], rel=10 * tol)
 
 

@@ -203,6 +203,12 @@ def _store_row(y, p, nd, v0, v1, v2, v3, v4, v5):
 
 
 @njit(inline="always")
+def _row_dot(x0, x1, x2, x3, x4, x5, y0, y1, y2, y3, y4, y5):
+    """The dot product of two rows given as values (padded with zeros)."""
+    return ((x0 * y0 + x1 * y1) + (x2 * y2 + x3 * y3)) + (x4 * y4 + x5 * y5)
+
+
+@njit(inline="always")
 def _flush_row(y, p, nd, final_scale, v0, v1, v2, v3, v4, v5):
     """:func:`_store_row`, times row ``p`` of ``final_scale`` unless it is empty."""
     if final_scale is None:
@@ -261,10 +267,13 @@ def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, r
     above its i or a wall) a held row is complete when it is written back: with
     ``final_scale`` (n, nd) not empty it is written back times its row of
     ``final_scale``, and second particles from ``own_hi`` on are added into ``band``
-    (their row minus ``own_hi``) instead of y (an empty ``final_scale`` and ``own_hi``
-    = n otherwise)."""
+    (their row minus ``own_hi``) instead of y (``final_scale`` None and ``own_hi`` = n
+    otherwise). Returns, with ``final_scale``, the sum over the written rows of x's row
+    times the row's complete sum (unscaled): x.y over them for y = S K S x / S, i.e. the
+    quadratic form of the scaled product; 0 without."""
     nd = x.shape[1]
     held = -1
+    quad = 0.0
     x0 = x1 = x2 = x3 = x4 = x5 = 0.0
     y0 = y1 = y2 = y3 = y4 = y5 = 0.0
     for c in range(start, stop):
@@ -273,6 +282,8 @@ def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, r
         has_q = q >= 0
         if p != held:
             if held >= 0:
+                if final_scale is not None:
+                    quad += _row_dot(x0, x1, x2, x3, x4, x5, y0, y1, y2, y3, y4, y5)
                 _flush_row(y, held, nd, final_scale, y0, y1, y2, y3, y4, y5)
             held = p
             x0, x1, x2, x3, x4, x5 = _row_values(x, p, nd)
@@ -338,32 +349,38 @@ def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, r
                 _add_second_row(band, q - own_hi, dim, rotation, f0, f1, f2, m0, m1, m2, aj,
                                 c0, c1, c2, tf)
     if held >= 0:
+        if final_scale is not None:
+            quad += _row_dot(x0, x1, x2, x3, x4, x5, y0, y1, y2, y3, y4, y5)
         _flush_row(y, held, nd, final_scale, y0, y1, y2, y3, y4, y5)
+    return quad
 
 
 @njit(fastmath=CONTRACT)
-def _products_3d_rotation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop, final_scale, band, own_hi):
-    _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, _NO_ROLLING, _NO_ROLLING, False,
-                      True, 3, x, y, start, stop, final_scale, band, own_hi)
+def _products_3d_rotation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop,
+                          final_scale, band, own_hi):
+    return _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, _NO_ROLLING, _NO_ROLLING,
+                             False, True, 3, x, y, start, stop, final_scale, band, own_hi)
 
 
 @njit(fastmath=CONTRACT)
-def _products_3d_rolling(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, x, y, start, stop, final_scale, band, own_hi):
-    _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, True, True, 3, x, y,
-                      start, stop, final_scale, band, own_hi)
+def _products_3d_rolling(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, x, y, start, stop,
+                         final_scale, band, own_hi):
+    return _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, True, True, 3, x,
+                             y, start, stop, final_scale, band, own_hi)
 
 
 @njit(fastmath=CONTRACT)
-def _products_3d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop, final_scale, band, own_hi):
-    _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, _NO_ROLLING, _NO_ROLLING, False,
-                      False, 3, x, y, start, stop, final_scale, band, own_hi)
+def _products_3d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop,
+                             final_scale, band, own_hi):
+    return _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, _NO_ROLLING, _NO_ROLLING,
+                             False, False, 3, x, y, start, stop, final_scale, band, own_hi)
 
 
 @njit(fastmath=CONTRACT)
 def _products_2d(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, x, y,
                  start, stop, final_scale, band, own_hi):
-    _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, 2,
-                      x, y, start, stop, final_scale, band, own_hi)
+    return _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
+                             2, x, y, start, stop, final_scale, band, own_hi)
 
 
 @njit
@@ -381,19 +398,19 @@ def _contact_range_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, roll
     """y += K_c x summed over the contacts c = ``start`` ... ``stop`` - 1 (in order), by
     a driver compiled for the dimension and the DOFs (:func:`_contact_products` with
     them as constants: 2.2x on the 3D product with rotation, measured), with
-    multiply-adds fused (:data:`~demstep._numba.CONTRACT`: 3-4 % on that loop)."""
+    multiply-adds fused (:data:`~demstep._numba.CONTRACT`: 3-4 % on that loop); returns
+    the quadratic form of the written rows (:func:`_contact_products`)."""
     if normal.shape[1] == 2:
-        _products_2d(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, x, y,
-                     start, stop, final_scale, band, own_hi)
-    elif not rotation:
-        _products_3d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop,
+        return _products_2d(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
+                            x, y, start, stop, final_scale, band, own_hi)
+    if not rotation:
+        return _products_3d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start,
+                                        stop, final_scale, band, own_hi)
+    if rolling:
+        return _products_3d_rolling(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, x, y,
+                                    start, stop, final_scale, band, own_hi)
+    return _products_3d_rotation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop,
                                  final_scale, band, own_hi)
-    elif rolling:
-        _products_3d_rolling(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, x, y, start, stop,
-                             final_scale, band, own_hi)
-    else:
-        _products_3d_rotation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop,
-                              final_scale, band, own_hi)
 
 
 @njit
@@ -771,7 +788,7 @@ def ordered_contact_runs(contacts, n_particles: int, n_runs: int):
 
 
 def _ordered_scaled_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
-                           scale, x, work, chunks, spans, unheld, band, y):
+                           scale, x, work, chunks, spans, unheld, band, quad, y):
     """y = S K S x for flat x, y (n nd,) of an ordered contact list cut into runs
     (:func:`ordered_contact_runs`), one per thread: x scaled into ``work`` (n, nd); each
     run zeroes its own rows and writes them, each complete when its first particle's
@@ -779,7 +796,9 @@ def _ordered_scaled_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolli
     the run's band ``band[c]`` (rows from the next run's first particle). Then the
     unheld rows (second-particle terms only) are scaled, and the bands added scaled, in
     run order (fixed: the result does not depend on the scheduling). No pass over all
-    rows to sum buffers or scale the result."""
+    rows to sum buffers or scale the result. Returns x.y (the quadratic form, for the
+    Lanczos coefficient alpha without a pass over x and y: the runs' written rows, then
+    the unheld rows, then the bands, in order; ``quad`` (n_runs,) scratch)."""
     n, nd = work.shape
     n_runs = chunks.shape[0] - 1
     for p in prange(n):
@@ -796,19 +815,26 @@ def _ordered_scaled_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolli
         for p in range(spans[c, 1] - own_hi):
             for a in range(nd):
                 b[p, a] = 0.0
-        _contact_range_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling,
-                                rotation, work, out, chunks[c], chunks[c + 1], scale, b,
-                                own_hi)
-    for u in prange(unheld.shape[0]):
+        quad[c] = _contact_range_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w,
+                                          rolling, rotation, work, out, chunks[c],
+                                          chunks[c + 1], scale, b, own_hi)
+    total = 0.0
+    for c in range(n_runs):
+        total += quad[c]
+    for u in range(unheld.shape[0]):  # (a few: a face of the assembly)
         p = unheld[u]
         for a in range(nd):
+            total += work[p, a] * out[p, a]
             out[p, a] *= scale[p, a]
     for c in range(n_runs - 1):
         own_hi = spans[c + 1, 0]
         b = band[c]
         for p in range(own_hi, spans[c, 1]):
             for a in range(nd):
-                out[p, a] += scale[p, a] * b[p - own_hi, a]
+                v = b[p - own_hi, a]
+                total += work[p, a] * v
+                out[p, a] += scale[p, a] * v
+    return total
 
 
 _ordered_scaled_matvec_parallel, _ordered_scaled_matvec_serial = \
@@ -820,16 +846,17 @@ def ordered_scaled_contact_matvec(contacts, k_n, k_t, rotation: bool, scale, x, 
                                   k_w=None):
     """S K S x for flat x like :func:`scaled_contact_matvec` (rolling and twisting springs
     ``k_r``, ``k_w`` when given), for an ordered contact list and its ``runs``
-    (:func:`ordered_contact_runs`), with ``band`` (n_runs, band rows, nd) scratch."""
+    (:func:`ordered_contact_runs`), with ``band`` (n_runs, band rows, nd) scratch.
+    Returns (y, x.y)."""
     y = np.empty(x.shape[0]) if out is None else out
     chunks, spans, unheld, _ = runs
     rolling = k_r is not None and bool(rotation)
     kernel = _ordered_scaled_matvec_parallel if parallel else _ordered_scaled_matvec_serial
-    kernel(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j, k_n, k_t,
-           k_r if rolling else _NO_ROLLING, k_w if rolling else _NO_ROLLING, rolling,
-           bool(rotation), scale, np.ascontiguousarray(x, dtype=np.float64), work, chunks,
-           spans, unheld, band, y)
-    return y
+    quad = kernel(contacts.i, contacts.j, contacts.normal, contacts.arm_i, contacts.arm_j,
+                  k_n, k_t, k_r if rolling else _NO_ROLLING, k_w if rolling else _NO_ROLLING,
+                  rolling, bool(rotation), scale, np.ascontiguousarray(x, dtype=np.float64),
+                  work, chunks, spans, unheld, band, np.empty(len(chunks) - 1), y)
+    return y, float(quad)
 
 
 def _contact_quadratic_forms(i, j, normal, arm_i, arm_j, k_n, k_t, c_n, c_t, k_r, k_w, c_r,
@@ -1079,7 +1106,7 @@ def _sum_blocks(part, count, out):
         out[a] = s
 
 
-def _lanczos_orthogonalize(V, s, local, rows, w, w_scale, h, h2, semi):
+def _lanczos_orthogonalize(V, s, local, rows, w, w_scale, h, h2, semi, known):
     """Orthogonalise the new Lanczos vector u = ``w_scale`` w, in place in w, against
     the basis vectors s[r] V[r] (each row of V is stored unnormalised, with its factor
     in s: no pass over a vector to normalise it): a classical Gram-Schmidt pass against
@@ -1090,19 +1117,24 @@ def _lanczos_orthogonalize(V, s, local, rows, w, w_scale, h, h2, semi):
     rows), the subtraction is skipped and h2[:len(rows)] is set to zero. Sweeps over
     blocks of :data:`VECTOR_BLOCK` elements: the first pass' dots; its subtraction
     (with the scaling by ``w_scale``), the second pass' dots and |u|^2 (the block is
-    still in cache); when needed, the second subtraction with the norm."""
+    still in cache); when needed, the second subtraction with the norm. With ``known``
+    the first pass' coefficients are given in h (the three-term recurrence's beta and
+    alpha: :func:`demstep.timestep.eigen.lanczos_top`) and its dots are skipped (one
+    sweep over the local rows and u fewer)."""
     n = w.shape[0]
     nb = (n + VECTOR_BLOCK - 1) // VECTOR_BLOCK
     nl = local.shape[0]
     nr = rows.shape[0]
     part = np.empty((nb, max(nl, nr + 1)))
     g = np.empty(max(nl, nr))
-    for b in prange(nb):
-        lo = b * VECTOR_BLOCK
-        _block_dots(V, local, w, lo, min(n, lo + VECTOR_BLOCK), part[b])
-    _sum_blocks(part, nl, h)
+    if not known:
+        for b in prange(nb):
+            lo = b * VECTOR_BLOCK
+            _block_dots(V, local, w, lo, min(n, lo + VECTOR_BLOCK), part[b])
+        _sum_blocks(part, nl, h)
+        for a in range(nl):
+            h[a] *= w_scale * s[local[a]]
     for a in range(nl):
-        h[a] *= w_scale * s[local[a]]
         g[a] = h[a] * s[local[a]]
     for b in prange(nb):
         lo = b * VECTOR_BLOCK
@@ -1134,12 +1166,12 @@ _lanczos_orthogonalize_parallel, _lanczos_orthogonalize_serial = \
 
 
 def lanczos_orthogonalize(V, s, local, rows, w, w_scale: float, h, h2,
-                          semi: float = 0.0) -> float:
+                          semi: float = 0.0, known: bool = False) -> float:
     """:func:`_lanczos_orthogonalize` (h2 needs one slot more than ``rows``), on
     several threads for vectors of :data:`PARALLEL_MIN_DOFS` elements or more."""
     kernel = (_lanczos_orthogonalize_parallel if w.shape[0] >= PARALLEL_MIN_DOFS
               else _lanczos_orthogonalize_serial)
-    return kernel(V, s, local, rows, w, float(w_scale), h, h2, semi)
+    return kernel(V, s, local, rows, w, float(w_scale), h, h2, semi, bool(known))
 
 
 #: elements per block of :func:`combine_rows`: its k partial sums of one block stay in

@@ -157,7 +157,8 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
                 workspace: Workspace | None = None):
     """Largest eigenpair of a symmetric operator by thick-restart Lanczos.
 
-    ``matvec(x, out)`` writes A x into ``out``; ``v0`` is the start. Returns
+    ``matvec(x, out)`` writes A x into ``out`` and returns x.(A x) as a float when it
+    computed it on its way (anything else is ignored); ``v0`` is the start. Returns
     (theta, y, matvecs, Y): the largest Ritz value, its unit Ritz vector, the number of
     products and (``block`` > 0) the top ``block`` Ritz vectors (block, n), largest
     first (else None), once the Ritz estimate |beta s_last| of the residual is at most
@@ -209,13 +210,20 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
         size = j + 1
         # the new vector: the next row, or (the basis full) the scratch vector
         new = V[size] if size < m else w
-        matvec(V[j], new)
+        quad = matvec(V[j], new)
         matvecs += 1
         lo = 0 if j == kept else j - 1
         local = np.arange(lo, j + 1, dtype=np.int64)
         rows = local if lo == 0 else np.concatenate((np.arange(kept, dtype=np.int64), local))
         nr = len(rows)
-        beta2 = tk.lanczos_orthogonalize(V, s, local, rows, new, s[j], h, h2, semi)
+        # past a restart's first vector the first pass' coefficients are the recurrence's
+        # (Paige): beta_{j-1} from the last step and alpha_j = v_j.A v_j, when the product
+        # gave V[j].A V[j] on its way; the second pass measures what they leave
+        known = isinstance(quad, float) and j > kept
+        if known:
+            h[0] = T[j, j - 1]
+            h[1] = s[j] * s[j] * quad
+        beta2 = tk.lanczos_orthogonalize(V, s, local, rows, new, s[j], h, h2, semi, known)
         T[rows, j] = h2[:nr]
         T[local, j] += h[:len(local)]
         T[j, rows] = T[rows, j]

@@ -197,11 +197,20 @@ class ScaledContactOperator:
         return Springs(f * c.k_n + sigma * c.c_n, f * c.k_s + sigma * c.c_t,
                        f * c.k_r + sigma * c.c_r, f * c.k_w + sigma * c.c_w)
 
-    def apply(self, x: np.ndarray, springs: Springs,
-              out: np.ndarray | None = None) -> np.ndarray:
+    def apply(self, x: np.ndarray, springs: Springs, out: np.ndarray | None = None,
+              quadratic: bool = False):
         """S K(springs) S x for flat x (size,) (into ``out`` when given); on
         ``threads`` > 1 the contact runs are summed in parallel; with bodies, G^T K G
-        through the owner map (:mod:`demstep.timestep.bodies`)."""
+        through the owner map (:mod:`demstep.timestep.bodies`). With ``quadratic``,
+        (y, x.y) when the product computed x.y on its way (the ordered runs), else
+        (y, None)."""
+        if quadratic:
+            if self._ordered is not None:
+                return ordered_scaled_contact_matvec(
+                    self.contacts, springs[0], springs[1], self.rotation, self.scale, x,
+                    self._work, self._ordered, self._band, out, self.threads > 1, springs[2],
+                    springs[3])
+            return self.apply(x, springs, out), None
         k_n, k_t, k_r, k_w = springs
         if self.owner_map is not None:
             om = self.owner_map
@@ -218,9 +227,7 @@ class ScaledContactOperator:
                 return out
             return y
         if self._ordered is not None:
-            return ordered_scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation,
-                                                 self.scale, x, self._work, self._ordered,
-                                                 self._band, out, self.threads > 1, k_r, k_w)
+            return self.apply(x, springs, out, quadratic=True)[0]
         if self.threads > 1:
             return chunked_scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation,
                                                  self.scale, x, self._work, self._chunks,
@@ -391,7 +398,9 @@ class _Pencil(spla.LinearOperator):
         return self._matvec(x)
 
     def matvec_into(self, x, out):
-        self.op.apply(x, self.springs_, out)
+        """out = the pencil times x; returns x.out when the product computed it on its
+        way (:meth:`ScaledContactOperator.apply`), else None."""
+        return self.op.apply(x, self.springs_, out, quadratic=True)[1]
 
 
 @dataclass
