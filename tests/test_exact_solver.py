@@ -73,15 +73,22 @@ def test_threaded_product_equals_serial_and_assembled(dim, rotation, shuffle):
 
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("rotation,rolling", [(True, True), (True, False), (False, False)])
-def test_ordered_product_writes_every_row_once_and_scaled(dim, rotation, rolling):
+@pytest.mark.parametrize("with_walls", [False, True])
+def test_ordered_product_writes_every_row_once_and_scaled(dim, rotation, rolling, with_walls):
     """A contact list sorted by i with j above i (the search's pairs) on several threads:
     each run writes its own rows complete and scaled, terms on later runs' rows into its
     band. On 2, 3 and 7 runs (bands spanning runs), with a fixed particle and particles
     that are no contact's i (scaled after the runs), the product equals the assembled
     S K S x, and so does x.(S K S x) the product gathers on its way, and the
-    parallel and serial compilations agree bit for bit. Lists with
-    walls after the pairs, or shuffled, are not ordered and keep the summed runs."""
-    p, c = random_polydisperse(21 + dim, dim, n=60, fixed=True)
+    parallel and serial compilations agree bit for bit; with walls after the pairs (the
+    search's order) as well. A shuffled list is not ordered and keeps the summed runs."""
+    p, c = random_polydisperse(21 + dim, dim, n=60, fixed=True, walls=with_walls)
+    walls = np.flatnonzero(c.j < 0)
+    if with_walls:
+        assert len(walls) >= 2 and walls[0] > 0 and (c.j[walls[0]:] < 0).all()
+        assert np.isin(c.i[walls], c.i[:walls[0]]).any()  # rows with pairs and walls
+    else:
+        assert len(walls) == 0
     rng = np.random.default_rng(5)
     if rolling:
         c = replace(c, k_r=rng.uniform(0.1, 1.0, c.n), k_w=rng.uniform(0.1, 1.0, c.n))
@@ -106,8 +113,6 @@ def test_ordered_product_writes_every_row_once_and_scaled(dim, rotation, rolling
         np.testing.assert_array_equal(y_serial, y)
         # the quadratic form gathered on the way: written rows, unheld rows and bands
         assert quad == pytest.approx(x @ ref, rel=1e-12)
-    walls = random_polydisperse(21 + dim, dim, n=60, walls=True)[1]
-    assert (walls.j < 0).any() and ordered_contact_runs(walls, p.n, 2) is None
     assert ordered_contact_runs(c.subset(rng.permutation(c.n)), p.n, 2) is None
 
 

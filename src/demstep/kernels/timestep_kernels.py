@@ -770,18 +770,23 @@ def chunked_scaled_contact_matvec(contacts, k_n, k_t, rotation: bool, scale, x, 
 
 
 def ordered_contact_runs(contacts, n_particles: int, n_runs: int):
-    """The runs of an *ordered* contact list (sorted by i, each j above its i or a wall:
-    the contact search's pairs) for :func:`ordered_scaled_contact_matvec`, or None when
-    the list is not ordered: (chunks (n_runs + 1,), spans (n_runs, 2), unheld, band
-    rows). Run c starts at a particle's first contact and owns the particles from its
-    first i to the next run's (:func:`demstep.kernels.dem.pair_chunks`); a row of its
-    own is complete once its contacts are done, except for second particles of earlier
-    runs (their bands). ``unheld``: the particles that are no contact's i (their rows
-    get second-particle terms only)."""
+    """The runs of an *ordered* contact list for :func:`ordered_scaled_contact_matvec`,
+    or None when the list is not ordered. Ordered: up to its last pair, sorted by i with
+    each j above its i (or a wall); after it, walls in any order (the contact search's
+    pairs, then its walls). Returns (chunks (n_runs + 1,), spans (n_runs, 2), unheld,
+    band rows): run c starts at a particle's first contact and owns the particles from
+    its first i to the next run's (:func:`demstep.kernels.dem.pair_chunks`); a row of
+    its own is complete once its contacts are done, except for second particles of
+    earlier runs (their bands); the walls after the last pair start at chunks[-1].
+    ``unheld``: the particles that are no such contact's i (their rows get other terms
+    only)."""
     from demstep.kernels.dem import band_rows, pair_chunks
 
     i, j = contacts.i, contacts.j
-    if contacts.n and not (np.all(i[1:] >= i[:-1]) and np.all((j > i) | (j < 0))):
+    pairs = np.flatnonzero(j >= 0)
+    end = int(pairs[-1]) + 1 if len(pairs) else 0
+    i, j = i[:end], j[:end]
+    if end and not (np.all(i[1:] >= i[:-1]) and np.all((j > i) | (j < 0))):
         return None
     chunks, spans = pair_chunks(i, j, n_particles, max(1, int(n_runs)))
     held = np.zeros(n_particles, dtype=bool)
@@ -793,11 +798,12 @@ def _ordered_scaled_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolli
                            scale, x, work, chunks, spans, unheld, band, quad, y):
     """y = S K S x for flat x, y (n nd,) of an ordered contact list cut into runs
     (:func:`ordered_contact_runs`), one per thread: x scaled into ``work`` (n, nd); each
-    run zeroes its own rows and writes them, each complete when its first particle's
-    contacts are done, scaled as it is written back; terms on rows of later runs go to
-    the run's band ``band[c]`` (rows from the next run's first particle). Then the
-    unheld rows (second-particle terms only) are scaled, and the bands added scaled, in
-    run order (fixed: the result does not depend on the scheduling). No pass over all
+    run's own rows and band zeroed; the walls after the last pair added unscaled
+    (serial: a boundary's worth); then each run writes its rows, each complete when its
+    first particle's contacts are done, scaled as it is written back; terms on rows of
+    later runs go to the run's band ``band[c]`` (rows from the next run's first
+    particle). Then the unheld rows are scaled, and the bands added scaled, in run
+    order (fixed: the result does not depend on the scheduling). No pass over all
     rows to sum buffers or scale the result. Returns x.y (the quadratic form, for the
     Lanczos coefficient alpha without a pass over x and y: the runs' written rows, then
     the unheld rows, then the bands, in order; ``quad`` (n_runs,) scratch)."""
@@ -817,6 +823,13 @@ def _ordered_scaled_matvec(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolli
         for p in range(spans[c, 1] - own_hi):
             for a in range(nd):
                 b[p, a] = 0.0
+    if chunks[n_runs] < i.shape[0]:
+        _contact_range_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling,
+                                rotation, work, out, chunks[n_runs], i.shape[0], None, out,
+                                n)
+    for c in prange(n_runs):
+        own_hi = spans[c + 1, 0] if c + 1 < n_runs else n
+        b = band[c]
         quad[c] = _contact_range_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w,
                                           rolling, rotation, work, out, chunks[c],
                                           chunks[c + 1], scale, b, own_hi)

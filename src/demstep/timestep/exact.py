@@ -166,7 +166,7 @@ class ScaledContactOperator:
         self.threads = max(1, min(int(threads), max(contacts.n, 1)))
         self._chunks, self._spans = contact_chunks(contacts, particles.n, self.threads)
         #: on several threads, the runs of an ordered contact list (sorted by i, j above
-        #: i: the contact search's pairs), whose product writes each row once, complete
+        #: i, then walls: the contact search's), whose product writes each row once, complete
         #: and scaled (:func:`~demstep.kernels.timestep_kernels.ordered_scaled_contact_matvec`:
         #: no buffer of every row per thread, no pass to sum and scale them: 1.14-1.18x
         #: on two threads at 1e6 spheres, 0.92x on one, where the loop is the limit);
