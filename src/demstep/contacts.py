@@ -268,7 +268,9 @@ def _pair_contacts(x, r, tol, periodic, compiled_min: int | None = None) -> Cont
     box3[:dim] = lengths
     d, dist, _, arm_i, arm_j, _ = pair_geometry_arrays(x3, r, i, j, box3)
     keep = dist <= (r[i] + r[j]) * (1.0 + tol)
-    i, j, d, dist, arm_i, arm_j = i[keep], j[keep], d[keep], dist[keep], arm_i[keep], arm_j[keep]
+    if not keep.all():  # (a lattice keeps every candidate: no copies)
+        i, j, d, dist = i[keep], j[keep], d[keep], dist[keep]
+        arm_i, arm_j = arm_i[keep], arm_j[keep]
     if np.any(dist <= 0):
         k = int(np.flatnonzero(dist <= 0)[0])
         raise InputError(f"particles: particles {i[k]} and {j[k]} have the same centre")

@@ -255,8 +255,8 @@ class ContactModel(RollingResistance):
         p = particles
         i_star = (contact_rolling_inertia(contacts, p.r, p.m, p.inertia, ~p.fixed)
                   if self.has_rolling else None)
-        if self.model == "linear":
-            groups = [(np.ones(contacts.n, dtype=bool), self.law_params())]
+        if self.model == "linear":  # (one group: views and plain copies, no masks)
+            groups = [(slice(None), self.law_params())]
         else:
             ti, tj = types[i], types[jj]
             groups = []
