@@ -568,20 +568,29 @@ def _reduce_body(b, y, member_index, member_arm, body_trans, body_rot, body_star
                                  + body_rot[b, r, 2] * m2)
 
 
+@njit(inline="always")
+def _expand_owners(q, free_index, free_scale, member_index, member_body, member_arm,
+                   body_trans, body_rot, rotation, dim, u):
+    """u (N, nd): the spheres' physical DOFs of the owners' scaled DOFs q (owners, nd)
+    (free spheres first, then the bodies): a free sphere's scaled by its M^-1/2, a
+    member's by :func:`_expand_member`; per sphere, in parallel when inlined into a
+    parallel kernel."""
+    nd = u.shape[1]
+    n_free = free_index.shape[0]
+    for s in prange(n_free):
+        for a in range(nd):
+            u[free_index[s], a] = free_scale[s, a] * q[s, a]
+    for s in prange(member_index.shape[0]):
+        _expand_member(s, q, member_index, member_body, member_arm, body_trans, body_rot,
+                       n_free, rotation, dim, u)
+
+
 @njit
 def _owner_expand(q, free_index, free_scale, member_index, member_body, member_arm,
                   body_trans, body_rot, rotation, dim, u):
-    """u (N, nd): the spheres' physical DOFs of the owners' scaled DOFs q (owners, nd)
-    (free spheres first, then the bodies): a free sphere's scaled by its M^-1/2, a
-    member's by :func:`_expand_member`."""
-    nd = u.shape[1]
-    n_free = free_index.shape[0]
-    for s in range(n_free):
-        for a in range(nd):
-            u[free_index[s], a] = free_scale[s, a] * q[s, a]
-    for s in range(member_index.shape[0]):
-        _expand_member(s, q, member_index, member_body, member_arm, body_trans, body_rot,
-                       n_free, rotation, dim, u)
+    """:func:`_expand_owners`, serial."""
+    _expand_owners(q, free_index, free_scale, member_index, member_body, member_arm,
+                   body_trans, body_rot, rotation, dim, u)
 
 
 def _owner_contact_matvec_runs(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling,
@@ -598,12 +607,8 @@ def _owner_contact_matvec_runs(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, r
     dim = normal.shape[1]
     nd = u.shape[1]
     n_free = free_index.shape[0]
-    for s in prange(n_free):
-        for a in range(nd):
-            u[free_index[s], a] = free_scale[s, a] * q[s, a]
-    for s in prange(member_index.shape[0]):
-        _expand_member(s, q, member_index, member_body, member_arm, body_trans, body_rot,
-                       n_free, rotation, dim, u)
+    _expand_owners(q, free_index, free_scale, member_index, member_body, member_arm,
+                   body_trans, body_rot, rotation, dim, u)
     n_chunks = chunks.shape[0] - 1
     for c in prange(n_chunks):
         part = y if c == 0 else buf[c - 1]
