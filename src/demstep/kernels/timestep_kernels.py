@@ -273,7 +273,13 @@ def _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, r
     otherwise). Returns, with ``final_scale``, the sum over the written rows of x's row
     times the row's complete sum (unscaled): x.y over them for y = S K S x / S, i.e. the
     quadratic form of the scaled product; 0 without."""
-    nd = x.shape[1]
+    # nd from the constants ``dim`` and ``rotation`` (x.shape[1] is the same number):
+    # the row writes' tests on it then fold away, and numba's reference-count pruning
+    # can take out the counts of the arrays handed to the inlined row writer (with nd
+    # read at run time: two increfs and two decrefs per held row, with the held values
+    # spilled around the calls: one serial run of 3e6 contacts, 3D with rotation, 35.2 ms
+    # against 31.8, measured)
+    nd = (6 if rotation else 3) if dim == 3 else (3 if rotation else 2)
     held = -1
     quad = 0.0
     x0 = x1 = x2 = x3 = x4 = x5 = 0.0
@@ -1056,64 +1062,102 @@ PARALLEL_MIN_DOFS = 200_000
 
 @njit(inline="always")
 def _block_dots(V, rows, w, lo, hi, out):
-    """out[a] = V[rows[a], lo:hi] . w[lo:hi] (two rows per pass, two partial sums each)."""
+    """out[a] = V[rows[a], lo:hi] . w[lo:hi]: five rows per pass over the block (w read
+    once for five), each with two partial sums (even and odd elements, then added).
+    Ten independent sums keep the multiply-adds in flight: with two rows per pass the
+    sums' latency was the limit (10 rows of 6.1e6 on two threads: 17-22 ms, five per
+    pass 10 ms, about the memory's bandwidth; benchmarks/RESULTS.md)."""
     nr = rows.shape[0]
-    m = lo + (hi - lo) - (hi - lo) % 2
+    m = hi - (hi - lo) % 2
     a = 0
     while a < nr:
+        last = nr - 1  # (a pass short of five rows repeats the last one: the same reads)
         v0 = V[rows[a]]
-        v1 = V[rows[a + 1]] if a + 1 < nr else v0
-        s0 = 0.0
-        s1 = 0.0
-        t0 = 0.0
-        t1 = 0.0
+        v1 = V[rows[min(a + 1, last)]]
+        v2 = V[rows[min(a + 2, last)]]
+        v3 = V[rows[min(a + 3, last)]]
+        v4 = V[rows[min(a + 4, last)]]
+        s0 = s1 = s2 = s3 = s4 = 0.0
+        t0 = t1 = t2 = t3 = t4 = 0.0
         for p in range(lo, m, 2):
-            s0 += v0[p] * w[p]
-            s1 += v0[p + 1] * w[p + 1]
-            t0 += v1[p] * w[p]
-            t1 += v1[p + 1] * w[p + 1]
+            e = w[p]
+            o = w[p + 1]
+            s0 += v0[p] * e
+            t0 += v0[p + 1] * o
+            s1 += v1[p] * e
+            t1 += v1[p + 1] * o
+            s2 += v2[p] * e
+            t2 += v2[p + 1] * o
+            s3 += v3[p] * e
+            t3 += v3[p + 1] * o
+            s4 += v4[p] * e
+            t4 += v4[p + 1] * o
         for p in range(m, hi):
-            s0 += v0[p] * w[p]
-            t0 += v1[p] * w[p]
-        out[a] = s0 + s1
+            e = w[p]
+            s0 += v0[p] * e
+            s1 += v1[p] * e
+            s2 += v2[p] * e
+            s3 += v3[p] * e
+            s4 += v4[p] * e
+        out[a] = s0 + t0
         if a + 1 < nr:
-            out[a + 1] = t0 + t1
-        a += 2
+            out[a + 1] = s1 + t1
+        if a + 2 < nr:
+            out[a + 2] = s2 + t2
+        if a + 3 < nr:
+            out[a + 3] = s3 + t3
+        if a + 4 < nr:
+            out[a + 4] = s4 + t4
+        a += 5
 
 
 @njit(inline="always")
 def _block_subtract(V, rows, g, w, lo, hi, factor):
     """w[lo:hi] = factor w[lo:hi] - sum_a g[a] V[rows[a], lo:hi] (two rows per pass;
     ``factor`` applied in the first; 1 leaves w's own part as it is, bit for bit);
-    ``rows`` not empty (the Lanczos vector's own row at least)."""
+    returns |w[lo:hi]|^2 after it, summed in the last pass (two partial sums, even and
+    odd elements: one sum's latency bounded a pass of its own); ``rows`` may be empty
+    (then w is only scaled, unless ``factor`` is 1, and measured)."""
     nr = rows.shape[0]
+    m = hi - (hi - lo) % 2
     a = 0
-    first = True
-    while a + 1 < nr:
-        v0 = V[rows[a]]
-        v1 = V[rows[a + 1]]
-        g0 = g[a]
-        g1 = g[a + 1]
-        f = factor if first else 1.0
-        for p in range(lo, hi):
-            w[p] = f * w[p] - (g0 * v0[p] + g1 * v1[p])
-        first = False
+    f = factor
+    while True:
+        # the next one or two rows (a single row pairs with itself at coefficient 0:
+        # g0 v0 + 0 v0 is g0 v0 exactly)
+        v0 = V[rows[a]] if a < nr else w
+        v1 = V[rows[a + 1]] if a + 1 < nr else v0
+        g0 = g[a] if a < nr else 0.0
+        g1 = g[a + 1] if a + 1 < nr else 0.0
         a += 2
-    if a < nr:
-        v0 = V[rows[a]]
-        g0 = g[a]
-        f = factor if first else 1.0
-        for p in range(lo, hi):
-            w[p] = f * w[p] - g0 * v0[p]
-
-
-@njit(inline="always")
-def _block_squares(w, lo, hi):
-    """|w[lo:hi]|^2."""
-    s = 0.0
-    for p in range(lo, hi):
-        s += w[p] * w[p]
-    return s
+        if a < nr:
+            for p in range(lo, hi):
+                w[p] = f * w[p] - (g0 * v0[p] + g1 * v1[p])
+            f = 1.0
+            continue
+        if nr == 0 and f == 1.0:
+            se = 0.0
+            so = 0.0
+            for p in range(lo, m, 2):
+                se += w[p] * w[p]
+                so += w[p + 1] * w[p + 1]
+            for p in range(m, hi):
+                se += w[p] * w[p]
+            return se + so
+        se = 0.0
+        so = 0.0
+        for p in range(lo, m, 2):
+            e = f * w[p] - (g0 * v0[p] + g1 * v1[p])
+            o = f * w[p + 1] - (g0 * v0[p + 1] + g1 * v1[p + 1])
+            w[p] = e
+            w[p + 1] = o
+            se += e * e
+            so += o * o
+        for p in range(m, hi):
+            e = f * w[p] - (g0 * v0[p] + g1 * v1[p])
+            w[p] = e
+            se += e * e
+        return se + so
 
 
 @njit(inline="always")
@@ -1159,9 +1203,8 @@ def _lanczos_orthogonalize(V, s, local, rows, w, w_scale, h, h2, semi, known):
     for b in prange(nb):
         lo = b * VECTOR_BLOCK
         hi = min(n, lo + VECTOR_BLOCK)
-        _block_subtract(V, local, g, w, lo, hi, w_scale)
+        part[b, nr] = _block_subtract(V, local, g, w, lo, hi, w_scale)
         _block_dots(V, rows, w, lo, hi, part[b])
-        part[b, nr] = _block_squares(w, lo, hi)
     _sum_blocks(part, nr + 1, h2)
     largest = 0.0
     for a in range(nr):
@@ -1175,8 +1218,7 @@ def _lanczos_orthogonalize(V, s, local, rows, w, w_scale, h, h2, semi, known):
     for b in prange(nb):
         lo = b * VECTOR_BLOCK
         hi = min(n, lo + VECTOR_BLOCK)
-        _block_subtract(V, rows, g, w, lo, hi, 1.0)
-        part[b, 0] = _block_squares(w, lo, hi)
+        part[b, 0] = _block_subtract(V, rows, g, w, lo, hi, 1.0)
     _sum_blocks(part, 1, h2[nr:])
     return h2[nr]
 
