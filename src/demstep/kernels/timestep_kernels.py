@@ -385,10 +385,17 @@ def _products_3d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, 
 
 
 @njit(fastmath=CONTRACT)
-def _products_2d(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation, x, y,
-                 start, stop, final_scale, band, own_hi):
-    return _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
+def _products_2d_rotation(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, x, y,
+                          start, stop, final_scale, band, own_hi):
+    return _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, True,
                              2, x, y, start, stop, final_scale, band, own_hi)
+
+
+@njit(fastmath=CONTRACT)
+def _products_2d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start, stop,
+                             final_scale, band, own_hi):
+    return _contact_products(i, j, normal, arm_i, arm_j, k_n, k_t, _NO_ROLLING, _NO_ROLLING,
+                             False, False, 2, x, y, start, stop, final_scale, band, own_hi)
 
 
 @njit
@@ -405,12 +412,16 @@ def _contact_range_products(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, roll
                             rotation, x, y, start, stop, final_scale, band, own_hi):
     """y += K_c x summed over the contacts c = ``start`` ... ``stop`` - 1 (in order), by
     a driver compiled for the dimension and the DOFs (:func:`_contact_products` with
-    them as constants: 2.2x on the 3D product with rotation, measured), with
+    them as constants: 2.2x on the 3D product with rotation, measured; in 2D too, so that
+    the number of DOFs per row is a constant there as well), with
     multiply-adds fused (:data:`~demstep._numba.CONTRACT`: 3-4 % on that loop); returns
     the quadratic form of the written rows (:func:`_contact_products`)."""
     if normal.shape[1] == 2:
-        return _products_2d(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w, rolling, rotation,
-                            x, y, start, stop, final_scale, band, own_hi)
+        if rotation:
+            return _products_2d_rotation(i, j, normal, arm_i, arm_j, k_n, k_t, k_r, k_w,
+                                         rolling, x, y, start, stop, final_scale, band, own_hi)
+        return _products_2d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start,
+                                        stop, final_scale, band, own_hi)
     if not rotation:
         return _products_3d_translation(i, j, normal, arm_i, arm_j, k_n, k_t, x, y, start,
                                         stop, final_scale, band, own_hi)
