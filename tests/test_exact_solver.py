@@ -199,21 +199,26 @@ def test_lanczos_finds_the_top_eigenpair(top, basis, keep):
     assert pair.value <= w[-1] * (1 + 1e-12) <= pair.upper * (1 + 1e-12)
 
 
-@pytest.mark.parametrize("n", [7, 16384 * 3 + 5])
+@pytest.mark.parametrize("n", [13, 16384 * 3 + 5])
 @pytest.mark.parametrize("local,rows", [([3], [3]), ([2, 3], [0, 1, 2, 3]),
-                                        ([1, 2, 3], [0, 1, 2, 3, 4])])
+                                        ([1, 2, 3], [0, 1, 2, 3, 4]),
+                                        ([4, 5], [0, 1, 2, 3, 4, 5]),
+                                        ([8, 9, 10], list(range(10))),
+                                        ([10, 11], list(range(12)))])
 def test_blocked_vector_operations_match_numpy(monkeypatch, n, local, rows):
     """The Lanczos vector kernels against numpy: the two Gram-Schmidt passes against
     basis vectors stored unnormalised with their factors apart (odd and even row counts,
-    a last partial block, the new vector scaled on the way), the row combination written
+    one to three passes of five rows for the dots with a last one full or partial, one
+    or two passes of two rows for a subtraction, a last partial block, the new vector
+    scaled on the way), the row combination written
     over the rows it reads (a thick restart) and the scaling; the threaded versions give
     the same bits as the serial ones (the summation order is the blocks', not the
     threads')."""
     from demstep.kernels import timestep_kernels as tk
 
     rng = np.random.default_rng(n)
-    Q = np.linalg.qr(rng.standard_normal((n, 6)))[0].T.copy()
-    s = rng.uniform(0.1, 10.0, 6)  # basis vector r = s[r] V[r]
+    Q = np.linalg.qr(rng.standard_normal((n, 12)))[0].T.copy()
+    s = rng.uniform(0.1, 10.0, 12)  # basis vector r = s[r] V[r]
     V = Q / s[:, None]
     w_scale = 0.37
     w0 = rng.standard_normal(n) + 3.0 * Q[3]
@@ -228,7 +233,7 @@ def test_blocked_vector_operations_match_numpy(monkeypatch, n, local, rows):
     for threshold in (10**9, 1):  # serial, then threaded
         monkeypatch.setattr(tk, "PARALLEL_MIN_DOFS", threshold)
         w = w0.copy()
-        h, h2 = np.empty(6), np.empty(7)
+        h, h2 = np.empty(12), np.empty(13)
         beta2 = tk.lanczos_orthogonalize(V, s, local_a, rows_a, w, w_scale, h, h2)
         np.testing.assert_allclose(h[:len(local)], h_ref, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(h2[:len(rows)], h2_ref, rtol=1e-12, atol=1e-12)

@@ -1127,8 +1127,8 @@ def _block_subtract(V, rows, g, w, lo, hi, factor):
     """w[lo:hi] = factor w[lo:hi] - sum_a g[a] V[rows[a], lo:hi] (two rows per pass;
     ``factor`` applied in the first; 1 leaves w's own part as it is, bit for bit);
     returns |w[lo:hi]|^2 after it, summed in the last pass (two partial sums, even and
-    odd elements: one sum's latency bounded a pass of its own); ``rows`` may be empty
-    (then w is only scaled, unless ``factor`` is 1, and measured)."""
+    odd elements: one sum's latency bounded a pass of its own); ``rows`` not empty (the
+    Lanczos vector's own row at least)."""
     nr = rows.shape[0]
     m = hi - (hi - lo) % 2
     a = 0
@@ -1136,9 +1136,9 @@ def _block_subtract(V, rows, g, w, lo, hi, factor):
     while True:
         # the next one or two rows (a single row pairs with itself at coefficient 0:
         # g0 v0 + 0 v0 is g0 v0 exactly)
-        v0 = V[rows[a]] if a < nr else w
+        v0 = V[rows[a]]
         v1 = V[rows[a + 1]] if a + 1 < nr else v0
-        g0 = g[a] if a < nr else 0.0
+        g0 = g[a]
         g1 = g[a + 1] if a + 1 < nr else 0.0
         a += 2
         if a < nr:
@@ -1146,15 +1146,6 @@ def _block_subtract(V, rows, g, w, lo, hi, factor):
                 w[p] = f * w[p] - (g0 * v0[p] + g1 * v1[p])
             f = 1.0
             continue
-        if nr == 0 and f == 1.0:
-            se = 0.0
-            so = 0.0
-            for p in range(lo, m, 2):
-                se += w[p] * w[p]
-                so += w[p + 1] * w[p + 1]
-            for p in range(m, hi):
-                se += w[p] * w[p]
-            return se + so
         se = 0.0
         so = 0.0
         for p in range(lo, m, 2):
