@@ -1076,8 +1076,9 @@ def _block_dots(V, rows, w, lo, hi, out):
     """out[a] = V[rows[a], lo:hi] . w[lo:hi]: five rows per pass over the block (w read
     once for five), each with two partial sums (even and odd elements, then added).
     Ten independent sums keep the multiply-adds in flight: with two rows per pass the
-    sums' latency was the limit (10 rows of 6.1e6 on two threads: 17-22 ms, five per
-    pass 10 ms, about the memory's bandwidth; benchmarks/RESULTS.md)."""
+    sums' latency was the limit (the sweep alone, 10 rows of 6.1e6 on two threads: 17-22
+    ms, five per pass 10-15 ms; benchmarks/RESULTS.md). The sums' order is the one of
+    two rows per pass (the same bits)."""
     nr = rows.shape[0]
     m = hi - (hi - lo) % 2
     a = 0
