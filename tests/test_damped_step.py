@@ -387,6 +387,31 @@ def test_damping_bound_bounds_the_dense_damping_matrix(dim, dashpots):
     assert np.linalg.eigvalsh(C)[-1] <= bound * (1 + 1e-12)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_damping_bound_in_parts_is_the_bound_in_one_piece(monkeypatch, dim):
+    """The operator's damping bound, computed in parts of a few contacts (memory), is
+    the one computed over all contacts at once, to the bit: the element masses of a
+    part split each particle over all its contacts, not over the part's (a part's own
+    counts give larger shares and another bound). ``element_mass`` of a part with the
+    assembly's counts is the full one's rows."""
+    from demstep.timestep import exact
+
+    p, c = _dashpotted(3 + dim, dim)
+    d = GlobalDamping(0.2, 0.05)
+    whole = exact.ScaledContactOperator(p, c, True, d).damping_bound()
+    monkeypatch.setattr(exact, "DAMPING_BOUND_PART", 3)
+    assert c.n > 3 * 3
+    parts = exact.ScaledContactOperator(p, c, True, d).damping_bound()
+    assert parts == whole
+    full = element_mass(p, c)
+    counts = c.count_per_particle(p.n)
+    for start in range(0, c.n, 3):
+        part = element_mass(p, c.part(start, start + 3), counts=counts)
+        for name in ("inv_m_i", "inv_m_j", "inv_I_i", "inv_I_j"):
+            np.testing.assert_array_equal(getattr(part, name),
+                                          getattr(full, name)[start:start + 3])
+
+
 @pytest.mark.parametrize("dim,seed", [(2, 1), (3, 2)])
 def test_the_damped_step_is_certified_by_the_upper_bound_not_the_ritz_value(
         monkeypatch, dim, seed):

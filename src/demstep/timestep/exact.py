@@ -113,6 +113,10 @@ class Springs(NamedTuple):
     k_w: np.ndarray | None = None
 
 
+#: contacts per part of :meth:`ScaledContactOperator.damping_bound`'s element bounds
+DAMPING_BOUND_PART = 1 << 16
+
+
 class ScaledContactOperator:
     """K^ = M^-1/2 K M^-1/2 and C^_d = M^-1/2 C_d M^-1/2 of an assembly as products.
 
@@ -348,13 +352,23 @@ class ScaledContactOperator:
                                              if rolling else ())
                 bound += float(np.max(np.max(dashpots, axis=0) * wmax))
         elif self.contacts.n:
-            mass = element_mass(self.particles, self.contacts)
-            if d.stiffness:
-                bound += d.stiffness * float(coupled_element_lambda(self.contacts, mass,
-                                                                    self.rotation).max())
-            if self.contacts.damped:
-                bound += float(coupled_element_lambda(self.contacts.dashpot_springs(), mass,
-                                                      self.rotation).max())
+            # in parts of DAMPING_BOUND_PART contacts (views): the element formulas make
+            # a dozen temporaries per contact, 950 MB at 7e6 contacts, on top of the
+            # basis at the damped solve's peak (benchmarks/RESULTS.md)
+            c = self.contacts
+            counts = c.count_per_particle(self.particles.n)
+            damped = c.damped
+            stiff = damp = 0.0
+            for start in range(0, c.n, DAMPING_BOUND_PART):
+                part = c.part(start, start + DAMPING_BOUND_PART)
+                mass = element_mass(self.particles, part, counts=counts)
+                if d.stiffness:
+                    stiff = max(stiff, float(coupled_element_lambda(part, mass,
+                                                                    self.rotation).max()))
+                if damped:
+                    damp = max(damp, float(coupled_element_lambda(part.dashpot_springs(), mass,
+                                                                  self.rotation).max()))
+            bound += d.stiffness * stiff + damp
         return bound
 
     def mode_shares(self, q: np.ndarray):

@@ -44,7 +44,7 @@ class ElementMass:
 
 
 def element_mass(particles: Particles, contacts: ContactSet, split: str = "uniform",
-                 axis: int = -1) -> ElementMass:
+                 axis: int = -1, counts: np.ndarray | None = None) -> ElementMass:
     """Split each particle's mass and inertia among its contacts.
 
     ``uniform`` (eqs. 16-19): m_i / nc_i and I_i / nc_i on each contact.
@@ -58,6 +58,9 @@ def element_mass(particles: Particles, contacts: ContactSet, split: str = "unifo
     upper and central rows, 8 contacts in FCC, 9 in rhombic; splitting it in halves
     keeps the partition symmetric and gives the central row exactly the paper's share.)
     A zone with no contact to take it is shared by all the particle's contacts.
+
+    ``counts`` (uniform split): the particles' numbers of contacts when ``contacts`` is
+    a part of the assembly's contacts (the shares are of all of them).
     """
     if split not in MASS_SPLITS:
         raise InputError(f"mass-split: must be one of {', '.join(MASS_SPLITS)}, got {split!r}")
@@ -65,7 +68,9 @@ def element_mass(particles: Particles, contacts: ContactSet, split: str = "unifo
     pp = contacts.j >= 0
     ends = np.concatenate([contacts.i, contacts.j[pp]])
     if split == "uniform":
-        share = 1.0 / contacts.count_per_particle(n)[ends]
+        if counts is None:
+            counts = contacts.count_per_particle(n)
+        share = 1.0 / counts[ends]
     else:
         share = _zoned_share(particles, contacts, ends, pp, axis)
     inv_m = 1.0 / (particles.m[ends] * share)
