@@ -368,7 +368,8 @@ class ScaledContactOperator:
                 if damped:
                     damp = max(damp, float(coupled_element_lambda(part.dashpot_springs(), mass,
                                                                   self.rotation).max()))
-            bound += d.stiffness * stiff + damp
+            bound += d.stiffness * stiff  # (then the dashpots': the old order of sums)
+            bound += damp
         return bound
 
     def mode_shares(self, q: np.ndarray):
