@@ -393,7 +393,7 @@ def test_damping_bound_in_parts_is_the_bound_in_one_piece(monkeypatch, dim):
     the one computed over all contacts at once, to the bit: the element masses of a
     part split each particle over all its contacts, not over the part's (a part's own
     counts give larger shares and another bound). ``element_mass`` of a part with the
-    assembly's counts is the full one's rows."""
+    assembly's counts is the full one's rows (a slice's subset)."""
     from demstep.timestep import exact
 
     p, c = _dashpotted(3 + dim, dim)
@@ -406,7 +406,7 @@ def test_damping_bound_in_parts_is_the_bound_in_one_piece(monkeypatch, dim):
     full = element_mass(p, c)
     counts = c.count_per_particle(p.n)
     for start in range(0, c.n, 3):
-        part = element_mass(p, c.part(start, start + 3), counts=counts)
+        part = element_mass(p, c.subset(slice(start, start + 3)), counts=counts)
         for name in ("inv_m_i", "inv_m_j", "inv_I_i", "inv_I_j"):
             np.testing.assert_array_equal(getattr(part, name),
                                           getattr(full, name)[start:start + 3])

@@ -115,14 +115,13 @@ class ContactSet:
         damping matrix C_d [M/T] (the dashpots act on the same relative motions)."""
         return replace(self, k_n=self.c_n, k_s=self.c_t, k_r=self.c_r, k_w=self.c_w)
 
-    def part(self, start: int, stop: int) -> "ContactSet":
-        """Contacts ``start`` ... ``stop`` - 1 (slices: only the springs, and the
-        optional coefficients that are not zero there, are copied, part-sized)."""
-        return ContactSet(*(getattr(self, f)[start:stop] for f in self.FIELDS))
-
     def subset(self, keep) -> "ContactSet":
-        """The contacts selected by ``keep`` (a boolean mask or an index array); optional
-        coefficients that are all zero stay untouched zeros (no memory until written)."""
+        """The contacts selected by ``keep`` (a boolean mask, an index array or a slice);
+        optional coefficients that are all zero stay untouched zeros (no memory until
+        written). A slice takes views: the constructor copies only the part's springs
+        and its non-zero optional coefficients, without a pass over the whole set's."""
+        if isinstance(keep, slice):
+            return ContactSet(*(getattr(self, f)[keep] for f in self.FIELDS))
         return ContactSet(*(None if _all_zero_optional(f, [self]) else getattr(self, f)[keep]
                             for f in self.FIELDS))
 

@@ -208,14 +208,12 @@ class ScaledContactOperator:
         through the owner map (:mod:`demstep.timestep.bodies`). With ``quadratic``,
         (y, x.y) when the product computed x.y on its way (the ordered runs), else
         (y, None)."""
-        if quadratic:
-            if self._ordered is not None:
-                return ordered_scaled_contact_matvec(
-                    self.contacts, springs[0], springs[1], self.rotation, self.scale, x,
-                    self._work, self._ordered, self._band, out, self.threads > 1, springs[2],
-                    springs[3])
-            return self.apply(x, springs, out), None
         k_n, k_t, k_r, k_w = springs
+        if self._ordered is not None:
+            y, quad = ordered_scaled_contact_matvec(
+                self.contacts, k_n, k_t, self.rotation, self.scale, x, self._work,
+                self._ordered, self._band, out, self.threads > 1, k_r, k_w)
+            return (y, quad) if quadratic else y
         if self.owner_map is not None:
             om = self.owner_map
             contiguous = out is not None and out.flags.c_contiguous
@@ -228,16 +226,15 @@ class ScaledContactOperator:
                                  k_r, k_w)
             if out is not None and not contiguous:
                 out[:] = y
-                return out
-            return y
-        if self._ordered is not None:
-            return self.apply(x, springs, out, quadratic=True)[0]
-        if self.threads > 1:
-            return chunked_scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation,
-                                                 self.scale, x, self._work, self._chunks,
-                                                 self._spans, self._buf, out, k_r=k_r, k_w=k_w)
-        return scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation, self.scale,
-                                     x, self._work, out, k_r, k_w)
+                y = out
+        elif self.threads > 1:
+            y = chunked_scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation,
+                                              self.scale, x, self._work, self._chunks,
+                                              self._spans, self._buf, out, k_r=k_r, k_w=k_w)
+        else:
+            y = scaled_contact_matvec(self.contacts, k_n, k_t, self.rotation, self.scale,
+                                      x, self._work, out, k_r, k_w)
+        return (y, None) if quadratic else y
 
     def stiffness(self, x):
         return self.apply(x, self.springs(0.0))
@@ -360,7 +357,7 @@ class ScaledContactOperator:
             damped = c.damped
             stiff = damp = 0.0
             for start in range(0, c.n, DAMPING_BOUND_PART):
-                part = c.part(start, start + DAMPING_BOUND_PART)
+                part = c.subset(slice(start, start + DAMPING_BOUND_PART))
                 mass = element_mass(self.particles, part, counts=counts)
                 if d.stiffness:
                     stiff = max(stiff, float(coupled_element_lambda(part, mass,
