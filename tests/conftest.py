@@ -39,23 +39,55 @@ def random_polydisperse(seed: int, dim: int, n: int = 30, walls: bool = False, f
     return p, c
 
 
-@pytest.fixture(scope="session", autouse=True)
-def compiled_kernels():
-    """Compile the engine's kernels (or load them from numba's cache) once, before the
-    first test. On a cold cache this takes one to two minutes, which would otherwise
-    be charged to whichever test happens to run first (``--durations`` then blames
-    it); here it shows as the setup of the first test."""
+def _warm_serial():
+    """The serial step kernels, the exact step's and the contact forces' (one part of
+    the warm-up)."""
+    sim = _warm_simulation(parallel=False)
+    sim.critical_dt("exact")
+    sim.contact_forces()
+
+
+def _warm_parallel():
+    """The threaded step kernels (the other part)."""
+    _warm_simulation(parallel=True)
+
+
+def _warm_simulation(parallel: bool):
     from demstep.engine import Simulation
-    from demstep.walls import Wall
 
     x = np.array([[1.0, 1.0, 1.0], [2.9, 1.0, 1.0]])
     p = Particles.from_density(x, np.ones(2), 1.0)
-    for parallel in (False, True):
-        sim = Simulation(p, walls=[Wall([0, 0, 0], [0, 0, 1], name="floor")],
-                         periodic=[None, 12.0, None], parallel=parallel)
-        sim.run(steps=2)
-        sim.critical_dt("exact")
-        sim.contact_forces()
+    sim = Simulation(p, walls=[Wall([0, 0, 0], [0, 0, 1], name="floor")],
+                     periodic=[None, 12.0, None], parallel=parallel)
+    sim.run(steps=2)
+    return sim
+
+
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels(tmp_path_factory, worker_id):
+    """Compile the engine's kernels (or load them from numba's cache) once, before the
+    first test. On a cold cache this takes one to two minutes, which would otherwise
+    be charged to whichever test happens to run first (``--durations`` then blames
+    it); here it shows as the setup of the first test.
+
+    With pytest-xdist's workers, the two parts (about 50 s each on a cold cache) are
+    compiled one by each worker at the same time, each part under a lock in the
+    workers' common temporary folder; a worker then takes the other part's lock, which
+    waits for the other worker to finish compiling it, and loads it from the cache
+    (before, both workers compiled everything: twice the work in the same wall time)."""
+    parts = [_warm_serial, _warm_parallel]
+    if worker_id == "master":  # (no workers)
+        for part in parts:
+            part()
+        return
+    import fcntl
+
+    shared = tmp_path_factory.getbasetemp().parent
+    first = int(worker_id.removeprefix("gw")) % len(parts)
+    for part in parts[first:] + parts[:first]:
+        with open(shared / f"warm-up-{part.__name__}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # (released when the file closes)
+            part()
 
 
 def oscillation_period(times, values):
