@@ -75,7 +75,8 @@ LANCZOS_MAX_MATVECS = 50_000
 #: the arrays of :func:`lanczos_top` in a :class:`Workspace` (the basis, which also
 #: holds the block of top Ritz vectors returned, and the new vector, which also holds
 #: the start) and the rows of the operator's projections
-#: (:meth:`demstep.timestep.exact.ScaledContactOperator.subspace_start`); blocks of
+#: (:meth:`demstep.timestep.exact.ScaledContactOperator.subspace_start`, when its block
+#: is not the basis' first rows: else it writes them into the basis rows after it); blocks of
 #: k x n of more than 32 MB come from the system as fresh pages at every allocation
 #: (glibc maps them anew), measured 2 ms per MB inside a running simulation
 LANCZOS_ARRAYS = ("lanczos_basis", "lanczos_w", "subspace_rows")
