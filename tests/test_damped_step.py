@@ -446,22 +446,21 @@ def test_the_damped_step_is_certified_by_the_upper_bound_not_the_ritz_value(
 @pytest.mark.parametrize("dim", [2, 3])
 def test_subspace_start_projects_in_the_basis_rows_after_the_block(dim):
     """The damped start's projections of the undamped block Y (the Lanczos basis' first
-    rows) are written to the basis rows right after Y instead of an array of their own
-    (memory): the start is the one computed from a copy of Y (which takes the array of
-    its own), to the bit, and no such array is held. Rows that overlapped Y would
-    overwrite it while it is read, and give another vector."""
-    from demstep.timestep.eigen import LANCZOS_ARRAYS
+    rows) are written to the basis rows right after Y (``Eigenpair.spare``) instead of an
+    array of their own (memory): those rows then hold the scaled block, and the start is
+    the one computed from a copy of Y without spare rows, to the bit. Rows that
+    overlapped Y would overwrite it while it is read, and give another vector."""
     from demstep.timestep.exact import START_BLOCK, ScaledContactOperator
 
     p, c = _dashpotted(5 + dim, dim, n=60)
     op = ScaledContactOperator(p, c, True, GlobalDamping(0.1, 0.01))
     top = op.top(0.0, dense_limit=0, tol=1e-10, block=START_BLOCK)
-    Y = top.block
-    assert Y.shape[0] == START_BLOCK > 1
+    Y, spare = top.block, top.spare
+    assert Y.shape[0] == START_BLOCK > 1 and spare.shape == Y.shape
+    assert not np.shares_memory(Y, spare)
     copy = Y.copy()
-    in_basis = op.subspace_start(Y)
-    assert op.workspace.held(LANCZOS_ARRAYS[2]) is None
+    in_basis = op.subspace_start(Y, spare)
     np.testing.assert_array_equal(Y, copy)  # the block itself untouched
+    np.testing.assert_array_equal(spare, (op.scale.reshape(-1) * copy))  # written there
     alone = op.subspace_start(copy)
-    assert op.workspace.held(LANCZOS_ARRAYS[2]) is not None
     np.testing.assert_array_equal(in_basis, alone)

@@ -70,11 +70,6 @@ class Workspace:
         buf.madvise(madvise)
         return np.frombuffer(buf, dtype=dtype)
 
-    def held(self, name: str) -> np.ndarray | None:
-        """The memory of the array ``name`` as it is held (flat), or None: for a
-        caller that reuses rows another user of the workspace has finished with."""
-        return self._flat.get(name)
-
     def release(self, *names: str):
         """Forget the arrays ``names`` (their memory goes once nothing else holds them)."""
         for name in names:

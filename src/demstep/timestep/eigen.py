@@ -75,8 +75,8 @@ LANCZOS_MAX_MATVECS = 50_000
 #: the arrays of :func:`lanczos_top` in a :class:`Workspace` (the basis, which also
 #: holds the block of top Ritz vectors returned, and the new vector, which also holds
 #: the start) and the rows of the operator's projections
-#: (:meth:`demstep.timestep.exact.ScaledContactOperator.subspace_start`, when its block
-#: is not the basis' first rows: else it writes them into the basis rows after it); blocks of
+#: (:meth:`demstep.timestep.exact.ScaledContactOperator.subspace_start`, when it is
+#: given no spare basis rows, :attr:`Eigenpair.spare`); blocks of
 #: k x n of more than 32 MB come from the system as fresh pages at every allocation
 #: (glibc maps them anew), measured 2 ms per MB inside a running simulation
 LANCZOS_ARRAYS = ("lanczos_basis", "lanczos_w", "subspace_rows")
@@ -96,6 +96,9 @@ class Eigenpair:
     #: (the first rows of the basis in the solver's workspace: the next solve overwrites
     #: them)
     block: np.ndarray | None = None
+    #: as many basis rows right after ``block``, free until the next solve (scratch for
+    #: a caller working on the block: no memory of its own), or None
+    spare: np.ndarray | None = None
 
     @property
     def upper(self) -> float:
@@ -160,9 +163,11 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
 
     ``matvec(x, out)`` writes A x into ``out`` and returns x.(A x) as a float when it
     computed it on its way (anything else is ignored); ``v0`` is the start. Returns
-    (theta, y, matvecs, Y): the largest Ritz value, its unit Ritz vector, the number of
-    products and (``block`` > 0) the top ``block`` Ritz vectors (block, n), largest
-    first (else None), once the Ritz estimate |beta s_last| of the residual is at most
+    (theta, y, matvecs, Y, spare): the largest Ritz value, its unit Ritz vector, the
+    number of products and (``block`` > 0) the top ``block`` Ritz vectors (block, n),
+    largest first, with the ``block`` basis rows after them, which hold nothing the
+    caller needs until the next solve (None where the basis has fewer rows; both None
+    without ``block``), once the Ritz estimate |beta s_last| of the residual is at most
     ``tol * theta`` (or the basis is exhausted, or after ``max_matvecs`` products), or
     once theta exceeds ``stop_above`` with an estimate at most ``stop_tol * theta`` (a
     Ritz value is a lower bound on the largest eigenvalue: the caller's question is
@@ -243,7 +248,8 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
             tk.combine_rows(V, size, s[:size, None] * S[:, ::-1][:, :nb], Y)
             y = Y[0].copy() if block else Y[0]  # (no second vector when Y is not kept)
             tk.scale_into(y, 1.0 / np.sqrt(tk._norm2(y)), y)
-            return float(top), y, matvecs, (Y if block else None)
+            spare = V[nb:2 * nb] if block and 2 * nb <= m else None
+            return float(top), y, matvecs, (Y if block else None), spare
         T[size, j] = T[j, size] = beta
         if size == m:
             # thick restart: keep the top ``keep`` Ritz vectors and the residual vector
@@ -310,7 +316,7 @@ def top_eigenpair(A, v0: np.ndarray | None = None, dense_limit: int = DENSE_LIMI
     # the start goes into Lanczos' scratch vector (read before its first product)
     start = start_vector(n, v0, mix, out=workspace.array(LANCZOS_ARRAYS[1], (n,)))
     for _ in range(LANCZOS_RETRIES):
-        ritz, y, used, Y = lanczos_top(into, start, tol=tol, stop_above=stop_above,
+        ritz, y, used, Y, spare = lanczos_top(into, start, tol=tol, stop_above=stop_above,
                                        stop_tol=stop_tol, block=block, workspace=workspace)
         Ay = workspace.array(LANCZOS_ARRAYS[1], (n,))  # (Lanczos' scratch vector, free now)
         into(y, Ay)
@@ -319,7 +325,7 @@ def top_eigenpair(A, v0: np.ndarray | None = None, dense_limit: int = DENSE_LIMI
         if ritz > stop_above or residual <= 10.0 * tol * abs(theta) or used < 2:
             break
         start = y  # the estimate was wrong (lost orthogonality): go on from y
-    return Eigenpair(float(theta), y, float(residual), matvecs, Y)
+    return Eigenpair(float(theta), y, float(residual), matvecs, Y, spare)
 
 
 def lambda_max(A, dense_limit: int = DENSE_LIMIT, tol: float = EIGSH_TOL) -> float:

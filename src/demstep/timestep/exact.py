@@ -278,23 +278,23 @@ class ScaledContactOperator:
                                          parallel=self.threads > 1)
         return kq, cq + self.damping.mass + self.damping.stiffness * kq
 
-    def subspace_start(self, Y: np.ndarray):
+    def subspace_start(self, Y: np.ndarray, spare: np.ndarray | None = None):
         """Rayleigh-Ritz of the damped problem on span(Y) (Y (k, size) orthonormal, e.g.
         the top Ritz vectors of the undamped solve): the largest root of the projected
         det(s^2 I - s C_p - K_p) = 0, by the safeguarded iteration on k x k matrices
         (both projections from one pass over the contacts), and its vector in span(Y)
         (unit). A start for the damped iteration: the critical mode is often one of the
         undamped top modes, not the top one (measured: dense packing, overlap 0.98 with
-        the 2nd-8th)."""
+        the 2nd-8th). ``spare`` (k, size): rows free to take the projections' input
+        (:attr:`Eigenpair.spare`; at 1e6 spheres an array of 192 MB otherwise)."""
         import scipy.linalg
 
         k = Y.shape[0]
         if self.owner_map is not None:
             X = np.stack([self.displacement(y) for y in Y])
         else:
-            X = self._rows_after(Y)
-            if X is None:
-                X = self.workspace.array(LANCZOS_ARRAYS[2], (k,) + self.scale.shape)
+            X = (spare.reshape((k,) + self.scale.shape) if spare is not None else
+                 self.workspace.array(LANCZOS_ARRAYS[2], (k,) + self.scale.shape))
             np.multiply(self.scale[None], Y.reshape(k, *self.scale.shape), out=X)
         K_p, C_p = contact_gram(self.contacts, self.rotation, X, self._chunks,
                                 parallel=self.threads > 1)
@@ -315,19 +315,6 @@ class ScaledContactOperator:
         combine_rows(Y, k, u[:, None], z)
         z /= np.linalg.norm(z[0])
         return z[0]
-
-    def _rows_after(self, Y: np.ndarray):
-        """The k rows of the Lanczos basis right after the block ``Y`` (k, size) when Y
-        is the basis' first rows (:attr:`Eigenpair.block`) and the basis has 2k rows or
-        more, shaped (k,) + scale's shape; else None. Those rows are free until the next
-        solve: the projections' rows there take no memory of their own (at 1e6 spheres,
-        192 MB that stayed through the damped solves)."""
-        basis = self.workspace.held(LANCZOS_ARRAYS[0])
-        k, n = Y.shape
-        if (basis is None or basis.size < 2 * k * n or not Y.flags.c_contiguous
-                or Y.ctypes.data != basis.ctypes.data):
-            return None
-        return basis[k * n:2 * k * n].reshape((k,) + self.scale.shape)
 
     def damping_bound(self) -> float:
         """An upper bound on lambda_max(C^) [1/T] (C^ with a1, a2 and the dashpots, rolling
@@ -532,7 +519,7 @@ def _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver,
     if top.block is not None and len(top.block) > 1:
         # the best vector for the damped problem among the undamped solve's top Ritz
         # vectors (a lower bound on sigma_max like any other)
-        candidates.append(op.subspace_start(top.block))
+        candidates.append(op.subspace_start(top.block, top.spare))
     if v0 is not None and v0.shape == (op.size,) and np.all(np.isfinite(v0)) and v0.any():
         candidates.append(v0 / np.linalg.norm(v0))  # a previous (damped) critical mode
     for z in candidates:
