@@ -10,7 +10,33 @@ global viscous damping. The energy the
 system holds when the ledger starts (or is reset) counts as external input.
 
     W_kin + W_int = W_ext,  W_int = W_strain + W_friction + W_damping,
-    normalized difference = |W_kin + W_int - W_ext| / max(W_ext, W_int, W_kin)   (eq. 22)
+    normalized difference = |W_kin + W_int - W_ext| / S(t)
+
+The paper's eq. 22 divides by max(W_ext, W_int, W_kin) at time t. That scale can
+vanish while the system is full of energy: a ball bouncing under gravity has all three
+near zero at the top of each bounce (the work of gravity is paid back as it rises), a
+harmonic oscillator under gravity at each turning point, and a cohesive contact holds a
+negative stored energy, so W_int < 0. demstep therefore divides by the running maximum
+
+    S(t) = max over s <= t of max(|W_ext(s)|, |W_int(s)|, W_kin(s)),
+
+the largest energy the system has held or exchanged since the ledger started. Where the
+input grows monotonically (the paper's compression tests, gravity settling, a wall
+pressing), S(t) is eq. 22's own scale at t; where it oscillates, S stays at the size of
+the oscillation instead of passing through zero. It never decreases, so a later
+instability still shows: the energy it creates is counted in the imbalance and in
+W_kin, and the error grows to order one as in eq. 22. The largest of the cumulative
+magnitudes of every term was the other candidate; it grows without bound in an
+oscillating run (2 m g h per bounce), so it would dilute a slowly growing instability
+a little more with every period.
+
+The divergence check (runaway kinetic energy) compares W_kin with the most energy the
+system can have received: the running maximum of the energy supplied (W_ext, the
+initial energy included) plus the energy a negative stored energy can release (-W_strain
+when it is negative: cohesion). Without friction, dashpots or integration error
+W_kin = W_ext - W_int can never exceed it, while a blow-up multiplies W_kin without
+bound; the current W_ext, which the check used before, returns to zero at the top of
+a bounce.
 
 The ledger describes time t of the last force evaluation: after a step the positions
 are already at t + dt (the kinetic energy at t needs v(t + dt/2)).
@@ -23,10 +49,12 @@ critical step, which is what makes it an instability alarm.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from demstep._numba import njit
 from demstep.errors import InputError
 
 # The ledger's layout, shared with the compiled kernels (which import it from here).
@@ -37,7 +65,10 @@ from demstep.errors import InputError
 #: released by parallel bonds as they broke
 (A_BODY, A_APPLIED, A_WALLS, A_FRICTION, A_DASHPOT, A_LOCAL, A_GLOBAL, A_INITIAL, A_BOX,
  A_ROLLING, A_ROLLING_VISCOUS, A_BOND_BROKEN) = range(12)
-N_ACC = 12
+#: running maxima kept in the same array, updated every step (:func:`update_peaks`):
+#: the energy supplied (the divergence check's reference) and the balance's scale S(t)
+A_PEAK_SUPPLIED, A_PEAK_SCALE = 12, 13
+N_ACC = 14
 #: state terms (array ``EnergyLedger.energy``): kinetic translation / rotation, strain
 #: normal / tangential / rolling and twisting springs / parallel bonds
 E_KIN_T, E_KIN_R, E_STRAIN_N, E_STRAIN_T, E_STRAIN_R, E_STRAIN_BOND = range(6)
@@ -49,6 +80,59 @@ log = logging.getLogger("demstep")
 DEFAULT_EPS = 1e-2
 
 
+# The ledger's sums, written once: the compiled step calls them, and so does
+# :class:`EnergyLedger` (through their Python functions, ``_py``).
+@njit(inline="always")
+def energy_supplied(acc):
+    """W_ext [M L^2/T^2]: work of body forces, applied forces, walls and the periodic
+    box, and the energy held when the ledger started."""
+    return acc[A_BODY] + acc[A_APPLIED] + acc[A_WALLS] + acc[A_BOX] + acc[A_INITIAL]
+
+
+@njit(inline="always")
+def energy_stored(energy):
+    """W_strain [M L^2/T^2]: the springs of the contacts (normal, tangential, rolling and
+    twisting) and of the bonds; negative where a cohesive force holds the contact."""
+    return energy[E_STRAIN_N] + energy[E_STRAIN_T] + energy[E_STRAIN_R] + energy[E_STRAIN_BOND]
+
+
+@njit(inline="always")
+def energy_dissipated(acc):
+    """Friction, dashpots, local and global damping, rolling resistance and the strain
+    energy of broken bonds [M L^2/T^2], accumulated."""
+    return (acc[A_FRICTION] + acc[A_DASHPOT] + acc[A_LOCAL] + acc[A_GLOBAL] + acc[A_ROLLING]
+            + acc[A_ROLLING_VISCOUS] + acc[A_BOND_BROKEN])
+
+
+@njit(inline="always")
+def energy_kinetic(energy):
+    """W_kin [M L^2/T^2], translation and rotation."""
+    return energy[E_KIN_T] + energy[E_KIN_R]
+
+
+@njit(inline="always")
+def update_peaks(acc, energy):
+    """Carry the running maxima to the state now: the energy supplied, and the scale
+    S = max(|W_ext|, |W_int|, W_kin) of the balance (module docstring)."""
+    supplied = energy_supplied(acc)
+    internal = energy_stored(energy) + energy_dissipated(acc)
+    acc[A_PEAK_SUPPLIED] = max(acc[A_PEAK_SUPPLIED], supplied)
+    acc[A_PEAK_SCALE] = max(acc[A_PEAK_SCALE], abs(supplied), abs(internal),
+                            energy_kinetic(energy))
+
+
+@njit(inline="always")
+def runaway_reference(acc, energy):
+    """The most kinetic energy [M L^2/T^2] the system can have received: the running
+    maximum of the energy supplied, plus what a negative stored energy can release."""
+    return max(acc[A_PEAK_SUPPLIED], 0.0) + max(-energy_stored(energy), 0.0)
+
+
+def _py(kernel):
+    """The Python function of a compiled formula (itself when numba is disabled)."""
+    return getattr(kernel, "py_func", kernel)
+
+
 class EnergyLedger:
     """Energies of a simulation [M L^2/T^2]; arrays shared with the compiled kernels."""
 
@@ -58,10 +142,11 @@ class EnergyLedger:
 
     def reset(self):
         """Start a new balance from the current state: the energy held now becomes the
-        initial input, accumulated terms restart at zero."""
+        initial input, accumulated terms and running maxima restart from it."""
         held = self.kinetic + self.strain
         self.acc[:] = 0.0
         self.acc[A_INITIAL] = held
+        _py(update_peaks)(self.acc, self.energy)
 
     # state terms
     @property
@@ -74,12 +159,11 @@ class EnergyLedger:
 
     @property
     def kinetic(self) -> float:
-        return self.kinetic_translational + self.kinetic_rotational
+        return float(_py(energy_kinetic)(self.energy))
 
     @property
     def strain(self) -> float:
-        return float(self.energy[E_STRAIN_N] + self.energy[E_STRAIN_T] + self.energy[E_STRAIN_R]
-                     + self.energy[E_STRAIN_BOND])
+        return float(_py(energy_stored)(self.energy))
 
     # accumulated terms
     @property
@@ -102,26 +186,35 @@ class EnergyLedger:
 
     @property
     def internal(self) -> float:
-        return self.strain + self.friction + self.damping + self.rolling + self.bond_broken
+        return self.strain + float(_py(energy_dissipated)(self.acc))
 
     @property
     def external(self) -> float:
-        return float(self.acc[A_BODY] + self.acc[A_APPLIED] + self.acc[A_WALLS] + self.acc[A_BOX]
-                     + self.acc[A_INITIAL])
+        return float(_py(energy_supplied)(self.acc))
 
     def imbalance(self) -> float:
         """W_kin + W_int - W_ext (zero for a perfect ledger)."""
         return self.kinetic + self.internal - self.external
 
     def scale(self) -> float:
-        return max(self.external, self.internal, self.kinetic)
+        """S(t), the running maximum of max(|W_ext|, |W_int|, W_kin) (module docstring;
+        the terms now count too, for a ledger the step has not updated)."""
+        return max(float(self.acc[A_PEAK_SCALE]), abs(self.external), abs(self.internal),
+                   self.kinetic)
 
-    def balance_error(self) -> float:
-        """Normalized energy difference of eq. 22 (0 when all terms vanish)."""
+    def balance_error(self, floor: float = 0.0) -> float:
+        """The normalized energy difference |W_kin + W_int - W_ext| / S(t) (eq. 22 with
+        the running scale of the module docstring); NaN while S(t) <= ``floor`` (the
+        energies are too small for the balance to mean anything: the energy monitor's
+        floor), 0 when every term vanishes."""
         s = self.scale()
+        if s <= floor and floor > 0.0:
+            return math.nan
         return abs(self.imbalance()) / s if s > 0 else 0.0
 
-    def as_dict(self) -> dict:
+    def as_dict(self, floor: float = 0.0) -> dict:
+        """Every term by name, and ``energy_error`` as the monitor evaluates it
+        (:meth:`balance_error` with the monitor's ``floor``: NaN below it)."""
         return {
             "kinetic_translational": self.kinetic_translational,
             "kinetic_rotational": self.kinetic_rotational,
@@ -143,7 +236,7 @@ class EnergyLedger:
             "initial": float(self.acc[A_INITIAL]),
             "external": self.external,
             "internal": self.internal,
-            "energy_error": self.balance_error(),
+            "energy_error": self.balance_error(floor),
         }
 
 
@@ -158,8 +251,8 @@ class EnergyBalanceError(RuntimeError):
 
 @dataclass
 class EnergyMonitor:
-    """Checks eq. 22 every ``every`` steps once max(W_ext, W_int, W_kin) exceeds
-    ``floor`` [energy]; ``action`` 'warn' logs (once per excursion) and records,
+    """Checks the balance every ``every`` steps once its scale S(t) exceeds ``floor``
+    [energy] (:meth:`EnergyLedger.balance_error`); ``action`` 'warn' logs (once per excursion) and records,
     'stop' ends the run (EnergyBalanceError, state saved)."""
 
     eps: float = DEFAULT_EPS
@@ -200,10 +293,10 @@ class EnergyMonitor:
             raise InputError(f"energy monitor every: must be >= 1, got {self.every!r}")
 
     def check(self, ledger: EnergyLedger, step: int, time: float, floor: float) -> float | None:
-        """Returns the error if it was evaluated (energies above the floor)."""
-        if ledger.scale() <= floor:
+        """Returns the error if it was evaluated (the scale S(t) above ``floor``)."""
+        err = ledger.balance_error(floor)
+        if math.isnan(err) or (floor > 0.0 and ledger.scale() <= floor):
             return None
-        err = ledger.balance_error()
         self.max_error = max(self.max_error, err)
         if err > self.eps:
             if not self._alarmed:

@@ -59,7 +59,8 @@ from demstep.backend import get_backend
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
 from demstep.contact.laws import ContactLaw, LinearSpring
 from demstep.contacts import ContactSet, with_rolling
-from demstep.energy import A_ROLLING, E_STRAIN_R, EnergyBalanceError, EnergyLedger, EnergyMonitor
+from demstep.energy import (A_ROLLING, E_STRAIN_R, EnergyBalanceError, EnergyLedger, EnergyMonitor,
+                            runaway_reference)
 from demstep.errors import InputError, SimulationDiverged
 from demstep.kernels import dem
 from demstep.packings import SPATIAL_ORDER_MIN, inverse_order, spatial_order
@@ -210,8 +211,9 @@ class Simulation:
     energy : EnergyMonitor (eps, interval, warn or stop)
     jump_limit : divergence when a particle moves more than this fraction of its radius
         in one step
-    runaway_factor : divergence when the kinetic energy exceeds this multiple of all
-        energy ever supplied (0 disables)
+    runaway_factor : divergence when the kinetic energy exceeds this multiple of the
+        most energy the system can have received (the peak of the energy supplied, plus
+        what a negative stored energy can release; :mod:`demstep.energy`; 0 disables)
     checkpoint_dir : where the state is saved on divergence (default: a temporary folder)
     rotation : False locks every particle's rotation (translation only)
     parallel : threaded kernels (True), serial (False), or automatic (None: threaded
@@ -2349,7 +2351,8 @@ class Simulation:
     def _diverged(self, reason):
         what = {dem.STOP_NONFINITE: "non-finite positions or energies",
                 dem.STOP_RUNAWAY: f"runaway kinetic energy ({self.ledger.kinetic:.4g}, more than "
-                                  f"{self.runaway_factor:g} x all energy supplied)",
+                                  f"{self.runaway_factor:g} x the most energy supplied, "
+                                  f"{runaway_reference(self.ledger.acc, self.ledger.energy):.4g})",
                 dem.STOP_JUMP: f"a particle moved {self.counters[2]:.3g} radii in one step "
                                f"(limit {self.jump_limit:g})"}[reason]
         est = ""

@@ -105,8 +105,8 @@ not checked; default: automatic).
 
 ``[numerics]``: ``skin`` [L] (Verlet skin; default 0.15 x mean radius), ``jump_limit``
 (divergence when a particle moves this fraction of its radius in one step),
-``runaway_factor`` (divergence when kinetic energy exceeds this multiple of the energy
-supplied; 0 disables), ``max_initial_overlap`` (the largest overlap of two particles at
+``runaway_factor`` (divergence when kinetic energy exceeds this multiple of the most
+energy supplied so far; 0 disables), ``max_initial_overlap`` (the largest overlap of two particles at
 the start, as a fraction of the smaller radius; default 0.05; pairs of fixed particles
 are exempt; coincident centres are always an error), ``sort_every`` [steps] (the
 particles are put in spatial order in memory again at the first neighbour-list rebuild

@@ -80,7 +80,8 @@ def history_row(sim, extra: dict | None = None) -> list:
     nan = math.nan
     row = [sim.step, float(sim.time), nan if sim.dt is None else float(sim.dt),
            nan if sim.dt_estimate is None else float(sim.dt_estimate)]
-    row += [float(v) for v in sim.ledger.as_dict().values()]
+    # energy_error as the monitor evaluates it: NaN while the energies are below its floor
+    row += [float(v) for v in sim.ledger.as_dict(float(sim.energy_floor or 0.0)).values()]
     row.append(int(sim.monitor.alarm))
     row.append(sim.n_contacts)
     if sim.walls:

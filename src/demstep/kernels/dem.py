@@ -31,10 +31,10 @@ from demstep.kernels.bodies import body_step, body_step_serial
 from demstep.kernels.bonds import bond_forces
 from demstep.kernels.integration import moved_since_build, step_weights, store_step_terms
 
-from demstep.energy import (  # the ledger's layout is the energy module's
+from demstep.energy import (  # the ledger's layout and sums are the energy module's
     A_APPLIED, A_BODY, A_BOND_BROKEN, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL,
     A_ROLLING, A_ROLLING_VISCOUS, A_WALLS, E_KIN_R, E_KIN_T, E_STRAIN_BOND, E_STRAIN_N, E_STRAIN_R,
-    E_STRAIN_T,
+    E_STRAIN_T, runaway_reference, update_peaks,
 )
 
 #: columns of the rolling-resistance history (Pairs.roll, Walls.roll; state.ROLL_WIDTH
@@ -1366,6 +1366,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         if first:
             # the energy held at t = 0 is the ledger's initial input
             acc[A_INITIAL] = out[4] + out[5] + e_n + we_n + e_t + we_t + er_s + eb_s
+        update_peaks(acc, energy)
         dt_prev = dt
         first = False
         # 8. divergence checks, then the expiry of the neighbour lists
@@ -1374,9 +1375,8 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
             return step + 1, STOP_NONFINITE
         if out[7] > ctl.jump_limit:
             return step + 1, STOP_JUMP
-        supplied = acc[A_BODY] + acc[A_APPLIED] + acc[A_WALLS] + acc[A_BOX] + acc[A_INITIAL]
-        floor = ctl.energy_floor
-        if ctl.runaway_factor > 0.0 and ke > ctl.runaway_factor * max(supplied + floor, floor):
+        if ctl.runaway_factor > 0.0 \
+                and ke > ctl.runaway_factor * (runaway_reference(acc, energy) + ctl.energy_floor):
             return step + 1, STOP_RUNAWAY
         # contacts closed beyond the cover of the certified step at the positions now,
         # or closing in the next step at these velocities, looked for when the
