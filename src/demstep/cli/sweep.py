@@ -1,9 +1,11 @@
 """``demstep sweep``: parameter sweeps of a case on Dask (:mod:`demstep.sweep`).
 
 Bad input (a key that is not in the schema, a value the schema refuses, a bad runs
-file, a ``--peak`` that is no column of a run's history, an unreachable scheduler) raises InputError before anything is written (the main
-CLI prints ``demstep: error: ...`` and exits 2; so does an output folder another sweep
-is writing into). Exit status: 0 when every run finished (completed, diverged or
+file, a ``--peak`` that is no column of a run's history, a ``--scheduler`` that cannot be
+reached or is no Dask scheduler: an SSH or HTTP server, one that never answers; see
+:func:`demstep.sweep.cluster.probe_scheduler`) raises InputError before anything is
+written (the main CLI prints ``demstep: error: ...`` and exits 2; so does an output
+folder another sweep is writing into). Exit status: 0 when every run finished (completed, diverged or
 energy_stop: results of the sweep), 1 when any run failed with an error or was left
 unfinished because no worker was connected for ``--worker-timeout`` seconds (its
 message is in summary.csv; running the sweep again re-runs it).
@@ -57,7 +59,8 @@ def add_sweep_parser(subparsers):
                    "TOML file of [[runs]] tables; combined with every --param")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder of the sweep")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
-                   help="address of a running Dask scheduler (default: start a local cluster)")
+                   help="address of a running Dask scheduler, its scheduler port (Dask's "
+                   "default 8786), not the dashboard's (default: start a local cluster)")
     p.add_argument("--workers", type=_int_at_least("workers", 1), default=None, metavar="N",
                    help=f"worker processes of the local cluster, one thread each "
                    f"(default {DEFAULT_WORKERS})")

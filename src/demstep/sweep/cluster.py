@@ -8,6 +8,8 @@ import logging
 import os
 import platform
 import re
+import socket
+import struct
 import time as wallclock
 import traceback
 from dataclasses import dataclass
@@ -22,6 +24,11 @@ WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS
               "OPENBLAS_NUM_THREADS": "1"}
 #: seconds to wait for an existing scheduler to answer
 CONNECT_TIMEOUT = 20
+#: seconds :func:`probe_scheduler` waits for a server's first words before it asks in
+#: HTTP (at most half the timeout)
+GREETING_WAIT = 5.0
+#: largest first message [bytes] taken for a Dask handshake (it is about 60 bytes)
+GREETING_MAX = 1 << 20
 
 log = logging.getLogger("demstep")
 
@@ -94,20 +101,138 @@ def check_scheduler_address(address: str) -> str:
     return text
 
 
+def probe_scheduler(address: str, timeout: float) -> None:
+    """Check, with a plain socket and within ``timeout`` seconds, that a ``tcp://``
+    address is a Dask scheduler before ``distributed.Client`` tries it: Dask's comm reads
+    the first 8 bytes it receives as a frame length (an SSH banner made numpy allocate
+    exabytes) and its handshake has no timeout (a silent server hung it). Raises
+    InputError (one line: the address and what answered) unless the server sends a Dask
+    handshake. Other protocols (tls://, ws://, ...) are not probed.
+
+    A Dask scheduler writes its handshake as soon as it accepts a connection, before it
+    reads anything; so nothing is sent until the server has been silent for
+    :data:`GREETING_WAIT` seconds (at most half the timeout). Then ``HEAD / HTTP/1.0``
+    asks whether it is an HTTP server (the dashboard's port). A scheduler whose event
+    loop was blocked that long answers with its handshake and is accepted (it logs an
+    error for the probe's bytes, which it reads as a frame length)."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        if scheme != "tcp":
+            return
+        host, port = parse_host_port(location)
+    except ValueError as exc:  # no port, or IPv6 without brackets
+        raise InputError(f"scheduler: cannot use {address}: {exc}") from None
+    start = wallclock.monotonic()
+    deadline = start + timeout
+    cannot = f"scheduler: cannot connect to {address}"
+    try:
+        sock = socket.create_connection((host, port), timeout=timeout)
+    except socket.gaierror as exc:
+        raise InputError(f"{cannot}: host {host!r} does not resolve "
+                         f"({exc.strerror or one_line(exc)})") from None
+    except ConnectionRefusedError:
+        raise InputError(f"{cannot}: connection refused (nothing listening on port "
+                         f"{port} of {host})") from None
+    except (socket.timeout, TimeoutError):
+        raise InputError(f"{cannot}: no answer to the connection within {timeout:g} s") \
+            from None
+    except OSError as exc:
+        raise InputError(f"{cannot}: {exc.strerror or one_line(exc)}") from None
+    with sock:
+        answer = _greeting(sock, start + min(GREETING_WAIT, timeout / 2))
+        asked = False
+        if answer == b"":  # silent so far: no Dask scheduler would be; ask in HTTP
+            asked = True
+            try:
+                sock.sendall(b"HEAD / HTTP/1.0\r\n\r\n")
+            except OSError:
+                pass
+            answer = _greeting(sock, deadline)
+    if answer is None:
+        raise InputError(f"scheduler: {address} closed the connection without a word, "
+                         f"not a Dask scheduler")
+    if answer == b"":
+        asked_text = " (nor to an HTTP request)" if asked else ""
+        raise InputError(f"scheduler: {address} did not answer as a Dask scheduler within "
+                         f"{timeout:g} s{asked_text}")
+    if _is_dask_handshake(answer):
+        return
+    first = answer.split(b"\n", 1)[0].strip()
+    shown = repr(first[:60].decode("ascii", "backslashreplace"))
+    if answer.startswith(b"SSH-"):
+        what = f"an SSH server ({shown})"
+    elif answer.startswith(b"HTTP/"):
+        what = f"an HTTP server ({shown}; the dashboard?)"
+    else:
+        what = f"something else (its first bytes: {shown})"
+    raise InputError(f"scheduler: {address} answered as {what}, not a Dask scheduler")
+
+
+def _greeting(sock: socket.socket, until: float) -> bytes | None:
+    """What the server sends first, read until ``until`` (monotonic time): a whole first
+    Dask message, or the first chunk of anything else (8 bytes that are no plausible
+    length: an SSH banner, an HTTP status line); b"" when it sent nothing, None when it
+    closed the connection without sending anything."""
+    data = b""
+    while True:
+        if len(data) >= 8:
+            (size,) = struct.unpack("<Q", data[:8])
+            if size > GREETING_MAX or len(data) >= 8 + size:
+                return data
+        left = until - wallclock.monotonic()
+        if left <= 0:
+            return data
+        sock.settimeout(left)
+        try:
+            chunk = sock.recv(4096)
+        except (socket.timeout, TimeoutError):
+            return data
+        except OSError:  # reset by the server
+            return data or None
+        if not chunk:
+            return data or None
+        data += chunk
+
+
+def _is_dask_handshake(data: bytes) -> bool:
+    """``data`` is a message as Dask's TCP comm writes it: its length (8 bytes, little
+    endian), then frames packed by ``distributed.protocol.utils.pack_frames``."""
+    from distributed.protocol.utils import unpack_frames
+
+    if len(data) < 16:
+        return False
+    (size,) = struct.unpack("<Q", data[:8])
+    if not 8 < size <= GREETING_MAX or len(data) < 8 + size:
+        return False
+    body = data[8:8 + size]
+    try:
+        (count,) = struct.unpack("<Q", body[:8])
+        if not 1 <= count <= (size - 8) // 8:
+            return False
+        frames = unpack_frames(body)
+    except Exception:  # struct.error, AssertionError: not Dask's packing
+        return False
+    return len(frames) == count and sum(len(f) for f in frames) + 8 * (count + 1) == size
+
+
 @contextlib.contextmanager
 def dask_client(scheduler: str | None = None, workers: int = 2):
     """A ``distributed.Client``: connected to the existing cluster at ``scheduler``
     (closed on exit; the cluster keeps running), or to a new
     ``LocalCluster(n_workers=workers, threads_per_worker=1, processes=True)`` whose
     workers run with :data:`WORKER_ENV` (shut down on exit). Raises InputError when
-    the scheduler cannot be reached."""
+    the scheduler cannot be reached or the address is no Dask scheduler's
+    (:func:`probe_scheduler`)."""
     from distributed import Client, LocalCluster
 
     if scheduler:
         address = check_scheduler_address(scheduler)
+        probe_scheduler(address, CONNECT_TIMEOUT)
         try:
             client = Client(address, timeout=CONNECT_TIMEOUT)
-        except (OSError, TimeoutError, ValueError) as exc:
+        except Exception as exc:  # whatever goes wrong here: the one-line input error
             raise InputError(f"scheduler: cannot connect to {address} ({one_line(exc)})") from None
         try:
             yield client
