@@ -21,6 +21,7 @@ import numpy as np
 
 from demstep.energy import DEFAULT_EPS
 from demstep.errors import InputError
+from demstep.io.manifest import OutputManifest
 from demstep.plotting import _pyplot, save_figure
 
 
@@ -55,6 +56,12 @@ def plot_run(out_dir) -> list[Path]:
     if len(h["step"]) == 0:
         raise InputError(f"plot: {path} has no rows yet")
     folder = (path.parent / "plots")
+    manifest = OutputManifest(path.parent)  # (--overwrite of the run removes them too)
+
+    def save(fig, name):
+        manifest.record(folder / name)
+        return save_figure(fig, folder / name)
+
     plt = _pyplot()
     t = h["time"]
     written = []
@@ -71,7 +78,7 @@ def plot_run(out_dir) -> list[Path]:
     ax.legend(fontsize=8)
     _stage_lines(ax, h)
     ax.set_title("energy ledger")
-    written.append(save_figure(fig, folder / "energies.png"))
+    written.append(save(fig, "energies.png"))
 
     fig, ax = plt.subplots(figsize=(7, 4))
     err = np.where(h["energy_error"] > 0, h["energy_error"], np.nan)
@@ -81,7 +88,7 @@ def plot_run(out_dir) -> list[Path]:
     ax.set_ylabel("|W_kin + W_int - W_ext| / max(...)")
     ax.legend(fontsize=8)
     _stage_lines(ax, h)
-    written.append(save_figure(fig, folder / "energy_error.png"))
+    written.append(save(fig, "energy_error.png"))
 
     stress_cols = [c for c in h if c.endswith(".stress") or c.startswith("love.")]
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -95,7 +102,7 @@ def plot_run(out_dir) -> list[Path]:
     ax.set_xlabel("time [T]")
     ax.set_ylabel("stress [M/(L T^2)]")
     _stage_lines(ax, h)
-    written.append(save_figure(fig, folder / "wall_stress.png"))
+    written.append(save(fig, "wall_stress.png"))
 
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.plot(h["step"], h["dt"], label="dt")
@@ -104,5 +111,5 @@ def plot_run(out_dir) -> list[Path]:
     ax.set_xlabel("step")
     ax.set_ylabel("time step [T]")
     ax.legend(fontsize=8)
-    written.append(save_figure(fig, folder / "timestep.png"))
+    written.append(save(fig, "timestep.png"))
     return written

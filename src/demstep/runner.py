@@ -41,6 +41,7 @@ from typing import Callable
 from demstep.case import Case, apply_stage, build_simulation, check_stages, dump_case
 from demstep.io.atomic import remove_orphans, write_text_atomic
 from demstep.io.lock import FolderLock, check_folder_creatable, folder_is_empty, make_folder
+from demstep.io.manifest import OutputManifest, remove_written
 from demstep.errors import InputError, SimulationDiverged
 
 log = logging.getLogger("demstep")
@@ -50,6 +51,10 @@ LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 #: default chunk: about this many particle-steps (a fraction of a second of computing)
 CHUNK_PARTICLE_STEPS = 500_000
 MIN_CHUNK_STEPS, MAX_CHUNK_STEPS = 10, 20_000
+#: the steps a stage ending on ``until_kinetic_below`` takes at most when it gives no
+#: ``max_steps`` (a kinetic energy never reached, e.g. elastic particles that never
+#: settle, would run forever); said in a warning when the stage starts
+DEFAULT_SETTLE_MAX_STEPS = 1_000_000
 
 
 def default_chunk_steps(n_particles: int) -> int:
@@ -204,6 +209,22 @@ def find_checkpoint(path) -> Path:
     return path
 
 
+def kept_checkpoints(folder: Path) -> list[Path]:
+    """The checkpoints in ``folder`` that ``output.checkpoint_keep`` counts, oldest
+    (lowest step) first: every one with a run state, but those saved at a failure
+    (:data:`FAILED`: the state a divergence left, kept as evidence)."""
+    found = []
+    for js in Path(folder).glob("*.json") if Path(folder).is_dir() else ():
+        try:
+            data = json.loads(js.read_text(encoding="utf-8"))
+            npz = js.with_suffix(".npz")
+            if npz.is_file() and data.get("reason") not in FAILED:
+                found.append((int(data["step"]), js.stat().st_mtime, npz))
+        except (ValueError, KeyError, TypeError, OSError):
+            continue
+    return [npz for *_, npz in sorted(found)]
+
+
 def case_hash(case: Case) -> str:
     return hashlib.sha256(dump_case(case).encode()).hexdigest()
 
@@ -326,10 +347,38 @@ class _RichProgress:
 
 
 # ---------------------------------------------------------------------- logging
+class _LogFile(logging.FileHandler):
+    """The run's log, appended to, never through a symbolic link: every other output is
+    replaced atomically, and a link named run.log (a restart appended to its target)
+    is replaced by a regular file first (:func:`_own_log`); O_NOFOLLOW refuses a link
+    made in between."""
+
+    def _open(self):
+        fd = os.open(self.baseFilename, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW,
+                     0o666)
+        return open(fd, "a", encoding=self.encoding, errors=self.errors)
+
+
+def _own_log(path: Path) -> str | None:
+    """Replace a symbolic link at ``path`` by a regular file holding what the link's
+    target held (when it is a readable file): the target is never written. Returns the
+    warning to log (None: no link)."""
+    if not path.is_symlink():
+        return None
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace") if path.is_file() else ""
+    except OSError:
+        text = ""
+    target = os.readlink(path)
+    write_text_atomic(path, text)  # (os.replace swaps the link itself for the file)
+    return (f"run.log was a symbolic link to {target}: replaced by a regular file (the "
+            f"link's target is left as it was)")
+
+
 def _setup_logging(out_dir: Path, level: str, console) -> list[logging.Handler]:
     fmt = logging.Formatter("%(asctime)s %(levelname)s %(message)s")
     handlers: list[logging.Handler] = []
-    fh = logging.FileHandler(out_dir / "run.log", encoding="utf-8")
+    fh = _LogFile(out_dir / "run.log", encoding="utf-8", delay=False)
     fh.setFormatter(fmt)
     handlers.append(fh)
     if console is not None:
@@ -349,7 +398,7 @@ def _setup_logging(out_dir: Path, level: str, console) -> list[logging.Handler]:
 # ------------------------------------------------------------------- the runner
 class _Runner:
     def __init__(self, case, sim, out_dir, pos, max_steps, quiet, on_chunk, chunk_steps,
-                 stop: StopRequest, progress):
+                 stop: StopRequest, progress, manifest: OutputManifest):
         from demstep.io.history import HistoryWriter
         from demstep.io.vtk import VtkWriter
 
@@ -360,18 +409,22 @@ class _Runner:
         self.stop = stop
         self.progress = progress
         self.ckpt_dir = out_dir / "checkpoints"
-        self.periodic_ckpts: list[Path] = []
+        self.manifest = manifest
+        #: the checkpoints ``checkpoint_keep`` counts, oldest first: those in the folder
+        #: from before (a restart), then this run's
+        self.kept_ckpts: list[Path] = kept_checkpoints(self.ckpt_dir)
         out = case.output
         resume = sim.step if pos is not None else None
         self.history = None
         if out.history_every:
+            manifest.record(out_dir / "history.csv")
             self.history = HistoryWriter(out_dir / "history.csv", sim,
                                          extra={"stage": lambda s: self.pos.stage},
                                          resume_after_step=resume)
         self.vtk = None
         if out.vtk_every:
             self.vtk = VtkWriter(out_dir / "vtk", contacts=out.vtk_contacts,
-                                 resume_after_step=resume)
+                                 resume_after_step=resume, on_write=manifest.record)
         self.last_checkpoint: Path | None = None
 
     # ---- outputs
@@ -382,23 +435,27 @@ class _Runner:
         if self.vtk is not None and sim.step % out.vtk_every == 0:
             self.vtk.write(sim)
         if out.checkpoint_every and sim.step % out.checkpoint_every == 0:
-            path = self.checkpoint("periodic")
-            self.periodic_ckpts.append(path)
-            keep = out.checkpoint_keep
-            while keep and len(self.periodic_ckpts) > keep:
-                old = self.periodic_ckpts.pop(0)
-                for p in (old, state_path(old)):
-                    if p.exists() and p != self.last_checkpoint:
-                        p.unlink()
+            self.checkpoint("periodic")
 
     def checkpoint(self, reason: str) -> Path:
+        """Save a checkpoint and its run state; then, past ``checkpoint_keep``, remove
+        the oldest of the kept ones (:func:`kept_checkpoints`: every reason but a
+        failure; the newest is never removed)."""
         from demstep.io.checkpoint import save_checkpoint
 
         path = self.ckpt_dir / f"step{self.sim.step:010d}.npz"
+        self.manifest.record(path, state_path(path))
         save_checkpoint(self.sim, path)
         write_state(path, self.pos, self.case, self.sim, reason)
         self.last_checkpoint = path
         log.info("checkpoint (%s) at step %d: %s", reason, self.sim.step, path)
+        self.kept_ckpts = [p for p in self.kept_ckpts if p != path] + [path]
+        keep = self.case.output.checkpoint_keep
+        while keep and len(self.kept_ckpts) > keep:
+            old = self.kept_ckpts.pop(0)
+            for p in (old, state_path(old)):
+                if p.exists():
+                    p.unlink()
         return path
 
     # ---- stage bookkeeping
@@ -414,6 +471,11 @@ class _Runner:
         self.pos = RunPosition(k, 0, sim.step, sim.time, total)
         log.info("stage %d/%d '%s' starts at step %d (t = %.6g)", k + 1, len(self.case.stages),
                  self.case.stage_label(k), sim.step, sim.time)
+        if stage.until_kinetic_below is not None and stage.max_steps is None:
+            log.warning("stage '%s': until_kinetic_below without max_steps: it stops after "
+                        "%d steps if the kinetic energy stays above %.4g (give max_steps to "
+                        "choose)", self.case.stage_label(k), DEFAULT_SETTLE_MAX_STEPS,
+                        stage.until_kinetic_below)
 
     def _start_stage_keeping_work(self, k: int, done_here: bool):
         """:meth:`_start_stage`; when the stage cannot start (its changes are bad input
@@ -438,6 +500,8 @@ class _Runner:
             bounds.append(self.pos.stage_total)
         if stage.max_steps is not None:
             bounds.append(stage.max_steps)
+        elif stage.until_kinetic_below is not None:
+            bounds.append(DEFAULT_SETTLE_MAX_STEPS)
         if self.max_steps is not None:
             bounds.append(self.max_steps)
         return min(bounds) - self.pos.stage_step if bounds else None
@@ -588,26 +652,27 @@ class _Runner:
     def _emergency(self, status, checkpoint, message) -> RunResult:
         path = Path(checkpoint) if checkpoint else None
         if path is not None and path.exists():
+            self.manifest.record(path, state_path(path))
             write_state(path, self.pos, self.case, self.sim, status)
         log.error("%s", message)
         return RunResult(status, self.out_dir, self.sim.step, self.sim.time, path, message)
 
 
-#: what a run writes into its folder (removed by ``overwrite``; nothing else is touched)
+#: what a run writes into its folder (``overwrite`` removes what the folder's manifest
+#: lists, :mod:`demstep.io.manifest`; nothing else is touched)
 OUTPUTS = ("case.toml", "run.json", "run.log", "history.csv", "vtk", "checkpoints", "plots")
 
 
-def remove_outputs(out_dir: Path, outputs=OUTPUTS):
-    """Remove ``outputs`` (names in ``out_dir``: files and folders) of an earlier run."""
-    import shutil
-
-    for name in outputs:
-        path = out_dir / name
-        if path.is_dir():
-            shutil.rmtree(path)
-        elif path.exists():
-            path.unlink()
-
+def remove_outputs(out_dir: Path, outputs=OUTPUTS) -> str | None:
+    """Remove the outputs of an earlier run in ``out_dir``: the files its manifest lists
+    (for a folder from before manifests, the names ``outputs`` and demstep's own files
+    in its output folders). Files demstep did not write stay; returns the warning that
+    says so (None: none stayed)."""
+    kept = remove_written(out_dir, outputs)
+    if not kept:
+        return None
+    return (f"out: kept {len(kept)} file(s) demstep did not write in {out_dir} "
+            f"(e.g. {kept[0]})")
 
 def _version_info() -> dict:
     import numba
@@ -620,17 +685,53 @@ def _version_info() -> dict:
             "platform": platform.platform()}
 
 
+def earlier_results(out_dir: Path) -> str | None:
+    """What ``out_dir`` holds of an earlier run's results, in words ("2 checkpoints (the
+    newest at step 5000), 106 history rows, 36 VTK files"), or None: no checkpoint, no
+    history row, no VTK frame but the initial one, no plot. Read from the files
+    themselves, not from run.json (a run killed by SIGKILL never records its results)."""
+    found = []
+    ckpt = out_dir / "checkpoints"
+    if ckpt.is_dir():
+        npz = sorted(ckpt.glob("*.npz"))
+        if npz:
+            try:
+                newest = f" (the newest at step {_checkpoint_step(find_checkpoint(out_dir))})"
+            except InputError:
+                newest = ""
+            found.append(f"{len(npz)} checkpoint(s){newest}")
+    history = out_dir / "history.csv"
+    if history.is_file():
+        with open(history, "rb") as fh:
+            rows = sum(1 for _ in fh) - 1
+        if rows > 0:
+            found.append(f"{rows} history row(s)")
+    vtk = out_dir / "vtk"
+    if vtk.is_dir():
+        frames = [f for f in vtk.iterdir() if f.suffix == ".vtu" and not f.stem.endswith(
+            "_" + "0" * 10)]
+        if frames:
+            found.append(f"{len(frames)} VTK frame(s)")
+    plots = out_dir / "plots"
+    if plots.is_dir() and any(plots.iterdir()):
+        found.append("plots")
+    return ", ".join(found) or None
+
+
+def _checkpoint_step(path: Path) -> int:
+    data = json.loads(state_path(path).read_text(encoding="utf-8"))
+    return int(data["step"])
+
+
 def _replaceable(out_dir: Path) -> bool:
     """Whether a fresh run may write into ``out_dir`` without ``overwrite``: it does
-    not exist, holds nothing but its lock file, or holds only a run that stopped before
-    its first step (run.json: ``"results": false``; e.g. interrupted while compiling)."""
+    not exist, holds nothing but its lock file, or holds only what a run that stopped
+    before its first step leaves (run.json, case.toml, run.log, a history header, the
+    initial VTK frame; e.g. interrupted while compiling): no result
+    (:func:`earlier_results`) and nothing that is not demstep's."""
     if _empty(out_dir):
         return True
-    try:
-        info = json.loads((out_dir / "run.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
-    if not isinstance(info, dict) or info.get("results") is not False:
+    if not (out_dir / "run.json").is_file() or earlier_results(out_dir) is not None:
         return False
     return all(p.name in OUTPUTS or p.name.startswith(".") for p in out_dir.iterdir())
 
@@ -689,10 +790,22 @@ def check_out_empty(out_dir: Path, overwrite: bool,
                     replaceable: Callable[[Path], bool] = _empty) -> None:
     """The rule of every output folder a fresh result goes into (``run --out``,
     ``paper --out``): unless ``overwrite``, it must be new, empty, or ``replaceable``;
-    else an InputError naming the option and the folder, with ``hint`` (what to do).
-    Check it before anything is written, and again under the folder's lock."""
-    if not overwrite and not replaceable(out_dir):
-        raise InputError(f"out: {out_dir} exists and is not empty ({hint})")
+    else an InputError naming the option and the folder, with ``hint`` (what to do);
+    for a run folder with results (:func:`earlier_results`), what it holds and the
+    command that continues it. Check it before anything is written, and again under
+    the folder's lock."""
+    if overwrite or replaceable(out_dir):
+        return
+    results = earlier_results(out_dir) if out_dir.is_dir() else None
+    if results is not None and (out_dir / "checkpoints").is_dir():
+        try:
+            restart = f"--restart {find_checkpoint(out_dir)}"
+        except InputError:
+            restart = None
+        if restart is not None:
+            raise InputError(f"out: {out_dir} holds the results of an earlier run ({results}); "
+                             f"continue it with {restart}, or give --overwrite to replace them")
+    raise InputError(f"out: {out_dir} exists and is not empty ({hint})")
 
 
 def _check_restart_case(state: dict, case: Case, checkpoint, allow_changed_case: bool) -> bool:
@@ -773,8 +886,8 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
         raise InputError(f"max-steps: must be an integer >= 0, got {max_steps!r}")
     if chunk_steps is not None and (not isinstance(chunk_steps, int) or chunk_steps < 1):
         raise InputError(f"chunk_steps: must be an integer >= 1, got {chunk_steps!r}")
-    out_dir = Path(out_dir)
     check_folder_creatable(out_dir, "out")
+    out_dir = Path(out_dir)
     if restart is None:
         check_out_empty(out_dir, overwrite, replaceable=_replaceable)
     _check_inputs_kept(case, out_dir, restart)
@@ -814,10 +927,9 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
         if restart is None:
             check_out_empty(out_dir, overwrite, replaceable=_replaceable)
         remove_orphans(out_dir, *(out_dir / name for name in ("checkpoints", "vtk", "plots")))
-        if restart is None:
-            remove_outputs(out_dir)
+        notes = [remove_outputs(out_dir)] if restart is None else []
         return _run_locked(case, sim, out_dir, pos, restart_info, checkpoint, level, quiet,
-                           max_steps, chunk_steps, on_chunk, stop, __version__)
+                           max_steps, chunk_steps, on_chunk, stop, __version__, notes)
     finally:
         stop.restore()
         if lock is not None:
@@ -825,8 +937,9 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
 
 
 def _run_locked(case, sim, out_dir, pos, restart_info, checkpoint, level, quiet, max_steps,
-                chunk_steps, on_chunk, stop, version) -> RunResult:
-    """The part of :func:`run_case` that writes (the folder is locked)."""
+                chunk_steps, on_chunk, stop, version, notes) -> RunResult:
+    """The part of :func:`run_case` that writes (the folder is locked); ``notes``:
+    warnings to log once the log is open."""
     run_json = out_dir / "run.json"
     info = {}
     if restart_info is not None and run_json.is_file():
@@ -880,15 +993,21 @@ def _run_locked(case, sim, out_dir, pos, restart_info, checkpoint, level, quiet,
             pass
 
     stop.on_abort = on_abort
+    manifest = OutputManifest(out_dir)
+    manifest.record(run_json, out_dir / "case.toml", out_dir / "run.log")
     record.write()  # first, so that an abort from now on is recorded
     case_text = f"# resolved case written by demstep {version}\n" + dump_case(case)
     _write_text(out_dir / "case.toml", case_text)
+    notes = [*notes, _own_log(out_dir / "run.log")]
     log.setLevel(level)
     try:
         progress = _NoProgress() if quiet else _RichProgress()
         handlers = _setup_logging(out_dir, level, getattr(progress, "console", None))
+        for note in notes:
+            if note:
+                log.warning("%s", note)
         runner = _Runner(case, sim, out_dir, pos, max_steps, quiet, on_chunk, chunk_steps,
-                         stop, progress)
+                         stop, progress, manifest)
         if checkpoint is not None:
             runner.last_checkpoint = Path(checkpoint)
         log.info("demstep %s: case '%s', %d %dD particles, %d walls, %d stage(s)%s",

@@ -116,7 +116,8 @@ their order).
 
 ``[[stages]]`` (at least one), run in order: ``name``, and exactly one of ``steps``,
 ``duration`` [T] or ``until_kinetic_below`` [M L^2/T^2] (checked every
-``check_every`` steps, at most ``max_steps``). Changes applied at the start of the
+``check_every`` steps, at most ``max_steps``; without it at most 1,000,000 steps, with a
+warning when the stage starts). Changes applied at the start of the
 stage: ``mu``, ``mu_wall``, ``damping = {local, viscous}``, ``gravity`` [L/T^2],
 ``[stages.walls."name"]`` (motion, velocity, target_stress, servo_gain, servo_factor,
 max_speed, area, friction), ``[stages.periodic.x]`` (how a periodic length changes:
@@ -128,8 +129,9 @@ on the Love stress, ``servo_gain`` [L T/M] or ``servo_factor``, ``max_speed`` [L
 
 ``[output]``: ``history_every`` [steps] (CSV history; 0 none), ``vtk_every`` [steps]
 (VTK frames; 0 none), ``vtk_contacts`` (write the contact network), ``checkpoint_every``
-[steps] (0: only on interruption and at the end), ``checkpoint_keep`` (periodic
-checkpoints kept; 0 keeps all).
+[steps] (0: only on interruption and at the end), ``checkpoint_keep`` (how many of the
+newest checkpoints stay in the folder, counted across restarts, of every kind but the
+states saved when a run failed; 0 keeps all).
 
 Every number must be 0 or lie between 1e-100 and 1e100 in magnitude
 (:data:`MIN_MAGNITUDE`, :data:`MAX_MAGNITUDE`): no consistent set of units needs more,

@@ -46,13 +46,13 @@ def cmd_fcc(args) -> int:
                     boundary=args.boundary)
     cfg.validate()
     out = None
-    if args.out:
+    if args.out is not None:
         from pathlib import Path
 
         from demstep.io.lock import check_folder_creatable
 
+        check_folder_creatable(args.out, "out")
         out = Path(args.out)
-        check_folder_creatable(out, "out")
     result = run_fcc(cfg, checkpoint_dir=out)
     if result.diverged_state:
         print(f"demstep fcc: the run diverged; its state is saved in {result.diverged_state}",
@@ -138,12 +138,10 @@ def add_paper_parser(sub):
 
 
 def cmd_paper(args) -> int:
-    from pathlib import Path
-
     from demstep.experiments.paper import run_paper
     from demstep.io.lock import check_folder_creatable
 
-    check_folder_creatable(Path(args.out), "out")
+    check_folder_creatable(args.out, "out")
     if args.scheduler and args.workers is not None:
         raise InputError(f"workers: not used with --scheduler (its cluster has its own "
                          f"workers), got {args.workers}")

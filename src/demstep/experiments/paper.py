@@ -180,8 +180,8 @@ def _unwrap(r):
 
 # ------------------------------------------------------------------------ driver
 
-#: what `demstep paper` writes into its folder (removed first by ``overwrite``; nothing
-#: else there is touched)
+#: what `demstep paper` writes into its folder (``overwrite`` removes what the folder's
+#: manifest lists, :mod:`demstep.io.manifest`; nothing else there is touched)
 OUTPUTS = ("data", "summary.json", "report.md", "report.html", "critical_steps.png",
            "fcc_stress_ratio.png", "fcc_energy_error.png", "stability.png", "damping.png",
            "clumps.png")
@@ -200,10 +200,11 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
     gets an InputError). Everything is checked before the folder is created."""
     from demstep.io.atomic import remove_orphans
     from demstep.io.lock import FolderLock, check_folder_creatable, make_folder
+    from demstep.io.manifest import OutputManifest
     from demstep.runner import check_out_empty, remove_outputs
 
+    check_folder_creatable(out_dir, "out")
     out = Path(out_dir)
-    check_folder_creatable(out, "out")
     check_out_empty(out, overwrite, NOT_EMPTY_HINT)
     if workers < 1:
         raise InputError(f"--workers: must be >= 1, got {workers}")
@@ -220,8 +221,18 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
         check_out_empty(out, overwrite, NOT_EMPTY_HINT)
         remove_orphans(out, out / "data")
         if overwrite:
-            remove_outputs(out, OUTPUTS)
-        return _run_paper_locked(out, settings, show_progress)
+            kept = remove_outputs(out, OUTPUTS)
+            if kept:
+                print(f"demstep paper: {kept}", file=sys.stderr)
+        manifest = OutputManifest(out)
+        manifest.record(*(out / name for name in OUTPUTS if name != "data"))
+        before = set((out / "data").rglob("*")) if (out / "data").is_dir() else set()
+        try:
+            return _run_paper_locked(out, settings, show_progress)
+        finally:  # the data files this run wrote (their names depend on the settings)
+            if (out / "data").is_dir():
+                manifest.record(*sorted(p for p in (out / "data").rglob("*")
+                                        if p.is_file() and p not in before))
     finally:
         lock.release()
 

@@ -184,8 +184,12 @@ def make_folder(folder, key: str = "out") -> Path:
 def check_folder_creatable(folder, key: str = "out") -> None:
     """Before anything is written: raise InputError when ``folder`` cannot be a
     writable folder (it is a file, a parent is a file, the nearest existing parent is
-    not writable). Creating it may still fail (a virtual file system such as /proc):
-    :func:`make_folder` reports that."""
+    not writable), or is given as an empty name (an unset shell variable: ``--out ""``
+    would mean the current folder). Creating it may still fail (a virtual file system
+    such as /proc): :func:`make_folder` reports that."""
+    if isinstance(folder, str) and not folder.strip():
+        raise InputError(f"{key}: an empty folder name, got {folder!r} (an unset shell "
+                         f"variable?); give the folder to write into ('.' for this one)")
     folder = Path(folder)
     check_name_lengths(folder, key, is_file=False)
     try:

@@ -238,11 +238,15 @@ class VtkWriter:
     and walls (when the simulation has any), each with its .pvd time series. A callable
     that plugs into ``sim.every(n, writer)``.
 
-    ``resume_after_step`` (a restart) keeps the frames already listed up to that step."""
+    ``resume_after_step`` (a restart) keeps the frames already listed up to that step.
+    ``on_write(path)`` is called before each file is written (an output manifest,
+    :mod:`demstep.io.manifest`)."""
 
-    def __init__(self, folder, contacts: bool = True, resume_after_step: int | None = None):
+    def __init__(self, folder, contacts: bool = True, resume_after_step: int | None = None,
+                 on_write=None):
         self.folder = Path(folder)
         self.contacts = bool(contacts)
+        self.on_write = on_write
         self.entries: dict[str, list[tuple[float, str]]] = {s: [] for s in SERIES}
         self.last_step = None
         if resume_after_step is not None:
@@ -268,6 +272,9 @@ class VtkWriter:
             meshes["bodies"] = body_mesh
         for series, make in meshes.items():
             name = f"{series}_{sim.step:010d}.vtu"
+            if self.on_write is not None:
+                self.on_write(self.folder / name)
+                self.on_write(self.folder / f"{series}.pvd")
             written.append(write_mesh(self.folder / name, make(sim)))
             entries = [e for e in self.entries[series] if e[1] != name]
             entries.append((float(sim.time), name))

@@ -103,8 +103,10 @@ def run_sweep(case_path, out, params: Sequence[str] = (), runs_file=None,
     (summary.csv, and run.json of a run a lost worker had started) and the sweep
     returns. Returns a :class:`SweepResult`."""
     from demstep import __version__
+    from demstep.io.lock import check_folder_creatable
     from demstep.runner import LOG_LEVELS, _write_text
 
+    check_folder_creatable(out, "out")  # (an empty name first: it would resolve to here)
     out = Path(out).resolve()
     if worker_timeout is not None and not (isinstance(worker_timeout, (int, float))
                                            and not isinstance(worker_timeout, bool)
