@@ -156,8 +156,9 @@ import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, ValidationError
 
 # (MIN_MAGNITUDE, MAX_MAGNITUDE: the case files' range, documented above, one for all input)
-from demstep.errors import (MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem,
-                            read_input_text)
+from demstep.errors import MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem
+from demstep.io.textfile import (csv_rows, not_a_file_message, not_a_file_reason, open_text,
+                                 read_small_text)
 
 #: the largest assembly a case file may generate (a guard against typos in ``size``)
 MAX_PARTICLES = 2_000_000
@@ -644,7 +645,7 @@ def _validation_message(exc: ValidationError, data) -> str:
 def load_case(path) -> Case:
     """Read and validate a TOML case file (schema, physics and dimensions)."""
     path = Path(path)
-    text = read_input_text(path, "case file")
+    text = read_small_text(path, "case file")
     return case_from_text(text, base_dir=path.resolve().parent, source=str(path))
 
 
@@ -705,9 +706,9 @@ def _case_file(key: str, given: str, path: Path) -> Path:
     """``path`` (the file ``given`` for the key ``key``, resolved against the case
     file's folder) when it is an existing regular file; else an InputError naming the
     key and the value given."""
-    if not path.is_file():
-        what = "a folder, not a file" if path.is_dir() else "no such file"
-        raise InputError(f"{key}: {what}, got {given!r}")
+    reason = not_a_file_reason(path)
+    if reason is not None:
+        raise InputError(f"{key}: {not_a_file_message(reason)}, got {given!r}")
     return path
 
 
@@ -726,19 +727,19 @@ def read_body_file(case: Case):
     template names (B,), orientations (B, 4) or None). Numbers as in particle files
     (:func:`demstep.io.formats._number`: finite, within the magnitudes); every row has
     as many values as the header; in 2D (no z column) orientations about z only."""
-    import csv
+    path = _case_file("particles.file", case.particles.file, _relative(case, case.particles.file))
+    with open_text(path, encoding="utf-8-sig", newline="") as fh:  # (read as a stream)
+        return _read_bodies(path, csv_rows(fh))
 
+
+def _read_bodies(path, rows):
+    """The body file ``path`` from its CSV ``rows`` (an iterator; read_body_file)."""
     from demstep.io.formats import _number
 
-    path = _case_file("particles.file", case.particles.file, _relative(case, case.particles.file))
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.reader(fh))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"particles.file: {path}: cannot read ({exc})") from None
-    if not rows:
+    first = next(rows, None)
+    if first is None:
         raise InputError(f"particles.file: {path}: empty file")
-    header = [h.strip().lower() for h in rows[0]]
+    header = [h.strip().lower() for h in first]
     axes = ["x", "y", "z"] if "z" in header else ["x", "y"]
     for col in axes + ["template"]:
         if col not in header:
@@ -751,7 +752,7 @@ def read_body_file(case: Case):
     if twice:
         raise InputError(f"{path}:1: column {twice[0]!r} given twice (got {','.join(header)})")
     pos, names, qs, lines = [], [], [], []
-    for line, row in enumerate(rows[1:], start=2):
+    for line, row in enumerate(rows, start=2):
         if not row or all(not c.strip() for c in row):
             continue
         while len(row) > len(header) and not row[-1].strip():

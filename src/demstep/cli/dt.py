@@ -389,12 +389,11 @@ def _check_source_options(args, fmt: str):
 
 def _estimate_rows(path: Path) -> int:
     """The number of lines of a text file (an upper bound on its particles), counted
-    without reading it into memory."""
-    lines = 0
-    with open(path, "rb") as fh:
-        while chunk := fh.read(1 << 24):
-            lines += chunk.count(b"\n")
-    return max(1, lines)
+    without reading it into memory; a file that is not text (a NUL byte, a line
+    without end) is refused where that is found, before it is parsed."""
+    from demstep.io.textfile import count_lines
+
+    return count_lines(path)
 
 
 # ----------------------------------------------------------------------- command

@@ -38,7 +38,8 @@ import numpy as np
 
 from demstep.energy import EnergyLedger
 from demstep.io.atomic import write_text_atomic
-from demstep.errors import InputError, missing_file
+from demstep.io.textfile import csv_rows, open_text
+from demstep.errors import InputError
 
 AXES = "xyz"
 
@@ -160,30 +161,24 @@ class HistoryWriter:
 def read_history(path) -> dict[str, np.ndarray]:
     """Columns of a history CSV as float arrays, keyed by column name."""
     path = Path(path)
-    if not path.is_file():
-        raise missing_file(path, "history file")
-    try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            reader = csv.reader(fh)
-            header = next(reader, None)
-            if not header:
-                raise InputError(f"{path}: empty history file")
-            rows = []
-            for line, row in enumerate(reader, start=2):
-                if not row:
-                    continue
-                if len(row) != len(header):
-                    raise InputError(f"{path}:{line}: expected {len(header)} values, got "
-                                     f"{len(row)}")
-                try:
-                    rows.append([float(v) for v in row])
-                except ValueError:
-                    bad = next(i for i, v in enumerate(row) if not _is_float(v))
-                    raise InputError(f"{path}:{line}: column {header[bad]!r}: not a number: "
-                                     f"{row[bad]!r}") from None
-    except UnicodeDecodeError as exc:
-        raise InputError(f"{path}: not a text history file (byte {exc.start} is not "
-                         "UTF-8)") from None
+    with open_text(path, "history file", newline="") as fh:
+        reader = csv_rows(fh)
+        header = next(reader, None)
+        if not header:
+            raise InputError(f"{path}: empty history file")
+        rows = []
+        for line, row in enumerate(reader, start=2):
+            if not row:
+                continue
+            if len(row) != len(header):
+                raise InputError(f"{path}:{line}: expected {len(header)} values, got "
+                                 f"{len(row)}")
+            try:
+                rows.append([float(v) for v in row])
+            except ValueError:
+                bad = next(i for i, v in enumerate(row) if not _is_float(v))
+                raise InputError(f"{path}:{line}: column {header[bad]!r}: not a number: "
+                                 f"{row[bad]!r}") from None
     data = np.array(rows, dtype=np.float64).reshape(len(rows), len(header))
     return {name: data[:, k] for k, name in enumerate(header)}
 
