@@ -75,6 +75,107 @@ def lines_of(text: str) -> list[str]:
     return text.splitlines(keepends=True)
 
 
+# ============================================== 3. a damaged history.csv on restart
+@pytest.fixture(scope="module")
+def straight(tmp_path_factory):
+    """The case file and the history of the run done without a stop."""
+    folder = tmp_path_factory.mktemp("straight")
+    case = folder / "small.toml"
+    case.write_text(RUN)
+    result = run_case(load_case(case), folder / "out", quiet=True)
+    assert result.status == "completed"
+    return case, (folder / "out" / "history.csv").read_text(encoding="utf-8")
+
+
+def _append(data: bytes):
+    return lambda text: text + data
+
+
+def _garble_row(step: int):
+    """Damage the row of ``step`` (its commas become semicolons)."""
+    def damage(text: bytes) -> bytes:
+        rows = text.split(b"\n")
+        k = next(i for i, row in enumerate(rows) if row.startswith(b"%d," % step))
+        rows[k] = rows[k].replace(b",", b";")
+        return b"\n".join(rows)
+    return damage
+
+
+# (damage, damaged lines, the step whose row is lost)
+DAMAGE = {
+    "nul bytes appended": (_append(b"\0" * 200_000), 1, None),
+    "nul bytes then a newline": (_append(b"\0" * 4096 + b"\n"), 1, None),
+    "garbled rows appended": (_append(b"2#5,0.1,,x\n225,0.00"), 2, None),
+    "invalid utf-8 appended": (_append(b"\xff\xfe\xfa 3\n"), 1, None),
+    "a row before the checkpoint garbled": (_garble_row(50), 1, 50),
+}
+
+
+@pytest.mark.parametrize("kind", list(DAMAGE))
+def test_restart_goes_on_from_a_damaged_history(tmp_path, straight, kind):
+    """A power loss appends NUL bytes, a row is garbled or bytes are not UTF-8: the
+    restart from the (good) checkpoint at step 100 keeps the history's good rows up to
+    step 100, drops the damaged ones and those after it, says so in one warning
+    naming the file, and ends with the history of the run done without a stop (less
+    a row that was lost)."""
+    case, expected = straight
+    damage, n_damaged, lost = DAMAGE[kind]
+    out = tmp_path / "out"
+    stopped = run_case(load_case(case), out, quiet=True, max_steps=200)
+    assert stopped.step == 200
+    history = out / "history.csv"
+    history.write_bytes(damage(history.read_bytes()))
+    checkpoint = out / "checkpoints" / "step0000000100.npz"
+    assert checkpoint.is_file()
+    log_before = (out / "run.log").read_text(encoding="utf-8")
+
+    result = run_case(load_case(case), out, quiet=True, restart=checkpoint)
+
+    assert result.status == "completed"
+    rows = lines_of(expected)
+    if lost is not None:
+        rows = [row for row in rows if not row.startswith(f"{lost},")]
+        assert len(rows) == len(lines_of(expected)) - 1
+    assert history.read_text(encoding="utf-8") == "".join(rows)
+    steps = read_history(history)["step"]
+    assert (np.diff(steps) > 0).all()
+    log = (out / "run.log").read_text(encoding="utf-8")[len(log_before):]
+    warnings = [line for line in log.splitlines() if " WARNING " in line]
+    assert len(warnings) == 1, log
+    assert str(history) in warnings[0] and f"{n_damaged} damaged line" in warnings[0]
+    assert "step 100" in warnings[0]
+
+
+def test_restart_from_the_command_line_with_a_damaged_history(tmp_path, straight, capsys):
+    case, expected = straight
+    out = tmp_path / "out"
+    run_case(load_case(case), out, quiet=True, max_steps=200)
+    history = out / "history.csv"
+    with open(history, "ab") as fh:
+        fh.write(b"\0" * 10_000)
+    code, _, err = cli(["run", case, "--out", out, "--quiet", "--restart",
+                        out / "checkpoints" / "step0000000100.npz"], capsys)
+    assert code == 0, err
+    assert history.read_text(encoding="utf-8") == expected
+    warned = [line for line in err.splitlines() if "WARNING" in line]
+    assert len(warned) == 1 and "history.csv" in warned[0] and "damaged" in warned[0]
+
+
+def test_restart_still_refuses_a_history_of_other_columns(tmp_path, straight):
+    """The history's header names other columns (another run's file): refused, as
+    before, and left as it was."""
+    case, _ = straight
+    out = tmp_path / "out"
+    run_case(load_case(case), out, quiet=True, max_steps=100)
+    history = out / "history.csv"
+    text = history.read_text(encoding="utf-8").replace("n_contacts", "contacts", 1)
+    history.write_text(text, encoding="utf-8")
+    with pytest.raises(InputError, match="history.csv: the history's columns do not match"):
+        run_case(load_case(case), out, quiet=True,
+                 restart=out / "checkpoints" / "step0000000100.npz")
+    assert history.read_text(encoding="utf-8") == text
+
+
 # ========================================== 5. a CSV field over the csv module's limit
 #: a field longer than the csv module's limit (131072 characters), and one longer
 #: than the longest line the readers take
