@@ -346,3 +346,29 @@ def test_dumps_and_yade_files_still_read_after_streaming(tmp_path):
     yade.write_bytes(b"# a comment\r\n#format x_y_z_r\r\n0 0 0 1\r\n3 0 0 1.5 # two\r\n")
     data = read_yade_text(yade)
     assert data.x.tolist() == [[0, 0, 0], [3, 0, 0]] and data.r.tolist() == [1, 1.5]
+
+
+# ================================================ 12. negative coordinates as values
+def test_wall_with_a_negative_coordinate_as_the_next_argument(tmp_path, capsys):
+    """``--wall -5,0:1,0`` (argparse took the value for an option: "expected one
+    argument"; only ``--wall=-5,...`` worked): the same analysis as with '='."""
+    path = tmp_path / "row.csv"
+    path.write_text(ROW)
+    base = ["dt", path, "--kn", "100", "--json", "--no-rotation"]
+    code, spaced, err = cli(base + ["--wall", "-5,0:1,0"], capsys)
+    assert code == 0, err
+    code, joined, err = cli(base + ["--wall=-5,0:1,0"], capsys)
+    assert code == 0, err
+    assert spaced == joined
+    assert '"n_contacts": 4' in spaced  # three pairs and the wall
+    code, _, err = cli(base + ["--wall", "-5,0:1,0", "--wall", "-.1e2,-1:1,0"], capsys)
+    assert code == 0, err
+    code, _, err = cli(base + ["--wall", "-5,0:1,0,0"], capsys)
+    assert_one_line_error(code, err, "wall:", "-5,0:1,0,0")
+
+
+def test_help_says_how_to_give_negative_values(capsys):
+    code, out, _ = cli(["dt", "--help"], capsys)
+    assert code == 0
+    wall_help = " ".join(out.split()).split("--wall SPEC")[-1].split("--radius", 1)[0]
+    assert "--wall -1,0,0:1,0,0" in wall_help
