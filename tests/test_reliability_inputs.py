@@ -372,3 +372,58 @@ def test_help_says_how_to_give_negative_values(capsys):
     assert code == 0
     wall_help = " ".join(out.split()).split("--wall SPEC")[-1].split("--radius", 1)[0]
     assert "--wall -1,0,0:1,0,0" in wall_help
+
+
+# ======================================================================= cosmetic
+@pytest.mark.parametrize("name", ["squeeze\nnow", "tab\there", "esc\x1b[31m", "line\u2028sep"])
+def test_names_with_control_characters_are_refused(name):
+    """A stage name with a newline split the log's lines."""
+    text = RUN.replace('name = "squeeze"', f"name = {toml_string(name)}")
+    with pytest.raises(InputError) as info:
+        case_from_text(text, source="case.toml")
+    message = str(info.value)
+    assert "\n" not in message and "\u2028" not in message
+    assert message.startswith("case.toml: stages[0].name: ") and repr(name) in message
+
+
+def toml_string(text: str) -> str:
+    return '"' + "".join(c if c.isprintable() else f"\\u{ord(c):04x}" for c in text) + '"'
+
+
+def test_a_device_given_as_a_particle_file(tmp_path, capsys):
+    """/dev/zero was reported as "no such file"."""
+    if not Path("/dev/zero").exists():
+        pytest.skip("no /dev/zero")
+    code, _, err = cli(["dt", "/dev/zero"], capsys)
+    assert_one_line_error(code, err, "/dev/zero", "not a regular file", "character device")
+    code, _, err = cli(["dt", "/dev/zero", "--format", "csv"], capsys)
+    assert_one_line_error(code, err, "/dev/zero", "not a regular file")
+    case = tmp_path / "case.toml"
+    case.write_text(FILE_CASE.format(path="/dev/zero"))
+    code, _, err = cli(["run", case, "--out", tmp_path / "out", "--quiet"], capsys)
+    assert_one_line_error(code, err, "particles.path:", "not a regular file", "'/dev/zero'")
+    assert not (tmp_path / "out").exists()
+    code, _, err = cli(["dt", "/dev/zero", "--format", "case"], capsys)
+    assert_one_line_error(code, err, "/dev/zero", "not a regular file")
+    sim = build_simulation(case_from_text(RUN))
+    with pytest.raises(InputError, match="/dev/zero: a character device, not a checkpoint"):
+        load_checkpoint(sim, "/dev/zero")
+
+
+def _disk_full(*args):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_a_full_disk_names_the_file(tmp_path, capsys, monkeypatch):
+    target = tmp_path / "a.txt"
+    monkeypatch.setattr(os, "fsync", _disk_full)
+    with pytest.raises(OSError) as info:
+        write_text_atomic(target, "text")
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(target)
+    assert not target.exists() and list(tmp_path.iterdir()) == []
+    case = tmp_path / "small.toml"
+    case.write_text(RUN)
+    code, _, err = cli(["run", case, "--out", tmp_path / "out", "--quiet"], capsys)
+    assert code == 1, err
+    assert re.fullmatch(rf"demstep: error: No space left on device: "
+                        rf"{re.escape(str(tmp_path / 'out'))}/\S+\n", err), err

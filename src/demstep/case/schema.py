@@ -5,7 +5,9 @@ Units are any consistent set (M, L, T; the paper's Table I uses K = 1e11, densit
 
 Top level
 ---------
-``name`` (str), ``description`` (str): labels for the run.
+``name`` (str), ``description`` (str): labels for the run. Names (of the case, stages,
+walls and clump templates) are 1 to 64 characters without control characters (a
+newline would split the log's lines and the history's header).
 ``gravity`` = [gx, gy(, gz)]: body acceleration [L/T^2], one entry per dimension
 (default zero).
 ``rotation`` (bool, default true): false locks every particle's rotation.
@@ -187,7 +189,20 @@ NonNegative = Annotated[float, Field(ge=0), AfterValidator(_magnitude)]
 PositiveInt = Annotated[int, Field(ge=1)]
 NonNegativeInt = Annotated[int, Field(ge=0)]
 Vector = Annotated[list[Real], Field(min_length=2, max_length=3)]
-Name = Annotated[str, Field(min_length=1, max_length=64)]
+
+
+def _printable(name: str) -> str:
+    """``name`` when it has no control character (newline, tab, escape, line or
+    paragraph separator)."""
+    import unicodedata
+
+    bad = next((c for c in name if unicodedata.category(c) in ("Cc", "Zl", "Zp")), None)
+    if bad is not None:
+        raise ValueError(f"must not hold control characters ({bad!r})")
+    return name
+
+
+Name = Annotated[str, Field(min_length=1, max_length=64), AfterValidator(_printable)]
 
 
 def Bounded(**bounds):

@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from demstep.io.atomic import write_text_atomic
+from demstep.io.atomic import naming, write_text_atomic
 from demstep.io.textfile import csv_rows, open_text
 from demstep.errors import MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem
 
@@ -596,8 +596,11 @@ def write_liggghts_dump(path, x, r, m=None, v=None, timestep: int = 0, box=None,
     text = format_liggghts_snapshot(x, r, m, v, timestep, box, ids, types, periodic, body)
     path = Path(path)
     if append and path.exists():
-        with open(path, "a", encoding="utf-8") as fh:
-            fh.write(text)
+        try:
+            with open(path, "a", encoding="utf-8") as fh:
+                fh.write(text)
+        except OSError as exc:  # (a full disk: name the file)
+            raise naming(exc, path) from exc
         return path
     return _write_text_atomically(path, text)
 
