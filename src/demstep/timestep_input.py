@@ -343,12 +343,19 @@ def read_materials(path) -> dict:
     as TOML numbers (not strings, not booleans)."""
     import tomllib
 
+    from demstep.io.textfile import not_a_file_message, not_a_file_reason, read_small_text
+
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"materials: no such file, got {str(path)!r}")
+    reason = not_a_file_reason(path)
+    if reason is not None:
+        raise InputError(f"materials: {not_a_file_message(reason)}, got {str(path)!r}")
+    try:  # (checked before it is read: a regular text file of bounded size)
+        text = read_small_text(path, "materials file", encoding="utf-8-sig")
+    except InputError as exc:
+        raise InputError(f"materials: {exc}") from None
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
         raise InputError(f"materials: {path}: not valid TOML ({exc})") from None
     unknown = sorted(set(data) - {"material"})
     if unknown:

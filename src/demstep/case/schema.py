@@ -5,7 +5,9 @@ Units are any consistent set (M, L, T; the paper's Table I uses K = 1e11, densit
 
 Top level
 ---------
-``name`` (str), ``description`` (str): labels for the run.
+``name`` (str), ``description`` (str): labels for the run. Names (of the case, stages,
+walls and clump templates) are 1 to 64 characters without control characters (a
+newline would split the log's lines and the history's header).
 ``gravity`` = [gx, gy(, gz)]: body acceleration [L/T^2], one entry per dimension
 (default zero).
 ``rotation`` (bool, default true): false locks every particle's rotation.
@@ -158,8 +160,9 @@ import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, ValidationError
 
 # (MIN_MAGNITUDE, MAX_MAGNITUDE: the case files' range, documented above, one for all input)
-from demstep.errors import (MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem,
-                            read_input_text)
+from demstep.errors import MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem
+from demstep.io.textfile import (csv_rows, not_a_file_message, not_a_file_reason, open_text,
+                                 read_small_text)
 
 #: the largest assembly a case file may generate (a guard against typos in ``size``)
 MAX_PARTICLES = 2_000_000
@@ -188,7 +191,20 @@ NonNegative = Annotated[float, Field(ge=0), AfterValidator(_magnitude)]
 PositiveInt = Annotated[int, Field(ge=1)]
 NonNegativeInt = Annotated[int, Field(ge=0)]
 Vector = Annotated[list[Real], Field(min_length=2, max_length=3)]
-Name = Annotated[str, Field(min_length=1, max_length=64)]
+
+
+def _printable(name: str) -> str:
+    """``name`` when it has no control character (newline, tab, escape, line or
+    paragraph separator)."""
+    import unicodedata
+
+    bad = next((c for c in name if unicodedata.category(c) in ("Cc", "Zl", "Zp")), None)
+    if bad is not None:
+        raise ValueError(f"must not hold control characters ({bad!r})")
+    return name
+
+
+Name = Annotated[str, Field(min_length=1, max_length=64), AfterValidator(_printable)]
 
 
 def Bounded(**bounds):
@@ -646,7 +662,7 @@ def _validation_message(exc: ValidationError, data) -> str:
 def load_case(path) -> Case:
     """Read and validate a TOML case file (schema, physics and dimensions)."""
     path = Path(path)
-    text = read_input_text(path, "case file")
+    text = read_small_text(path, "case file")
     return case_from_text(text, base_dir=path.resolve().parent, source=str(path))
 
 
@@ -707,9 +723,9 @@ def _case_file(key: str, given: str, path: Path) -> Path:
     """``path`` (the file ``given`` for the key ``key``, resolved against the case
     file's folder) when it is an existing regular file; else an InputError naming the
     key and the value given."""
-    if not path.is_file():
-        what = "a folder, not a file" if path.is_dir() else "no such file"
-        raise InputError(f"{key}: {what}, got {given!r}")
+    reason = not_a_file_reason(path)
+    if reason is not None:
+        raise InputError(f"{key}: {not_a_file_message(reason)}, got {given!r}")
     return path
 
 
@@ -728,19 +744,19 @@ def read_body_file(case: Case):
     template names (B,), orientations (B, 4) or None). Numbers as in particle files
     (:func:`demstep.io.formats._number`: finite, within the magnitudes); every row has
     as many values as the header; in 2D (no z column) orientations about z only."""
-    import csv
+    path = _case_file("particles.file", case.particles.file, _relative(case, case.particles.file))
+    with open_text(path, encoding="utf-8-sig", newline="") as fh:  # (read as a stream)
+        return _read_bodies(path, csv_rows(fh))
 
+
+def _read_bodies(path, rows):
+    """The body file ``path`` from its CSV ``rows`` (an iterator; read_body_file)."""
     from demstep.io.formats import _number
 
-    path = _case_file("particles.file", case.particles.file, _relative(case, case.particles.file))
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.reader(fh))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"particles.file: {path}: cannot read ({exc})") from None
-    if not rows:
+    first = next(rows, None)
+    if first is None:
         raise InputError(f"particles.file: {path}: empty file")
-    header = [h.strip().lower() for h in rows[0]]
+    header = [h.strip().lower() for h in first]
     axes = ["x", "y", "z"] if "z" in header else ["x", "y"]
     for col in axes + ["template"]:
         if col not in header:
@@ -753,7 +769,7 @@ def read_body_file(case: Case):
     if twice:
         raise InputError(f"{path}:1: column {twice[0]!r} given twice (got {','.join(header)})")
     pos, names, qs, lines = [], [], [], []
-    for line, row in enumerate(rows[1:], start=2):
+    for line, row in enumerate(rows, start=2):
         if not row or all(not c.strip() for c in row):
             continue
         while len(row) > len(header) and not row[-1].strip():

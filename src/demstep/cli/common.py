@@ -78,17 +78,29 @@ def number(name, minimum=None, strict=False):
     return parse
 
 
-#: a negative number as an option's value, exponent forms and -inf included: argparse
-#: (through Python 3.13.0 at least) took ``-1e-5`` for an option and said "expected one
-#: argument" instead of passing it to the option's check, which names option and value
-NEGATIVE_NUMBER = re.compile(r"^-((\d+\.?\d*|\.\d+)(e[+-]?\d+)?|inf|infinity|nan)$",
-                             re.IGNORECASE)
+#: a number as written on the command line (exponent forms, inf and nan included)
+_NUMBER = r"((\d+\.?\d*|\.\d+)(e[+-]?\d+)?|inf|infinity|nan)"
+
+#: an option's value that starts with a minus sign: a negative number (exponent forms
+#: and -inf included) or numbers separated by commas and colons that start with one (a
+#: point and a normal: ``--wall -0.03562,0,0:1,0,0``). argparse (through Python 3.13.0
+#: at least) took ``-1e-5`` and ``-0.03562,0,0:1,0,0`` for options and said "expected
+#: one argument" instead of passing them to the option's check, which names option and
+#: value. No option of demstep looks like one, so such a token is always a value
+NEGATIVE_VALUE = re.compile(rf"^-{_NUMBER}([,:][+-]?{_NUMBER})*$", re.IGNORECASE)
 
 
 class Parser(argparse.ArgumentParser):
+    """The parser of ``demstep`` and its subcommands: bad usage on one line (exit 2),
+    and values that start with a minus sign followed by a number (``--kn -3``,
+    ``--box -5 5``, ``--wall -1,0,0:1,0,0``) taken as values, not as unknown options
+    (:data:`NEGATIVE_VALUE`); ``--option=value`` works too."""
+
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self._negative_number_matcher = NEGATIVE_NUMBER
+        # (argparse reads a token matching this as a value when the parser has no
+        # option that looks like a negative number itself)
+        self._negative_number_matcher = NEGATIVE_VALUE
 
     def error(self, message):  # one line, exit 2
         self.exit(2, f"demstep: error: {message}\n")

@@ -62,10 +62,13 @@ def add_dt_parser(sub):
                      help="lattice: a periodic supercell; files: the periodic axes, e.g. x,y,z "
                      "(dumps: default from their BOX BOUNDS flags)")
     src.add_argument("--box", nargs="+", type=number("box"), metavar="LO_HI",
-                     help="box bounds xlo xhi ylo yhi [zlo zhi] (files without one, or to override)")
+                     help="box bounds xlo xhi ylo yhi [zlo zhi] (files without one, or to "
+                     "override); negative bounds as they are: --box -5 5 -5 5")
     src.add_argument("--wall", action="append", default=[], metavar="SPEC",
                      help="a wall: a box side (x-, x+, y-, y+, z-, z+) or 'px,py,pz:nx,ny,nz' "
-                     "(normal into the packing); repeat for several")
+                     "(normal into the packing); repeat for several; a negative first "
+                     "coordinate as it is or after '=': --wall -1,0,0:1,0,0 or "
+                     "--wall=-1,0,0:1,0,0")
     src.add_argument("--radius", type=number("radius", 0, strict=True), default=DEFAULT_RADIUS,
                      help=f"lattice particle radius (default {DEFAULT_RADIUS:g})")
     src.add_argument("--density", type=number("density", 0, strict=True), default=None,
@@ -389,12 +392,11 @@ def _check_source_options(args, fmt: str):
 
 def _estimate_rows(path: Path) -> int:
     """The number of lines of a text file (an upper bound on its particles), counted
-    without reading it into memory."""
-    lines = 0
-    with open(path, "rb") as fh:
-        while chunk := fh.read(1 << 24):
-            lines += chunk.count(b"\n")
-    return max(1, lines)
+    without reading it into memory; a file that is not text (a NUL byte, a line
+    without end) is refused where that is found, before it is parsed."""
+    from demstep.io.textfile import count_lines
+
+    return count_lines(path)
 
 
 # ----------------------------------------------------------------------- command

@@ -14,11 +14,10 @@ LIGGGHTS dump, a comma makes CSV, anything else is read as YADE text).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from demstep.errors import InputError, missing_file
+from demstep.io.textfile import check_regular_file
 
 
 @dataclass
@@ -35,9 +34,7 @@ def read_assembly(path, format: str = "auto") -> AssemblyData:
     """Read an assembly file; ``format`` 'auto' chooses by extension, then content."""
     from demstep.io.formats import read_particle_file
 
-    path = Path(path)
-    if not path.is_file():
-        raise missing_file(path)
+    path = check_regular_file(path)
     data = read_particle_file(path, format=format)
     return AssemblyData(data.x, data.r, data.m, data.source)
 

@@ -99,18 +99,34 @@ def check_writable(folder, key: str) -> None:
         pass
 
 
+def naming(exc: OSError, path) -> OSError:
+    """``exc`` (an error of writing ``path``, e.g. a full disk) as an OSError whose
+    ``filename`` is ``path``: the write's own error names no file, or the temporary
+    one, which is gone by the time the user reads the message."""
+    if exc.errno is None:
+        return exc
+    return OSError(exc.errno, exc.strerror or os.strerror(exc.errno), str(path))
+
+
 @contextlib.contextmanager
 def atomic_path(path, suffix: str = ".tmp"):
     """Yield a temporary path beside ``path``; on success it replaces ``path``.
+    An OSError while the temporary file is created, written (a full disk) or renamed
+    is raised naming ``path`` (:func:`naming`), and the temporary file is removed.
 
     ``suffix`` is accepted for compatibility; the temporary file is always named
     ``.<name of path>.<random>.tmp`` (see :data:`TEMP_NAME`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _create_temporary(path.parent, path.name)
+    try:
+        tmp = _create_temporary(path.parent, path.name)
+    except OSError as exc:
+        raise naming(exc, path) from exc
     try:
         yield tmp
         os.replace(tmp, path)
+    except OSError as exc:
+        raise naming(exc, path) from exc
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)

@@ -48,11 +48,16 @@ def read_checkpoint_arrays(path) -> dict:
     import zipfile
     import zlib
 
+    from demstep.io.textfile import not_a_file_reason
+
     path = Path(path)
-    if path.is_dir():
+    reason = not_a_file_reason(path)
+    if reason == "a folder":
         raise InputError(f"{path}: a folder, not a checkpoint file (.npz)")
-    if not path.is_file():
+    if reason == "no such file":
         raise InputError(f"{path}: no such checkpoint file")
+    if reason is not None:
+        raise InputError(f"{path}: {reason}, not a checkpoint file (.npz)")
     try:
         with open(path, "rb") as fh:
             head = fh.read(len(_ZIP_MAGIC))

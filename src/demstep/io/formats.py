@@ -33,21 +33,23 @@ Numbers are finite and within the magnitudes of :mod:`demstep.errors`, written w
 underscores (Python would read ``1_0`` as 10); integer columns (ids, types, bodies)
 below 2^53 in magnitude, where float64 stops resolving integers. Every reader raises
 :class:`~demstep.errors.InputError` with one line naming the file, the line and the
-field at fault.
+field at fault. Files are checked before they are parsed and then read line by line
+(:mod:`demstep.io.textfile`): a file that is not a regular file or whose first block
+is not text is refused at once, a line of NUL bytes or longer than
+:data:`~demstep.io.textfile.MAX_LINE` characters where it starts.
 """
 
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from demstep.io.atomic import write_text_atomic
-from demstep.errors import (MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem,
-                            missing_file)
+from demstep.io.atomic import naming, write_text_atomic
+from demstep.io.textfile import csv_rows, open_text
+from demstep.errors import MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem
 
 #: format names understood by :func:`read_particle_file` / :func:`write_particle_file`
 FORMATS = ("csv", "liggghts", "yade")
@@ -130,19 +132,6 @@ def _check_positive(values, path, lines, column: str, what: str):
                          f"got {values[k]:g}")
 
 
-def _read_lines(path) -> list[str]:
-    path = Path(path)
-    if not path.is_file():
-        raise missing_file(path)
-    try:
-        with open(path, encoding="utf-8") as fh:
-            return fh.read().splitlines()
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
-
-
 def _write_text_atomically(path, text: str) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -170,45 +159,38 @@ def read_csv(path) -> ParticleData:
     """CSV with header x,y[,z],r[,m][,type][,body] (``radius`` and ``mass`` taken for r
     and m; any column order; other columns ignored, a column given twice refused)."""
     path = Path(path)
-    if not path.is_file():
-        raise missing_file(path)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: spreadsheet BOM
-            reader = csv.reader(fh)
-            header = next(reader, None)
-            if header is None:
-                raise InputError(f"{path}: empty file")
-            header = [CSV_ALIASES.get(h.strip().lower(), h.strip().lower()) for h in header]
-            twice = [c for c in ("x", "y", "z", "r") + CSV_OPTIONAL if header.count(c) > 1]
-            if twice:
-                raise InputError(f"{path}:1: column {twice[0]!r} given twice (radius/mass "
-                                 f"count as r/m; got {','.join(header)})")
-            dim = 3 if "z" in header else 2
-            needed = ["x", "y", "r"] if dim == 2 else ["x", "y", "z", "r"]
-            missing = [c for c in needed if c not in header]
-            if missing:
-                raise InputError(f"{path}:1: missing column {missing[0]!r} (header must be "
-                                 f"x,y,r or x,y,z,r, optional m; got {','.join(header)})")
-            cols = needed + [c for c in CSV_OPTIONAL if c in header]
-            index = [header.index(c) for c in cols]
-            rows, lines = [], []
-            texts = {c: [] for c in ("type", "body") if c in cols}  # (for messages)
-            text_index = {c: header.index(c) for c in texts}
-            for line, row in enumerate(reader, start=2):
-                if not row or all(not c.strip() for c in row):
-                    continue
-                while len(row) > len(header) and not row[-1].strip():
-                    row = row[:-1]  # (trailing empty cells of a spreadsheet's export)
-                if len(row) != len(header):
-                    raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
-                rows.append([_number(row[k], path, line, c) for k, c in zip(index, cols)])
-                lines.append(line)
-                for c, kept in texts.items():
-                    kept.append(row[text_index[c]].strip())
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    with open_text(path, encoding="utf-8-sig", newline="") as fh:  # -sig: spreadsheet BOM
+        reader = csv_rows(fh)
+        header = next(reader, None)
+        if header is None:
+            raise InputError(f"{path}: empty file")
+        header = [CSV_ALIASES.get(h.strip().lower(), h.strip().lower()) for h in header]
+        twice = [c for c in ("x", "y", "z", "r") + CSV_OPTIONAL if header.count(c) > 1]
+        if twice:
+            raise InputError(f"{path}:1: column {twice[0]!r} given twice (radius/mass "
+                             f"count as r/m; got {','.join(header)})")
+        dim = 3 if "z" in header else 2
+        needed = ["x", "y", "r"] if dim == 2 else ["x", "y", "z", "r"]
+        missing = [c for c in needed if c not in header]
+        if missing:
+            raise InputError(f"{path}:1: missing column {missing[0]!r} (header must be "
+                             f"x,y,r or x,y,z,r, optional m; got {','.join(header)})")
+        cols = needed + [c for c in CSV_OPTIONAL if c in header]
+        index = [header.index(c) for c in cols]
+        rows, lines = [], []
+        texts = {c: [] for c in ("type", "body") if c in cols}  # (for messages)
+        text_index = {c: header.index(c) for c in texts}
+        for line, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            while len(row) > len(header) and not row[-1].strip():
+                row = row[:-1]  # (trailing empty cells of a spreadsheet's export)
+            if len(row) != len(header):
+                raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
+            rows.append([_number(row[k], path, line, c) for k, c in zip(index, cols)])
+            lines.append(line)
+            for c, kept in texts.items():
+                kept.append(row[text_index[c]].strip())
     if not rows:
         raise InputError(f"{path}: no particles")
     data = np.array(rows)
@@ -230,35 +212,28 @@ def read_bond_csv(path) -> np.ndarray:
     """Bond list: CSV with header i,j (0-based particle indices; other named columns
     ignored, every row as many values as the header); returns pairs (K, 2)."""
     path = Path(path)
-    if not path.is_file():
-        raise missing_file(path)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            reader = csv.reader(fh)
-            header = [h.strip().lower() for h in (next(reader, None) or [])]
-            missing = [c for c in ("i", "j") if c not in header]
-            if missing:
-                raise InputError(f"{path}:1: missing column {missing[0]!r} (header must name "
-                                 f"i and j; got {','.join(header) or 'nothing'})")
-            twice = [c for c in ("i", "j") if header.count(c) > 1]
-            if twice:
-                raise InputError(f"{path}:1: column {twice[0]!r} given twice (got "
-                                 f"{','.join(header)})")
-            ci, cj = header.index("i"), header.index("j")
-            pairs = []
-            for line, row in enumerate(reader, start=2):
-                if not row or all(not c.strip() for c in row):
-                    continue
-                while len(row) > len(header) and not row[-1].strip():
-                    row = row[:-1]  # (trailing empty cells of a spreadsheet's export)
-                if len(row) != len(header):
-                    raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
-                pairs.append((_integer(row[ci].strip(), path, line, "column 'i'"),
-                              _integer(row[cj].strip(), path, line, "column 'j'")))
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    with open_text(path, encoding="utf-8-sig", newline="") as fh:
+        reader = csv_rows(fh)
+        header = [h.strip().lower() for h in (next(reader, None) or [])]
+        missing = [c for c in ("i", "j") if c not in header]
+        if missing:
+            raise InputError(f"{path}:1: missing column {missing[0]!r} (header must name "
+                             f"i and j; got {','.join(header) or 'nothing'})")
+        twice = [c for c in ("i", "j") if header.count(c) > 1]
+        if twice:
+            raise InputError(f"{path}:1: column {twice[0]!r} given twice (got "
+                             f"{','.join(header)})")
+        ci, cj = header.index("i"), header.index("j")
+        pairs = []
+        for line, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            while len(row) > len(header) and not row[-1].strip():
+                row = row[:-1]  # (trailing empty cells of a spreadsheet's export)
+            if len(row) != len(header):
+                raise InputError(f"{path}:{line}: expected {len(header)} values, got {len(row)}")
+            pairs.append((_integer(row[ci].strip(), path, line, "column 'i'"),
+                          _integer(row[cj].strip(), path, line, "column 'j'")))
     if not pairs:
         raise InputError(f"{path}: no bonds")
     return np.array(pairs, dtype=np.int64)
@@ -323,75 +298,125 @@ class _Snapshot:
     box: np.ndarray
     periodic: np.ndarray  # (3,) bool: 'pp' flags
     columns: list[str]
-    rows: list[str]
+    rows: list[str] | None  # (None: not kept, a snapshot not asked for)
     first_line: int  # line number of the first atom row
 
 
-def _liggghts_snapshots(path) -> list[_Snapshot]:
-    lines = _read_lines(path)
-    snaps: list[_Snapshot] = []
-    k = 0
-    n_lines = len(lines)
+class _Lines:
+    """The lines of a text file one at a time, without their line ends: ``next()``
+    gives the next one or None at the end; ``number`` is the number of the last line
+    read (at the end: the number of lines)."""
 
-    def expect(i: int, item: str) -> str:
-        if i >= n_lines:
-            raise InputError(f"{path}:{i + 1}: expected 'ITEM: {item}', got end of file")
-        text = lines[i].strip()
+    def __init__(self, fh):
+        self._fh = fh
+        self.number = 0
+
+    def next(self) -> str | None:
+        text = next(self._fh, None)
+        if text is None:
+            return None
+        self.number += 1
+        return text.rstrip("\r\n")
+
+
+def _liggghts_snapshots(path, snapshot: int | None = None,
+                        timestep: int | None = None) -> list[_Snapshot]:
+    """Every snapshot of a dump, read as a stream: the atom rows are kept only for the
+    snapshot asked for (by position ``snapshot`` (negative: from the end) or by
+    ``timestep``, the last snapshot at it); neither: for none."""
+    path = Path(path)
+    snaps: list[_Snapshot] = []
+
+    def expect(text: str | None, number: int, item: str) -> str:
+        if text is None:
+            raise InputError(f"{path}:{number}: expected 'ITEM: {item}', got end of file")
+        text = text.strip()
         if not text.upper().startswith(f"ITEM: {item}"):
-            raise InputError(f"{path}:{i + 1}: expected 'ITEM: {item}', got {text[:40]!r}")
+            raise InputError(f"{path}:{number}: expected 'ITEM: {item}', got {text[:40]!r}")
         return text
 
-    while k < n_lines:
-        if not lines[k].strip():
-            k += 1
-            continue
-        expect(k, "TIMESTEP")
-        if k + 1 >= n_lines:
-            raise InputError(f"{path}:{k + 2}: TIMESTEP: missing value")
-        timestep = _integer(lines[k + 1].strip(), path, k + 2, "TIMESTEP")
-        expect(k + 2, "NUMBER OF ATOMS")
-        if k + 3 >= n_lines:
-            raise InputError(f"{path}:{k + 4}: NUMBER OF ATOMS: missing value")
-        n_atoms = _integer(lines[k + 3].strip(), path, k + 4, "NUMBER OF ATOMS")
-        if n_atoms < 0:
-            raise InputError(f"{path}:{k + 4}: NUMBER OF ATOMS: must be >= 0, got {n_atoms}")
-        bounds = expect(k + 4, "BOX BOUNDS").split()[3:]
-        if bounds[:3] == ["xy", "xz", "yz"]:
-            raise InputError(f"{path}:{k + 5}: BOX BOUNDS: a triclinic box ({' '.join(bounds)}) "
-                             f"is not supported; write the dump from an orthogonal box")
-        if 0 < len(bounds) < 3:
-            raise InputError(f"{path}:{k + 5}: BOX BOUNDS: expected a boundary flag for each "
-                             f"of x, y and z, got {' '.join(bounds)!r}")
-        flags = bounds[:3] if bounds else ["ff", "ff", "ff"]
-        for a, flag in enumerate(flags):
-            if len(flag) != 2 or any(f not in "pfsm" for f in flag) or (("p" in flag) and flag != "pp"):
-                raise InputError(f"{path}:{k + 5}: BOX BOUNDS: boundary flag of {'xyz'[a]} must "
-                                 f"be pp, or two of f, s, m, got {flag!r}")
-        periodic = np.array([flag == "pp" for flag in flags])
-        box = np.zeros((3, 2))
-        for a in range(3):
-            i = k + 5 + a
-            if i >= n_lines:
-                raise InputError(f"{path}:{i + 1}: BOX BOUNDS: expected 3 lines of bounds")
-            parts = lines[i].split()
-            if len(parts) < 2:
-                raise InputError(f"{path}:{i + 1}: BOX BOUNDS: expected 'lo hi', got {lines[i].strip()!r}")
-            box[a] = [_number(parts[0], path, i + 1, f"box {'xyz'[a]}lo"),
-                      _number(parts[1], path, i + 1, f"box {'xyz'[a]}hi")]
-            if not box[a, 1] > box[a, 0]:
-                raise InputError(f"{path}:{i + 1}: BOX BOUNDS: {'xyz'[a]}hi must exceed "
-                                 f"{'xyz'[a]}lo, got {parts[0]} {parts[1]}")
-        header = expect(k + 8, "ATOMS")
-        columns = header.split()[2:]
-        if not columns:
-            raise InputError(f"{path}:{k + 9}: ITEM: ATOMS: no column names")
-        first = k + 9
-        if first + n_atoms > n_lines:
-            raise InputError(f"{path}:{n_lines}: expected {n_atoms} atom rows after line "
-                             f"{first}, the file ends after {n_lines - first}")
-        snaps.append(_Snapshot(timestep, box, periodic, [c.lower() for c in columns],
-                               lines[first:first + n_atoms], first + 1))
-        k = first + n_atoms
+    def keep(index: int, step: int) -> bool:
+        if timestep is not None:
+            return step == timestep
+        return snapshot is not None and (snapshot < 0 or index == snapshot)
+
+    with open_text(path) as fh:
+        lines = _Lines(fh)
+        while True:
+            text = lines.next()
+            while text is not None and not text.strip():
+                text = lines.next()
+            if text is None:
+                break
+            k = lines.number  # (the line of ITEM: TIMESTEP)
+            expect(text, k, "TIMESTEP")
+            value = lines.next()
+            if value is None:
+                raise InputError(f"{path}:{k + 1}: TIMESTEP: missing value")
+            step = _integer(value.strip(), path, k + 1, "TIMESTEP")
+            expect(lines.next(), k + 2, "NUMBER OF ATOMS")
+            value = lines.next()
+            if value is None:
+                raise InputError(f"{path}:{k + 3}: NUMBER OF ATOMS: missing value")
+            n_atoms = _integer(value.strip(), path, k + 3, "NUMBER OF ATOMS")
+            if n_atoms < 0:
+                raise InputError(f"{path}:{k + 3}: NUMBER OF ATOMS: must be >= 0, got {n_atoms}")
+            bounds = expect(lines.next(), k + 4, "BOX BOUNDS").split()[3:]
+            if bounds[:3] == ["xy", "xz", "yz"]:
+                raise InputError(f"{path}:{k + 4}: BOX BOUNDS: a triclinic box "
+                                 f"({' '.join(bounds)}) is not supported; write the dump from "
+                                 f"an orthogonal box")
+            if 0 < len(bounds) < 3:
+                raise InputError(f"{path}:{k + 4}: BOX BOUNDS: expected a boundary flag for "
+                                 f"each of x, y and z, got {' '.join(bounds)!r}")
+            flags = bounds[:3] if bounds else ["ff", "ff", "ff"]
+            for a, flag in enumerate(flags):
+                if len(flag) != 2 or any(f not in "pfsm" for f in flag) \
+                        or (("p" in flag) and flag != "pp"):
+                    raise InputError(f"{path}:{k + 4}: BOX BOUNDS: boundary flag of "
+                                     f"{'xyz'[a]} must be pp, or two of f, s, m, got {flag!r}")
+            periodic = np.array([flag == "pp" for flag in flags])
+            box = np.zeros((3, 2))
+            for a in range(3):
+                number = k + 5 + a
+                text = lines.next()
+                if text is None:
+                    raise InputError(f"{path}:{number}: BOX BOUNDS: expected 3 lines of bounds")
+                parts = text.split()
+                if len(parts) < 2:
+                    raise InputError(f"{path}:{number}: BOX BOUNDS: expected 'lo hi', got "
+                                     f"{text.strip()!r}")
+                box[a] = [_number(parts[0], path, number, f"box {'xyz'[a]}lo"),
+                          _number(parts[1], path, number, f"box {'xyz'[a]}hi")]
+                if not box[a, 1] > box[a, 0]:
+                    raise InputError(f"{path}:{number}: BOX BOUNDS: {'xyz'[a]}hi must exceed "
+                                     f"{'xyz'[a]}lo, got {parts[0]} {parts[1]}")
+            header = expect(lines.next(), k + 8, "ATOMS")
+            columns = header.split()[2:]
+            if not columns:
+                raise InputError(f"{path}:{k + 8}: ITEM: ATOMS: no column names")
+            rows: list[str] | None = [] if keep(len(snaps), step) else None
+            for count in range(n_atoms):
+                text = lines.next()
+                if text is None:
+                    raise InputError(f"{path}:{lines.number}: expected {n_atoms} atom rows "
+                                     f"after line {k + 8}, the file ends after {count}")
+                if rows is not None:
+                    rows.append(text)
+            if rows is not None:
+                # (only the snapshot asked for keeps its rows: the last one at the
+                # timestep, the |snapshot| last ones for a negative position)
+                kept = [s for s in snaps if s.rows is not None]
+                if timestep is not None:
+                    drop = kept
+                elif snapshot is not None and snapshot < 0:
+                    drop = kept[:max(0, len(kept) + 1 + snapshot)]
+                else:
+                    drop = []
+                for s in drop:
+                    s.rows = None
+            snaps.append(_Snapshot(step, box, periodic, [c.lower() for c in columns], rows,
+                                   k + 9))
     if not snaps:
         raise InputError(f"{path}: no snapshot (expected 'ITEM: TIMESTEP')")
     return snaps
@@ -406,7 +431,7 @@ def read_liggghts_dump(path, snapshot: int = -1, timestep: int | None = None) ->
     """Read one snapshot of a LIGGGHTS ``dump custom`` file: by position ``snapshot``
     (0 first, -1 last, the default) or by its ``timestep`` number."""
     path = Path(path)
-    snaps = _liggghts_snapshots(path)
+    snaps = _liggghts_snapshots(path, snapshot, timestep)
     if timestep is not None:
         found = [s for s in snaps if s.timestep == timestep]
         if not found:
@@ -571,8 +596,11 @@ def write_liggghts_dump(path, x, r, m=None, v=None, timestep: int = 0, box=None,
     text = format_liggghts_snapshot(x, r, m, v, timestep, box, ids, types, periodic, body)
     path = Path(path)
     if append and path.exists():
-        with open(path, "a", encoding="utf-8") as fh:
-            fh.write(text)
+        try:
+            with open(path, "a", encoding="utf-8") as fh:
+                fh.write(text)
+        except OSError as exc:  # (a full disk: name the file)
+            raise naming(exc, path) from exc
         return path
     return _write_text_atomically(path, text)
 
@@ -605,28 +633,28 @@ def read_yade_text(path) -> ParticleData:
     ``#`` comments, extra columns ignored (every row has as many values as the first);
     ``#format x_y_z_r...`` names the columns (:data:`YADE_FIELDS`, each once)."""
     path = Path(path)
-    lines = _read_lines(path)
     fmt = None
     rows, numbers = [], []
     ncols = None
-    for line_no, text in enumerate(lines, start=1):
-        stripped = text.strip()
-        if stripped.startswith("#"):
-            body = stripped.lstrip("#").strip()
-            if body.lower().startswith("format") and fmt is None and not rows:
-                spec = body[len("format"):].strip()
-                fmt = _yade_format(spec, path, line_no)
-            continue
-        if not stripped:
-            continue
-        parts = stripped.split("#", 1)[0].split()
-        if fmt is None and ncols is None:
-            ncols = len(parts)
-            if ncols < 3:
-                raise InputError(f"{path}:{line_no}: expected 'x y z r' (or 'x y r'), "
-                                 f"got {len(parts)} values")
-        rows.append(parts)
-        numbers.append(line_no)
+    with open_text(path) as lines:
+        for line_no, text in enumerate(lines, start=1):
+            stripped = text.strip()
+            if stripped.startswith("#"):
+                body = stripped.lstrip("#").strip()
+                if body.lower().startswith("format") and fmt is None and not rows:
+                    spec = body[len("format"):].strip()
+                    fmt = _yade_format(spec, path, line_no)
+                continue
+            if not stripped:
+                continue
+            parts = stripped.split("#", 1)[0].split()
+            if fmt is None and ncols is None:
+                ncols = len(parts)
+                if ncols < 3:
+                    raise InputError(f"{path}:{line_no}: expected 'x y z r' (or 'x y r'), "
+                                     f"got {len(parts)} values")
+            rows.append(parts)
+            numbers.append(line_no)
     if not rows:
         raise InputError(f"{path}: no particles")
     if fmt is not None:
@@ -675,19 +703,12 @@ def detect_format(path) -> str:
     suffix = path.suffix.lower()
     if suffix in _EXTENSIONS:
         return _EXTENSIONS[suffix]
-    if not path.is_file():
-        raise missing_file(path)
-    try:
-        with open(path, encoding="utf-8") as fh:
-            first = ""
-            for text in fh:
-                if text.strip():
-                    first = text.strip()
-                    break
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    first = ""
+    with open_text(path) as lines:
+        for text in lines:
+            if text.strip():
+                first = text.strip()
+                break
     if first.upper().startswith("ITEM:"):
         return "liggghts"
     if "," in first:

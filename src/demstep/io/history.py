@@ -25,11 +25,19 @@ Columns, in order:
 Floats are written with ``repr`` (shortest round-trip form), so a history read back
 is bit-identical to the values of the run. A writer is a callable that plugs into
 ``sim.every(n, writer)``.
+
+On a restart the writer keeps the rows of the existing file up to the checkpoint's
+step. A file damaged by a crash or a power loss (NUL bytes appended, a row cut short
+or garbled, bytes that are not UTF-8) does not stop the restart: the well-formed rows
+up to that step are kept, the damaged lines dropped, and one warning on the
+``demstep`` logger names the file and what was dropped. A file whose header names
+other columns (another run's history) is refused.
 """
 
 from __future__ import annotations
 
 import csv
+import logging
 import math
 from pathlib import Path
 from typing import Callable
@@ -38,9 +46,12 @@ import numpy as np
 
 from demstep.energy import EnergyLedger
 from demstep.io.atomic import write_text_atomic
-from demstep.errors import InputError, missing_file
+from demstep.io.textfile import MAX_LINE, csv_rows, open_text
+from demstep.errors import InputError
 
 AXES = "xyz"
+
+log = logging.getLogger(__name__)
 
 
 def history_columns(sim, extra: dict | None = None) -> list[str]:
@@ -128,21 +139,46 @@ class HistoryWriter:
         self.last_step = None
 
     def _truncate(self, step: int):
-        with open(self.path, newline="", encoding="utf-8") as fh:
-            reader = csv.reader(fh)
-            header = next(reader, None)
-            if header != self.columns:
+        """Keep the well-formed rows of the file up to ``step``, drop the others (module
+        docstring); InputError when its header names other columns."""
+        kept, damaged, later = [], [], 0
+        with open(self.path, "rb") as fh:
+            lines = _raw_lines(fh)
+            header = _row(next(lines, None), None)
+            if header is not None and header != self.columns:
                 raise InputError(f"{self.path}: the history's columns do not match this run")
-            kept = [row for row in reader if row and int(row[0]) <= step]
-        text = ",".join(self.columns) + "\n" + "".join(",".join(r) + "\n" for r in kept)
-        _write_atomically(self.path, text)
+            for number, raw in enumerate(lines, start=2):
+                row = _row(raw, len(self.columns))
+                if row is None:
+                    damaged.append(number)
+                elif int(row[0]) <= step:
+                    kept.append(",".join(row) + "\n")
+                else:
+                    later += 1
+        _write_atomically(self.path, ",".join(self.columns) + "\n" + "".join(kept))
+        if damaged or header is None:
+            what = []
+            if header is None:
+                what.append("a damaged header rewritten")
+            if damaged:
+                shown = ", ".join(map(str, damaged[:5])) + (", ..." if len(damaged) > 5 else "")
+                what.append(f"{len(damaged)} damaged line{'s' if len(damaged) > 1 else ''} "
+                            f"dropped (line{'s' if len(damaged) > 1 else ''} {shown})")
+            log.warning("%s: %s; it keeps its %d good rows up to the checkpoint's step %d%s",
+                        self.path, " and ".join(what), len(kept), step,
+                        f" and drops the {later} after it" if later else "")
 
     def write(self, sim):
         """Write one row for the current state (once per step)."""
         if self.last_step == sim.step:
             return
-        self._csv.writerow([_text(v) for v in history_row(sim, self.extra)])
-        self._fh.flush()
+        try:
+            self._csv.writerow([_text(v) for v in history_row(sim, self.extra)])
+            self._fh.flush()
+        except OSError as exc:  # (a full disk: name the file)
+            if exc.filename is None:
+                raise OSError(exc.errno, exc.strerror, str(self.path)) from exc
+            raise
         self.last_step = sim.step
 
     __call__ = write
@@ -161,30 +197,24 @@ class HistoryWriter:
 def read_history(path) -> dict[str, np.ndarray]:
     """Columns of a history CSV as float arrays, keyed by column name."""
     path = Path(path)
-    if not path.is_file():
-        raise missing_file(path, "history file")
-    try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            reader = csv.reader(fh)
-            header = next(reader, None)
-            if not header:
-                raise InputError(f"{path}: empty history file")
-            rows = []
-            for line, row in enumerate(reader, start=2):
-                if not row:
-                    continue
-                if len(row) != len(header):
-                    raise InputError(f"{path}:{line}: expected {len(header)} values, got "
-                                     f"{len(row)}")
-                try:
-                    rows.append([float(v) for v in row])
-                except ValueError:
-                    bad = next(i for i, v in enumerate(row) if not _is_float(v))
-                    raise InputError(f"{path}:{line}: column {header[bad]!r}: not a number: "
-                                     f"{row[bad]!r}") from None
-    except UnicodeDecodeError as exc:
-        raise InputError(f"{path}: not a text history file (byte {exc.start} is not "
-                         "UTF-8)") from None
+    with open_text(path, "history file", newline="") as fh:
+        reader = csv_rows(fh)
+        header = next(reader, None)
+        if not header:
+            raise InputError(f"{path}: empty history file")
+        rows = []
+        for line, row in enumerate(reader, start=2):
+            if not row:
+                continue
+            if len(row) != len(header):
+                raise InputError(f"{path}:{line}: expected {len(header)} values, got "
+                                 f"{len(row)}")
+            try:
+                rows.append([float(v) for v in row])
+            except ValueError:
+                bad = next(i for i, v in enumerate(row) if not _is_float(v))
+                raise InputError(f"{path}:{line}: column {header[bad]!r}: not a number: "
+                                 f"{row[bad]!r}") from None
     data = np.array(rows, dtype=np.float64).reshape(len(rows), len(header))
     return {name: data[:, k] for k, name in enumerate(header)}
 
@@ -195,6 +225,41 @@ def _is_float(text: str) -> bool:
         return True
     except ValueError:
         return False
+
+
+def _raw_lines(fh):
+    """The lines of the binary file ``fh`` as bytes with their line ends, read one at a
+    time; None for a line longer than MAX_LINE bytes (skipped without holding it)."""
+    while line := fh.readline(MAX_LINE + 1):
+        if len(line) > MAX_LINE and not line.endswith(b"\n"):
+            while line and not line.endswith(b"\n"):
+                line = fh.readline(MAX_LINE + 1)
+            yield None
+        else:
+            yield line
+
+
+def _row(raw: bytes | None, width: int | None) -> list[str] | None:
+    """The fields of the history line ``raw`` when it is whole (ends with a line end),
+    UTF-8 text without NUL bytes, one CSV row and, when ``width`` is given, a row of
+    ``width`` numbers with an integer step first; else None (a damaged line)."""
+    if raw is None or not raw.endswith(b"\n") or b"\0" in raw:
+        return None
+    try:
+        fields = next(csv.reader([raw.decode("utf-8").rstrip("\r\n")]), [])
+    except (UnicodeDecodeError, csv.Error):
+        return None
+    if width is None:
+        return fields
+    if len(fields) != width:
+        return None
+    try:
+        int(fields[0])
+        for value in fields:
+            float(value)
+    except ValueError:
+        return None
+    return fields
 
 
 def _write_atomically(path: Path, text: str):
