@@ -130,7 +130,7 @@ def test_run_case_writes_outputs(tmp_path):
     assert frames[0].name == "particles_0000000000.vtu"
     meshio.read(frames[-1])
     kept = sorted(p.name for p in (out / "checkpoints").glob("*.npz"))
-    assert len(kept) == 3  # two periodic ones kept, plus the final one
+    assert len(kept) == 2  # checkpoint_keep: the final one and the newest periodic one
     pos, state = read_state(find_checkpoint(out))
     assert state["reason"] == "completed" and pos.stage == 3
 
@@ -263,7 +263,7 @@ def test_cli_run_and_plot(tmp_path, capsys):
     # the same folder again without --restart or --overwrite: refused, untouched
     before = sorted(p.name for p in out.rglob("*"))
     assert cli_main(["run", str(case), "--out", str(out), "--quiet"]) == 2
-    assert "exists and is not empty" in capsys.readouterr().err
+    assert "holds the results of an earlier run" in capsys.readouterr().err
     assert sorted(p.name for p in out.rglob("*")) == before
     # --restart from the folder: the last checkpoint is at the end, nothing to run
     assert cli_main(["run", str(case), "--out", str(out), "--quiet", "--restart", str(out),
@@ -368,7 +368,9 @@ def test_overwrite_replaces_earlier_outputs_only(tmp_path):
     result = run_case(case, out, quiet=True, max_steps=30, overwrite=True)
     assert result.status == "completed"
     assert (out / "notes.txt").read_text() == "mine"  # not an output: kept
-    assert not (out / "checkpoints" / "step9999999999.json").exists()
+    # not written by demstep (whatever its name): kept, and no checkpoint to restart from
+    assert (out / "checkpoints" / "step9999999999.json").read_text() == "{}"
+    assert find_checkpoint(out) == result.checkpoint
     assert read_history(out / "history.csv")["step"][-1] == result.step
 
 

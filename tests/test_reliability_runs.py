@@ -3,6 +3,7 @@ deleted by ``--overwrite``, no stage that runs forever, ``checkpoint_keep`` acro
 restarts, and a log that is never written through a symbolic link."""
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -10,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import assert_one_line_error, cli, snapshot
 
@@ -259,3 +261,33 @@ def test_run_log_is_never_written_through_a_link(tmp_path, capsys):
     text = log.read_text()
     assert text.startswith(before)  # the earlier log kept, the restart's appended
     assert "was a symbolic link" in text and "restarted at step" in text
+
+
+# ------------------------------------------- 8. one definition of the energy error
+def test_the_sweep_summary_and_the_run_agree_on_the_energy_error(tmp_path, capsys):
+    """The history's energy_error is the monitor's (NaN while the energies are below its
+    floor), so the sweep's summary and run.json give the same maximum. Before, the
+    history ignored the floor: a run whose monitor never counted an error (run.json:
+    0.0) was summarised with the errors of its smallest energies."""
+    from demstep.io.history import read_history
+    from demstep.sweep.summary import summarize_run
+
+    case = write_case(tmp_path, extra="[energy]\nfloor = 1.0e90\nevery = 25\n")
+    out = tmp_path / "out"
+    code, _, err = cli(["run", case, "--out", out, "--quiet"], capsys)
+    assert code == 0, err
+    info = json.loads((out / "run.json").read_text())
+    assert info["max_energy_error"] == 0.0  # never above the floor: never evaluated
+    h = read_history(out / "history.csv")
+    assert len(h["energy_error"]) > 5 and all(map(math.isnan, h["energy_error"]))
+    assert summarize_run(out)["max_energy_error"] == 0.0
+    # and above the floor (the default) both are the same number, sampled alike
+    case = write_case(tmp_path, extra="[energy]\nevery = 25\n")
+    out = tmp_path / "out2"
+    code, _, err = cli(["run", case, "--out", out, "--quiet"], capsys)
+    assert code == 0, err
+    info = json.loads((out / "run.json").read_text())
+    errors = read_history(out / "history.csv")["energy_error"]
+    assert info["max_energy_error"] > 0
+    assert summarize_run(out)["max_energy_error"] == info["max_energy_error"] \
+        == float(np.nanmax(errors))

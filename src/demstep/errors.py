@@ -34,23 +34,6 @@ class SimulationDiverged(RuntimeError):
         self.checkpoint = checkpoint
 
 
-def read_input_text(path, what: str = "file") -> str:
-    """The UTF-8 text of the input file ``path``; else one InputError naming the path
-    and why (:func:`missing_file`, not a text file, cannot be read, e.g. a name too
-    long, which Path.is_file raises on Python 3.11)."""
-    from pathlib import Path
-
-    path = Path(path)
-    try:
-        if not path.is_file():
-            raise missing_file(path, what)
-        return path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file") from None
-    except OSError as exc:
-        raise InputError(f"{what}: cannot read {str(path)!r} ({exc.strerror})") from None
-
-
 def missing_file(path, what: str = "file") -> InputError:
     """The InputError for ``path`` that is not an existing regular file, naming why:
     ``"<path>: a folder, not a <what>"`` or ``"<path>: no such <what>"``."""

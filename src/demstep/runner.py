@@ -42,6 +42,7 @@ from demstep.case import Case, apply_stage, build_simulation, check_stages, dump
 from demstep.io.atomic import remove_orphans, write_text_atomic
 from demstep.io.lock import FolderLock, check_folder_creatable, folder_is_empty, make_folder
 from demstep.io.manifest import OutputManifest, remove_written
+from demstep.io.textfile import not_a_file_reason
 from demstep.errors import InputError, SimulationDiverged
 
 log = logging.getLogger("demstep")
@@ -205,7 +206,8 @@ def find_checkpoint(path) -> Path:
         raise InputError(f"restart: {path} is the run state beside a checkpoint; give the "
                          f"checkpoint {path.with_suffix('.npz')} or the run folder")
     if not path.is_file():
-        raise InputError(f"restart: no such checkpoint, got {str(path)!r}")
+        reason = not_a_file_reason(path) or "no such file"
+        raise InputError(f"restart: not a checkpoint file ({reason}), got {str(path)!r}")
     return path
 
 

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from demstep.errors import InputError, read_input_text
+from demstep.errors import InputError
+from demstep.io.textfile import read_small_text
 
 from demstep.sweep.cluster import one_line
 
@@ -181,9 +182,9 @@ def read_runs_file(path) -> list[dict]:
         what = "a folder, not a file" if path.is_dir() else "no such file"
         raise InputError(f"runs: {what}, got {str(path)!r}")
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"runs: cannot read {path} ({one_line(exc)})") from None
+        text = read_small_text(path, "runs file")
+    except InputError as exc:
+        raise InputError(f"runs: {exc}") from None
     runs: list[dict] = []
     if path.suffix.lower() == ".toml":
         try:
@@ -205,7 +206,10 @@ def read_runs_file(path) -> list[dict]:
     if path.suffix.lower() != ".csv":
         raise InputError(f"runs: expected a .csv or .toml file, got {str(path)!r}")
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    rows = list(csv.reader(lines))
+    try:
+        rows = list(csv.reader(lines))
+    except csv.Error as exc:  # (a field longer than the csv module takes)
+        raise InputError(f"runs: {path}: not a CSV file of runs ({exc})") from None
     if len(rows) < 2:
         raise InputError(f"runs: {path}: expected a header of keys and at least one row")
     header = [parse_key(h.strip()) for h in rows[0]]
@@ -305,7 +309,7 @@ def plan_sweep(case_path, params: Sequence[str] = (), runs_file=None,
     from demstep.runner import case_hash
 
     case_path = Path(case_path)
-    case_text = read_input_text(case_path, "case file")
+    case_text = read_small_text(case_path, "case file")
     try:
         base = tomllib.loads(case_text)
     except tomllib.TOMLDecodeError as exc:

@@ -167,9 +167,12 @@ def summarize_run(run_dir, peak: str | None = None, status: str | None = None,
            else info.get("sweep", {}).get("wall_time_s", math.nan),
            "error": error if error is not None else
            ("" if info.get("status") == "completed" else info.get("message", ""))}
-    monitor = _finite(info.get("max_energy_error"))  # the monitor's checks (run.json)
-    if monitor > 0:
-        row["max_energy_error"] = monitor
+    # the monitor's checks (run.json), and the history's rows: the same definition
+    # (EnergyLedger.balance_error with the monitor's floor: NaN below it, never counted)
+    value = info.get("max_energy_error")
+    monitor = _finite(value)
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+        row["max_energy_error"] = float(value)
     history = run_dir / "history.csv"
     if history.is_file():
         try:
