@@ -14,6 +14,7 @@ from demstep.clumps import (ClumpTemplate, _integrate_union, _separate, mass_pro
 from demstep.contact.laws import LinearSpring
 from demstep.contacts import ContactSet, find_contacts
 from demstep.engine import Damping, Simulation, TimeStep
+from demstep.engine.analysis import global_damping
 from demstep.errors import InputError
 from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness
@@ -219,7 +220,7 @@ def test_clump_restart_is_bit_identical(tmp_path, auto):
     assert a.n_contacts > 0
     if not auto:
         return
-    assert a.dt == b.dt and b._dt_cert.has_bodies and len(b._dt_cert.body_pairs)
+    assert a.dt == b.dt and b.auto.certificate.has_bodies and len(b.auto.certificate.body_pairs)
     assert a.n_dt_estimates - before == b.n_dt_estimates > 0  # (b: none at its start)
     data = dict(np.load(tmp_path / "c.npz"))
     assert len(data["ts_cert_body_pairs"])
@@ -915,14 +916,14 @@ def test_the_element_screen_only_skips_bounds_that_could_not_be_kept():
     from demstep.timestep.estimates import element_coupled_dt
 
     sim = landing_clumps()
-    screen = sim._element_bound_falls_short
+    screen = sim.auto.element_bound_falls_short
     seen = {"short": 0, "checked": 0}
 
     def checked(contacts, keep):
         short = screen(contacts, keep)
-        if contacts.n > 4 * sim.ELEMENT_SCREEN:
+        if contacts.n > 4 * sim.auto.ELEMENT_SCREEN:
             full = element_coupled_dt(sim.particles_now(), contacts, sim.rotation,
-                                      damping=sim._global_damping(), bodies=sim.rigid_bodies())
+                                      damping=global_damping(sim), bodies=sim.rigid_bodies())
             assert not (short and keep(full))
             for factor in (0.5, 0.999, 1.0, 1.001, 2.0):  # other thresholds on the bound
                 at_most = lambda dt, t=factor * full: dt >= t  # noqa: E731
@@ -931,7 +932,7 @@ def test_the_element_screen_only_skips_bounds_that_could_not_be_kept():
             seen["checked"] += 1
         return short
 
-    sim._element_bound_falls_short = checked
+    sim.auto.element_bound_falls_short = checked
     worst = 0.0
     for _ in range(30):
         sim.run(steps=10)
@@ -949,23 +950,21 @@ def test_solves_under_the_motion_limit_run_to_a_looser_residual():
     above it. Landing clumps solve with both (measured: 33 loose, 24 tight in 400
     steps)."""
     sim = landing_clumps()
-    solve = sim.critical_dt
+    solve = sim.auto.solve
     seen = {"loose": 0, "tight": 0}
 
-    def checked(method, rotation=True, horizon=None, tol=None, _record=False, _contacts=None):
-        if not _record:
-            return solve(method, rotation, horizon, tol)
-        certified, limit = sim.dt_certified, sim._motion_limit()
+    def checked(method, horizon, tol, prepared=None):
+        certified, limit = sim.dt_certified, sim.auto.motion_limit()
         loose = certified is not None and limit < 0.95 * certified
-        assert tol == (sim.AUTO_MOTION_TOL if loose else sim.AUTO_EXACT_TOL)
-        estimate = solve(method, rotation, horizon, tol, _record, _contacts)
+        assert tol == (sim.auto.AUTO_MOTION_TOL if loose else sim.auto.AUTO_EXACT_TOL)
+        estimate = solve(method, horizon, tol, prepared)
         if estimate is not None:
-            tight = solve(method, rotation, horizon)  # (to the package's 1e-10)
+            tight = sim.critical_dt(method, horizon=horizon)  # (to the package's 1e-10)
             assert tight * (1 - 8 * tol) <= estimate <= tight * (1 + 1e-8)
             seen["loose" if loose else "tight"] += 1
         return estimate
 
-    sim.critical_dt = checked
+    sim.auto.solve = checked
     sim.run(steps=400)
     assert seen["loose"] >= 10 and seen["tight"] >= 10
 

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from demstep.contact.geometry import pair_geometry_arrays
 from demstep.io.atomic import atomic_path, write_text_atomic
 from demstep.errors import InputError
 
@@ -98,11 +99,9 @@ def body_mesh(sim):
 def contact_lines(sim):
     """Pairs in contact (i, j) (C, 2), their normal force (C,) [M L/T^2] (compression
     positive) and force on j (C, 3); pairs across periodic boundaries left out."""
-    if not getattr(sim, "_pairs_built", False) or len(sim.pi) == 0:
+    pairs, force, normal = sim.contact_forces()  # (none before the lists are built)
+    if len(pairs) == 0:
         return np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.zeros((0, 3))
-    from demstep.contact.geometry import pair_geometry_arrays
-
-    pairs, force, normal = sim.contact_forces()
     i, j = pairs[:, 0], pairs[:, 1]
     images = pair_geometry_arrays(sim.x, sim.r, i, j, sim.periodic_len)[5]
     wrapped = np.any(images != 0, axis=1)
