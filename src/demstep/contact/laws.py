@@ -1,8 +1,9 @@
 """Contact laws: each formula once, as scalar numba functions, plus parameter classes.
 
-Sign conventions (DESIGN.md 1.1). For a contact between i and j (or i and a wall),
-n is the unit normal from i towards j, delta_n = r_i + r_j - |x_j - x_i| > 0 the
-overlap. Forces are those acting on j (the wall); i receives the opposite.
+Sign conventions (also in docs/time-step-elements.md). For a contact between i and j
+(or i and a wall), n is the unit normal from i towards j, delta_n = r_i + r_j -
+|x_j - x_i| > 0 the overlap. Forces are those acting on j (the wall); i receives the
+opposite.
 
 * Linear: F_n = K_n delta_n; tangential spring dF_t = -K_s du_t with the Coulomb
   limit |F_t| <= mu F_n.
