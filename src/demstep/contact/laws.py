@@ -93,16 +93,6 @@ class LawParams(NamedTuple):
     def has_dashpots(self) -> bool:
         return self.c_n > 0 or self.c_t > 0 or self.beta_n > 0 or self.beta_t > 0
 
-    @classmethod
-    def from_array(cls, values) -> "LawParams":
-        return cls(*(float(v) for v in values))
-
-
-# positions in LawParams (checkpoints store it as an array)
-(P_LAW, P_KN, P_KS, P_MU, P_ESTAR, P_GSTAR, P_CN, P_CT, P_BETA_N, P_BETA_T, P_MU_WALL,
- P_ROLL_MODE, P_BETA_R, P_BETA_W, P_MU_R, P_MU_W, P_ETA_R) = range(17)
-N_PARAMS = len(LawParams._fields)
-
 
 @njit(inline="always")
 def normal_force(law, params, delta, r_star):
