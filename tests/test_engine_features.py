@@ -18,7 +18,7 @@ from demstep.walls import box_walls
 @pytest.mark.parametrize("name", ["hex", "fcc"])
 def test_stability_edge_at_exact_critical_step(name):
     """Pre-compressed lattice, contacts never open: bounded at 0.98 x the exact critical
-    step, growing at 1.05 x (DESIGN 1.2)."""
+    step, growing at 1.05 x (central difference is stable below 2 / omega_max)."""
     exact = specimen_estimates(name)["exact"]
     assert not is_unstable(name, 0.98 * exact, steps=3000)
     assert is_unstable(name, 1.05 * exact, steps=3000)

@@ -86,7 +86,8 @@ def test_paper_fcc_translation_zoned(table):
 
 
 def test_fcc_with_rotation_exact_below_035(table):
-    """DESIGN 1.6: with coupled rotation the exact FCC step is below the paper's 0.35."""
+    """The paper calls alpha = 0.35 safe for its FCC case (the lattice hardly rotates); with
+    coupled rotation the exact FCC step is below it (docs/time-step-elements.md)."""
     fcc = next(r for r in table if r.lattice == "fcc")
     assert fcc.alpha[("exact-periodic", True, None)] < 0.35
     assert fcc.alpha[("exact-periodic", False, None)] > 0.45

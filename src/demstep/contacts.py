@@ -209,7 +209,8 @@ def find_contacts(particles: Particles, k_n: float, k_s: float | None = None,
 #: assemblies from this many particles (not periodic) search their pairs with the
 #: engine's threaded cell list (:func:`demstep.kernels.neighbors.build_pair_list`)
 #: instead of scipy's k-d tree: 1,024,000 FCC spheres 0.21 s against 2.1-2.5 s for the
-#: tree, its query and the sort (benchmarks/RESULTS.md); smaller ones keep the tree, so
+#: tree, its query and the sort (benchmarks/results/history-2026-12-04.md, 22nd
+#: session); smaller ones keep the tree, so
 #: that a small analysis does not wait for the search to compile on a fresh machine
 COMPILED_SEARCH_MIN = 100_000
 

@@ -129,7 +129,8 @@ def spatial_order(x: np.ndarray, cell: float) -> np.ndarray:
     The engine keeps the order it is given, and every pair's data is gathered by
     particle index: on a packing in random order (another code's file, particles
     numbered as they were inserted) a step of the dense 1e5-sphere benchmark took 2.5x
-    as long as in lattice order (benchmarks/RESULTS.md). Rows of cells put a particle's
+    as long as in lattice order (benchmarks/results/history-2026-11-30.md, fourth
+    session). Rows of cells put a particle's
     neighbours at three steady offsets (along x, one row, one layer), which the pair
     loop reads as three forward streams: measured faster than a Morton (Z-curve) order
     of the same cells (dense 6.2 against 5.2 M particle-steps/s, settling 17.7 against

@@ -1,8 +1,9 @@
 """Contact laws: each formula once, as scalar numba functions, plus parameter classes.
 
-Sign conventions (DESIGN.md 1.1). For a contact between i and j (or i and a wall),
-n is the unit normal from i towards j, delta_n = r_i + r_j - |x_j - x_i| > 0 the
-overlap. Forces are those acting on j (the wall); i receives the opposite.
+Sign conventions (also in docs/time-step-elements.md). For a contact between i and j
+(or i and a wall), n is the unit normal from i towards j, delta_n = r_i + r_j -
+|x_j - x_i| > 0 the overlap. Forces are those acting on j (the wall); i receives the
+opposite.
 
 * Linear: F_n = K_n delta_n; tangential spring dF_t = -K_s du_t with the Coulomb
   limit |F_t| <= mu F_n.
@@ -91,16 +92,6 @@ class LawParams(NamedTuple):
     @property
     def has_dashpots(self) -> bool:
         return self.c_n > 0 or self.c_t > 0 or self.beta_n > 0 or self.beta_t > 0
-
-    @classmethod
-    def from_array(cls, values) -> "LawParams":
-        return cls(*(float(v) for v in values))
-
-
-# positions in LawParams (checkpoints store it as an array)
-(P_LAW, P_KN, P_KS, P_MU, P_ESTAR, P_GSTAR, P_CN, P_CT, P_BETA_N, P_BETA_T, P_MU_WALL,
- P_ROLL_MODE, P_BETA_R, P_BETA_W, P_MU_R, P_MU_W, P_ETA_R) = range(17)
-N_PARAMS = len(LawParams._fields)
 
 
 @njit(inline="always")

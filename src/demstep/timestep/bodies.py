@@ -1,4 +1,4 @@
-"""Rigid bodies (clumps) in the critical-step analysis (DESIGN 1.8).
+"""Rigid bodies (clumps) in the critical-step analysis (docs/time-step-elements.md).
 
 A body's degrees of freedom are the velocity v and angular velocity omega of its centre
 of mass; a member sphere at the arm a = R d from it moves with u_m = v + omega x a and

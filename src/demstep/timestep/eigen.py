@@ -8,7 +8,8 @@ mode) or a fixed pseudo-random one, so that results are reproducible. ARPACK's
 implicitly restarted Lanczos (``eigsh``, which='LA') stays available
 (``solver="arpack"``); the package's own iteration replaced it because, on 1e5-particle
 assemblies, ARPACK spent 3-6x the time of the products themselves in its
-orthogonalisation and in the BLAS thread pool (measured; benchmarks/RESULTS.md), and
+orthogonalisation and in the BLAS thread pool (measured: "Exact damped step: solver
+choices" in benchmarks/results/history-2026-11-30.md), and
 it always builds a full basis of ``ncv`` vectors, so a warm start that is already
 nearly converged still costs ``ncv`` products.
 
@@ -63,7 +64,7 @@ LANCZOS_KEEP = 8
 #: pass. sqrt(eps) is the semi-orthogonality that keeps the Ritz values accurate
 #: (Simon 1984); a tight ``tol`` needs tighter (measured at tol = 1e-10 with sqrt(eps):
 #: 4 % more products on an FCC block, 34 % on a dense packing; with 0.1 tol none more;
-#: benchmarks/RESULTS.md)
+#: benchmarks/results/history-2026-12-01.md, ninth session)
 LANCZOS_SEMI = float(np.sqrt(np.finfo(np.float64).eps))
 LANCZOS_SEMI_PER_TOL = 0.1
 #: Lanczos runs per eigenpair when the explicit residual is 10x above the tolerance

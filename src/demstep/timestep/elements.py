@@ -8,7 +8,8 @@ Two formulations, both vectorised over contacts (leading axis C):
   are decoupled from translation (eqs. 9, 13); transformation T (eqs. 8, 10, 12);
   lumped masses (eqs. 16-19).
 * **coupled** -- the tangential springs act on the true slip at the contact point,
-  du_s = P (u_j - u_i) - (a_i theta_i + a_j theta_j) x n (DESIGN.md 1.1), i.e. the
+  du_s = P (u_j - u_i) - (a_i theta_i + a_j theta_j) x n (P = I - n n^T, a_i and a_j
+  the arms from the centres to the contact point; docs/time-step-elements.md), i.e. the
   linearised equations the engine integrates, and the rolling and twisting springs
   (:class:`~demstep.contacts.ContactSet` ``k_r``, ``k_w``) on the relative rotation
   phi = theta_j - theta_i: a rotational element [[B, -B], [-B, B]] with

@@ -70,9 +70,9 @@ DENSE_CERTIFY_MARGIN = 1e-11
 CLOSED_FORM_RTOL = 1e-8
 #: eigen-tolerances of the intermediate solves of the safeguarded iteration: each only
 #: needs a vector good enough for a Rayleigh-functional value, whose error is quadratic
-#: in the vector's (measured: benchmarks/RESULTS.md, "Exact damped step: solver
-#: choices"). The first (the damped mode is new: its vector is only a start for the
-#: next) at FIRST_TOL, the next ones at LOOSE_TOL.
+#: in the vector's (measured: benchmarks/results/history-2026-11-30.md, "Exact damped
+#: step: solver choices"). The first (the damped mode is new: its vector is only a
+#: start for the next) at FIRST_TOL, the next ones at LOOSE_TOL.
 FIRST_TOL = 1e-3
 LOOSE_TOL = 1e-6
 #: the certifying solve starts once a LOOSE_TOL solve moved the iterate by less than
@@ -80,16 +80,17 @@ LOOSE_TOL = 1e-6
 TIGHT_SWITCH = 1e-4
 #: random share mixed into the warm starts (the previous iterate's vector) of the
 #: intermediate solves, which certify nothing. Every solve that certifies (the undamped
-#: one, and the damped iteration's certifying ones) starts from the fixed random
-#: vector instead: a warm start sits on one eigenvector of a cluster, and Lanczos
-#: stops on it as soon as its residual is small, before the random share has brought
-#: out a larger eigenvalue of the cluster. Measured (benchmarks/RESULTS.md, eleventh
-#: session): on the dense FCC block of 1e5 spheres, warm starts from the previous
-#: critical mode gave a "bound" 1.0e-4 and 1.9e-4 below the largest eigenvalue at
-#: tolerances 1e-4 and 1e-5 (random shares 1e-2 to 0.3 alike); on a 500-sphere block
-#: started from the second eigenvector, 1.4 % below at 1e-4 and 1e-5, and at 1e-6 with
-#: a random share of 1e-4 (the certifying solves' before); cold starts bounded it at
-#: every tolerance up to 1e-3 on all of them, for at most ~20 % more products
+#: one, and the damped iteration's certifying ones) starts from the fixed random vector
+#: instead: a warm start sits on one eigenvector of a cluster, and Lanczos stops on it as
+#: soon as its residual is small, before the random share has brought out a larger
+#: eigenvalue of the cluster. Measured (eleventh session in
+#: benchmarks/results/history-2026-12-01.md): on the dense FCC block of 1e5 spheres, warm
+#: starts from the previous critical mode gave a "bound" 1.0e-4 and 1.9e-4 below the
+#: largest eigenvalue at tolerances 1e-4 and 1e-5 (random shares 1e-2 to 0.3 alike); on a
+#: 500-sphere block started from the second eigenvector, 1.4 % below at 1e-4 and 1e-5, and
+#: at 1e-6 with a random share of 1e-4 (the certifying solves' before); cold starts
+#: bounded it at every tolerance up to 1e-3 on all of them, for at most ~20 % more
+#: products
 CHAIN_MIX = 1e-6
 #: top Ritz vectors of the undamped solve searched for the damped iteration's start
 START_BLOCK = 4
@@ -97,7 +98,8 @@ START_BLOCK = 4
 #: product is three parallel regions; on a 2-core machine shared with other work a
 #: region can wait for a descheduled thread, which cost 20x at 3e4 contacts (0.07 s ->
 #: 1.4 s, loose 1e4), while an idle machine runs a product 1.6-1.8x faster on 2 threads
-#: at 3e5 contacts (benchmarks/RESULTS.md)
+#: at 3e5 contacts (benchmarks/results/history-2026-11-30.md, "Exact damped step: solver
+#: choices")
 PARALLEL_MIN_CONTACTS = 100_000
 
 
@@ -353,7 +355,8 @@ class ScaledContactOperator:
         elif self.contacts.n:
             # in parts of DAMPING_BOUND_PART contacts (views): the element formulas make
             # a dozen temporaries per contact, 950 MB at 7e6 contacts, on top of the
-            # basis at the damped solve's peak (benchmarks/RESULTS.md)
+            # basis at the damped solve's peak (benchmarks/results/history-2026-12-04.md,
+            # twenty-third session)
             c = self.contacts
             counts = c.count_per_particle(self.particles.n)
             damped = c.damped

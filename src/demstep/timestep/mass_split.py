@@ -21,9 +21,10 @@ from demstep.particles import Particles
 MASS_SPLITS = ("uniform", "zoned")
 
 #: height of the two cutting planes of the zoned split, as a fraction of the radius:
-#: z = +/- r sin(22.5 deg). The paper's Figure 7 is not in its text; this choice
-#: reproduces its zoned minima (0.348 and 0.221 sqrt(m/K), rhombic) -- a documented
-#: reconstruction (DESIGN.md 1.3).
+#: z = +/- r sin(22.5 deg). The paper gives its Figure 7 as a drawing only, without the
+#: planes' heights; this choice reproduces its zoned minima (0.348 and 0.221 sqrt(m/K),
+#: rhombic; about 0.37 for FCC without rotation). A reconstruction, not the paper's
+#: statement: docs/time-step-elements.md, "Where the zoned split's cutting planes are".
 ZONE_CUT = np.sin(np.radians(22.5))
 
 
