@@ -446,7 +446,7 @@ def test_a_warm_start_on_a_cluster_member_still_bounds_the_top(damped, tol):
     stays below the dense path's at every tolerance."""
     from demstep.timestep_input import ContactModel, from_lattice
 
-    model = ContactModel(k_n=1e6, k_t=5e5)
+    model = ContactModel(parameters={"k_n": 1e6, "k_s": 5e5})
     inp = from_lattice("fcc", 5, 1.0, 1000.0, model)
     contacts = inp.contacts
     damping = None
@@ -477,7 +477,7 @@ def test_a_loose_undamped_solve_still_certifies_the_damped_step():
     path's undamped step, within the looser tolerance)."""
     from demstep.timestep_input import ContactModel, from_lattice
 
-    model = ContactModel(k_n=1e6, k_t=5e5)
+    model = ContactModel(parameters={"k_n": 1e6, "k_s": 5e5})
     inp = from_lattice("fcc", 5, 1.0, 1000.0, model)
     contacts = replace(inp.contacts, c_n=np.full(inp.contacts.n, 2.0),
                        c_t=np.full(inp.contacts.n, 1.0))
@@ -503,7 +503,7 @@ def test_estimates_solve_the_undamped_problem_tightly_only_when_it_is_listed():
     from demstep.timestep.estimates import estimate_time_steps
     from demstep.timestep_input import ContactModel, from_lattice
 
-    inp = from_lattice("fcc", 5, 1.0, 1000.0, ContactModel(k_n=1e6, k_t=5e5))
+    inp = from_lattice("fcc", 5, 1.0, 1000.0, ContactModel(parameters={"k_n": 1e6, "k_s": 5e5}))
     contacts = replace(inp.contacts, c_n=np.full(inp.contacts.n, 2.0),
                        c_t=np.full(inp.contacts.n, 1.0))
     both = estimate_time_steps(inp.particles, contacts, True, methods=["exact", "exact-undamped"])
@@ -534,7 +534,7 @@ def test_a_tolerance_that_certifies_nothing_is_refused(name, options):
     from demstep.timestep.estimates import estimate_time_steps
     from demstep.timestep_input import ContactModel, from_lattice
 
-    inp = from_lattice("fcc", 3, 1.0, 1000.0, ContactModel(k_n=1e6, k_t=5e5))
+    inp = from_lattice("fcc", 3, 1.0, 1000.0, ContactModel(parameters={"k_n": 1e6, "k_s": 5e5}))
     if name == "exact_tol":
         call = lambda: estimate_time_steps(inp.particles, inp.contacts, True, **options)
     else:

@@ -219,11 +219,11 @@ def test_dt_of_a_file_in_random_order_is_solved_reordered_and_reports_its_rows(t
     mesh = meshio.read(vtk)
     np.testing.assert_allclose(mesh.point_data["radius"], r[mesh.point_data["id"]],
                                rtol=1e-12)
-    reordered = ti.from_file(tmp_path / "spheres.csv", ti.ContactModel(k_n=1e5, k_t=1e5),
+    reordered = ti.from_file(tmp_path / "spheres.csv", ti.ContactModel(parameters={"k_n": 1e5, "k_s": 1e5}),
                              density=2500.0, contact_tol=0.05)
     assert reordered.ids is not None
     original = ti.from_particles(Particles.from_density(x, r, 2500.0),
-                                 ti.ContactModel(k_n=1e5, k_t=1e5), None, None, (), 0.05)
+                                 ti.ContactModel(parameters={"k_n": 1e5, "k_s": 1e5}), None, None, (), 0.05)
     assert original.contacts.n == reordered.contacts.n
     np.testing.assert_array_equal(reordered.particles.r, r[reordered.ids])
     from demstep.timestep.exact import exact_critical_step

@@ -933,7 +933,7 @@ def test_fixed_particle_counts_as_a_wall_in_the_rolling_inertia():
     radii = np.array([0.2, 0.3])  # radii other than 1: m r^2 is no m r
     p0 = Particles.from_density(x, radii, 1.0)
     p = Particles(p0.x, p0.r, p0.m, p0.inertia, fixed=np.array([True, False]))
-    model = ContactModel("linear", k_n=100.0, rolling_convention="beta", rolling_stiffness=1.0,
+    model = ContactModel("linear", parameters={"k_n": 100.0}, rolling_convention="beta", rolling_stiffness=1.0,
                          rolling_damping=0.5)
     c = from_particles(p, model).contacts
     assert c.n == 1

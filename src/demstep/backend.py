@@ -12,9 +12,9 @@ bundles of :mod:`demstep.state` without touching the engine. A backend offers:
 ``transfer_history(old_i, old_j, new_i, new_j, *history)`` -> history on the new list;
 ``pair_chunks(i, j, n, n_chunks)`` -> (chunks, spans): the work split of the pair loop;
 ``copy_positions(x, out)``: out[:] = x, the positions (N, 3) at a build of the lists;
-``advance(n_steps, controls, spheres, bodies, pairs, bonds, walls, box, ledger, law, params)``
+``advance(n_steps, controls, spheres, bodies, pairs, bonds, walls, box, ledger, params)``
     -> (steps done, stop reason): whole steps in the documented order;
-``pair_contact_forces(x, r, i, j, periodic_len, law, params, shear, dashpot, force, normal)``
+``pair_contact_forces(x, r, i, j, periodic_len, params, shear, dashpot, force, normal)``
     -> mask of touching pairs, filling their forces and normals (output only).
 
 The ``cpu`` backend is the numba kernels of :mod:`demstep.kernels`.

@@ -42,7 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
-from demstep.contact.laws import RollingResistance
+from demstep.contact.laws import (ContactLaw, RollingResistance, contact_coefficients,
+                                  damping_ratio_from_restitution, law_class)
 from demstep.contacts import DEFAULT_CONTACT_TOL, ContactSet, find_contacts
 from demstep.errors import InputError, magnitude_problem
 from demstep.packings import SPATIAL_ORDER_MIN
@@ -50,7 +51,6 @@ from demstep.particles import Particles, particle_inertia
 from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.estimates import Materials
 
-MODELS = ("linear", "hertz")
 CONVENTIONS = ("demstep", "liggghts")
 
 
@@ -76,16 +76,19 @@ class Material:
 
 @dataclass
 class ContactModel(RollingResistance):
-    """How contacts become coefficients (module docstring). ``materials`` maps a particle
-    type to its :class:`Material` (type 1 for files without a type column; the key None
-    gives the material of every type). Rolling and twisting resistance as in
+    """How contacts become coefficients (module docstring): the contact law ``model``
+    (a name of :data:`demstep.contact.laws.LAWS`) with its own ``parameters`` (field
+    name: value, e.g. {"k_n": 1e7}), or, for a law whose parameters are the particles'
+    materials (Hertz), ``materials``: a particle type -> its :class:`Material` (type 1
+    for files without a type column; the key None gives the material of every type).
+    Dashpots by restitution or absolute coefficients, in the ``convention`` "demstep"
+    or "liggghts". Rolling and twisting resistance as in
     :class:`demstep.contact.laws.ContactLaw`: ``rolling_convention`` ("beta", "epsd" or
     None: none), ``rolling_stiffness`` beta_r, ``twisting_stiffness`` beta_w,
     ``rolling_friction`` mu_r, ``twisting_friction`` mu_w, ``rolling_damping`` eta."""
 
     model: str = "linear"
-    k_n: float | None = None
-    k_t: float | None = None
+    parameters: dict = field(default_factory=dict)
     materials: dict = field(default_factory=dict)
     restitution: float | None = None
     restitution_tangential: float | None = None
@@ -95,33 +98,52 @@ class ContactModel(RollingResistance):
     convention: str = "demstep"
     overlap: float = 0.0
 
+    @property
+    def law_class(self) -> type:
+        return law_class(self.model, "model")
+
+    def _law(self, **own) -> ContactLaw:
+        """The law with the model's parameters (``own``: a material pair's instead) and
+        its common settings, checked (messages name the ``demstep dt`` options)."""
+        cls = self.law_class
+        law = cls(**(self.parameters if not own else {}), **self.rolling_settings())
+        try:
+            law.validate()
+        except InputError as exc:
+            text = str(exc)
+            for option, name in cls.cli.items():
+                text = text.replace(f"{name}:", f"{option}:", 1) if text.startswith(name) else text
+            for name in ROLLING_OPTIONS:
+                text = text.replace(name, name.replace("_", "-"))
+            raise InputError(text) from None
+        return law
+
     def validate(self):
-        if self.model not in MODELS:
-            raise InputError(f"model: must be one of {', '.join(MODELS)}, got {self.model!r}")
+        cls = self.law_class
         if self.convention not in CONVENTIONS:
             raise InputError(f"convention: must be one of {', '.join(CONVENTIONS)}, got "
                              f"{self.convention!r}")
-        if self.model == "linear":
-            if self.k_n is None:
-                raise InputError("kn: the linear model needs --kn")
-            _positive("kn", self.k_n)
-            if self.k_t is not None:
-                _non_negative("ks", self.k_t)
-        else:
-            if self.k_n is not None or self.k_t is not None:
-                raise InputError("kn: --kn/--ks belong to the linear model; the hertz model "
-                                 "takes --youngs and --poisson")
+        if cls.uses_materials:
+            if self.parameters:
+                raise InputError(f"model: the {cls.name} model takes the materials' "
+                                 f"properties, got {sorted(self.parameters)}")
             if not self.materials:
-                raise InputError("youngs: the hertz model needs --youngs and --poisson "
-                                 "(or --materials)")
+                options = "/".join(f"--{o}" for o in cls.cli)
+                raise InputError(f"{next(iter(cls.cli))}: the {cls.name} model needs {options} "
+                                 f"(or --materials)")
             for t, m in self.materials.items():
                 m.validate("" if t is None else f"material {t}:")
+        else:
+            self._law()
         for name, v in (("restitution", self.restitution),
                         ("restitution-t", self.restitution_tangential)):
             if v is not None and not (math.isfinite(v) and 0.0 < v <= 1.0):
                 raise InputError(f"{name}: must lie in (0, 1], got {v!r}")
         _non_negative("gamma-n", self.gamma_n)
         _non_negative("gamma-t", self.gamma_t)
+        if self.convention == "liggghts" and cls.liggghts_tangential is None:
+            raise InputError(f"convention: the {cls.name} model has no LIGGGHTS counterpart "
+                             f"(use --convention demstep)")
         if (self.convention == "liggghts" and self.restitution is not None
                 and (self.gamma_n or self.gamma_t)):
             raise InputError("restitution: the liggghts convention takes either --restitution "
@@ -134,20 +156,18 @@ class ContactModel(RollingResistance):
             raise InputError(f"overlap: must be finite and >= 0, got {self.overlap!r}")
         self._rolling_law()
 
-    def _rolling_law(self):
-        """The rolling-resistance part as a checked :class:`~demstep.contact.laws.ContactLaw`
-        (the law's own checks; messages name the options: rolling-stiffness, ...)."""
-        from demstep.contact.laws import ContactLaw
-
-        law = ContactLaw(**self.rolling_settings())
+    def _rolling_law(self) -> RollingResistance:
+        """The rolling-resistance settings, checked (messages name the options:
+        rolling-stiffness, ...)."""
+        rolling = RollingResistance(**self.rolling_settings())
         try:
-            law.validate()
+            rolling.validate_rolling()
         except InputError as exc:
             text = str(exc)
             for name in ROLLING_OPTIONS:
                 text = text.replace(name, name.replace("_", "-"))
             raise InputError(text) from None
-        return law
+        return rolling
 
     @property
     def has_rolling(self) -> bool:
@@ -171,18 +191,19 @@ class ContactModel(RollingResistance):
                     or (et is not None and et < 1.0 and self.tangential_damping))
 
     def describe(self) -> str:
-        if self.model == "linear":
-            text = f"linear k_n = {self.k_n:g}, k_t = {self.k_t if self.k_t is not None else self.k_n:g}"
-        else:
+        cls = self.law_class
+        if cls.uses_materials:
             mats = "; ".join(("every type" if t is None else f"type {t}")
                              + f": E = {m.youngs:g}, nu = {m.poisson:g}"
                              for t, m in sorted(self.materials.items(), key=lambda kv: kv[0] or 0))
-            text = f"Hertz-Mindlin tangent stiffnesses at each overlap ({mats})"
+            text = f"{cls.name}: tangent stiffnesses at each overlap ({mats})"
+        else:
+            text = self._law().describe()
         if self.gamma_n or self.gamma_t:
             text += f"; dashpots gamma_n = {self.gamma_n:g}, gamma_t = {self.gamma_t:g} (absolute)"
         if self.restitution is not None and self.convention == "liggghts":
             tang = ("tangential dashpot " + ("on" if self.tangential_damping else "off"))
-            form = ("c_t = c_n" if self.model == "linear" else "c_t from k_t")
+            form = ("c_t = c_n" if cls.liggghts_tangential == "c_n" else "c_t from k_t")
             text += (f"; dashpots from restitution {self.restitution:g}, LIGGGHTS "
                      f"convention ({tang}; {form})")
         elif self.restitution is not None or self._tangential_restitution is not None:
@@ -204,39 +225,37 @@ class ContactModel(RollingResistance):
         return text
 
     # -------------------------------------------------------------- coefficients
-    def law_params(self, e_star: float = 0.0, g_star: float = 0.0):
-        """The engine's :class:`~demstep.contact.laws.LawParams` for one material pair."""
-        from demstep.contact import laws
-
-        if self.model == "linear":
-            p = laws.LawParams(law=float(laws.LAW_LINEAR), k_n=float(self.k_n),
-                               k_s=float(self.k_n if self.k_t is None else self.k_t))
+    def law_params(self, a: Material | None = None, b: Material | None = None):
+        """The engine's parameter tuple of the model's law (for a law with materials,
+        of a contact between materials ``a`` and ``b``), with the dashpots of the
+        model's convention and its rolling resistance."""
+        cls = self.law_class
+        if cls.uses_materials:
+            if a is None:  # (the material of every type, or the first given)
+                a = self.materials.get(None) or next(iter(self.materials.values()))
+            p = cls.Params(**cls.pair_params(a, a if b is None else b))
         else:
-            p = laws.LawParams(law=float(laws.LAW_HERTZ), e_star=float(e_star),
-                               g_star=float(g_star))
+            law = self._law()
+            p = cls.Params(**law.own_params())
         p = p._replace(c_n=float(self.gamma_n), c_t=float(self.gamma_t))
         if self.restitution is not None:
-            beta = laws.damping_ratio_from_restitution(self.restitution)
+            beta = damping_ratio_from_restitution(self.restitution)
             p = p._replace(beta_n=beta)
-            # liggghts, Hertz: the same beta on k_t; linear: c_t = c_n (set after)
+            # liggghts: the normal ratio on k_t (hertz) or c_t = c_n (hooke, set after)
             if (self.convention == "liggghts" and self.tangential_damping
-                    and self.model == "hertz"):
+                    and cls.liggghts_tangential == "beta"):
                 p = p._replace(beta_t=beta)
         if self._tangential_restitution is not None:  # (with a normal one or not)
-            p = p._replace(beta_t=laws.damping_ratio_from_restitution(
-                self._tangential_restitution))
+            p = p._replace(beta_t=damping_ratio_from_restitution(self._tangential_restitution))
         if not self.tangential_damping:
             p = p._replace(c_t=0.0, beta_t=0.0)
         if self.has_rolling:
-            roll = self._rolling_law().params()
-            p = p._replace(roll_mode=roll.roll_mode, beta_r=roll.beta_r, beta_w=roll.beta_w,
-                           mu_r=roll.mu_r, mu_w=roll.mu_w, eta_r=roll.eta_r)
+            p = p._replace(**self._rolling_law().rolling_params())
         return p
 
     def apply(self, contacts: ContactSet, particles: Particles, types: np.ndarray) -> ContactSet:
         """Fill the contacts' k_n, k_s, c_n, c_t (and k_r, k_w, c_r, c_w with rolling
         resistance) from the model and the geometry."""
-        from demstep.contact.laws import contact_coefficients
         from demstep.contacts import contact_effective_radius, contact_rolling_inertia
         from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
 
@@ -255,7 +274,8 @@ class ContactModel(RollingResistance):
         p = particles
         i_star = (contact_rolling_inertia(contacts, p.r, p.m, p.inertia, ~p.fixed)
                   if self.has_rolling else None)
-        if self.model == "linear":  # (one group: views and plain copies, no masks)
+        cls = self.law_class
+        if not cls.uses_materials:  # (one group: views and plain copies, no masks)
             groups = [(slice(None), self.law_params())]
         else:
             ti, tj = types[i], types[jj]
@@ -263,11 +283,9 @@ class ContactModel(RollingResistance):
             for a in np.unique(ti):
                 for b in np.unique(tj[ti == a]):
                     sel = (ti == a) & (tj == b)
-                    e_star, g_star = effective_moduli(self.material(a), self.material(b))
-                    groups.append((sel, self.law_params(e_star, g_star)))
+                    groups.append((sel, self.law_params(self.material(a), self.material(b))))
         for sel, params in groups:
-            coeffs = contact_coefficients(int(params.law), params, delta[sel], r_star[sel],
-                                          m_star[sel])
+            coeffs = contact_coefficients(params, delta[sel], r_star[sel], m_star[sel])
             for k in range(4):
                 out[k][sel] = coeffs[k]
             if i_star is not None:
@@ -276,7 +294,7 @@ class ContactModel(RollingResistance):
                 for k in range(4):
                     out[4 + k][sel] = rolling[k]
         k_n, k_t, c_n, c_t, k_r, k_w, c_r, c_w = out
-        if (self.convention == "liggghts" and self.model == "linear"
+        if (self.convention == "liggghts" and cls.liggghts_tangential == "c_n"
                 and self.restitution is not None):
             c_t = c_n.copy() if self.tangential_damping else np.zeros_like(c_n)
         return ContactSet(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
@@ -296,12 +314,11 @@ def with_rolling(contacts: ContactSet, particles: Particles, params) -> ContactS
     return cs.with_rolling(contacts, p.r, p.m, p.inertia, ~p.fixed, params)
 
 
-def effective_moduli(a: Material, b: Material) -> tuple[float, float]:
-    """E*, G* [M/(L T^2)] of a contact between materials a and b (module docstring)."""
-    e_star = 1.0 / ((1 - a.poisson**2) / a.youngs + (1 - b.poisson**2) / b.youngs)
-    g_star = 1.0 / (2 * (2 - a.poisson) * (1 + a.poisson) / a.youngs
-                    + 2 * (2 - b.poisson) * (1 + b.poisson) / b.youngs)
-    return e_star, g_star
+def effective_moduli(model: ContactModel, a: Material, b: Material) -> tuple[float, float]:
+    """E*, G* [M/(L T^2)] of a contact between materials a and b by the model's law
+    (module docstring)."""
+    moduli = model.law_class.pair_params(a, b)
+    return moduli["e_star"], moduli["g_star"]
 
 
 def _positive(name, v):
@@ -444,14 +461,14 @@ def periodic_lengths(box: np.ndarray, periodic: np.ndarray, x: np.ndarray, r: np
 
 def make_materials(model: ContactModel, particles: Particles, types: np.ndarray,
                    impact_velocity: float | None) -> Materials | None:
-    """Per-particle material data for the rules (Hertz model only)."""
-    if model.model != "hertz":
+    """Per-particle material data for the rules (a law with materials only)."""
+    if not model.law_class.uses_materials:
         return None
     mats = [model.material(t) for t in types]
     volume = (4.0 / 3.0 * np.pi * particles.r**3 if particles.dim == 3 else np.pi * particles.r**2)
     density = np.array([m.density if m.density is not None else np.nan for m in mats])
     density = np.where(np.isnan(density), particles.m / volume, density)
-    e_star = np.array([effective_moduli(m, m)[0] for m in mats])
+    e_star = np.array([effective_moduli(model, m, m)[0] for m in mats])
     return Materials(np.array([m.youngs for m in mats]), np.array([m.poisson for m in mats]),
                      density, e_star, impact_velocity)
 
@@ -460,7 +477,7 @@ def _impact_velocity(model: ContactModel, given: float | None, velocities) -> fl
     """The impact velocity of the Hertz time [L/T]: ``given``, else twice the largest
     particle speed (as LIGGGHTS), None without motion. Given with a model that is not
     Hertz: InputError (the Hertz time is the only estimate that reads it)."""
-    if model.model != "hertz":
+    if not model.law_class.uses_materials:
         if given is not None:
             raise InputError(f"impact-velocity: only used by the Hertz time of the hertz "
                              f"model; this input's contact model is {model.model}, got {given!r}")
@@ -472,7 +489,7 @@ def _impact_velocity(model: ContactModel, given: float | None, velocities) -> fl
 
 
 def check_types(model: ContactModel, types: np.ndarray, source: str):
-    if model.model != "hertz":
+    if not model.law_class.uses_materials:
         return
     missing = sorted(set(int(t) for t in np.unique(types)) - set(model.materials))
     if missing and None not in model.materials:
@@ -520,11 +537,11 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
     dim = data.dim
     notes = [f"read {path} ({data.x.shape[0]} particles, {dim}D)"]
     if data.m is None:
-        if density is None and model.model == "hertz" and model.materials:
+        if density is None and model.law_class.uses_materials and model.materials:
             dens = [m.density for m in model.materials.values()]
             if all(d is not None for d in dens):
                 density = None  # per type below
-        if density is None and not (model.model == "hertz" and _all_densities(model)):
+        if density is None and not (model.law_class.uses_materials and _all_densities(model)):
             raise InputError(f"{path}: no mass column: give --density")
     types = data.types if data.types is not None else np.ones(len(data.r), dtype=np.int64)
     check_types(model, types, str(path))
@@ -695,16 +712,15 @@ def from_simulation(sim, source: str, notes=None,
 
 def model_from_law(law, overlap: float = 0.0) -> ContactModel:
     """The :class:`ContactModel` (demstep convention) of an engine law."""
-    from demstep.contact.laws import HertzMindlin
-
     common = dict(restitution=law.restitution, restitution_tangential=law.restitution_tangential,
                   gamma_n=float(law.damping_normal), gamma_t=float(law.damping_tangential),
                   convention="demstep", overlap=overlap)
     common.update(law.rolling_settings())
-    if isinstance(law, HertzMindlin):
-        return ContactModel("hertz", materials={None: Material(law.youngs_modulus, law.poisson_ratio)},
-                            **common)
-    return ContactModel("linear", k_n=law.k_n, k_t=law.k_s, **common)
+    own = {f.name: getattr(law, f.name) for f in law.own_fields()}
+    if law.uses_materials:
+        values = list(own.values())  # (the law's material: Young's modulus, Poisson's ratio)
+        return ContactModel(law.name, materials={None: Material(*values)}, **common)
+    return ContactModel(law.name, parameters=own, **common)
 
 
 def from_case(path, stage: int = 1, contact_tol: float = DEFAULT_CONTACT_TOL,

@@ -141,16 +141,15 @@ def _fixed_flags(case: Case, x: np.ndarray) -> np.ndarray:
 
 def build_law(case: Case):
     """The contact law object of the case."""
-    from demstep.contact.laws import HertzMindlin, LinearSpring, RollingResistance
+    from demstep.contact.laws import RollingResistance, law_class
 
     c = case.contact
+    cls = law_class(c.law)
     common = dict(mu=c.mu, mu_wall=c.mu_wall, damping_normal=c.damping_normal,
                   damping_tangential=c.damping_tangential, restitution=c.restitution,
                   restitution_tangential=c.restitution_tangential,
                   **{name: getattr(c, name) for name in RollingResistance.field_names()})
-    if c.law == "linear":
-        return LinearSpring(k_n=c.k_n, k_s=c.k_s, **common)
-    return HertzMindlin(youngs_modulus=c.youngs_modulus, poisson_ratio=c.poisson_ratio, **common)
+    return cls(**{f.name: getattr(c, f.name) for f in cls.own_fields()}, **common)
 
 
 def apply_motion(wall, motion: WallMotion):

@@ -55,8 +55,10 @@ must touch or overlap one another (one rigid body), radii > 0.
 ``[particles.fixed]``: particles held in place: ``indices`` (0-based) and/or the box
 ``lower``/``upper`` [L] (lower <= upper on every axis; every centre inside is fixed).
 
-``[contact]``: ``law`` = "linear" (``k_n``, ``k_s`` [M/T^2]; k_s defaults to k_n) or
-"hertz" (``youngs_modulus`` [M/(L T^2)], ``poisson_ratio``); for both ``mu``
+``[contact]``: ``law``, one of the contact laws (:mod:`demstep.contact.laws`: "linear"
+with ``k_n``, ``k_s`` [M/T^2], k_s defaulting to k_n; "hertz" with ``youngs_modulus``
+[M/(L T^2)] and ``poisson_ratio``; each law's module lists its own keys), and for every
+law ``mu``
 (particle-particle friction), ``mu_wall`` (default mu), dashpots by ``restitution``
 (normal, in (0, 1]) and ``restitution_tangential`` or by coefficients
 ``damping_normal``/``damping_tangential`` [M/T] (one or the other for each direction:
@@ -157,9 +159,11 @@ from pathlib import Path
 from typing import Annotated, Literal, Union
 
 import numpy as np
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, ValidationError
+from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, ValidationError,
+                      create_model)
 
 # (MIN_MAGNITUDE, MAX_MAGNITUDE: the case files' range, documented above, one for all input)
+from demstep.contact.laws import LAWS, law_class
 from demstep.errors import MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem
 from demstep.io.textfile import (csv_rows, not_a_file_message, not_a_file_reason, open_text,
                                  read_small_text)
@@ -332,23 +336,21 @@ class _ContactBase(_Section):
     rolling_damping: NonNegative = 0.0
 
 
-class LinearContact(_ContactBase):
-    """Linear springs ``k_n``, ``k_s`` [M/T^2] (k_s defaults to k_n)."""
-
-    law: Literal["linear"]
-    k_n: Positive
-    k_s: NonNegative | None = None
-
-
-class HertzContact(_ContactBase):
-    """Hertz-Mindlin no-slip contact of one material."""
-
-    law: Literal["hertz"]
-    youngs_modulus: Positive
-    poisson_ratio: Bounded(gt=-1, lt=0.5)
+def _law_section(cls) -> type:
+    """The [contact] section of the law ``cls`` (:data:`demstep.contact.laws.LAWS`):
+    ``law`` = its name and its own parameters, checked by their bounds."""
+    fields = {"law": (Literal[cls.name], ...)}
+    for f in cls.own_fields():
+        meta = f.metadata
+        kind = Bounded(**meta["bounds"])
+        fields[f.name] = (kind, ...) if meta["required"] else (kind | None, f.default)
+    return create_model(f"{cls.__name__}Contact", __base__=_ContactBase,
+                        __doc__=f"The {cls.name} law: {(cls.__doc__ or '').strip()}", **fields)
 
 
-ContactSection = Annotated[Union[LinearContact, HertzContact], Field(discriminator="law")]
+#: the [contact] section of each registered law, by law name
+LAW_SECTIONS = {name: _law_section(cls) for name, cls in LAWS.items()}
+ContactSection = Annotated[Union[tuple(LAW_SECTIONS.values())], Field(discriminator="law")]
 
 
 # ------------------------------------------------------------------------ walls
@@ -1014,14 +1016,14 @@ def _unused_keys(case: Case) -> list:
             out.append((f"contact.{name}", ("contact", name), c, name,
                         f"give the {other} dashpot by {value} or by {name}, not both (they "
                         f"would add up; {value} is {getattr(c, value)!r})"))
-    if c.law == "linear":
+    if not law_class(c.law).kernels.nonlinear:
         sections = [("timestep", ("timestep",), case.timestep)]
         sections += [(f"stages[{k}].timestep", ("stages", k, "timestep"), st.timestep)
                      for k, st in enumerate(case.stages) if st.timestep is not None]
         for key, path, ts in sections:
             out.append((f"{key}.overlap", path + ("overlap",), ts, "overlap",
-                        "only used with law = 'hertz' (a linear spring's stiffness does not "
-                        "depend on it)"))
+                        f"only used with a law whose stiffness depends on the overlap (the "
+                        f"{c.law} law's does not)"))
     p = case.particles
     if p.generator == "file":
         fmt = _file_format(case)

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from demstep._numba import njit
-from demstep.contact.laws import _check
+from demstep.contact.laws.base import check_number as _check
 
 
 @njit(inline="always")

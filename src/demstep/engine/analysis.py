@@ -130,7 +130,7 @@ def _pairs_part(sim, i, j, d, dist, arm_i, arm_j, overlaps, params) -> ContactSe
     r_star = sim.r[i] * sim.r[j] / (sim.r[i] + sim.r[j])
     inv = sim.inv_m[i] + sim.inv_m[j]
     m_star = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), sim.m[i])
-    kn, kt, cn, ct = coefficients(int(params.law), params, overlaps, r_star, m_star)
+    kn, kt, cn, ct = coefficients(params, overlaps, r_star, m_star)
     return ContactSet(i, j, (d / dist[:, None])[:, :sim.dim], arm_i, arm_j, kn, kt,
                       c_n=cn, c_t=ct)
 
@@ -138,7 +138,7 @@ def _pairs_part(sim, i, j, d, dist, arm_i, arm_j, overlaps, params) -> ContactSe
 def _walls_part(sim, p, w, arm, overlaps, params) -> ContactSet:
     """Particle-wall contacts (p, w) with the arms given, the law's coefficients at
     ``overlaps`` [L] (R* = r, m* = m)."""
-    kn, kt, cn, ct = coefficients(int(params.law), params, overlaps, sim.r[p], sim.m[p])
+    kn, kt, cn, ct = coefficients(params, overlaps, sim.r[p], sim.m[p])
     return ContactSet(p, np.full(len(p), -1), -sim.wall_normal[w][:, :sim.dim], arm,
                       np.zeros(len(p)), kn, kt, w, c_n=cn, c_t=ct)
 
@@ -166,7 +166,7 @@ def reachable_overlap(sim, delta, reach, r_star) -> np.ndarray:
     skin; a non-linear law's at least the TimeStep's relative ``overlap`` x
     ``r_star``."""
     out = np.maximum(delta, 0.0) + np.minimum(2.0 * reach, sim.skin)
-    if sim.law.law_id != 0:
+    if sim.law.nonlinear:
         out = np.maximum(out, sim.timestep.overlap * r_star)
     return out
 
@@ -207,9 +207,10 @@ def reach_speed(sim, horizon: float) -> np.ndarray:
     return out
 
 
-def coefficients(law_id, params, delta, r_star, m_star):
-    """k_n, k_t [M/T^2], c_n, c_t [M/T] of contacts at overlaps ``delta``."""
-    return contact_coefficients(law_id, params, np.ascontiguousarray(delta, float),
+def coefficients(params, delta, r_star, m_star):
+    """k_n, k_t [M/T^2], c_n, c_t [M/T] of contacts at overlaps ``delta`` (the law of
+    the parameters ``params``)."""
+    return contact_coefficients(params, np.ascontiguousarray(delta, float),
                                 np.ascontiguousarray(r_star, float),
                                 np.ascontiguousarray(m_star, float))
 

@@ -29,6 +29,7 @@ from dataclasses import replace
 import numpy as np
 
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
+from demstep.contact.laws import LAWS
 from demstep.contacts import ContactSet
 from demstep.engine.analysis import (NO_COVER, coefficients, contact_elements, global_damping,
                                      pair_keys, sorted_keys, wall_keys, walls_per_key)
@@ -201,7 +202,8 @@ class AutoStep:
         anew."""
         sim = self.sim
         params = sim.law.params()._replace(mu=0.0, mu_wall=0.0, mu_r=0.0, mu_w=0.0)
-        return np.array(tuple(params) + (float(sim.damping.viscous),))
+        kind = float(list(LAWS).index(sim.law.name))
+        return np.array((kind,) + tuple(params) + (float(sim.damping.viscous),))
 
     def densest_packing_dt(self) -> float:
         """The damped coupled element bound of the densest packing of the lightest
@@ -216,7 +218,7 @@ class AutoStep:
             arm = np.linalg.norm(sim.rigid_bodies().arm, axis=1).max() + r
             m = min(m, float(np.min(1.0 / (1.0 / b.m + arm * arm / b.inertia.min(axis=1)))))
         # a wall contact (R* = r_max) at the TimeStep overlap: the law's stiffness_max()
-        kn, kt, cn, ct = coefficients(int(params.law), params,
+        kn, kt, cn, ct = coefficients(params,
                                             np.array([sim.timestep.overlap * r]),
                                             np.array([r]), np.array([0.5 * m]))
         rolling = {}
@@ -747,7 +749,7 @@ class AutoStep:
         move, boundary = self.step_moves()
         move *= steps
         boundary *= steps
-        nonlinear = sim.law.law_id != 0  # a non-linear law stiffer than assumed
+        nonlinear = sim.law.nonlinear  # a non-linear law stiffer than assumed
         none = (np.zeros(0, dtype=np.int64), np.zeros(0))
         known, assumed = cover.get("pairs", none)
         pair_mask = uncovered_pairs(sim.x, sim.r, sim.pi, sim.pj, sim.periodic_len,
@@ -796,7 +798,7 @@ class AutoStep:
             sim.pairs = sim.pairs._replace(cover=np.zeros(0))
             sim.wall_state = sim.wall_state._replace(cover=np.zeros(0))
         else:
-            nonlinear = sim.law.law_id != 0
+            nonlinear = sim.law.nonlinear
             ws = sim.wall_state
             sim.pairs = sim.pairs._replace(cover=cover_limits(
                 self.pair_keys(sim.pairs.i, sim.pairs.j), *cover.get("pairs", NO_COVER),

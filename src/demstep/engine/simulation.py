@@ -561,7 +561,6 @@ class Simulation:
         if self.timestep.mode != "auto":
             self.auto.release()  # no contacts to watch for the 'auto' control
         params = self.law.params()
-        law_id = int(params.law)
         self.lists.size_rolling_history(params.has_rolling)
         self.wall_mu[:] = [params.mu_wall if w.friction is None else w.friction for w in self.walls]
         done = 0
@@ -595,7 +594,7 @@ class Simulation:
             n_done, reason = self.backend.advance(
                 chunk, controls, self.spheres, self.bodies, self.pairs, self.bonds, self.wall_state,
                 self.box,
-                Ledger(self.ledger.acc, self.ledger.energy, self.counters), law_id, params)
+                Ledger(self.ledger.acc, self.ledger.energy, self.counters), params)
             self.first_step_pending = False
             # the damping forces of the last step are stored only while damping is on
             # (and once more after it is switched off, to clear them)
@@ -656,7 +655,7 @@ class Simulation:
         normal = np.zeros((len(self.pi), 3))
         params = self.law.params()
         on = self.backend.pair_contact_forces(self.x, self.r, self.pi, self.pj, self.periodic_len,
-                                              int(params.law), params, self.ft, self.fd,
+                                              params, self.ft, self.fd,
                                               force, normal)
         return np.stack([self.pi[on], self.pj[on]], axis=1), force[on], normal[on]
 
