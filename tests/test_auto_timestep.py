@@ -651,10 +651,10 @@ def test_a_restart_while_the_motion_limit_holds_continues_bit_for_bit():
     assert np.array_equal(second.x, first.x) and np.array_equal(second.v, first.v)
     older = soft_free_fall()
     older.load_state_dict({k: v for k, v in state.items() if k != "ts_dt_certified"})
-    assert older.dt_certified == older.dt == state["scalars"][2]
+    assert older.dt_certified == older.dt == state["scalars.dt"][0]
     from demstep.errors import InputError
 
-    for bad in (0.5 * state["scalars"][2], -1.0):  # below the step taken; not a step
+    for bad in (0.5 * state["scalars.dt"][0], -1.0):  # below the step taken; not a step
         with pytest.raises(InputError, match="ts_dt_certified"):
             soft_free_fall().load_state_dict({**state, "ts_dt_certified": np.array([bad])})
 

@@ -194,10 +194,10 @@ REFUSED_UNUSED = [
     (PERIODIC + '[stages.periodic.x]\nmotion = "rate"\nrate = 1.0\nservo_factor = 0.2\n',
      "stages[0].periodic.x.servo_factor: only used with motion = 'servo'"),
     (BASE + "\n[timestep]\noverlap = 0.5\n",
-     "timestep.overlap: only used with law = 'hertz' (a linear spring's stiffness does not "
-     "depend on it), got 0.5"),
+     "timestep.overlap: only used with a law whose stiffness depends on the overlap (the "
+     "linear law's does not), got 0.5"),
     (BASE.replace("steps = 5", "steps = 5\n[stages.timestep]\nalpha = 0.1\noverlap = 0.02"),
-     "stages[0].timestep.overlap: only used with law = 'hertz'"),
+     "stages[0].timestep.overlap: only used with a law whose stiffness depends"),
     (BASE.replace("k_n = 1.0e6", "k_n = 1.0e6\nrestitution = 0.5\ndamping_normal = 3.0"),
      "contact.damping_normal: give the normal dashpot by restitution or by damping_normal, "
      "not both (they would add up; restitution is 0.5), got 3.0"),

@@ -836,10 +836,10 @@ def test_cli_epsd_convention_with_viscous_part_on_a_file(tmp_path, capsys):
     c = find_contacts(p, 100.0)
     r_star = 0.5
     i_star = float(rolling_inertia(p.inertia[0], p.m[0], 1.0, p.inertia[0], p.m[0], 1.0))
-    from demstep.contact.laws import ContactLaw
+    from demstep.contact.laws import LinearSpring
 
-    params = ContactLaw(rolling_convention="epsd", rolling_friction=0.4, twisting_friction=0.2,
-                        rolling_damping=0.3).params()
+    params = LinearSpring(k_n=100.0, rolling_convention="epsd", rolling_friction=0.4,
+                          twisting_friction=0.2, rolling_damping=0.3).params()
     k_r, k_w, c_r, c_w = rolling_coefficients(params, 100.0, 100.0, r_star, i_star)
     assert k_r == pytest.approx(2.25 * 100 * 0.16 * 0.25)
     assert c_r == pytest.approx(2 * 0.3 * math.sqrt(i_star * k_r))

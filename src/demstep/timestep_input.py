@@ -128,9 +128,9 @@ class ContactModel(RollingResistance):
                 raise InputError(f"model: the {cls.name} model takes the materials' "
                                  f"properties, got {sorted(self.parameters)}")
             if not self.materials:
-                options = "/".join(f"--{o}" for o in cls.cli)
-                raise InputError(f"{next(iter(cls.cli))}: the {cls.name} model needs {options} "
-                                 f"(or --materials)")
+                options = " and ".join(f"--{o}" for o in cls.cli)
+                raise InputError(f"{next(iter(cls.cli))}: the {cls.name} model needs both "
+                                 f"{options} (or --materials)")
             for t, m in self.materials.items():
                 m.validate("" if t is None else f"material {t}:")
         else:

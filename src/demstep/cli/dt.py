@@ -86,8 +86,10 @@ def add_dt_parser(sub):
                          for name, cls in LAWS.items())
                      + "; default: the law of the options given, else "
                      + next(n for n, c in LAWS.items() if c.default))
-    for option, (help_text, laws) in law_options.items():
-        mod.add_argument(f"--{option}", type=number(option), default=None,
+    for option, (help_text, laws, bounds) in law_options.items():
+        low = bounds.get("gt", bounds.get("ge"))
+        mod.add_argument(f"--{option}", type=number(option, low, strict="gt" in bounds),
+                         default=None,
                          help=f"{help_text} ({', '.join(laws)})"
                          + (f"; default {DEFAULT_KN:g}, the paper's Table I" if option == "kn"
                             else ""))
@@ -208,8 +210,9 @@ def _law_options() -> dict:
         meta = {f.name: f.metadata for f in cls.own_fields()}
         for option, field_name in cls.cli.items():
             doc, unit = meta[field_name]["doc"], meta[field_name]["unit"]
-            help_text, laws = out.get(option, (f"{doc} [{unit}]", []))
-            out[option] = (help_text, laws + [name])
+            help_text, laws, bounds = out.get(option, (f"{doc} [{unit}]", [],
+                                                       meta[field_name]["bounds"]))
+            out[option] = (help_text, laws + [name], bounds)
     return out
 
 
@@ -241,7 +244,7 @@ def _model(args, default_convention: str):
         else:
             missing = [o for o in cls.cli if o not in given]
             if missing:
-                raise InputError(f"{missing[0]}: the {cls.name} model needs "
+                raise InputError(f"{missing[0]}: the {cls.name} model needs both "
                                  f"{' and '.join('--' + o for o in cls.cli)}")
             materials = {None: Material(*(given[o] for o in cls.cli), args.density)}
     else:

@@ -343,12 +343,12 @@ class AutoStep:
 
     def motion_rate(self) -> float:
         """How fast the fastest particle moves in radii per unit time [1/T]: from the
-        kernels' largest |v| dt / r of the last step (``counters[2]``), or before the
+        kernels' largest |v| dt / r of the last step (``COUNT_JUMP``), or before the
         first step from the initial velocities (clump members' are their bodies' V +
         omega x arm from the start: :func:`demstep.kernels.bodies.member_velocities`)."""
         sim = self.sim
         if not sim.first_step_pending and sim.dt_prev > 0.0:
-            return float(sim.counters[2]) / sim.dt_prev
+            return float(sim.counters[dem.COUNT_JUMP]) / sim.dt_prev
         speed = np.sqrt(np.einsum("ij,ij->i", sim.v, sim.v))
         return float(np.max(speed / sim.r, initial=0.0))
 
@@ -807,7 +807,7 @@ class AutoStep:
                 self.wall_keys(ws.p, ws.wall), *cover.get("walls", NO_COVER),
                 nonlinear))
         if reset:
-            sim.counters[3] = 0.0
+            sim.counters[dem.COUNT_UNCOVERED] = 0.0
 
     def uncovered_now(self):
         """:meth:`_uncovered`, the contacts to add to the certificate before the next
@@ -820,7 +820,7 @@ class AutoStep:
             return None
         tracked = (len(sim.pairs.cover) == len(sim.pairs.i)
                    and len(sim.wall_state.cover) == len(sim.wall_state.p))
-        if tracked and sim.counters[3] == 0:
+        if tracked and sim.counters[dem.COUNT_UNCOVERED] == 0:
             return np.zeros(len(sim.pairs.i), dtype=bool), np.zeros(len(sim.wall_state.p),
                                                                       dtype=bool)
         return self.uncovered(self.LOOKAHEAD_STEPS)
@@ -852,7 +852,7 @@ class AutoStep:
             if covered:
                 self.sync_cover()
             return covered
-        if sim.counters[3]:
+        if sim.counters[dem.COUNT_UNCOVERED]:
             self.sync_cover()
         cert = self.certificate
         if cert is None or sim.dt is None:
@@ -895,7 +895,7 @@ class AutoStep:
         set the budget: how far [L] the pairs' ends may move relative to each other
         before the next check with dt still certified at every position on the way
         (:meth:`~demstep.timestep.certificate.StepCertificate.drift_budget`; the
-        kernels add up how far they can have moved, ``counters[4]``, and end their
+        kernels add up how far they can have moved, ``DRIFT_SUM``, and end their
         chunk of steps there). No checks are counted in steps: a quasi-static packing
         goes a long way between them, a fast flow checks often, and no drift relies on
         the slack of the safety factor. False (a new estimate is due) when the

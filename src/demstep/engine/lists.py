@@ -136,7 +136,7 @@ class NeighbourLists:
         sim.wall_state = ws._replace(p=wp, wall=ww, shear=wshear, dashpot=wdash,
                                      shear_energy=wenergy, roll=wroll, cover=wcover)
         if sim.auto.new_pairs_closing(cover, wcover):
-            sim.counters[3] += 1.0  # (the 'auto' control covers them before the next step)
+            sim.counters[dem.COUNT_UNCOVERED] += 1.0  # (covered before the next step)
         sim.ordering.after_build(first=not built)
         be.copy_positions(sim.x, sim.x_ref)
         sim.wall_state.ref[:] = sim.wall_state.point

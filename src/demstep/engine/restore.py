@@ -21,9 +21,28 @@ from demstep.state import CONTACT_HISTORY
 LIST_FIELDS = {"pairs": ("i", "j") + CONTACT_HISTORY,
                "wall_state": ("p", "wall") + CONTACT_HISTORY}
 
-#: the scalars (:meth:`state_dict`) that are NaN when unset: dt, dt_estimate, the
-#: reference dt
-NAN_SCALARS = (2, 7, 10)
+#: the Simulation's scalars in a checkpoint, each an array ``scalars.<name>`` of one
+#: value (a checkpoint of format 3 held them in one array ``scalars``, in this order):
+#: step, time [T], the step dt and the last one taken [T], whether the first step (the
+#: half backward kick) is to come, the energy monitor's largest error, the 'auto'
+#: control's next scheduled estimate and its last estimate [T], and (step, time, dt)
+#: when dt last changed (the clock counts from there)
+SCALARS = ("step", "time", "dt", "dt_prev", "first_step_pending", "max_energy_error",
+           "next_dt_update", "dt_estimate", "time_ref_step", "time_ref_time", "time_ref_dt")
+#: the scalars that are NaN when unset
+NAN_SCALARS = ("dt", "dt_estimate", "time_ref_dt")
+
+
+def scalar_arrays(data: dict) -> dict:
+    """``data`` with a format-3 array ``scalars`` spread into the named ``scalars.*``."""
+    if "scalars" in data and f"scalars.{SCALARS[0]}" not in data:
+        data = dict(data)
+        values = np.asarray(data.pop("scalars")).reshape(-1)
+        if values.shape != (len(SCALARS),):
+            raise InputError(f"checkpoint array 'scalars' has shape {values.shape}, expected "
+                             f"({len(SCALARS)},)")
+        data.update({f"scalars.{name}": values[k:k + 1] for k, name in enumerate(SCALARS)})
+    return data
 
 
 def checked_state(sim, data: dict, source: str) -> dict:
@@ -117,15 +136,15 @@ def checked_state(sim, data: dict, source: str) -> dict:
     numbers("gravity", sim.gravity)
     shaped("gravity", sim.gravity.shape)
     finite("gravity")
-    scalars = numbers("scalars").astype(np.float64)
-    data["scalars"] = scalars
-    shaped("scalars", (11,))
-    for k, value in enumerate(scalars):
-        if not (math.isfinite(value) or (k in NAN_SCALARS and math.isnan(value))):
-            raise fail("scalars", f"holds the non-finite value {value} at [{k}]")
-    if scalars[0] < 0 or scalars[1] < 0:
-        raise fail("scalars", f"holds a negative step or time, got step {scalars[0]:g}, "
-                              f"time {scalars[1]:g}")
+    for name in SCALARS:
+        key = f"scalars.{name}"
+        value = numbers(key).astype(np.float64)
+        data[key] = value
+        shaped(key, (1,))
+        if not (math.isfinite(value[0]) or (name in NAN_SCALARS and math.isnan(value[0]))):
+            raise fail(key, f"holds the non-finite value {value[0]}")
+        if name in ("step", "time") and value[0] < 0:
+            raise fail(key, f"holds a negative {name}, got {value[0]:g}")
     for key in ("monitor", "last_sort"):
         if key in data:
             a = numbers(key).reshape(-1)

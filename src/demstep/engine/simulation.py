@@ -65,7 +65,7 @@ from demstep.engine.bonding import add_bonds, bond_stiffness_max
 from demstep.engine.boundaries import walls_bundle
 from demstep.engine.lists import NeighbourLists
 from demstep.engine.ordering import SpatialOrder, order_as, reorder
-from demstep.engine.restore import checked_state
+from demstep.engine.restore import SCALARS, checked_state, scalar_arrays
 from demstep.engine.settings import Damping, TimeStep
 from demstep.errors import InputError, SimulationDiverged
 from demstep.io.checkpoint import save_checkpoint
@@ -432,12 +432,11 @@ class Simulation:
                     "ledger.counters": self.counters, "gravity": self.gravity, "r": self.r,
                     "fixed": self.fixed, "law": np.asarray(self.law.params()),
                     "monitor": self.monitor.state()})
-        out["scalars"] = np.array([
-            self.step, self.time, np.nan if self.dt is None else self.dt, self.dt_prev,
-            float(self.first_step_pending), self.monitor.max_error, float(self.auto.next_update),
-            np.nan if self.auto.estimate is None else self.auto.estimate,
-            float(self._time_ref[0]), self._time_ref[1],
-            np.nan if self._time_ref[2] is None else self._time_ref[2]])
+        values = (self.step, self.time, self.dt, self.dt_prev, self.first_step_pending,
+                  self.monitor.max_error, self.auto.next_update, self.auto.estimate,
+                  *self._time_ref)
+        out.update({f"scalars.{name}": np.array([np.nan if v is None else float(v)])
+                    for name, v in zip(SCALARS, values)})
         out.update(self.auto.state_dict())
         if self.source_index is not None:  # the order of the arrays (sorted in a run)
             out["source_index"] = self.source_index
@@ -448,8 +447,9 @@ class Simulation:
         """Restore :meth:`state_dict` into this Simulation (built from the same case:
         the same particles and walls, else InputError naming ``source``)."""
         needed = [f"{n}.{f}" for n in self.BUNDLES for f in getattr(self, n).STATE]
-        needed += ["ledger.acc", "ledger.energy", "ledger.counters", "gravity", "r", "scalars"]
-        data = dict(data)
+        needed += ["ledger.acc", "ledger.energy", "ledger.counters", "gravity", "r"]
+        needed += [f"scalars.{name}" for name in SCALARS]
+        data = scalar_arrays(data)
         for name in ("pairs", "wall_state"):  # checkpoints from before rolling resistance
             data.setdefault(f"{name}.roll", np.zeros((0, ROLL_WIDTH)))
         old_cover = "pairs.cover" not in data  # and from before the cover was tracked
@@ -479,8 +479,8 @@ class Simulation:
         self.gravity = np.ascontiguousarray(data["gravity"], dtype=np.float64)
         if "monitor" in data:
             self.monitor.restore_state(data["monitor"])
-        step, time, dt, dt_prev, first, max_err, next_dt, dt_est, t_step, t_time, t_dt = \
-            np.asarray(data["scalars"], dtype=np.float64)
+        step, time, dt, dt_prev, first, max_err, next_dt, dt_est, t_step, t_time, t_dt = (
+            float(data[f"scalars.{name}"][0]) for name in SCALARS)
         self.step = int(step)
         self.time = float(time)
         self.dt = None if np.isnan(dt) else float(dt)
@@ -584,12 +584,16 @@ class Simulation:
                     chunk = 1
             chunk = max(1, chunk)
             controls = Controls(
-                float(self.dt), float(self.dt_prev), bool(self.first_step_pending),
-                float(self.skin), int(self.dim), self.gravity, float(self.damping.local),
-                float(self.damping.viscous), bool(damped or self.damping_history),
-                bool(dashpot or self.dashpot_history), float(self.jump_limit),
-                float(self.runaway_factor), float(self.energy_floor), bool(parallel),
-                float(self.auto.check_budget) if self.timestep.mode == "auto" else math.inf)
+                dt=float(self.dt), dt_prev=float(self.dt_prev),
+                first=bool(self.first_step_pending), skin=float(self.skin), dim=int(self.dim),
+                gravity=self.gravity, local_damping=float(self.damping.local),
+                viscous_damping=float(self.damping.viscous),
+                store_damping=bool(damped or self.damping_history),
+                store_dashpot=bool(dashpot or self.dashpot_history),
+                jump_limit=float(self.jump_limit), runaway_factor=float(self.runaway_factor),
+                energy_floor=float(self.energy_floor), parallel=bool(parallel),
+                check_budget=(float(self.auto.check_budget) if self.timestep.mode == "auto"
+                              else math.inf))
             self.pairs = self.lists.work_space(parallel)
             n_done, reason = self.backend.advance(
                 chunk, controls, self.spheres, self.bodies, self.pairs, self.bonds, self.wall_state,
@@ -672,7 +676,7 @@ class Simulation:
                 dem.STOP_RUNAWAY: f"runaway kinetic energy ({self.ledger.kinetic:.4g}, more than "
                                   f"{self.runaway_factor:g} x the most energy supplied, "
                                   f"{runaway_reference(self.ledger.acc, self.ledger.energy):.4g})",
-                dem.STOP_JUMP: f"a particle moved {self.counters[2]:.3g} radii in one step "
+                dem.STOP_JUMP: f"a particle moved {self.counters[dem.COUNT_JUMP]:.3g} radii in one step "
                                f"(limit {self.jump_limit:g})"}[reason]
         est = ""
         try:
@@ -689,7 +693,7 @@ class Simulation:
     # ---------------------------------------------------------------- output
     @property
     def n_contacts(self) -> int:
-        return int(self.counters[0] + self.counters[1])
+        return int(self.counters[dem.COUNT_PAIR_CONTACTS] + self.counters[dem.COUNT_WALL_CONTACTS])
 
     def kinetic_energy(self) -> float:
         return self.ledger.kinetic

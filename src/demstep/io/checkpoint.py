@@ -17,8 +17,11 @@ import numpy as np
 from demstep.errors import InputError
 from demstep.io.atomic import atomic_path
 
-#: format 3: the state of the bundles of :mod:`demstep.state` (``Simulation.state_dict``)
-FORMAT_VERSION = 3
+#: format 4: the state of the bundles of :mod:`demstep.state` and of the Simulation's
+#: parts (``Simulation.state_dict``), its scalars by name; format 3 (the scalars in one
+#: array) still loads
+FORMAT_VERSION = 4
+READABLE_FORMATS = (3, 4)
 
 
 def save_checkpoint(sim, path) -> Path:
@@ -76,9 +79,11 @@ def read_checkpoint_arrays(path) -> dict:
         raise InputError(f"{path}: a damaged or truncated checkpoint "
                          f"({type(exc).__name__}: {text})") from None
     if "format" not in arrays or arrays["format"].shape != (1,) \
-            or int(arrays["format"][0]) != FORMAT_VERSION:
-        raise InputError(f"{path}: not a demstep checkpoint (format {FORMAT_VERSION})")
-    missing = [name for name in ("r", "scalars", "spheres.x", "wall_state.point")
+            or int(arrays["format"][0]) not in READABLE_FORMATS:
+        raise InputError(f"{path}: not a demstep checkpoint (format "
+                         f"{' or '.join(map(str, READABLE_FORMATS))})")
+    missing = [name for name in ("r", "scalars" if int(arrays["format"][0]) == 3
+                                 else "scalars.step", "spheres.x", "wall_state.point")
                if name not in arrays]
     if missing:
         raise InputError(f"{path}: a damaged checkpoint (array {missing[0]!r} missing)")

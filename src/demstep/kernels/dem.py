@@ -1142,6 +1142,10 @@ def closing_beyond_cover(x, v, r, pi, pj, periodic_len, cover, wp, ww, wall_poin
     return count
 
 
+#: ``ledger.counters``: the particle-particle and particle-wall contacts touching after
+#: the last step, the largest |v| dt / r of the last step, the contacts found closed
+#: beyond the 'auto' step's cover since the engine last reset the count
+COUNT_PAIR_CONTACTS, COUNT_WALL_CONTACTS, COUNT_JUMP, COUNT_UNCOVERED = 0, 1, 2, 3
 #: ``ledger.counters``: the slots of the drift's displacement bound (:func:`drift_used`)
 DRIFT_SUM, DRIFT_OFFSET, DRIFT_WALL_OFFSET, DRIFT_NOW, DRIFT_WALL_NOW = 4, 5, 6, 7, 8
 N_COUNTERS = 9
@@ -1354,13 +1358,13 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
         acc[A_BOND_BROKEN] += eb_r
         acc[A_ROLLING] += er_p
         acc[A_ROLLING_VISCOUS] += er_v
-        counters[0] = n_pp
+        counters[COUNT_PAIR_CONTACTS] = n_pp
         wc = 0
         for wi in range(nw):
             wc += walls.contacts[wi]
-        counters[1] = wc
-        counters[2] = out[7]
-        counters[3] += pp_uncovered + pw_uncovered
+        counters[COUNT_WALL_CONTACTS] = wc
+        counters[COUNT_JUMP] = out[7]
+        counters[COUNT_UNCOVERED] += pp_uncovered + pw_uncovered
         counters[DRIFT_NOW] = math.sqrt(out[6])
         counters[DRIFT_WALL_NOW] = boundary_move
         if budget < np.inf:  # how far any pair's ends can have moved relative to each other
@@ -1387,13 +1391,13 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
         # each, and the walls' or the box's); the engine covers them before the next
         # step's forces (after a rebuild too)
         if min(pp_headroom, pw_headroom) <= 2.0 * (2.0 * r_max * out[7] + boundary_step):
-            counters[3] += closing_beyond_cover(x, v, r, pairs.i, pairs.j, periodic_len,
+            counters[COUNT_UNCOVERED] += closing_beyond_cover(x, v, r, pairs.i, pairs.j, periodic_len,
                                                 pairs.cover, walls.p, walls.wall, wall_point,
                                                 wall_normal, walls.cover, dt, boundary_step)
         # neighbour lists expire after skin / 2 of particle, wall or box motion
         if math.sqrt(out[6]) + boundary_move > 0.5 * ctl.skin:
             return step + 1, STOP_REBUILD
-        if counters[3] > 0:
+        if counters[COUNT_UNCOVERED] > 0:
             return step + 1, STOP_UNCOVERED
         # the drift of the certified step is due for a check
         if drift_used(counters) > budget:
