@@ -190,38 +190,65 @@ def test_dimer_rolls_down_an_incline_at_the_analytic_acceleration():
 
 @pytest.mark.parametrize("auto", [False, True])
 def test_clump_restart_is_bit_identical(tmp_path, auto):
-    """A clump run restarted from a checkpoint continues bit for bit; with the 'auto'
-    time step the certificate (with its clumps' rows) comes back with it, so the
-    restarted run estimates when the uninterrupted one does (and not at its start),
-    and a checkpoint whose
-    certificate rows are corrupted is refused naming the array."""
+    """A clump run (the clumps spinning about z as they land) restarted from a
+    checkpoint continues bit for bit; with the 'auto' time step the certificate (with
+    its clumps' rows) comes back with it, so the restarted run estimates when the
+    uninterrupted one does (and not at its start), forced estimates between the
+    scheduled ones included. The checkpoint is taken with both drift budgets of the
+    last check partly spent (the bodies turned part of the way it allows): the turn
+    budget is not saved, so the restarted run checks the drift at its first step, where
+    the uninterrupted one does not, and still takes the same steps and estimates. A
+    checkpoint whose certificate rows are corrupted is refused naming the array."""
     from demstep.io.checkpoint import load_checkpoint, save_checkpoint
+    from demstep.kernels import dem
 
     def build():
         rng = np.random.default_rng(2)
         pos = np.stack(np.meshgrid(np.arange(3), np.arange(3), [0], indexing="ij"), -1).reshape(-1, 3) * 4.5
         cs = place([ASYM], [0] * len(pos), pos + [0, 0, 2.0], random_quaternions(len(pos), rng), 1.0)
+        spin = np.zeros((len(pos), 3))
+        spin[:, 2] = rng.uniform(1.0, 3.0, len(pos))
         return Simulation(None, LinearSpring(k_n=1e4, mu=0.4, restitution=0.5),
                           walls=[Wall(np.zeros(3), np.array([0, 0, 1.0]), name="floor")],
                           gravity=[0, 0, -9.81], clumps=cs,
                           timestep=TimeStep.auto(safety=0.8) if auto else TimeStep.from_alpha(0.1),
-                          clump_velocities=rng.normal(0, 0.5, (len(pos), 3)))
+                          clump_velocities=rng.normal(0, 0.5, (len(pos), 3)),
+                          clump_angular_velocities=spin)
+
+    def checks_of(sim):
+        """The steps at which ``sim``'s 'auto' control checks the drift, from now on."""
+        steps = []
+        check = sim.auto.renew_drift_budget
+
+        def recorded():
+            steps.append(sim.step)
+            return check()
+
+        sim.auto.renew_drift_budget = recorded
+        return steps
 
     a = build()
     a.run(steps=300)
+    if auto:  # both budgets of the last check partly spent
+        assert 0.0 < a.auto.turned_since_check() < a.auto.turn_budget
+        assert 0.0 < dem.drift_used(a.counters) < a.auto.check_budget
     save_checkpoint(a, tmp_path / "c.npz")
-    before = a.n_dt_estimates if auto else 0
+    saved, before = a.step, a.n_dt_estimates if auto else 0
+    checks_a = checks_of(a)
     a.run(steps=400)
     b = build()
     load_checkpoint(b, tmp_path / "c.npz")
+    checks_b = checks_of(b)
     b.run(steps=400)
     assert np.array_equal(a.bodies.x, b.bodies.x) and np.array_equal(a.bodies.q, b.bodies.q)
     assert np.array_equal(a.x, b.x) and np.array_equal(a.ledger.acc, b.ledger.acc)
     assert a.n_contacts > 0
     if not auto:
         return
+    assert checks_b[0] == saved + 1 < checks_a[0]  # (the restart's own check)
     assert a.dt == b.dt and b.auto.certificate.has_bodies and len(b.auto.certificate.body_pairs)
-    assert a.n_dt_estimates - before == b.n_dt_estimates > 0  # (b: none at its start)
+    # (b: none at its start; the scheduled one at step 500 and forced ones)
+    assert a.n_dt_estimates - before == b.n_dt_estimates > 1
     data = dict(np.load(tmp_path / "c.npz"))
     assert len(data["ts_cert_body_pairs"])
     for key, value, needle in (("ts_cert_body_pairs", lambda p: p + [0, 0, 5, 0], "wall"),

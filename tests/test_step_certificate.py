@@ -319,26 +319,53 @@ def quiet_packing(safety=0.8, every=100):
 
 
 def test_a_kept_certificate_is_within_its_tolerance_of_a_new_solve():
-    """In a quiet packing the scheduled estimates keep the last certificate instead of a
-    new solve; each kept step is below the exact step of the contacts it covers (a new
-    solve, dense on this size) and within AUTO_REFRESH_RTOL of it."""
+    """A scheduled estimate keeps the last certificate instead of a new solve only when
+    its step is within AUTO_REFRESH_RTOL of what a new solve would give. In a quiet
+    packing each kept step is the certificate's own (2 / its smallest certified root,
+    the drift included), below the exact step of the contacts it covers (a new solve,
+    dense on this size) and within AUTO_REFRESH_RTOL of it. Then the certificate of
+    the coupled element bound of the same contacts (a rigorous lower bound on the
+    critical step, here about 40 % below the exact one: out of tolerance) is not kept:
+    the scheduled estimate is a new solve, and gives the exact step (to its residual)."""
     sim = quiet_packing()
-    kept = []
-    refresh = sim.auto.refreshed_estimate
+    auto = sim.auto
+    rtol = auto.AUTO_REFRESH_RTOL
+    seen = []  # (the certificate's step, the step the refresh gave, the exact step)
+    refresh = auto.refreshed_estimate
+
+    def certificate_step():
+        cert = auto.certificate
+        return 2.0 / cert.smallest_sigma(auto.drift(cert))
 
     def recorded(horizon):
+        step = certificate_step()
         value, prepared = refresh(horizon)
-        if value is not None:
-            kept.append((value, sim.critical_dt("exact", horizon=horizon)))
+        seen.append((step, value, sim.critical_dt("exact", horizon=horizon)))
         return value, prepared
 
-    sim.auto.refreshed_estimate = recorded
+    auto.refreshed_estimate = recorded
     sim.run(steps=1000)
     assert sim.lists.n_rebuilds == 1  # the cover is the whole Verlet list all along
+    kept = [(step, value, crit) for step, value, crit in seen if value is not None]
     assert len(kept) >= 8
-    for value, crit in kept:
+    for step, value, crit in kept:
+        assert value == step
         assert value <= crit * (1 + 1e-9)
-        assert value >= crit / (1 + sim.auto.AUTO_REFRESH_RTOL)
+        assert value >= crit / (1 + rtol)
+    # a certificate out of tolerance: the element bound's, recorded by its estimate
+    horizon = sim.dt_horizon
+    crit = sim.critical_dt("exact", horizon=horizon)
+    element = auto.solve("element-coupled", horizon, auto.AUTO_EXACT_TOL)
+    assert element == pytest.approx(sim.critical_dt("element-coupled", horizon=horizon),
+                                     rel=1e-12)
+    assert certificate_step() == pytest.approx(element, rel=1e-12)
+    assert certificate_step() < crit / (1 + rtol)
+    refreshes, solves, seen[:] = sim.n_dt_refreshes, sim.n_dt_solves, []
+    auto.propose_dt(force=True)
+    assert len(seen) == 1 and seen[0][1] is None  # refused
+    assert sim.n_dt_refreshes == refreshes and sim.n_dt_solves == solves + 1  # a new solve
+    assert sim.dt_estimate <= crit * (1 + 1e-9)
+    assert sim.dt_estimate == pytest.approx(crit, rel=10 * auto.AUTO_EXACT_TOL)
 
 
 def test_a_refused_refresh_hands_its_contact_set_to_the_new_estimate(monkeypatch):

@@ -834,14 +834,15 @@ class _RunRecord:
         self.written = True
 
     def finish(self, status: str, sim, message: str, checkpoint=None, **fields):
+        # the energy monitor owns the alarm record (checkpointed with the state, restored
+        # on a restart): run.json reports it, as of the step the run ended at
         monitor = sim.monitor
         alarm = None
         if monitor.first_alarm is not None:
             a_step, a_time, a_err = monitor.first_alarm
             alarm = {"step": int(a_step), "time": float(a_time), "energy_error": float(a_err)}
-        if self.info.get("first_energy_alarm") is None:  # a restart keeps the earlier one
-            self.info["first_energy_alarm"] = alarm
-        self.info["energy_alarms"] = int(self.info.get("energy_alarms") or 0) + len(monitor.alarms)
+        self.info["first_energy_alarm"] = alarm
+        self.info["energy_alarms"] = int(monitor.n_alarms)
         self.write(status=status, finished=wallclock.strftime("%Y-%m-%dT%H:%M:%S%z"),
                    step=sim.step, time=sim.time, message=message,
                    checkpoint=None if checkpoint is None else str(checkpoint),

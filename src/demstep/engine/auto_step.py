@@ -18,7 +18,9 @@ the Simulation asks it:
 Its state (the certificate, the critical mode, the record of covered contacts and of
 those added since the estimate, the drift budgets, the schedule) is declared in
 :meth:`AutoStep.__init__` and saved and restored by :meth:`AutoStep.state_dict` and
-:meth:`AutoStep.load_state_dict` (keys ``ts_*`` of a checkpoint).
+:meth:`AutoStep.load_state_dict` (keys ``ts_*`` of a checkpoint); the clumps' turn
+budget is not saved: a restart checks the drift at its first step instead
+(:meth:`AutoStep.load_state_dict`).
 """
 
 from __future__ import annotations
@@ -71,7 +73,8 @@ class AutoStep:
         #: check of the drift (:meth:`renew_drift_budget`)
         self.check_budget = math.inf
         #: with clumps: how far the bodies may turn before that check, and their
-        #: orientations at the last one
+        #: orientations at the last one (None: none known, the next step checks; not
+        #: saved, :meth:`load_state_dict`)
         self.turn_budget = 0.0
         self.check_q: np.ndarray | None = None
         #: the solver's scratch arrays, kept from one estimate to the next
@@ -562,7 +565,8 @@ class AutoStep:
     def state_dict(self) -> dict:
         """Arrays of the 'auto' time-step control that a restart needs to continue bit for
         bit (the last critical mode, a start of the damped iteration, and the contacts the
-        last estimate covered), keyed ``ts_*``."""
+        last estimate covered), keyed ``ts_*``; not the clumps' turn budget, which a
+        restart sets anew (:meth:`load_state_dict`)."""
         out = {}
         mode = self.mode
         if mode is not None:
@@ -581,9 +585,6 @@ class AutoStep:
                 out[f"ts_added_{name}_overlap"] = assumed
         if out:
             out["ts_check_budget"] = np.array([self.check_budget])
-            if cert is not None and cert.has_bodies and self.check_q is not None:
-                out["ts_turn_budget"] = np.array([self.turn_budget])
-                out["ts_check_q"] = self.check_q
         if self.certified is not None:  # (the motion limit may hold dt below it)
             out["ts_dt_certified"] = np.array([self.certified])
         return out
@@ -644,16 +645,15 @@ class AutoStep:
         if budget.size != 1 or not budget[0] >= 0.0:  # (older checkpoints: checked at once)
             raise InputError(f"ts_check_budget: expected one number >= 0, got {budget}")
         self.check_budget = float(budget[0])
-        self.turn_budget, self.check_q = 0.0, None  # (older checkpoints: checked at once)
-        if "ts_turn_budget" in data and "ts_check_q" in data:
-            turn = np.asarray(data["ts_turn_budget"], dtype=np.float64).reshape(-1)
-            q = np.asarray(data["ts_check_q"], dtype=np.float64)
-            if turn.size != 1 or not turn[0] >= 0.0:
-                raise InputError(f"ts_turn_budget: expected one number >= 0, got {turn}")
-            if q.shape != sim.bodies.q.shape or not np.isfinite(q).all():
-                raise InputError(f"ts_check_q: expected {sim.bodies.q.shape[0]} finite "
-                                 f"orientations (bodies, 4), got shape {q.shape}")
-            self.turn_budget, self.check_q = float(turn[0]), q
+        # The clumps' turn budget is not saved (nor read from checkpoints that have it,
+        # ts_turn_budget, ts_check_q): with no orientations of a last check the first
+        # step after the restart checks the drift (turned_since_check is inf) and sets
+        # both budgets from the state then. The run goes on as it would have: a check
+        # fails exactly when the certificate no longer certifies dt at the state of the
+        # check, and between checks the budgets keep it certified, so when the drift is
+        # checked changes no step (with clumps every step is a chunk of its own: the
+        # check budget places no chunk end either); it costs one check.
+        self.turn_budget, self.check_q = 0.0, None
         # (older checkpoints: dt was the certified step)
         certified = np.asarray(data.get("ts_dt_certified", [np.nan if sim.dt is None else sim.dt]),
                                dtype=np.float64).reshape(-1)
