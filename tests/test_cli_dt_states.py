@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from demstep.cli import main
-from demstep.contacts import find_contacts
+from demstep.contact.sets import find_contacts
 from demstep.packings import lattice
 from demstep.particles import Particles
 from demstep.timestep.exact import exact_critical_step
@@ -361,7 +361,7 @@ def test_hertz_checkpoint_brings_its_materials_and_the_impact_velocity(tmp_path,
     law's checkpoint is refused (it was dropped without a word)."""
     from demstep.case import case_from_text
     from demstep.runner import run_case
-    from demstep.timestep_input import load_run
+    from demstep.analysis_input import load_run
 
     run_case(case_from_text(HERTZ_CASE), tmp_path / "run", quiet=True)
     ck = sorted((tmp_path / "run" / "checkpoints").glob("*.npz"))[-1]

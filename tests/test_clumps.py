@@ -12,13 +12,13 @@ import scipy.spatial.transform
 from demstep.clumps import (ClumpTemplate, _integrate_union, _separate, mass_properties, place,
                             principal_frame, quat_to_matrix, random_quaternions)
 from demstep.contact.laws import LinearSpring
-from demstep.contacts import ContactSet, find_contacts
+from demstep.contact.sets import ContactSet, find_contacts
 from demstep.engine import Damping, Simulation, TimeStep
 from demstep.engine.analysis import global_damping
 from demstep.errors import InputError
 from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness
-from demstep.timestep.bodies import RigidBodies, body_element_dt
+from demstep.timestep.clumps import RigidBodies, body_element_dt
 from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.exact import exact_critical_step
 from demstep.walls import Wall
@@ -901,7 +901,7 @@ def test_element_steps_of_some_rows_take_the_mass_shares_of_all_contacts():
     owners' masses split among all their contacts, not the rows' only), so their min is
     an upper bound on the min over all (the 'auto' control's screen of an element
     estimate); the rows likeliest stiffest hold the smallest step here."""
-    from demstep.timestep.bodies import likely_stiffest_elements
+    from demstep.timestep.clumps import likely_stiffest_elements
 
     p, contacts, bodies = mixed_owner_assembly(3, 5)
     every = body_element_dt(p, contacts, bodies, True, 0.05, 0.01)
@@ -1001,7 +1001,7 @@ def test_owner_mass_shares_split_each_owner_among_its_contacts(dim):
     """Each side's share: the owner's inverse mass and inverse inertia (world; 2D: the
     zz moment) times its number of contacts in the set (walls: none; fixed: zero), for
     the whole set and for a part of it, against a loop over the contacts."""
-    from demstep.timestep.bodies import owner_mass_shares
+    from demstep.timestep.clumps import owner_mass_shares
 
     p, contacts, bodies = mixed_owner_assembly(dim, 7)
     body = bodies.sphere_body

@@ -15,7 +15,7 @@ from conftest import assert_one_line_error, cli as run_cli
 from demstep.case import build_simulation, case_from_text, dump_case, load_case
 from demstep.errors import InputError
 from demstep.io.formats import read_bond_csv, read_csv, read_liggghts_dump, read_yade_text
-from demstep.timestep_input import read_materials
+from demstep.analysis_input import read_materials
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 

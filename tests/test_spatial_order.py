@@ -7,7 +7,7 @@ import pytest
 
 import demstep.case.build as case_build
 from demstep.case import build_simulation, load_case
-from demstep.contacts import find_contacts
+from demstep.contact.sets import find_contacts
 from demstep.errors import InputError
 from demstep.io.formats import write_csv
 from demstep.io.vtk import particle_mesh
@@ -202,7 +202,7 @@ def test_dt_of_a_file_in_random_order_is_solved_reordered_and_reports_its_rows(t
 
     import meshio
 
-    import demstep.timestep_input as ti
+    import demstep.analysis_input as ti
     from demstep.cli import main
 
     x, _ = shuffled_packing()

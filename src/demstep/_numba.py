@@ -54,7 +54,7 @@ def _cache_writable(dispatcher) -> bool:
 #: file formats, plots, the runner): the kernels' cache does not depend on them
 PACKAGE_DIR = Path(__file__).resolve().parent
 NOT_COMPILED = ("cli", "case", "sweep", "experiments", "io", "plotting.py",
-                "plotting_run.py", "runner.py", "engine", "timestep_input.py",
+                "plotting_run.py", "runner.py", "engine", "analysis_input.py",
                 "packings.py", "walls.py")
 
 

@@ -23,6 +23,7 @@ The ``cpu`` backend is the numba kernels of :mod:`demstep.kernels`.
 from __future__ import annotations
 
 from demstep.errors import InputError
+from demstep.kernels import dem, integration, neighbors
 
 
 class CPUBackend:
@@ -31,8 +32,6 @@ class CPUBackend:
     name = "cpu"
 
     def __init__(self):
-        from demstep.kernels import dem, integration, neighbors
-
         self.build_pair_list = neighbors.build_pair_list
         self.build_wall_list = neighbors.build_wall_list
         self.transfer_history = neighbors.transfer_history

@@ -152,9 +152,11 @@ values) raise
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import tomllib
+import unicodedata
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
@@ -162,11 +164,14 @@ import numpy as np
 from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, ValidationError,
                       create_model)
 
+from demstep.clumps import ClumpTemplate
 # (MIN_MAGNITUDE, MAX_MAGNITUDE: the case files' range, documented above, one for all input)
 from demstep.contact.laws import LAWS, law_class
 from demstep.errors import MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem
+from demstep.io.formats import _number, detect_format, read_csv, read_particle_file
 from demstep.io.textfile import (csv_rows, not_a_file_message, not_a_file_reason, open_text,
                                  read_small_text)
+from demstep.packings import LATTICE_DIM, lattice as make_lattice
 
 #: the largest assembly a case file may generate (a guard against typos in ``size``)
 MAX_PARTICLES = 2_000_000
@@ -200,8 +205,6 @@ Vector = Annotated[list[Real], Field(min_length=2, max_length=3)]
 def _printable(name: str) -> str:
     """``name`` when it has no control character (newline, tab, escape, line or
     paragraph separator)."""
-    import unicodedata
-
     bad = next((c for c in name if unicodedata.category(c) in ("Cc", "Zl", "Zp")), None)
     if bad is not None:
         raise ValueError(f"must not hold control characters ({bad!r})")
@@ -599,8 +602,6 @@ _DISCRIMINATORS = ("generator", "law")
 def _quoted(key: str) -> str:
     """A TOML key that is not bare, quoted as TOML writes it (control characters
     escaped: an error stays one line)."""
-    import json
-
     return json.dumps(key, ensure_ascii=False)
 
 
@@ -694,7 +695,7 @@ def case_from_dict(data: dict, base_dir=None, source: str = "case") -> Case:
 
 def dump_case(case: Case) -> str:
     """The resolved case as TOML text."""
-    import tomli_w
+    import tomli_w  # (deferred: a heavy import, loaded only when used)
 
     return tomli_w.dumps(case.resolved())
 
@@ -706,8 +707,6 @@ def _need_len(key: str, vec, dim: int):
 
 
 def _particle_dim(case: Case) -> int:
-    from demstep.packings import LATTICE_DIM
-
     p = case.particles
     if p.generator == "lattice":
         return LATTICE_DIM[p.lattice]
@@ -715,7 +714,6 @@ def _particle_dim(case: Case) -> int:
         return len(p.count or [0, 0, 0])
     if p.generator == "clumps":
         return len(read_body_file(case)[0][0])
-    from demstep.io.formats import read_particle_file
 
     path = _case_file("particles.path", p.path, case.particle_file())
     return read_particle_file(path, p.format, p.snapshot).dim
@@ -753,8 +751,6 @@ def read_body_file(case: Case):
 
 def _read_bodies(path, rows):
     """The body file ``path`` from its CSV ``rows`` (an iterator; read_body_file)."""
-    from demstep.io.formats import _number
-
     first = next(rows, None)
     if first is None:
         raise InputError(f"particles.file: {path}: empty file")
@@ -806,8 +802,6 @@ def _read_bodies(path, rows):
 
 def clump_templates(case: Case) -> dict:
     """The ``[[clumps]]`` shapes by name (:class:`demstep.clumps.ClumpTemplate`)."""
-    from demstep.clumps import ClumpTemplate
-
     out = {}
     for k, spec in enumerate(case.clumps):
         where = f"clumps[{k}]"
@@ -816,7 +810,6 @@ def clump_templates(case: Case) -> dict:
         if spec.file is not None:
             if spec.members:
                 raise InputError(f"{where}: give members or file, not both")
-            from demstep.io.formats import read_csv
 
             data = read_csv(_case_file(f"{where}.file", spec.file, _relative(case, spec.file)))
             centers, radii = data.x, data.r
@@ -871,7 +864,6 @@ def check_case(case: Case) -> None:
     if p.generator == "lattice":
         if isinstance(p.size, list):
             _need_len("particles.size", p.size, dim)
-        from demstep.packings import lattice as make_lattice
 
         nb = len(make_lattice(p.lattice, p.radius).basis)
         sizes = p.size if isinstance(p.size, list) else [p.size] * dim
@@ -1058,8 +1050,6 @@ def _unused_keys(case: Case) -> list:
 
 def _file_format(case: Case) -> str:
     """The format of the particle file of ``generator = "file"`` (csv, liggghts, yade)."""
-    from demstep.io.formats import detect_format
-
     p = case.particles
     return p.format if p.format != "auto" else detect_format(case.particle_file())
 

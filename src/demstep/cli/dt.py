@@ -217,8 +217,8 @@ def _law_options() -> dict:
 
 
 def _model(args, default_convention: str):
+    from demstep.analysis_input import ContactModel, Material, read_materials
     from demstep.contact.laws import LAWS
-    from demstep.timestep_input import ContactModel, Material, read_materials
 
     given = {o: getattr(args, o) for o in _law_options() if getattr(args, o) is not None}
     if args.model is not None:
@@ -268,7 +268,7 @@ def _model(args, default_convention: str):
 def _rolling(args) -> dict:
     """The rolling-resistance fields of the ContactModel from the options (argparse
     attributes of the same names; 0 when not given, the convention None: none)."""
-    from demstep.timestep_input import ROLLING_OPTIONS
+    from demstep.analysis_input import ROLLING_OPTIONS
 
     out = {name: (getattr(args, name) if getattr(args, name) is not None else 0.0)
            for name in ROLLING_OPTIONS}
@@ -319,7 +319,7 @@ def _periodic_axes(text):
 
 def load_input(args):
     """The AnalysisInput for the command line (every check before any work)."""
-    from demstep import timestep_input as ti
+    from demstep import analysis_input as ti
 
     if args.mode_vtk:
         _check_output_path("mode-vtk", args.mode_vtk, (".vtu",))
@@ -396,7 +396,7 @@ def load_input(args):
 def _check_run_position(path, case_path):
     """The run state beside a checkpoint read with the number of stages of its case
     (:func:`demstep.runner.read_state`: the stage must be one of them, or their end),
-    before :func:`demstep.timestep_input.from_checkpoint` applies the stages that had
+    before :func:`demstep.analysis_input.from_checkpoint` applies the stages that had
     started. (The case as from_checkpoint finds it; a missing one it reports.)"""
     from demstep.case import load_case
     from demstep.runner import find_checkpoint, read_state
@@ -520,7 +520,7 @@ def critical_mode_report(report, data, top: int) -> dict | None:
     order = largest_first(share, top)
     counts = data.contacts.count_per_particle(p.n)
     if data.bodies is not None and data.bodies.n:  # owners: free spheres, then bodies
-        from demstep.timestep.bodies import owners
+        from demstep.timestep.clumps import owners
 
         owner, n_free, _ = owners(p.n, data.bodies)
         free = np.flatnonzero(data.bodies.sphere_body < 0)

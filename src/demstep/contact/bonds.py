@@ -103,7 +103,7 @@ class ParallelBonds:
 def bond_candidates(x, r, gap, periodic_len, dim):
     """Pairs (i < j, sorted) whose surfaces are at most ``gap`` [L] apart (overlapping
     included), with the minimum image along axes of ``periodic_len`` > 0."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # (deferred: a heavy import, loaded only when used)
 
     x = np.asarray(x, dtype=np.float64)
     pts = x[:, :dim].copy()

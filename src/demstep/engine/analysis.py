@@ -11,13 +11,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from demstep.clumps import quat_to_matrix
 from demstep.contact.bonds import bond_springs
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
 from demstep.contact.laws import contact_coefficients
-from demstep.contacts import ContactSet, with_rolling
+from demstep.contact.sets import ContactSet, with_rolling
 from demstep.kernels import dem
 from demstep.kernels.integration import reach_speed as _reach_speed_kernel
 from demstep.particles import Particles
+from demstep.timestep.clumps import RigidBodies
 from demstep.timestep.damping import GlobalDamping
 
 #: an empty record of covered contacts: (keys, overlaps)
@@ -173,7 +175,7 @@ def reachable_overlap(sim, delta, reach, r_star) -> np.ndarray:
 
 def with_rolling_and_bonds(sim, parts, params) -> ContactSet:
     """The contact parts as one ContactSet with the law's rolling and twisting
-    springs (:func:`demstep.contacts.with_rolling`, the kernels' rule for fixed
+    springs (:func:`demstep.contact.sets.with_rolling`, the kernels' rule for fixed
     particles), then the intact bonds as elements of their own."""
     contacts = with_rolling(_joined(sim, parts), sim.r, sim.m, sim.inertia, sim.inv_m > 0,
                             params)
@@ -226,13 +228,11 @@ def particles_now(sim, check: bool = True) -> Particles:
 
 def rigid_bodies(sim):
     """The clumps in the form the time-step analysis takes
-    (:class:`demstep.timestep.bodies.RigidBodies`: members' arms and the bodies' world
+    (:class:`demstep.timestep.clumps.RigidBodies`: members' arms and the bodies' world
     inertia tensors at the current orientation), or None without clumps."""
     b = sim.bodies
     if not b.n:
         return None
-    from demstep.clumps import quat_to_matrix
-    from demstep.timestep.bodies import RigidBodies
 
     R = quat_to_matrix(b.q)
     arm = np.zeros((len(sim.r), 3))

@@ -32,15 +32,18 @@ import numpy as np
 
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
 from demstep.contact.laws import LAWS
-from demstep.contacts import ContactSet
+from demstep.contact.sets import ContactSet
 from demstep.engine.analysis import (NO_COVER, coefficients, contact_elements, global_damping,
                                      pair_keys, sorted_keys, wall_keys, walls_per_key)
 from demstep.errors import InputError
 from demstep.kernels import dem
+from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
+from demstep.particles import INERTIA_FACTOR
 from demstep.scratch import Workspace
 from demstep.timestep.certificate import (BodyPose, StepCertificate, added_contacts_bound,
                                           cover_limits, merge_cover, uncovered_pairs,
                                           uncovered_walls)
+from demstep.timestep.clumps import body_element_dt, likely_stiffest_elements
 from demstep.timestep.estimates import densest_packing_dt, element_coupled_dt
 from demstep.timestep.exact import ScaledContactOperator, exact_critical_step
 from demstep.timestep.stability import damped_sigma
@@ -227,8 +230,6 @@ class AutoStep:
         rolling = {}
         if params.has_rolling:  # such a contact's rolling springs (R* = r_max: stiffer than
             # a pair's), the equivalent inertia of two of the lightest particles
-            from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
-            from demstep.particles import INERTIA_FACTOR
 
             i_star = 0.5 * (INERTIA_FACTOR[sim.dim] + 1.0) * m * r * r
             rolling = dict(zip(("k_r", "k_w", "c_r", "c_w"), (
@@ -348,7 +349,7 @@ class AutoStep:
         """How fast the fastest particle moves in radii per unit time [1/T]: from the
         kernels' largest |v| dt / r of the last step (``COUNT_JUMP``), or before the
         first step from the initial velocities (clump members' are their bodies' V +
-        omega x arm from the start: :func:`demstep.kernels.bodies.member_velocities`)."""
+        omega x arm from the start: :func:`demstep.kernels.clumps.member_velocities`)."""
         sim = self.sim
         if not sim.first_step_pending and sim.dt_prev > 0.0:
             return float(sim.counters[dem.COUNT_JUMP]) / sim.dt_prev
@@ -520,20 +521,19 @@ class AutoStep:
         return dt, None
 
     #: 'auto' with clumps: the elements an element estimate looks at first (twice this
-    #: many: :func:`demstep.timestep.bodies.likely_stiffest_elements`)
+    #: many: :func:`demstep.timestep.clumps.likely_stiffest_elements`)
     ELEMENT_SCREEN = 32
 
     def element_bound_falls_short(self, contacts, keep) -> bool:
         """With clumps, whose element bound solves a small dense eigenproblem per
         contact: whether it cannot be kept (``keep(dt)`` false), decided on an upper
         bound on it, the smallest step of the elements likeliest to be the stiffest
-        (:func:`demstep.timestep.bodies.likely_stiffest_elements`). False: not decided
+        (:func:`demstep.timestep.clumps.likely_stiffest_elements`). False: not decided
         (to be computed in full)."""
         sim = self.sim
         bodies = sim.rigid_bodies()
         if bodies is None or contacts.n <= 4 * self.ELEMENT_SCREEN:
             return False
-        from demstep.timestep.bodies import body_element_dt, likely_stiffest_elements
 
         p = sim.particles_now(check=False)
         d = global_damping(sim)

@@ -15,11 +15,11 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from demstep.energy import A_ROLLING, E_STRAIN_R
 from demstep.kernels import dem
-from demstep.kernels.bodies import place_members
+from demstep.kernels.clumps import place_members
 from demstep.scratch import Workspace
 from demstep.state import ROLL_WIDTH, Pairs
-from demstep.energy import A_ROLLING, E_STRAIN_R
 
 
 class NeighbourLists:

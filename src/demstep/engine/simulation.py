@@ -57,7 +57,7 @@ from demstep._numba import warn_slow_threading_layer
 from demstep.backend import get_backend
 from demstep.clumps import with_members
 from demstep.contact.laws import ContactLaw, LinearSpring
-from demstep.contacts import ContactSet
+from demstep.contact.sets import ContactSet
 from demstep.energy import EnergyBalanceError, EnergyLedger, EnergyMonitor, runaway_reference
 from demstep.engine import analysis, boundaries
 from demstep.engine.auto_step import AutoStep
@@ -70,7 +70,7 @@ from demstep.engine.settings import Damping, TimeStep
 from demstep.errors import InputError, SimulationDiverged
 from demstep.io.checkpoint import save_checkpoint
 from demstep.kernels import dem
-from demstep.kernels.bodies import member_velocities
+from demstep.kernels.clumps import member_velocities
 from demstep.particles import Particles
 from demstep.state import ROLL_WIDTH, Bodies, Bonds, Box, Controls, Ledger, Pairs, Spheres
 from demstep.timestep.estimates import element_coupled_dt
@@ -643,7 +643,7 @@ class Simulation:
     def threaded(self) -> bool:
         """Whether the run takes the threaded kernels (``parallel``; automatic: from
         :data:`PARALLEL_MIN_PARTICLES` particles on, when numba has several threads)."""
-        import numba
+        import numba  # (deferred: a heavy import, loaded only when used)
 
         if self.parallel is not None:
             return bool(self.parallel)

@@ -33,16 +33,17 @@ from pathlib import Path
 
 import numpy as np
 
+from demstep.clumps import quat_to_matrix
 from demstep.contact.geometry import pair_geometry_arrays
-from demstep.io.atomic import atomic_path, write_text_atomic
 from demstep.errors import InputError
+from demstep.io.atomic import atomic_path, write_text_atomic
 
 SERIES = ("particles", "contacts", "walls", "bodies")
 _FRAME = re.compile(r"_(\d+)\.vtu$")
 
 
 def _meshio():
-    import meshio
+    import meshio  # (deferred: a heavy import, loaded only when used)
 
     return meshio
 
@@ -81,8 +82,6 @@ def body_mesh(sim):
     ``angular_momentum`` [M L^2/T], ``mass`` [M], the principal ``moments`` [M L^2] and
     the principal axes ``axis_1``, ``axis_2``, ``axis_3`` (unit vectors, world frame;
     in ParaView: Glyph, arrows, orientation by an axis)."""
-    from demstep.clumps import quat_to_matrix
-
     meshio = _meshio()
     b = sim.bodies
     R = quat_to_matrix(b.q)

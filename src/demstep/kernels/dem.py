@@ -28,7 +28,7 @@ from demstep.contact.laws import (
     coulomb_load, dashpot_coefficients, needs_r_star as law_needs_r_star, normal_force,
     rolling_coefficients, tangential_stiffness,
 )
-from demstep.kernels.bodies import body_step, body_step_serial
+from demstep.kernels.clumps import body_step, body_step_serial
 from demstep.kernels.bonds import bond_forces
 from demstep.kernels.integration import moved_since_build, step_weights, store_step_terms
 
@@ -953,7 +953,7 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
     ``fd_prev``/``td_prev`` (N, 6) hold the damping forces of the last step (local,
     global) for the trapezoid; ``store_damping`` False (damping off and those arrays
     all zero) skips reading and writing them. Members of rigid bodies
-    (``sphere_body`` >= 0) are left to :mod:`demstep.kernels.bodies`. The (N, 3) arrays
+    (``sphere_body`` >= 0) are left to :mod:`demstep.kernels.clumps`. The (N, 3) arrays
     are read through flat views with unsigned indices, a sphere's scalars once.
 
     Compiled twice more as :func:`integrate_plain` (and its serial twin), with the

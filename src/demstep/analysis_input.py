@@ -3,7 +3,7 @@ coefficients, and the damping, from particle files of other codes, lattices, dem
 case files and checkpoints (``demstep dt``).
 
 The contact model turns each contact's geometry into the coefficients of
-:class:`~demstep.contacts.ContactSet`:
+:class:`~demstep.contact.sets.ContactSet`:
 
 * ``linear``: k_n, k_t [M/T^2] given;
 * ``hertz``: tangent stiffnesses k_n = 2 E* sqrt(R* delta), k_t = 8 G* sqrt(R* delta)
@@ -37,19 +37,31 @@ and of the linear c_t are made here.
 from __future__ import annotations
 
 import math
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from demstep.case import apply_stage, build_simulation, load_case
+from demstep.case.stages import create_bonds
+from demstep.contact import sets as cs
 from demstep.contact.laws import (ContactLaw, RollingResistance, contact_coefficients,
                                   damping_ratio_from_restitution, law_class)
-from demstep.contacts import DEFAULT_CONTACT_TOL, ContactSet, find_contacts
+from demstep.contact.sets import (DEFAULT_CONTACT_TOL, ContactSet, contact_effective_radius,
+                                  contact_rolling_inertia, find_contacts)
 from demstep.errors import InputError, magnitude_problem
-from demstep.packings import SPATIAL_ORDER_MIN
-from demstep.particles import Particles, particle_inertia
+from demstep.io.checkpoint import load_checkpoint
+from demstep.io.formats import read_particle_file
+from demstep.io.textfile import not_a_file_message, not_a_file_reason, read_small_text
+from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
+from demstep.packings import SPATIAL_ORDER_MIN, inverse_order, lattice, spatial_order
+from demstep.particles import Particles, particle_inertia, particle_mass
+from demstep.runner import case_hash, find_checkpoint, read_state
+from demstep.timestep.clumps import RigidBodies
 from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.estimates import Materials
+from demstep.walls import Wall
 
 CONVENTIONS = ("demstep", "liggghts")
 
@@ -256,9 +268,6 @@ class ContactModel(RollingResistance):
     def apply(self, contacts: ContactSet, particles: Particles, types: np.ndarray) -> ContactSet:
         """Fill the contacts' k_n, k_s, c_n, c_t (and k_r, k_w, c_r, c_w with rolling
         resistance) from the model and the geometry."""
-        from demstep.contacts import contact_effective_radius, contact_rolling_inertia
-        from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
-
         i, j = contacts.i, contacts.j
         wall = j < 0
         jj = np.where(wall, i, j)
@@ -307,9 +316,7 @@ ROLLING_OPTIONS = RollingResistance.field_names()
 
 def with_rolling(contacts: ContactSet, particles: Particles, params) -> ContactSet:
     """The contacts with the law's rolling and twisting springs (``params`` a LawParams):
-    :func:`demstep.contacts.with_rolling` with the particles' own masses and inertias."""
-    from demstep import contacts as cs
-
+    :func:`demstep.contact.sets.with_rolling` with the particles' own masses and inertias."""
     p = particles
     return cs.with_rolling(contacts, p.r, p.m, p.inertia, ~p.fixed, params)
 
@@ -358,10 +365,6 @@ def read_materials(path) -> dict:
 
     Only ``[[material]]`` tables at the top level, only these keys in them, numbers
     as TOML numbers (not strings, not booleans)."""
-    import tomllib
-
-    from demstep.io.textfile import not_a_file_message, not_a_file_reason, read_small_text
-
     path = Path(path)
     reason = not_a_file_reason(path)
     if reason is not None:
@@ -530,8 +533,6 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
               damping=None, impact_velocity=None, snapshot: int = -1) -> AnalysisInput:
     """A particle file (CSV, LIGGGHTS/LAMMPS dump, YADE text). ``box`` (dim, 2) and
     ``periodic_axes`` (a string of axis letters) override the file's box and flags."""
-    from demstep.io.formats import read_particle_file
-
     path = Path(path)
     data = read_particle_file(path, format=fmt, snapshot=snapshot)
     dim = data.dim
@@ -549,8 +550,6 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
         m = data.m
         notes.append("masses from the file's mass column")
     elif density is not None:
-        from demstep.particles import particle_mass
-
         m = particle_mass(data.r, density, dim)
     else:
         from demstep.particles import particle_mass
@@ -583,8 +582,6 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
     bodies = None
     body = data.extra.get("body")
     if body is not None and (body >= 0).any():
-        from demstep.timestep.bodies import RigidBodies
-
         rho = density
         if rho is None:  # the members' own density (a mass column)
             from demstep.particles import particle_mass
@@ -609,8 +606,6 @@ def _put_in_spatial_order(data: AnalysisInput) -> None:
     file's rows in any message so far) in spatial order, the file's row of each kept in
     ``ids`` for the reports: the products of the exact step gather by index (1e5 dense
     spheres in random order: 5.0 s against 1.6 s in spatial order)."""
-    from demstep.packings import inverse_order, spatial_order
-
     p = data.particles
     order = spatial_order(p.x, 2.0 * float(p.r.max()))
     new_index = inverse_order(order)
@@ -632,8 +627,6 @@ WALL_NAMES = ("x-", "x+", "y-", "y+", "z-", "z+")
 def _walls(specs, box, dim: int) -> list:
     """Walls from specs: a box side ('x-', 'z+', ...: the plane of the box's bound, facing
     in) or 'px,py[,pz]:nx,ny[,nz]' (a point and the normal pointing into the packing)."""
-    from demstep.walls import Wall
-
     walls = []
     for spec in specs:
         if isinstance(spec, Wall):
@@ -669,8 +662,6 @@ def _walls(specs, box, dim: int) -> list:
 def from_lattice(name: str, size: int, radius: float, density: float, model: ContactModel,
                  periodic: bool = False, contact_tol=DEFAULT_CONTACT_TOL, damping=None,
                  impact_velocity=None) -> AnalysisInput:
-    from demstep.packings import lattice
-
     lat = lattice(name, radius)
     if periodic:
         x, box = lat.supercell(size)
@@ -729,8 +720,6 @@ def from_case(path, stage: int = 1, contact_tol: float = DEFAULT_CONTACT_TOL,
     (1-based) applied: contacts touching within ``contact_tol``, the case's law, walls,
     periodic box and global damping. Touching contacts of a Hertz law are evaluated at
     the case's ``timestep.overlap`` (zero overlap has zero stiffness)."""
-    from demstep.case import apply_stage, build_simulation, load_case
-
     case = load_case(path)
     if not 1 <= stage <= max(1, len(case.stages)):
         raise InputError(f"stage: must lie in [1, {max(1, len(case.stages))}], got {stage}")
@@ -745,7 +734,6 @@ def from_case(path, stage: int = 1, contact_tol: float = DEFAULT_CONTACT_TOL,
         notes.append("rotation locked in the case")
     bond_stage = case.bond_stage()
     if bond_stage is not None and bond_stage < stage - 1:  # bonded at an earlier stage
-        from demstep.case.stages import create_bonds
 
         create_bonds(sim, case)
     out = from_particles(sim.particles_now(), model, None,
@@ -784,8 +772,6 @@ def load_run(checkpoint, case_path=None):
     run (with the stages that had started applied, as a restart does), and whether the
     case is not the one that wrote the checkpoint."""
     from demstep.case import apply_stage, build_simulation, load_case
-    from demstep.io.checkpoint import load_checkpoint
-    from demstep.runner import case_hash, find_checkpoint, read_state
 
     checkpoint = find_checkpoint(checkpoint)
     if case_path is None:
