@@ -288,6 +288,7 @@ def check_initial_state(sim, max_overlap: float = MAX_INITIAL_OVERLAP) -> None:
     * masses, moments of inertia, stiffness, the time step or the energy scale that
       are not finite and positive (e.g. a density whose masses overflow).
     """
+    from demstep.contact.geometry import minimum_image_arrays
     from demstep.kernels.neighbors import build_pair_list
 
     r_min = float(sim.r.min())
@@ -304,11 +305,7 @@ def check_initial_state(sim, max_overlap: float = MAX_INITIAL_OVERLAP) -> None:
             np.mod(x[:, axis], sim.periodic_len[axis], out=x[:, axis])
     pi, pj = build_pair_list(x, sim.r, sim.skin, sim.periodic_len)
     if len(pi):
-        d = x[pj] - x[pi]
-        for axis in range(3):
-            length = sim.periodic_len[axis]
-            if length > 0:
-                d[:, axis] -= length * np.rint(d[:, axis] / length)
+        d = minimum_image_arrays(x[pj] - x[pi], sim.periodic_len)
         dist = np.linalg.norm(d, axis=1)
         r_i, r_j = sim.r[pi], sim.r[pj]
         relative = (r_i + r_j - dist) / np.minimum(r_i, r_j)
