@@ -11,6 +11,7 @@ from demstep.case.schema import (AXES, MAX_COORDINATE_RADII, MAX_INITIAL_OVERLAP
                                  MIN_MAGNITUDE, Case, TimestepSection, WallMotion, clump_templates,
                                  read_body_file)
 from demstep.clumps import clumps_from_members, expand, place, random_quaternions
+from demstep.contact.geometry import minimum_image_arrays
 from demstep.contact.laws import RollingResistance, law_class
 from demstep.energy import EnergyMonitor
 from demstep.engine import Damping, Simulation, TimeStep
@@ -284,11 +285,7 @@ def check_initial_state(sim, max_overlap: float = MAX_INITIAL_OVERLAP) -> None:
             np.mod(x[:, axis], sim.periodic_len[axis], out=x[:, axis])
     pi, pj = build_pair_list(x, sim.r, sim.skin, sim.periodic_len)
     if len(pi):
-        d = x[pj] - x[pi]
-        for axis in range(3):
-            length = sim.periodic_len[axis]
-            if length > 0:
-                d[:, axis] -= length * np.rint(d[:, axis] / length)
+        d = minimum_image_arrays(x[pj] - x[pi], sim.periodic_len)
         dist = np.linalg.norm(d, axis=1)
         r_i, r_j = sim.r[pi], sim.r[pj]
         relative = (r_i + r_j - dist) / np.minimum(r_i, r_j)

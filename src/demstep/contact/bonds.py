@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from demstep._numba import njit
+from demstep.contact.geometry import minimum_image_arrays
 from demstep.contact.laws.base import check_number as _check
 
 
@@ -102,7 +103,8 @@ class ParallelBonds:
 
 def bond_candidates(x, r, gap, periodic_len, dim):
     """Pairs (i < j, sorted) whose surfaces are at most ``gap`` [L] apart (overlapping
-    included), with the minimum image along axes of ``periodic_len`` > 0."""
+    included), with the minimum image along axes of ``periodic_len`` > 0 [L]
+    (:func:`~demstep.contact.geometry.minimum_image_arrays`)."""
     from scipy.spatial import cKDTree  # (deferred: a heavy import, loaded only when used)
 
     x = np.asarray(x, dtype=np.float64)
@@ -122,10 +124,7 @@ def bond_candidates(x, r, gap, periodic_len, dim):
     if len(pairs) == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     i, j = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
-    d = pts[j] - pts[i]
-    for k in range(dim):
-        if periodic_len[k] > 0:
-            d[:, k] -= periodic_len[k] * np.round(d[:, k] / periodic_len[k])
+    d = minimum_image_arrays(pts[j] - pts[i], periodic_len)
     surface_gap = np.linalg.norm(d, axis=1) - r[i] - r[j]
     keep = surface_gap <= gap * (1 + 1e-12) + 1e-300
     order = np.lexsort((j[keep], i[keep]))

@@ -1,4 +1,5 @@
-"""Contact-point geometry shared by the engine and the time-step analysis."""
+"""The minimum image across periodic axes and the contact-point geometry, shared by the
+engine, the neighbour search, the time-step analysis and the input checks."""
 
 import math
 
@@ -7,14 +8,53 @@ import numpy as np
 from demstep._numba import njit
 
 
-@njit(inline="always")
-def image_count(d, length):
-    """Number of box lengths to subtract from a separation component ``d`` [L] for the
-    minimum image along a periodic axis of ``length`` [L] (0 when ``length`` is 0: the
-    axis is not periodic). Multiplies by the inverse length: inside a loop over pairs the
-    inverse is loop-invariant and computed once, not a division per pair and axis."""
+def _image_count(d, length):
+    """The minimum-image rule, the one place it is written: the number of box lengths
+    to subtract from a separation component ``d`` [L] (a float or a numpy array) along
+    a periodic axis of ``length`` [L]: np.rint(d * (1 / length)), rounded half to even
+    (0 when ``length`` is 0: the axis is not periodic). The inverse, not a division:
+    inside a loop over pairs it is loop-invariant and computed once, not a division per
+    pair and axis. (At an exact half-box tie d / length = k + 1/2 the inverse's rounding
+    may pick either of the two equally near images.) Compiled as :func:`image_count`;
+    :func:`minimum_image_arrays` runs it on numpy arrays."""
     inverse = 1.0 / length if length > 0.0 else 0.0
     return np.rint(d * inverse)
+
+
+#: :func:`_image_count` compiled (scalars, inlined in the compiled loops); modules other
+#: than this one call :func:`minimum_image` or :func:`pair_geometry` instead
+image_count = njit(inline="always")(_image_count)
+
+
+@njit(inline="always")
+def minimum_image(d0, d1, d2, len0, len1, len2):
+    """The minimum image of a separation (d0, d1, d2) [L] across the periodic axes of
+    lengths ``len0``, ``len1``, ``len2`` [L] (0: the axis is not periodic, and its
+    component comes back as it was, a -0.0 as +0.0): the wrapped components
+    d_k - len_k n_k [L] and the image counts n_k [-] (floats, :func:`image_count`)
+    subtracted, one axis after the other. Every module that needs a minimum image calls
+    this (or :func:`pair_geometry`, or :func:`minimum_image_arrays`). Scalars only,
+    inlined in the compiled loops (:func:`pair_geometry` and the neighbour search skip
+    it when no axis is periodic, :func:`any_periodic`)."""
+    n0 = image_count(d0, len0)
+    d0 = d0 - len0 * n0
+    n1 = image_count(d1, len1)
+    d1 = d1 - len1 * n1
+    n2 = image_count(d2, len2)
+    d2 = d2 - len2 * n2
+    return d0, d1, d2, n0, n1, n2
+
+
+def minimum_image_arrays(d, periodic_len):
+    """:func:`minimum_image` of separations ``d`` (C, dim) [L], vectorised with numpy:
+    a new array, column k wrapped along the axis of length ``periodic_len[k]`` [L] (0:
+    not periodic). The same rule (:func:`_image_count`) and the same operations, element
+    by element, as the compiled :func:`minimum_image`: the same bits."""
+    d = np.array(d, dtype=np.float64)
+    for k in range(d.shape[1]):
+        length = float(periodic_len[k])
+        d[:, k] -= length * _image_count(d[:, k], length)
+    return d
 
 
 @njit(inline="always")
@@ -38,10 +78,10 @@ def contact_arms(r_i, r_j, distance):
 @njit(inline="always")
 def pair_geometry(xi0, xi1, xi2, xj0, xj1, xj2, r_i, r_j, len0, len1, len2, periodic=True):
     """The geometry of a pair, the one place it is computed: branch vector from i to j
-    (d0, d1, d2) [L] with the minimum image along periodic axes (lengths ``len*`` [L],
-    0: not periodic), centre distance [L], overlap delta_n = r_i + r_j - distance [L]
-    (> 0: touching), the arms from each centre to the contact point [L]
-    (:func:`contact_arms`) and the image counts (n0, n1, n2) subtracted. ``periodic``
+    (d0, d1, d2) [L] with the minimum image (:func:`minimum_image`) along periodic axes
+    (lengths ``len*`` [L], 0: not periodic), centre distance [L], overlap
+    delta_n = r_i + r_j - distance [L] (> 0: touching), the arms from each centre to the contact point [L]
+    (:func:`contact_arms`) and the image counts (n0, n1, n2) [-] subtracted. ``periodic``
     False (no axis periodic: a loop-invariant test in a loop over pairs) skips the
     image counts. Scalars only (array arguments cost a reference count per call in the
     compiled loops)."""
@@ -52,12 +92,7 @@ def pair_geometry(xi0, xi1, xi2, xj0, xj1, xj2, r_i, r_j, len0, len1, len2, peri
     n1 = 0.0
     n2 = 0.0
     if periodic:
-        n0 = image_count(d0, len0)
-        n1 = image_count(d1, len1)
-        n2 = image_count(d2, len2)
-        d0 -= len0 * n0
-        d1 -= len1 * n1
-        d2 -= len2 * n2
+        d0, d1, d2, n0, n1, n2 = minimum_image(d0, d1, d2, len0, len1, len2)
     dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     a_i, a_j = contact_arms(r_i, r_j, dist)
     return d0, d1, d2, dist, r_i + r_j - dist, a_i, a_j, n0, n1, n2

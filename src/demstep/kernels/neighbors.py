@@ -12,7 +12,7 @@ import numba
 import numpy as np
 
 from demstep._numba import njit, prange
-from demstep.contact.geometry import any_periodic, image_count
+from demstep.contact.geometry import any_periodic, minimum_image
 from demstep.errors import InputError
 from demstep.scratch import Workspace
 
@@ -160,9 +160,7 @@ def _build_pairs(x, r, lo, inv_cell, ncell, periodic_len, skin, n_threads, capac
                         d1 = xs[m2, 1] - x1
                         d2 = xs[m2, 2] - x2
                         if periodic:  # (a loop-invariant test: 20 % of a build)
-                            d0 -= len0 * image_count(d0, len0)
-                            d1 -= len1 * image_count(d1, len1)
-                            d2 -= len2 * image_count(d2, len2)
+                            d0, d1, d2 = minimum_image(d0, d1, d2, len0, len1, len2)[:3]
                         reach = rm + rs[m2] + skin
                         if d0 * d0 + d1 * d1 + d2 * d2 < reach * reach:
                             if k < capacity:

@@ -122,7 +122,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from demstep._numba import njit
-from demstep.contact.geometry import (any_periodic, contact_arms, image_count, pair_geometry,
+from demstep.contact.geometry import (any_periodic, contact_arms, minimum_image, pair_geometry,
                                       wall_geometry)
 from demstep.timestep.clumps import cross_matrix, owner_mass_shares
 from demstep.timestep.elements import coupled_element_lambda
@@ -166,13 +166,9 @@ def _turn_factor(trans, rot, b_n, b_t, planar):
 @njit(inline="always")
 def _branch(x, a, b, periodic_len):
     """(d0, d1, d2, |d|): the branch vector [L] from a's centre to b's (nearest periodic
-    image) and its length."""
-    d0 = x[b, 0] - x[a, 0]
-    d1 = x[b, 1] - x[a, 1]
-    d2 = x[b, 2] - x[a, 2]
-    d0 -= periodic_len[0] * image_count(d0, periodic_len[0])
-    d1 -= periodic_len[1] * image_count(d1, periodic_len[1])
-    d2 -= periodic_len[2] * image_count(d2, periodic_len[2])
+    image, :func:`~demstep.contact.geometry.minimum_image`) and its length."""
+    d0, d1, d2 = minimum_image(x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2],
+                               periodic_len[0], periodic_len[1], periodic_len[2])[:3]
     return d0, d1, d2, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
 
 
