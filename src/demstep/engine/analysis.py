@@ -16,6 +16,7 @@ from demstep.contact.bonds import bond_springs
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
 from demstep.contact.laws import contact_coefficients
 from demstep.contact.sets import ContactSet, with_rolling
+from demstep.engine.meshes import mesh_contacts
 from demstep.kernels import dem
 from demstep.kernels.integration import reach_speed as _reach_speed_kernel
 from demstep.particles import Particles
@@ -106,6 +107,15 @@ def contact_set(sim, horizon: float | None = None, cover: dict | None = None) ->
         parts.append(_walls_part(sim, p, wi, arm, delta_eval, params))
         if cover is not None:
             cover["walls"] = sorted_keys(wall_keys(walls_per_key(sim), p, wi), delta_eval)
+    if len(sim.meshes.cand_p):
+        # the particle-mesh contacts of the last step (one per surface), as wall elements
+        # numbered after the plane walls; the 'auto' step does not cover meshes yet
+        p, mk, normal, dist, delta = mesh_contacts(sim.meshes, sim.x, sim.r)
+        on = delta > 0
+        kn, kt, cn, ct = coefficients(params, delta[on], sim.r[p[on]], sim.m[p[on]])
+        parts.append(ContactSet(p[on], np.full(int(on.sum()), -1), normal[on][:, :sim.dim],
+                                dist[on], np.zeros(int(on.sum())), kn, kt,
+                                len(sim.walls) + mk[on], c_n=cn, c_t=ct))
     return with_rolling_and_bonds(sim, parts, params)
 
 

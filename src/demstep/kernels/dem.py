@@ -25,12 +25,14 @@ from demstep.contact.geometry import (
     any_periodic, into_tangent_plane, pair_geometry, wall_geometry,
 )
 from demstep.contact.laws import (
-    coulomb_load, dashpot_coefficients, needs_r_star as law_needs_r_star, normal_force,
-    rolling_coefficients, tangential_stiffness,
+    coulomb_load, needs_r_star as law_needs_r_star, normal_force, rolling_coefficients,
+    tangential_stiffness,
 )
 from demstep.kernels.clumps import body_step, body_step_serial
 from demstep.kernels.bonds import bond_forces
 from demstep.kernels.integration import moved_since_build, step_weights, store_step_terms
+from demstep.kernels.meshes import mesh_forces, move_meshes
+from demstep.kernels.response import coulomb_dashpot, contact_response
 
 from demstep.energy import (  # the ledger's layout and sums are the energy module's
     A_APPLIED, A_BODY, A_BOND_BROKEN, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL,
@@ -54,84 +56,6 @@ WALL_FIXED, WALL_VELOCITY, WALL_SERVO = 0, 1, 2
 S_TARGET, S_GAIN, S_MAXSPEED, S_AREA, S_FACTOR = range(5)
 # periodic box motions (per axis)
 BOX_FIXED, BOX_RATE, BOX_SERVO = 0, 1, 2
-
-
-@njit(inline="always")
-def coulomb_dashpot(tx, ty, tz, dx, dy, dz, limit):
-    """The tangential dashpot force (d_x, d_y, d_z) of a sticking contact, scaled down
-    (by the largest alpha in [0, 1]) so that the total tangential force, spring t plus
-    dashpot, stays within the Coulomb limit mu F_n [M L/T^2] (|t| <= limit here).
-    LIGGGHTS adds the dashpot unchecked, which let the total reach several times mu F_n
-    when a contact starts or turns; LAMMPS' granular pair styles cap the total too."""
-    sx, sy, sz = tx + dx, ty + dy, tz + dz
-    limit2 = limit * limit
-    if sx * sx + sy * sy + sz * sz <= limit2:
-        return dx, dy, dz
-    a = dx * dx + dy * dy + dz * dz
-    b = tx * dx + ty * dy + tz * dz
-    c = tx * tx + ty * ty + tz * tz - limit2  # <= 0: the root lies in [0, 1)
-    alpha = (math.sqrt(max(b * b - a * c, 0.0)) - b) / a
-    return alpha * dx, alpha * dy, alpha * dz
-
-
-@njit(inline="always")
-def contact_response(params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy, vz, dt,
-                     ox, oy, oz, fdx, fdy, fdz, etan_old):
-    """Force of one contact and its history update (the contact law applied once).
-
-    Inputs: unit normal n (i -> j), overlap ``delta`` [L] (<= 0: not touching),
-    effective radius and mass, relative velocity of j's contact point w.r.t. i's
-    (v_x, v_y, v_z) [L/T] at t - dt/2, step ``dt`` (the one that produced x(t)), and
-    the history: tangential spring force on j (o_x, o_y, o_z), dashpot force on j
-    (fd_x, fd_y, fd_z) and stored tangential energy. Returns (F_x, F_y, F_z) on j, the
-    normal and tangential strain energies, the friction and dashpot dissipation of the
-    step, k_n and k_t (tangent stiffnesses, 0 when not touching), then the new history
-    (tangential force, dashpot force, tangential energy).
-
-    Scalars only: array arguments cost a reference-count update per call, which
-    measured 60 % of the pair loop.
-    """
-    dux, duy, duz = vx * dt, vy * dt, vz * dt
-    dun = dux * nx + duy * ny + duz * nz
-    dtx, dty, dtz = dux - dun * nx, duy - dun * ny, duz - dun * nz
-    # the old tangential force, rotated into the current tangent plane (magnitude kept)
-    ox, oy, oz = into_tangent_plane(ox, oy, oz, nx, ny, nz)
-    if delta <= 0.0:
-        # separated: the stored tangential energy is released (dissipated)
-        d_fric = -0.5 * (ox * dtx + oy * dty + oz * dtz) + etan_old
-        d_dash = -0.5 * (fdx * dux + fdy * duy + fdz * duz)
-        return (0.0, 0.0, 0.0, 0.0, 0.0, d_fric, d_dash, 0.0, 0.0,
-                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    f_el, k_n, e_n = normal_force(params, delta, r_star)
-    k_t = tangential_stiffness(params, delta, r_star)
-    c_n, c_t = dashpot_coefficients(params, m_star, k_n, k_t)
-    # normal dashpot on the lagged normal velocity (not clipped: the total may pull
-    # briefly at the end of an impact, as in the model whose restitution is e)
-    v_n = vx * nx + vy * ny + vz * nz
-    f_nd = -c_n * v_n
-    # tangential spring: trial increment, then the Coulomb slider
-    tx, ty, tz = ox - k_t * dtx, oy - k_t * dty, oz - k_t * dtz
-    mag2 = tx * tx + ty * ty + tz * tz
-    limit = mu * coulomb_load(params, f_el)
-    tdx, tdy, tdz = 0.0, 0.0, 0.0
-    if mag2 > limit * limit:  # (squares: the root only for a sliding contact)
-        s = limit / math.sqrt(mag2)
-        tx, ty, tz = tx * s, ty * s, tz * s
-    elif c_t > 0.0:
-        vtx, vty, vtz = vx - v_n * nx, vy - v_n * ny, vz - v_n * nz
-        tdx, tdy, tdz = coulomb_dashpot(tx, ty, tz, -c_t * vtx, -c_t * vty, -c_t * vtz,
-                                        limit)
-    e_t = 0.0
-    if k_t > 0.0:
-        e_t = (tx * tx + ty * ty + tz * tz) / (2.0 * k_t)
-    # work done on the tangential spring over the step (trapezoid) minus its stored change
-    w_in = -0.5 * ((ox + tx) * dtx + (oy + ty) * dty + (oz + tz) * dtz)
-    ndx, ndy, ndz = f_nd * nx + tdx, f_nd * ny + tdy, f_nd * nz + tdz
-    d_fric = w_in - (e_t - etan_old)
-    d_dash = -0.5 * ((fdx + ndx) * dux + (fdy + ndy) * duy + (fdz + ndz) * duz)
-    f_total = f_el + f_nd
-    return (f_total * nx + tx + tdx, f_total * ny + ty + tdy, f_total * nz + tz + tdz,
-            e_n, e_t, d_fric, d_dash, k_n, k_t, tx, ty, tz, ndx, ndy, ndz, e_t)
 
 
 @njit(inline="always")
@@ -1172,12 +1096,12 @@ def drift_used(counters):
     return used
 
 
-def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params):
+def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger, params):
     """Run up to ``n_steps`` steps of the documented order
     (:meth:`demstep.engine.Simulation.run`) on the bundles of :mod:`demstep.state`
     (``ctl`` Controls, ``sph`` Spheres, ``bodies`` Bodies, ``pairs`` Pairs, ``bonds`` Bonds,
-    ``walls`` Walls, ``box`` Box, ``ledger`` Ledger) with the law ``law`` (its id) and ``params``
-    (:class:`~demstep.contact.laws.LawParams`). Compiled twice, with the threaded loops
+    ``walls`` Walls, ``meshes`` Meshes, ``box`` Box, ``ledger`` Ledger) with the law's
+    parameters ``params`` (its Params tuple, :mod:`demstep.contact.laws`). Compiled twice, with the threaded loops
     (:func:`advance_parallel`) and with the serial ones (:func:`advance_serial`), so that
     a run compiles only the version it uses; :func:`advance` picks by ``ctl.parallel``.
     Returns (steps done, stop reason).
@@ -1254,6 +1178,15 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
             er_s += wr_s
             er_p += wr_p
             er_v += wr_v
+        # 2c. triangle-mesh walls (serial: a sphere's contacts with a mesh are one list)
+        me_n, me_t, md_fric, md_dash = 0.0, 0.0, 0.0, 0.0
+        if meshes.tri.shape[0] > 0:
+            me_n, me_t, md_fric, md_dash = mesh_forces(
+                x, v, w, r, m, meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid,
+                meshes.tri_mesh, meshes.vel, meshes.omega, meshes.center, meshes.mu, params,
+                dt_slip, meshes.active, meshes.slot_mesh, meshes.slot_tri, meshes.normal,
+                meshes.shear, meshes.dashpot, meshes.etan, force, torque, meshes.force,
+                meshes.torque, meshes.power, meshes.contacts)
         # 2b. parallel bonds (serial: bonds share particles)
         eb_s, eb_r = 0.0, 0.0
         if bonds.i.shape[0] > 0:
@@ -1271,6 +1204,11 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
                                        + (walls.force_prev[wi, 2] + wall_force[wi, 2]) * walls.disp_prev[wi, 2])
             for k in range(3):
                 acc[A_BOX] += 0.5 * (box_state[4, k] + box_sums[1, k]) * box_state[5, k]
+            # moving meshes: the power they put into the particles, over the last step
+            for mk in range(meshes.power.shape[0]):
+                acc[A_WALLS] += 0.5 * (meshes.power_prev[mk] + meshes.power[mk]) * dt_prev
+        for mk in range(meshes.power.shape[0]):
+            meshes.power_prev[mk] = meshes.power[mk]
         # 4. servo-controlled walls: velocity along the normal from the stress error
         wall_areas(wall_point, wall_normal, servo, walls.box_lo, walls.box_hi, periodic_len,
                    ctl.dim, walls.areas)
@@ -1342,17 +1280,24 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
             periodic_len[k] += dt * box_speed[k]
             boundary_move += abs(periodic_len[k] - box.ref[k])
             boundary_step += abs(dt * box_speed[k])
+        if meshes.tri.shape[0] > 0:  # moving meshes: their corners' moves
+            mesh_step = move_meshes(meshes.tri, meshes.tri0, meshes.tri_mesh, meshes.motion,
+                                    meshes.vel, meshes.omega, meshes.center, meshes.shift,
+                                    meshes.turn, dt)
+            meshes.moved[0] += mesh_step
+            boundary_move += meshes.moved[0]
+            boundary_step += mesh_step
         # 7. ledger
         acc[A_BODY] += out[0]
         acc[A_APPLIED] += out[1]
         acc[A_LOCAL] += out[2]
         acc[A_GLOBAL] += out[3]
-        acc[A_FRICTION] += d_fric + wd_fric
-        acc[A_DASHPOT] += d_dash + wd_dash
+        acc[A_FRICTION] += d_fric + wd_fric + md_fric
+        acc[A_DASHPOT] += d_dash + wd_dash + md_dash
         energy[E_KIN_T] = out[4]
         energy[E_KIN_R] = out[5]
-        energy[E_STRAIN_N] = e_n + we_n
-        energy[E_STRAIN_T] = e_t + we_t
+        energy[E_STRAIN_N] = e_n + we_n + me_n
+        energy[E_STRAIN_T] = e_t + we_t + me_t
         energy[E_STRAIN_R] = er_s
         energy[E_STRAIN_BOND] = eb_s
         acc[A_BOND_BROKEN] += eb_r
@@ -1362,6 +1307,8 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
         wc = 0
         for wi in range(nw):
             wc += walls.contacts[wi]
+        for mk in range(meshes.contacts.shape[0]):
+            wc += meshes.contacts[mk]
         counters[COUNT_WALL_CONTACTS] = wc
         counters[COUNT_JUMP] = out[7]
         counters[COUNT_UNCOVERED] += pp_uncovered + pw_uncovered
@@ -1371,7 +1318,8 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
             counters[DRIFT_SUM] += 2.0 * r_max * out[7] + boundary_step
         if first:
             # the energy held at t = 0 is the ledger's initial input
-            acc[A_INITIAL] = out[4] + out[5] + e_n + we_n + e_t + we_t + er_s + eb_s
+            acc[A_INITIAL] = (out[4] + out[5] + e_n + we_n + me_n + e_t + we_t + me_t + er_s
+                              + eb_s)
         update_peaks(acc, energy)
         dt_prev = dt
         first = False
@@ -1432,19 +1380,31 @@ def _no_bodies(*args):
     return None
 
 
+@njit
+def _no_mesh_forces(*args):
+    """Stands in for the mesh contacts in a step compiled without meshes."""
+    return 0.0, 0.0, 0.0, 0.0
+
+
+@njit
+def _no_mesh_moves(*args):
+    """Stands in for the meshes' motion in a step compiled without meshes."""
+    return 0.0
+
+
 #: the compiled versions of the step made so far, by (parallel, rolling, bonds, bodies)
 _STEPS = {}
 
 
 def step_kernel(parallel: bool, rolling: bool, bonds: bool, bodies: bool,
-                dashpot: bool = True, periodic: bool = True):
+                dashpot: bool = True, periodic: bool = True, meshes: bool = False):
     """The compiled step (:func:`_advance`) with the threaded or the serial loops and
     only the features a run uses: a law without rolling resistance, a run without
     bonds or clumps does not compile (or load) their loops; the pair loop is the one
     compiled for the law's dashpot history and the box (:func:`pair_loop_for`). Each
     version has its own name, so its own on-disk cache entry."""
     key = (bool(parallel), bool(rolling), bool(bonds), bool(bodies), bool(dashpot),
-           bool(periodic))
+           bool(periodic), bool(meshes))
     kernel = _STEPS.get(key)
     if kernel is None:
         overrides = {} if parallel else dict(_SERIAL_LOOPS)
@@ -1455,17 +1415,19 @@ def step_kernel(parallel: bool, rolling: bool, bonds: bool, bodies: bool,
             overrides["bond_forces"] = _no_bonds
         if not bodies:
             overrides["body_step"] = _no_bodies
-        name = "advance_{}_{}{}{}{}{}".format("parallel" if parallel else "serial",
-                                              *(int(f) for f in key[1:]))
+        if not meshes:
+            overrides.update(mesh_forces=_no_mesh_forces, move_meshes=_no_mesh_moves)
+        name = "advance_{}_{}{}{}{}{}{}".format("parallel" if parallel else "serial",
+                                                *(int(f) for f in key[1:]))
         kernel = _STEPS[key] = njit(_with_globals(_advance, name, overrides))
     return kernel
 
 
-def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params):
+def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger, params):
     """:func:`_advance` compiled for this call's loops (threaded when ``ctl.parallel``)
-    and features (rolling history, bonds, rigid bodies present), with the pair loop for
-    its law's dashpot history and its box (periodic axes or none)."""
+    and features (rolling history, bonds, rigid bodies, meshes present), with the pair
+    loop for its law's dashpot history and its box (periodic axes or none)."""
     run = step_kernel(ctl.parallel, pairs.roll.shape[0] > 0 or walls.roll.shape[0] > 0,
                       bonds.i.shape[0] > 0, bodies.m.shape[0] > 0, ctl.store_dashpot,
-                      bool(any_periodic(box.length)))
-    return run(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params)
+                      bool(any_periodic(box.length)), meshes.tri.shape[0] > 0)
+    return run(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger, params)

@@ -1,0 +1,170 @@
+"""Triangle-mesh walls of a Simulation: the meshes' state, their candidate lists and the
+outputs (force, torque, work) of each mesh.
+
+A :class:`MeshWall` is a :class:`~demstep.mesh.TriangleMesh` with its friction and its
+motion (a velocity, an angular velocity about a centre: a conveyor, a drum, a mixer
+blade). The Simulation keeps them in one :class:`~demstep.state.Meshes` bundle (the
+triangles of every mesh, their vertex ids, the motion, the outputs, and the candidate
+(particle, triangle) rows with their contact slots: :mod:`demstep.kernels.meshes`).
+:func:`build_candidates` finds, at every rebuild of the neighbour lists, the triangles
+within the skin of each sphere (a k-d tree of the centres, queried around each triangle),
+and :func:`carry_slots` carries each sphere's contacts over to its new rows.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from demstep.errors import InputError
+from demstep.kernels.meshes import MAX_CANDIDATES, triangle_distances
+from demstep.mesh import TriangleMesh
+from demstep.state import Meshes
+
+MESH_FIXED, MESH_MOVING = 0, 1
+
+
+@dataclass
+class MeshWall:
+    """A triangle mesh as a wall of the simulation: ``mesh`` (its triangles, normals
+    towards the particles or not: contacts take the closest point, whichever side),
+    ``name``, friction ``mu`` (None: the law's wall friction), and its motion: a
+    translation at ``velocity`` (3,) [L/T] and a rotation at ``omega`` (3,) [1/T] (the
+    rotation vector: axis and rate, right-hand rule) about ``center`` (3,) [L], which
+    moves with the translation."""
+
+    mesh: TriangleMesh
+    name: str = "mesh"
+    mu: float | None = None
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    center: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self):
+        for name in ("velocity", "omega", "center"):
+            value = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
+            if value.shape != (3,) or not np.isfinite(value).all():
+                raise InputError(f"mesh {self.name!r}: {name} must have 3 finite components, "
+                                 f"got {getattr(self, name)!r}")
+            setattr(self, name, value.copy())
+        if self.mu is not None and not (math.isfinite(self.mu) and self.mu >= 0):
+            raise InputError(f"mesh {self.name!r}: mu must be finite and >= 0, got {self.mu!r}")
+
+    @property
+    def moving(self) -> bool:
+        return bool(np.any(self.velocity != 0.0) or np.any(self.omega != 0.0))
+
+
+def meshes_bundle(walls: list[MeshWall], mu_wall: float) -> Meshes:
+    """The Meshes bundle of ``walls`` (their triangles numbered mesh after mesh; the
+    vertex ids of each mesh offset so that no two meshes share one); ``mu_wall`` the
+    friction of a mesh that gives none. No candidates yet (:func:`build_candidates`)."""
+    tri, vid, owner = [], [], []
+    offset = 0
+    for k, wall in enumerate(walls):
+        m = wall.mesh
+        tri.append(m.vertices[m.triangles].reshape(-1, 9))
+        vid.append(m.triangles.astype(np.int64) + offset)
+        owner.append(np.full(len(m.triangles), k, dtype=np.int64))
+        offset += len(m.vertices)
+    n = len(walls)
+    tri = np.ascontiguousarray(np.concatenate(tri)) if n else np.zeros((0, 9))
+    z3 = np.zeros((n, 3))
+    return Meshes(
+        tri=tri, tri0=tri.copy(), vid=np.concatenate(vid) if n else np.zeros((0, 3), np.int64),
+        tri_mesh=np.concatenate(owner) if n else np.zeros(0, np.int64),
+        motion=np.array([MESH_MOVING if w.moving else MESH_FIXED for w in walls], np.int64),
+        vel=np.array([w.velocity for w in walls]).reshape(n, 3),
+        omega=np.array([w.omega for w in walls]).reshape(n, 3),
+        center=np.array([w.center for w in walls]).reshape(n, 3),
+        shift=z3.copy(), turn=np.zeros(n),
+        mu=np.array([mu_wall if w.mu is None else w.mu for w in walls], dtype=np.float64),
+        force=z3.copy(), torque=z3.copy(), power=np.zeros(n), power_prev=np.zeros(n),
+        contacts=np.zeros(n, np.int64), moved=np.zeros(1),
+        cand_p=np.zeros(0, np.int64), cand_t=np.zeros(0, np.int64),
+        active=np.zeros(0, np.int64), slot_mesh=np.zeros(0, np.int64),
+        slot_tri=np.zeros(0, np.int64), normal=np.zeros((0, 3)), shear=np.zeros((0, 3)),
+        dashpot=np.zeros((0, 3)), etan=np.zeros(0))
+
+
+def build_candidates(meshes: Meshes, x, r, skin: float, particle_id) -> tuple:
+    """The (particle, triangle) pairs whose distance is below r + ``skin`` [L], sorted by
+    particle then triangle: (cand_p, cand_t). A k-d tree of the centres is queried
+    around each triangle (its centroid, within its circumradius + r_max + skin), then
+    the exact distances filter. More than :data:`MAX_CANDIDATES` triangles near one
+    sphere is refused (a mesh far finer than the particles), naming the particle."""
+    n_tri = len(meshes.tri)
+    if n_tri == 0 or len(r) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    corners = meshes.tri.reshape(-1, 3, 3)
+    centroid = corners.mean(axis=1)
+    radius = np.sqrt(((corners - centroid[:, None, :]) ** 2).sum(axis=2)).max(axis=1)
+    reach = radius + float(r.max()) + skin
+    tree = cKDTree(x)
+    near = tree.query_ball_point(centroid, reach)
+    counts = np.fromiter((len(a) for a in near), dtype=np.int64, count=n_tri)
+    if counts.sum() == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    cand_t = np.repeat(np.arange(n_tri, dtype=np.int64), counts)
+    cand_p = np.fromiter((p for a in near for p in a), dtype=np.int64, count=int(counts.sum()))
+    dist = triangle_distances(x, cand_p, meshes.tri, cand_t)
+    keep = dist < r[cand_p] + skin
+    cand_p, cand_t = cand_p[keep], cand_t[keep]
+    order = np.lexsort((cand_t, cand_p))
+    cand_p, cand_t = cand_p[order], cand_t[order]
+    if len(cand_p):
+        per = np.bincount(cand_p)
+        if per.max() > MAX_CANDIDATES:
+            p = int(np.argmax(per))
+            raise InputError(f"meshes: {int(per.max())} triangles lie within the skin of "
+                             f"particle {particle_id(p)} (at most {MAX_CANDIDATES}): the mesh "
+                             f"is far finer than the particles; coarsen it")
+    return cand_p, cand_t
+
+
+def carry_slots(meshes: Meshes, cand_p, cand_t) -> Meshes:
+    """The bundle with the new candidate rows and each sphere's active contact slots
+    carried over to the first of its new rows (the rest empty)."""
+    k = len(cand_p)
+    active = np.zeros(k, np.int64)
+    slot_mesh = np.zeros(k, np.int64)
+    slot_tri = np.zeros(k, np.int64)
+    normal = np.zeros((k, 3))
+    shear = np.zeros((k, 3))
+    dashpot = np.zeros((k, 3))
+    etan = np.zeros(k)
+    old = np.flatnonzero(meshes.active == 1)
+    if len(old) and k:
+        old_p = meshes.cand_p[old]
+        starts = np.searchsorted(cand_p, old_p, side="left")
+        ends = np.searchsorted(cand_p, old_p, side="right")
+        # the rank of each old slot among its sphere's (the slots are sorted by sphere)
+        first = np.searchsorted(old_p, old_p, side="left")
+        rank = np.arange(len(old)) - first
+        room = starts + rank < ends  # (a sphere with fewer candidates now: its extra
+        dest = (starts + rank)[room]  # slots end; their stored energy is negligible)
+        src = old[room]
+        active[dest] = 1
+        slot_mesh[dest] = meshes.slot_mesh[src]
+        slot_tri[dest] = meshes.slot_tri[src]
+        normal[dest] = meshes.normal[src]
+        shear[dest] = meshes.shear[src]
+        dashpot[dest] = meshes.dashpot[src]
+        etan[dest] = meshes.etan[src]
+    return meshes._replace(cand_p=cand_p, cand_t=cand_t, active=active, slot_mesh=slot_mesh,
+                           slot_tri=slot_tri, normal=normal, shear=shear, dashpot=dashpot,
+                           etan=etan)
+
+
+def mesh_contacts(meshes: Meshes, x, r):
+    """The particle-mesh contacts of the last step (the active slots: the engine's one
+    contact per surface) as the time-step analysis takes them: particle (C,), mesh
+    (C,), unit normal from the particle to the mesh (C, 3), distance from the centre
+    to the triangle's closest point [L] and overlap r - distance [L]."""
+    rows = np.flatnonzero(meshes.active == 1)
+    p = meshes.cand_p[rows]
+    dist = triangle_distances(x, p, meshes.tri, meshes.slot_tri[rows])
+    return p, meshes.slot_mesh[rows], meshes.normal[rows], dist, r[p] - dist
