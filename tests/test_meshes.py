@@ -221,3 +221,60 @@ def test_auto_mode_with_meshes_is_refused_in_one_line():
                      timestep=TimeStep.auto())
     with pytest.raises(InputError, match="mesh walls are not covered"):
         sim.run(steps=1)
+
+
+def _resting(law, material, overlap=1e-4):
+    """A sphere pressed ``overlap`` into a mesh of ``material`` (gravity off), after
+    one step: the force the mesh exerts and the critical step."""
+    x = np.array([[-0.31, 0.17, R - overlap]])
+    sim = Simulation(Particles.from_density(x, np.array([R]), DENSITY), law,
+                     meshes=[MeshWall(flat_mesh(), name="floor", material=material)],
+                     timestep=TimeStep.fixed(1e-9))
+    sim.run(steps=1)
+    return sim
+
+
+def test_a_stiff_hertz_mesh_pairs_its_material_with_the_particles():
+    """A steel mesh under glass spheres: the contact's E* pairs the two materials,
+    1/E* = (1 - nu_p^2)/E_p + (1 - nu_w^2)/E_w, in the force (4/3 E* sqrt(r) delta^1.5)
+    and in the critical step (k_n = 2 E* sqrt(r delta), 2/sqrt(k_n/m), the normal mode
+    being the fastest here: mu = 0, no tangential spring stiffer)."""
+    law = HertzMindlin(youngs_modulus=5e7, poisson_ratio=0.3)
+    steel = {"youngs_modulus": 2e11, "poisson_ratio": 0.29}
+    sim = _resting(law, steel)
+    delta = R - sim.x[0, 2]
+    e_star = 1 / ((1 - 0.3**2) / 5e7 + (1 - 0.29**2) / 2e11)
+    assert sim.mesh_force[0, 2] == pytest.approx(-4 / 3 * e_star * math.sqrt(R) * delta**1.5,
+                                                 rel=1e-9)
+    same = _resting(law, None)
+    assert same.mesh_force[0, 2] == pytest.approx(
+        -4 / 3 * (5e7 / (2 * (1 - 0.3**2))) * math.sqrt(R) * delta**1.5, rel=1e-9)
+    contacts = sim.contact_set()
+    kn = 2 * e_star * math.sqrt(R * delta)
+    assert contacts.k_n[0] == pytest.approx(kn, rel=1e-9)
+    g_star = 1 / (2 * (2 - 0.3) * (1 + 0.3) / 5e7 + 2 * (2 - 0.29) * (1 + 0.29) / 2e11)
+    assert contacts.k_s[0] == pytest.approx(8 * g_star * math.sqrt(R * delta), rel=1e-9)
+
+
+def test_a_linear_mesh_material_sets_the_contact_stiffness():
+    """A linear mesh's material is the contact's spring: k_n = 4e6 instead of the
+    particles' 2e5 in the force and the critical step."""
+    law = LinearSpring(k_n=2e5)
+    sim = _resting(law, {"k_n": 4e6})
+    delta = R - sim.x[0, 2]
+    assert sim.mesh_force[0, 2] == pytest.approx(-4e6 * delta, rel=1e-9)
+    assert sim.contact_set().k_n[0] == pytest.approx(4e6)
+    assert sim.contact_set().k_s[0] == pytest.approx(4e6)  # (k_s: k_n by default)
+
+
+def test_a_mesh_material_the_law_does_not_have_is_refused():
+    from demstep.errors import InputError
+
+    with pytest.raises(InputError, match=r"mesh 'floor': material\.youngs_modulus: not a "
+                                         r"parameter of the linear law"):
+        _resting(LinearSpring(k_n=2e5), {"youngs_modulus": 1e9})
+    with pytest.raises(InputError, match=r"material\.poisson_ratio: the hertz law pairs"):
+        _resting(HertzMindlin(youngs_modulus=5e7), {"youngs_modulus": 1e9})
+    with pytest.raises(InputError, match="youngs_modulus"):
+        _resting(HertzMindlin(youngs_modulus=5e7), {"youngs_modulus": -1.0,
+                                                    "poisson_ratio": 0.3})

@@ -247,7 +247,8 @@ class Meshes(NamedTuple):
     Meshes: ``motion`` (M,) (0 fixed, 1 moving), velocity ``vel`` (M, 3) [L/T], angular
     velocity ``omega`` (M, 3) [1/T] about ``center`` (M, 3) [L] (moving with the mesh),
     the translation ``shift`` (M, 3) [L] and the turn ``turn`` (M,) [rad] since the
-    start, friction ``mu``; outputs: the force the particles exert ``force`` (M, 3), its
+    start, the parameters of each mesh's contacts ``law`` (M, F) (a row of the law's
+    Params tuple: the mesh's material and friction); outputs: the force the particles exert ``force`` (M, 3), its
     torque about the centre ``torque`` (M, 3), the power the mesh puts into the
     particles now and at the last step ``power``, ``power_prev`` (M,) [M L^2/T^3],
     touching particles ``contacts``; ``moved`` (1,): how far a corner moved since the
@@ -266,7 +267,7 @@ class Meshes(NamedTuple):
     center: np.ndarray
     shift: np.ndarray
     turn: np.ndarray
-    mu: np.ndarray
+    law: np.ndarray
     force: np.ndarray
     torque: np.ndarray
     power: np.ndarray
@@ -283,7 +284,7 @@ class Meshes(NamedTuple):
     dashpot: np.ndarray
     etan: np.ndarray
 
-    STATE = ("tri", "vel", "omega", "center", "shift", "turn", "mu", "force", "torque",
+    STATE = ("tri", "vel", "omega", "center", "shift", "turn", "law", "force", "torque",
              "power", "power_prev", "moved", "cand_p", "cand_t", "active", "slot_mesh",
              "slot_tri", "normal", "shear", "dashpot", "etan")
 

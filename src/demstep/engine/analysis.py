@@ -14,7 +14,7 @@ import numpy as np
 from demstep.clumps import quat_to_matrix
 from demstep.contact.bonds import bond_springs
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
-from demstep.contact.laws import contact_coefficients
+from demstep.contact.laws import contact_coefficients, params_from_row
 from demstep.contact.sets import ContactSet, with_rolling
 from demstep.engine.meshes import mesh_contacts
 from demstep.kernels import dem
@@ -107,15 +107,9 @@ def contact_set(sim, horizon: float | None = None, cover: dict | None = None) ->
         parts.append(_walls_part(sim, p, wi, arm, delta_eval, params))
         if cover is not None:
             cover["walls"] = sorted_keys(wall_keys(walls_per_key(sim), p, wi), delta_eval)
-    if len(sim.meshes.cand_p):
-        # the particle-mesh contacts of the last step (one per surface), as wall elements
-        # numbered after the plane walls; the 'auto' step does not cover meshes yet
-        p, mk, normal, dist, delta = mesh_contacts(sim.meshes, sim.x, sim.r)
-        on = delta > 0
-        kn, kt, cn, ct = coefficients(params, delta[on], sim.r[p[on]], sim.m[p[on]])
-        parts.append(ContactSet(p[on], np.full(int(on.sum()), -1), normal[on][:, :sim.dim],
-                                dist[on], np.zeros(int(on.sum())), kn, kt,
-                                len(sim.walls) + mk[on], c_n=cn, c_t=ct))
+    if len(sim.meshes.cand_p):  # the 'auto' step does not cover meshes yet
+        parts.append(meshes_part(sim.meshes, sim.x, sim.r, sim.m, sim.dim, len(sim.walls),
+                                 params))
     return with_rolling_and_bonds(sim, parts, params)
 
 
@@ -153,6 +147,23 @@ def _walls_part(sim, p, w, arm, overlaps, params) -> ContactSet:
     kn, kt, cn, ct = coefficients(params, overlaps, sim.r[p], sim.m[p])
     return ContactSet(p, np.full(len(p), -1), -sim.wall_normal[w][:, :sim.dim], arm,
                       np.zeros(len(p)), kn, kt, w, c_n=cn, c_t=ct)
+
+
+def meshes_part(meshes, x, r, m, dim: int, first_wall: int, params) -> ContactSet:
+    """The particle-mesh contacts touching at positions ``x`` [L] (one per surface,
+    :func:`demstep.engine.meshes.mesh_contacts`; radii ``r``, masses ``m``) as wall
+    elements, mesh k numbered wall ``first_wall`` + k: the arm the distance from the
+    centre to the closest point, R* = r, m* = m, and each mesh's own law parameters
+    (its material; the rows ``meshes.law``, of the law of ``params``)."""
+    p, mk, normal, dist, delta = mesh_contacts(meshes, x, r)
+    c = len(p)
+    kn, kt, cn, ct = (np.empty(c) for _ in range(4))
+    for k in np.unique(mk):
+        on = mk == k
+        kn[on], kt[on], cn[on], ct[on] = coefficients(params_from_row(params, meshes.law[k]),
+                                                      delta[on], r[p[on]], m[p[on]])
+    return ContactSet(p, np.full(c, -1), normal[:, :dim], dist, np.zeros(c), kn, kt,
+                      first_wall + mk, c_n=cn, c_t=ct)
 
 
 def _joined(sim, parts) -> ContactSet:

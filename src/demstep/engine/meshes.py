@@ -20,7 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from demstep.errors import InputError
-from demstep.kernels.meshes import MAX_CANDIDATES, triangle_distances
+from demstep.kernels.meshes import MAX_CANDIDATES, mesh_contact_geometry, triangle_distances
 from demstep.mesh import TriangleMesh
 from demstep.state import Meshes
 
@@ -31,7 +31,10 @@ MESH_FIXED, MESH_MOVING = 0, 1
 class MeshWall:
     """A triangle mesh as a wall of the simulation: ``mesh`` (its triangles, normals
     towards the particles or not: contacts take the closest point, whichever side),
-    ``name``, friction ``mu`` (None: the law's wall friction), and its motion: a
+    ``name``, friction ``mu`` (None: the law's wall friction), ``material`` (the contact
+    law's own parameters for the mesh, None: the particles'; a Hertz mesh gives its
+    Young's modulus and Poisson's ratio, paired with the particles' as a pair of two
+    materials; a linear one the contact's stiffnesses), and its motion: a
     translation at ``velocity`` (3,) [L/T] and a rotation at ``omega`` (3,) [1/T] (the
     rotation vector: axis and rate, right-hand rule) about ``center`` (3,) [L], which
     moves with the translation."""
@@ -39,6 +42,7 @@ class MeshWall:
     mesh: TriangleMesh
     name: str = "mesh"
     mu: float | None = None
+    material: dict | None = None
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -58,10 +62,23 @@ class MeshWall:
         return bool(np.any(self.velocity != 0.0) or np.any(self.omega != 0.0))
 
 
-def meshes_bundle(walls: list[MeshWall], mu_wall: float) -> Meshes:
+def mesh_law_rows(walls: list[MeshWall], law) -> np.ndarray:
+    """The parameters of the contacts with each of ``walls`` (M, F): the contact law
+    ``law``'s Params tuple for the wall's material and friction
+    (:meth:`~demstep.contact.laws.base.ContactLaw.wall_params`), as float rows."""
+    rows = []
+    for wall in walls:
+        try:
+            rows.append(tuple(law.wall_params(wall.material, wall.mu)))
+        except InputError as err:
+            raise InputError(f"mesh {wall.name!r}: {err}") from None
+    return np.array(rows, dtype=np.float64).reshape(len(walls), len(law.Params._fields))
+
+
+def meshes_bundle(walls: list[MeshWall], law) -> Meshes:
     """The Meshes bundle of ``walls`` (their triangles numbered mesh after mesh; the
-    vertex ids of each mesh offset so that no two meshes share one); ``mu_wall`` the
-    friction of a mesh that gives none. No candidates yet (:func:`build_candidates`)."""
+    vertex ids of each mesh offset so that no two meshes share one) with the contact
+    law ``law`` (:func:`mesh_law_rows`). No candidates yet (:func:`build_candidates`)."""
     tri, vid, owner = [], [], []
     offset = 0
     for k, wall in enumerate(walls):
@@ -81,7 +98,7 @@ def meshes_bundle(walls: list[MeshWall], mu_wall: float) -> Meshes:
         omega=np.array([w.omega for w in walls]).reshape(n, 3),
         center=np.array([w.center for w in walls]).reshape(n, 3),
         shift=z3.copy(), turn=np.zeros(n),
-        mu=np.array([mu_wall if w.mu is None else w.mu for w in walls], dtype=np.float64),
+        law=mesh_law_rows(walls, law),
         force=z3.copy(), torque=z3.copy(), power=np.zeros(n), power_prev=np.zeros(n),
         contacts=np.zeros(n, np.int64), moved=np.zeros(1),
         cand_p=np.zeros(0, np.int64), cand_t=np.zeros(0, np.int64),
@@ -160,11 +177,13 @@ def carry_slots(meshes: Meshes, cand_p, cand_t) -> Meshes:
 
 
 def mesh_contacts(meshes: Meshes, x, r):
-    """The particle-mesh contacts of the last step (the active slots: the engine's one
-    contact per surface) as the time-step analysis takes them: particle (C,), mesh
-    (C,), unit normal from the particle to the mesh (C, 3), distance from the centre
-    to the triangle's closest point [L] and overlap r - distance [L]."""
-    rows = np.flatnonzero(meshes.active == 1)
-    p = meshes.cand_p[rows]
-    dist = triangle_distances(x, p, meshes.tri, meshes.slot_tri[rows])
-    return p, meshes.slot_mesh[rows], meshes.normal[rows], dist, r[p] - dist
+    """The particle-mesh contacts at the positions ``x`` [L] by the engine's rule (one
+    per surface, :mod:`demstep.kernels.meshes`), among the candidate rows of
+    ``meshes``: particle (C,), mesh (C,), unit normal from the particle to the mesh
+    (C, 3), distance from the centre to the triangle's closest point [L] and overlap
+    r - distance [L] (> 0)."""
+    rows, delta, normal, dist = mesh_contact_geometry(
+        np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(r, dtype=np.float64),
+        meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid, meshes.tri_mesh)
+    return (meshes.cand_p[rows], meshes.tri_mesh[meshes.cand_t[rows]], normal, dist,
+            delta)

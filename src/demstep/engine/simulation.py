@@ -64,7 +64,7 @@ from demstep.engine.auto_step import AutoStep
 from demstep.engine.bonding import add_bonds, bond_stiffness_max
 from demstep.engine.boundaries import walls_bundle
 from demstep.engine.lists import NeighbourLists
-from demstep.engine.meshes import meshes_bundle
+from demstep.engine.meshes import mesh_law_rows, meshes_bundle
 from demstep.engine.ordering import SpatialOrder, order_as, reorder
 from demstep.engine.restore import SCALARS, checked_state, scalar_arrays
 from demstep.engine.settings import Damping, TimeStep
@@ -232,7 +232,7 @@ class Simulation:
         self.walls = list(walls)
         #: triangle-mesh walls (:class:`demstep.engine.meshes.MeshWall`), in one bundle
         self.mesh_walls = list(meshes)
-        self.meshes = meshes_bundle(self.mesh_walls, self.law.params().mu_wall)
+        self.meshes = meshes_bundle(self.mesh_walls, self.law)
         self.wall_state = walls_bundle(self.walls, self.dim, self.box.length, self.x, self.r,
                                        self.particle_id)
         self._update_masses()
@@ -574,7 +574,7 @@ class Simulation:
         params = self.law.params()
         self.lists.size_rolling_history(params.has_rolling)
         self.wall_mu[:] = [params.mu_wall if w.friction is None else w.friction for w in self.walls]
-        self.meshes.mu[:] = [params.mu_wall if w.mu is None else w.mu for w in self.mesh_walls]
+        self.meshes.law[:] = mesh_law_rows(self.mesh_walls, self.law)
         done = 0
         parallel = self.threaded()
         if parallel:

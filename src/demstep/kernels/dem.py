@@ -1183,7 +1183,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
         if meshes.tri.shape[0] > 0:
             me_n, me_t, md_fric, md_dash = mesh_forces(
                 x, v, w, r, m, meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid,
-                meshes.tri_mesh, meshes.vel, meshes.omega, meshes.center, meshes.mu, params,
+                meshes.tri_mesh, meshes.vel, meshes.omega, meshes.center, meshes.law, params,
                 dt_slip, meshes.active, meshes.slot_mesh, meshes.slot_tri, meshes.normal,
                 meshes.shear, meshes.dashpot, meshes.etan, force, torque, meshes.force,
                 meshes.torque, meshes.power, meshes.contacts)

@@ -37,6 +37,7 @@ import math
 import numpy as np
 
 from demstep._numba import njit
+from demstep.contact.laws import params_from_row
 from demstep.contact.triangles import FACE, closest_point_on_triangle, triangle_contact
 from demstep.kernels.response import contact_response
 
@@ -77,9 +78,81 @@ def _feature_vertices(vid, t, feature):
     return -1, -1
 
 
+@njit(inline="always")
+def _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep):
+    """The contacts of sphere ``p`` with its ``n`` candidate triangles (rows s ... s + n
+    - 1 of ``cand_t``): per row k, ``g[k]`` = (delta, unit normal from the triangle to
+    the centre (3), distance to the closest point, the closest point (3)), the feature
+    touched ``feat[k]`` and ``keep[k]``: whether the row is one of the sphere's contacts
+    after the one-contact-per-surface rule (module docstring)."""
+    px, py, pz, rp = x[p, 0], x[p, 1], x[p, 2], r[p]
+    for k in range(n):
+        t = cand_t[s + k]
+        (delta, nx, ny, nz, dist, qx, qy, qz, feature) = triangle_contact(
+            px, py, pz, rp, tri[t, 0], tri[t, 1], tri[t, 2], tri[t, 3], tri[t, 4],
+            tri[t, 5], tri[t, 6], tri[t, 7], tri[t, 8])
+        g[k, 0], g[k, 1], g[k, 2], g[k, 3], g[k, 4] = delta, nx, ny, nz, dist
+        g[k, 5], g[k, 6], g[k, 7] = qx, qy, qz
+        feat[k] = feature
+        keep[k] = delta > 0.0
+    # an edge or vertex contact that a closer contact of a triangle holding the same
+    # edge or vertex covers is dropped
+    tol = SAME_DISTANCE * rp
+    for k in range(n):
+        if not keep[k] or feat[k] == FACE:
+            continue
+        tk = cand_t[s + k]
+        va, vb = _feature_vertices(vid, tk, feat[k])
+        for j in range(n):
+            if j == k or not keep[j]:
+                continue
+            tj = cand_t[s + j]
+            if tri_mesh[tj] != tri_mesh[tk] or not _holds(vid, tj, va, vb):
+                continue
+            if g[j, 4] < g[k, 4] - tol or (g[j, 4] <= g[k, 4] + tol and (
+                    feat[j] == FACE or tj < tk)):
+                keep[k] = False
+                break
+
+
+@njit
+def mesh_contact_geometry(x, r, cand_p, cand_t, tri, vid, tri_mesh):
+    """The contacts of the spheres with the meshes now, by the engine's rule (one per
+    surface; no history): for each, its candidate row (C,), overlap delta [L], unit
+    normal from the sphere to the mesh (C, 3) and distance from the centre to the
+    closest point [L]. ``cand_p``, ``cand_t``: candidate rows sorted by particle."""
+    n_cand = cand_p.shape[0]
+    rows = np.empty(n_cand, dtype=np.int64)
+    delta = np.empty(n_cand)
+    normal = np.empty((n_cand, 3))
+    dist = np.empty(n_cand)
+    g = np.empty((MAX_CANDIDATES, 9))
+    feat = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    keep = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+    c = 0
+    s = 0
+    while s < n_cand:
+        p = cand_p[s]
+        e = s
+        while e < n_cand and cand_p[e] == p:
+            e += 1
+        _sphere_contacts(x, r, p, s, e - s, cand_t, tri, vid, tri_mesh, g, feat, keep)
+        for k in range(e - s):
+            if keep[k]:
+                rows[c] = s + k
+                delta[c] = g[k, 0]
+                normal[c, 0] = -g[k, 1]
+                normal[c, 1] = -g[k, 2]
+                normal[c, 2] = -g[k, 3]
+                dist[c] = g[k, 4]
+                c += 1
+        s = e
+    return rows[:c], delta[:c], normal[:c], dist[:c]
+
+
 @njit
 def mesh_forces(x, v, w, r, m, cand_p, cand_t, tri, vid, tri_mesh, mesh_vel, mesh_omega,
-                mesh_center, mesh_mu, params, dt, active, slot_mesh, slot_tri, slot_normal,
+                mesh_center, mesh_law, params, dt, active, slot_mesh, slot_tri, slot_normal,
                 shear, dashpot, etan, force, torque, mesh_force, mesh_torque, mesh_power,
                 mesh_contacts):
     """Contact forces of the spheres on the meshes' triangles (module docstring).
@@ -88,7 +161,9 @@ def mesh_forces(x, v, w, r, m, cand_p, cand_t, tri, vid, tri_mesh, mesh_vel, mes
     particle; ``tri`` (T, 9) the triangles' corners now [L], ``vid`` (T, 3) their vertex
     ids (shared by the triangles of a mesh), ``tri_mesh`` (T,) their mesh; per mesh M:
     velocity ``mesh_vel`` [L/T], angular velocity ``mesh_omega`` [1/T] about the centre
-    ``mesh_center`` [L], friction ``mesh_mu``; ``params`` the law's parameters;
+    ``mesh_center`` [L], its law's parameters ``mesh_law`` (M, F) (the rows of
+    :func:`~demstep.contact.laws.params_from_row`: its material, its friction mu_wall);
+    ``params`` the particles' law's parameters (the type);
     ``dt`` the step that produced x (slip increments). The slots (one per row, module
     docstring): ``active`` (K,) 1 when the row holds a contact, its ``slot_mesh`` and
     ``slot_tri`` (the triangle it is on), contact normal ``slot_normal`` (K, 3) (from the sphere to the mesh), tangential
@@ -124,34 +199,8 @@ def mesh_forces(x, v, w, r, m, cand_p, cand_t, tri, vid, tri_mesh, mesh_vel, mes
             e += 1
         n = e - s
         px, py, pz, rp = x[p, 0], x[p, 1], x[p, 2], r[p]
-        # 1. each candidate triangle's contact
-        for k in range(n):
-            t = cand_t[s + k]
-            (delta, nx, ny, nz, dist, qx, qy, qz, feature) = triangle_contact(
-                px, py, pz, rp, tri[t, 0], tri[t, 1], tri[t, 2], tri[t, 3], tri[t, 4],
-                tri[t, 5], tri[t, 6], tri[t, 7], tri[t, 8])
-            g[k, 0], g[k, 1], g[k, 2], g[k, 3], g[k, 4] = delta, nx, ny, nz, dist
-            g[k, 5], g[k, 6], g[k, 7] = qx, qy, qz
-            feat[k] = feature
-            keep[k] = delta > 0.0
-        # 2. one contact per surface: an edge or vertex contact that a closer contact of
-        # a triangle holding the same edge or vertex covers is dropped
-        tol = SAME_DISTANCE * rp
-        for k in range(n):
-            if not keep[k] or feat[k] == FACE:
-                continue
-            tk = cand_t[s + k]
-            va, vb = _feature_vertices(vid, tk, feat[k])
-            for j in range(n):
-                if j == k or not keep[j]:
-                    continue
-                tj = cand_t[s + j]
-                if tri_mesh[tj] != tri_mesh[tk] or not _holds(vid, tj, va, vb):
-                    continue
-                if g[j, 4] < g[k, 4] - tol or (g[j, 4] <= g[k, 4] + tol and (
-                        feat[j] == FACE or tj < tk)):
-                    keep[k] = False
-                    break
+        # 1-2. each candidate triangle's contact, one per surface
+        _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep)
         # 3. the old slots of this sphere
         n_old = 0
         for k in range(n):
@@ -203,8 +252,9 @@ def mesh_forces(x, v, w, r, m, cand_p, cand_t, tri, vid, tri_mesh, mesh_vel, mes
             ux = mesh_vel[mk, 0] + mesh_omega[mk, 1] * cz - mesh_omega[mk, 2] * cy
             uy = mesh_vel[mk, 1] + mesh_omega[mk, 2] * cx - mesh_omega[mk, 0] * cz
             uz = mesh_vel[mk, 2] + mesh_omega[mk, 0] * cy - mesh_omega[mk, 1] * cx
+            pm = params_from_row(params, mesh_law[mk])
             (_, _, _, _, _, c_fric, c_dash, _, _, _, _, _, _, _, _, _) = contact_response(
-                params, mesh_mu[mk], nx, ny, nz, -1.0, rp, m[p], ux - vix, uy - viy,
+                pm, pm.mu_wall, nx, ny, nz, -1.0, rp, m[p], ux - vix, uy - viy,
                 uz - viz, dt, old[o, 3], old[o, 4], old[o, 5], old[o, 6], old[o, 7],
                 old[o, 8], old[o, 9])
             d_fric += c_fric
@@ -220,6 +270,7 @@ def mesh_forces(x, v, w, r, m, cand_p, cand_t, tri, vid, tri_mesh, mesh_vel, mes
             # the contact normal points from the sphere to the mesh
             nx, ny, nz = -g[k, 1], -g[k, 2], -g[k, 3]
             qx, qy, qz = g[k, 5], g[k, 6], g[k, 7]
+            pm = params_from_row(params, mesh_law[mk])
             o = new_of[k]
             if o >= 0:
                 ox, oy, oz = old[o, 3], old[o, 4], old[o, 5]
@@ -240,7 +291,7 @@ def mesh_forces(x, v, w, r, m, cand_p, cand_t, tri, vid, tri_mesh, mesh_vel, mes
             uz = mesh_vel[mk, 2] + mesh_omega[mk, 0] * cy - mesh_omega[mk, 1] * cx
             (fx, fy, fz, c_en, c_et, c_fric, c_dash, _, _, tx, ty, tz, ndx, ndy, ndz,
              e_new) = contact_response(
-                params, mesh_mu[mk], nx, ny, nz, delta, rp, m[p], ux - vix, uy - viy,
+                pm, pm.mu_wall, nx, ny, nz, delta, rp, m[p], ux - vix, uy - viy,
                 uz - viz, dt, ox, oy, oz, fdx, fdy, fdz, e_old)
             active[row] = 1
             slot_mesh[row] = mk
