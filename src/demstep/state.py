@@ -255,7 +255,8 @@ class Meshes(NamedTuple):
     lists were built [L]. Candidates: ``cand_p``, ``cand_t`` (K,); slots: ``active``
     (K,), their mesh ``slot_mesh`` and triangle ``slot_tri`` (K,), contact normal
     ``normal`` (K, 3), tangential spring and dashpot forces ``shear``, ``dashpot``
-    (K, 3), stored tangential energy ``etan`` (K,)."""
+    (K, 3), stored tangential energy ``etan`` (K,) and the contact's force on the mesh
+    ``fslot`` (K, 3) [M L/T^2] (for the per-triangle output)."""
 
     tri: np.ndarray
     tri0: np.ndarray
@@ -283,10 +284,12 @@ class Meshes(NamedTuple):
     shear: np.ndarray
     dashpot: np.ndarray
     etan: np.ndarray
+    fslot: np.ndarray
 
+    #: the fields of a contact slot: one row per candidate, carried with it
+    SLOTS = ("active", "slot_mesh", "slot_tri", "normal", "shear", "dashpot", "etan", "fslot")
     STATE = ("tri", "vel", "omega", "center", "shift", "turn", "law", "force", "torque",
-             "power", "power_prev", "moved", "cand_p", "cand_t", "active", "slot_mesh",
-             "slot_tri", "normal", "shear", "dashpot", "etan")
+             "power", "power_prev", "moved", "cand_p", "cand_t") + SLOTS
 
     @property
     def n(self) -> int:

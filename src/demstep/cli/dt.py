@@ -69,6 +69,11 @@ def add_dt_parser(sub):
                      "(normal into the packing); repeat for several; a negative first "
                      "coordinate as it is or after '=': --wall -1,0,0:1,0,0 or "
                      "--wall=-1,0,0:1,0,0")
+    src.add_argument("--mesh", action="append", default=[], metavar="SPEC",
+                     help="a triangle-mesh wall (3D): 'FILE [type T] [scale S] [move DX DY DZ] "
+                     "[rotate axis AX AY AZ angle DEG]' as LIGGGHTS' fix mesh/surface "
+                     "(STL, OBJ, or what meshio reads; type T: the material of particle "
+                     "type T, else the touching particle's); repeat for several")
     src.add_argument("--radius", type=number("radius", 0, strict=True), default=DEFAULT_RADIUS,
                      help=f"lattice particle radius (default {DEFAULT_RADIUS:g})")
     src.add_argument("--density", type=number("density", 0, strict=True), default=None,
@@ -336,8 +341,8 @@ def load_input(args):
                              f"{', '.join(LATTICE_NAMES)}")
         if args.periodic not in (None, "lattice"):
             raise InputError("periodic: with --lattice, give --periodic without axes")
-        if args.wall or args.box:
-            raise InputError("wall: --wall and --box apply to files, not to --lattice")
+        if args.wall or args.box or args.mesh:
+            raise InputError("wall: --wall, --mesh and --box apply to files, not to --lattice")
         _check_source_options(args, "lattice")
         lat = lattice(args.lattice, args.radius)
         check_memory(len(lat.basis) * args.size ** lat.dim, args.max_memory,
@@ -367,6 +372,7 @@ def load_input(args):
                  + tuple(("--" + name.replace("_", "-"), getattr(args, name))
                          for name in ti.ROLLING_OPTIONS)
                  if v is not None] + (["--wall"] if args.wall else []) \
+            + (["--mesh"] if args.mesh else []) \
             + (["--gamma-n/--gamma-t"] if args.gamma_n or args.gamma_t else []) \
             + (["--viscous/--rayleigh"] if args.viscous or args.rayleigh else [])
         if given:
@@ -390,7 +396,7 @@ def load_input(args):
         density = DEFAULT_DENSITY
     return ti.from_file(path, model, fmt, density, _box(args), _periodic_axes(args.periodic),
                         args.wall, args.contact_tol, damping, args.impact_velocity,
-                        args.snapshot)
+                        args.snapshot, [ti.parse_mesh(spec) for spec in args.mesh])
 
 
 def _check_run_position(path, case_path):

@@ -78,7 +78,8 @@ def mesh_law_rows(walls: list[MeshWall], law) -> np.ndarray:
 def meshes_bundle(walls: list[MeshWall], law) -> Meshes:
     """The Meshes bundle of ``walls`` (their triangles numbered mesh after mesh; the
     vertex ids of each mesh offset so that no two meshes share one) with the contact
-    law ``law`` (:func:`mesh_law_rows`). No candidates yet (:func:`build_candidates`)."""
+    law ``law`` (:func:`mesh_law_rows`; None: no parameters, a bundle for the geometry
+    only). No candidates yet (:func:`build_candidates`)."""
     tri, vid, owner = [], [], []
     offset = 0
     for k, wall in enumerate(walls):
@@ -98,13 +99,13 @@ def meshes_bundle(walls: list[MeshWall], law) -> Meshes:
         omega=np.array([w.omega for w in walls]).reshape(n, 3),
         center=np.array([w.center for w in walls]).reshape(n, 3),
         shift=z3.copy(), turn=np.zeros(n),
-        law=mesh_law_rows(walls, law),
+        law=mesh_law_rows(walls, law) if law is not None else np.zeros((n, 0)),
         force=z3.copy(), torque=z3.copy(), power=np.zeros(n), power_prev=np.zeros(n),
         contacts=np.zeros(n, np.int64), moved=np.zeros(1),
         cand_p=np.zeros(0, np.int64), cand_t=np.zeros(0, np.int64),
         active=np.zeros(0, np.int64), slot_mesh=np.zeros(0, np.int64),
         slot_tri=np.zeros(0, np.int64), normal=np.zeros((0, 3)), shear=np.zeros((0, 3)),
-        dashpot=np.zeros((0, 3)), etan=np.zeros(0))
+        dashpot=np.zeros((0, 3)), etan=np.zeros(0), fslot=np.zeros((0, 3)))
 
 
 def build_candidates(meshes: Meshes, x, r, skin: float, particle_id) -> tuple:
@@ -146,13 +147,8 @@ def carry_slots(meshes: Meshes, cand_p, cand_t) -> Meshes:
     """The bundle with the new candidate rows and each sphere's active contact slots
     carried over to the first of its new rows (the rest empty)."""
     k = len(cand_p)
-    active = np.zeros(k, np.int64)
-    slot_mesh = np.zeros(k, np.int64)
-    slot_tri = np.zeros(k, np.int64)
-    normal = np.zeros((k, 3))
-    shear = np.zeros((k, 3))
-    dashpot = np.zeros((k, 3))
-    etan = np.zeros(k)
+    slots = {f: np.zeros((k,) + getattr(meshes, f).shape[1:], getattr(meshes, f).dtype)
+             for f in Meshes.SLOTS}
     old = np.flatnonzero(meshes.active == 1)
     if len(old) and k:
         old_p = meshes.cand_p[old]
@@ -164,16 +160,24 @@ def carry_slots(meshes: Meshes, cand_p, cand_t) -> Meshes:
         room = starts + rank < ends  # (a sphere with fewer candidates now: its extra
         dest = (starts + rank)[room]  # slots end; their stored energy is negligible)
         src = old[room]
-        active[dest] = 1
-        slot_mesh[dest] = meshes.slot_mesh[src]
-        slot_tri[dest] = meshes.slot_tri[src]
-        normal[dest] = meshes.normal[src]
-        shear[dest] = meshes.shear[src]
-        dashpot[dest] = meshes.dashpot[src]
-        etan[dest] = meshes.etan[src]
-    return meshes._replace(cand_p=cand_p, cand_t=cand_t, active=active, slot_mesh=slot_mesh,
-                           slot_tri=slot_tri, normal=normal, shear=shear, dashpot=dashpot,
-                           etan=etan)
+        for f in Meshes.SLOTS:
+            slots[f][dest] = getattr(meshes, f)[src]
+    return meshes._replace(cand_p=cand_p, cand_t=cand_t, **slots)
+
+
+def touching_meshes(meshes: list[TriangleMesh], x, r, contact_tol: float = 0.0):
+    """The contacts of spheres (centres ``x`` (N, 3) [L], radii ``r``) with
+    ``meshes`` (TriangleMesh) at their positions, touching within ``contact_tol``
+    (the centre within r (1 + tol) of the surface, as plane walls), by the engine's
+    rule (one per surface): particle (C,), mesh (C,), unit normal from the particle
+    to the mesh (C, 3) and distance from the centre to the closest point [L]."""
+    bundle = meshes_bundle([MeshWall(m, name=m.name) for m in meshes], None)
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    reach = np.ascontiguousarray(np.asarray(r, dtype=np.float64) * (1.0 + contact_tol))
+    cand_p, cand_t = build_candidates(bundle, x, reach, 0.0, lambda p: p)
+    bundle = bundle._replace(cand_p=cand_p, cand_t=cand_t)
+    p, mk, normal, dist, _ = mesh_contacts(bundle, x, reach)
+    return p, mk, normal, dist
 
 
 def mesh_contacts(meshes: Meshes, x, r):
@@ -187,3 +191,52 @@ def mesh_contacts(meshes: Meshes, x, r):
         meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid, meshes.tri_mesh)
     return (meshes.cand_p[rows], meshes.tri_mesh[meshes.cand_t[rows]], normal, dist,
             delta)
+
+
+def set_mesh_motion(sim, index: int, velocity=None, omega=None, friction=None) -> None:
+    """Change how mesh ``index`` of ``sim`` moves between stages: its translation
+    ``velocity`` (3,) [L/T], its rotation ``omega`` (3,) [1/T] about its centre, its
+    friction ``friction`` (takes effect at the next run). A mesh that has turned keeps
+    its axis (its corners are recomputed from the total turn about it): a new rate
+    about the same axis, or no rotation, is allowed; another axis is refused."""
+    wall = sim.mesh_walls[index]
+    meshes = sim.meshes
+    if velocity is not None:
+        wall.velocity = _vector3(velocity, f"mesh {wall.name!r}: velocity")
+        meshes.vel[index] = wall.velocity
+    if omega is not None:
+        new = _vector3(omega, f"mesh {wall.name!r}: omega")
+        old = meshes.omega[index]
+        if meshes.turn[index] != 0.0 and np.any(new != 0.0):
+            cross = np.linalg.norm(np.cross(new, old))
+            same = np.dot(new, old) > 0 and cross <= 1e-12 * np.linalg.norm(new) * np.linalg.norm(old)
+            if not same:
+                raise InputError(f"mesh {wall.name!r}: omega: a mesh that has turned keeps its "
+                                 f"axis {old.tolist()} (a new rate about it, or 0), got "
+                                 f"{new.tolist()}")
+        wall.omega = new
+        meshes.omega[index] = new
+    if friction is not None:
+        if not (math.isfinite(friction) and friction >= 0):
+            raise InputError(f"mesh {wall.name!r}: friction must be finite and >= 0, got "
+                             f"{friction!r}")
+        wall.mu = float(friction)
+    meshes.motion[index] = MESH_MOVING if wall.moving else MESH_FIXED
+
+
+def _vector3(value, what: str) -> np.ndarray:
+    out = np.asarray(value, dtype=np.float64).reshape(-1)
+    if out.shape != (3,) or not np.isfinite(out).all():
+        raise InputError(f"{what} must have 3 finite components, got {value!r}")
+    return out.copy()
+
+
+def triangle_forces(meshes: Meshes) -> np.ndarray:
+    """The force the particles exert on each triangle (T, 3) [M L/T^2] at the last
+    force evaluation: the sum of the forces of the contacts it holds."""
+    out = np.zeros((len(meshes.tri), 3))
+    on = meshes.active == 1
+    for k in range(3):
+        out[:, k] = np.bincount(meshes.slot_tri[on], weights=meshes.fslot[on, k],
+                                minlength=len(meshes.tri))
+    return out

@@ -18,7 +18,7 @@ from demstep.errors import InputError
 from demstep.kernels import dem
 from demstep.packings import SPATIAL_ORDER_MIN, inverse_order, spatial_order
 from demstep.particles import Particles
-from demstep.state import CONTACT_HISTORY, Pairs
+from demstep.state import CONTACT_HISTORY, Meshes, Pairs
 
 
 class SpatialOrder:
@@ -156,8 +156,7 @@ def reorder(sim, order) -> None:
         p = inv[meshes.cand_p]
         rows = np.lexsort((np.arange(len(p)), p))
         sim.meshes = meshes._replace(cand_p=p[rows], **{
-            f: getattr(meshes, f)[rows] for f in ("cand_t", "active", "slot_mesh", "slot_tri",
-                                                   "normal", "shear", "dashpot", "etan")})
+            f: getattr(meshes, f)[rows] for f in ("cand_t",) + Meshes.SLOTS})
     bonds = sim.bonds
     if bonds.n:
         i, j, sign = ends_in_order(inv[bonds.i], inv[bonds.j])

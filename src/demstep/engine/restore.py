@@ -14,14 +14,13 @@ import numpy as np
 
 from demstep.engine.auto_step import AutoStep
 from demstep.errors import InputError
-from demstep.state import CONTACT_HISTORY
+from demstep.state import CONTACT_HISTORY, Meshes
 
 #: fields of the pair and particle-wall lists: one row per listed contact (``roll``
 #: and ``cover`` may have none: no rolling resistance, no cover tracked)
 LIST_FIELDS = {"pairs": ("i", "j") + CONTACT_HISTORY,
                "wall_state": ("p", "wall") + CONTACT_HISTORY,
-               "meshes": ("cand_p", "cand_t", "active", "slot_mesh", "slot_tri", "normal",
-                          "shear", "dashpot", "etan")}
+               "meshes": ("cand_p", "cand_t") + Meshes.SLOTS}
 
 #: the Simulation's scalars in a checkpoint, each an array ``scalars.<name>`` of one
 #: value (a checkpoint of format 3 held them in one array ``scalars``, in this order):

@@ -64,7 +64,7 @@ from demstep.engine.auto_step import AutoStep
 from demstep.engine.bonding import add_bonds, bond_stiffness_max
 from demstep.engine.boundaries import walls_bundle
 from demstep.engine.lists import NeighbourLists
-from demstep.engine.meshes import mesh_law_rows, meshes_bundle
+from demstep.engine.meshes import mesh_law_rows, meshes_bundle, set_mesh_motion
 from demstep.engine.ordering import SpatialOrder, order_as, reorder
 from demstep.engine.restore import SCALARS, checked_state, scalar_arrays
 from demstep.engine.settings import Damping, TimeStep
@@ -705,7 +705,9 @@ class Simulation:
     # ---------------------------------------------------------------- output
     @property
     def n_contacts(self) -> int:
-        return int(self.counters[dem.COUNT_PAIR_CONTACTS] + self.counters[dem.COUNT_WALL_CONTACTS])
+        """Contacts at the last step: particle-particle, particle-wall and particle-mesh."""
+        return int(self.counters[dem.COUNT_PAIR_CONTACTS] + self.counters[dem.COUNT_WALL_CONTACTS]
+                   + self.meshes.contacts.sum())
 
     def kinetic_energy(self) -> float:
         return self.ledger.kinetic
@@ -726,6 +728,10 @@ class Simulation:
     def extents(self) -> np.ndarray:
         """Specimen extents per axis [L] (:func:`~demstep.engine.boundaries.extents`)."""
         return boundaries.extents(self)
+
+    def set_mesh_motion(self, index: int, **settings):
+        """How mesh ``index`` moves (:func:`~demstep.engine.meshes.set_mesh_motion`)."""
+        set_mesh_motion(self, index, **settings)
 
     @property
     def mesh_force(self) -> np.ndarray:

@@ -1185,7 +1185,8 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
                 x, v, w, r, m, meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid,
                 meshes.tri_mesh, meshes.vel, meshes.omega, meshes.center, meshes.law, params,
                 dt_slip, meshes.active, meshes.slot_mesh, meshes.slot_tri, meshes.normal,
-                meshes.shear, meshes.dashpot, meshes.etan, force, torque, meshes.force,
+                meshes.shear, meshes.dashpot, meshes.etan, meshes.fslot, force, torque,
+                meshes.force,
                 meshes.torque, meshes.power, meshes.contacts)
         # 2b. parallel bonds (serial: bonds share particles)
         eb_s, eb_r = 0.0, 0.0

@@ -153,7 +153,7 @@ def mesh_contact_geometry(x, r, cand_p, cand_t, tri, vid, tri_mesh):
 @njit
 def mesh_forces(x, v, w, r, m, cand_p, cand_t, tri, vid, tri_mesh, mesh_vel, mesh_omega,
                 mesh_center, mesh_law, params, dt, active, slot_mesh, slot_tri, slot_normal,
-                shear, dashpot, etan, force, torque, mesh_force, mesh_torque, mesh_power,
+                shear, dashpot, etan, fslot, force, torque, mesh_force, mesh_torque, mesh_power,
                 mesh_contacts):
     """Contact forces of the spheres on the meshes' triangles (module docstring).
 
@@ -168,7 +168,8 @@ def mesh_forces(x, v, w, r, m, cand_p, cand_t, tri, vid, tri_mesh, mesh_vel, mes
     docstring): ``active`` (K,) 1 when the row holds a contact, its ``slot_mesh`` and
     ``slot_tri`` (the triangle it is on), contact normal ``slot_normal`` (K, 3) (from the sphere to the mesh), tangential
     spring and dashpot forces on the mesh ``shear``, ``dashpot`` (K, 3), stored
-    tangential energy ``etan`` (K,); updated in place. Adds the contact forces and
+    tangential energy ``etan`` (K,), the contact's force on the mesh ``fslot`` (K, 3)
+    [M L/T^2]; updated in place. Adds the contact forces and
     torques to ``force``, ``torque`` (N, 3); writes per mesh the force the particles
     exert ``mesh_force``, its torque about the centre ``mesh_torque``, the power the
     mesh puts into the particles ``mesh_power`` [M L^2/T^3] and the touching spheres
@@ -306,6 +307,9 @@ def mesh_forces(x, v, w, r, m, cand_p, cand_t, tri, vid, tri_mesh, mesh_vel, mes
             dashpot[row, 1] = ndy
             dashpot[row, 2] = ndz
             etan[row] = e_new
+            fslot[row, 0] = fx
+            fslot[row, 1] = fy
+            fslot[row, 2] = fz
             row += 1
             force[p, 0] -= fx
             force[p, 1] -= fy
@@ -327,6 +331,9 @@ def mesh_forces(x, v, w, r, m, cand_p, cand_t, tri, vid, tri_mesh, mesh_vel, mes
             d_dash += c_dash
         for q in range(row, e):
             active[q] = 0
+            fslot[q, 0] = 0.0
+            fslot[q, 1] = 0.0
+            fslot[q, 2] = 0.0
         s = e
     return e_n, e_t, d_fric, d_dash
 
