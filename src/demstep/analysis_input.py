@@ -552,8 +552,6 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
     elif density is not None:
         m = particle_mass(data.r, density, dim)
     else:
-        from demstep.particles import particle_mass
-
         m = np.array([particle_mass(r, model.material(t).density, dim)
                       for r, t in zip(data.r, types)])
     box_arr = data.box
@@ -584,7 +582,6 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
     if body is not None and (body >= 0).any():
         rho = density
         if rho is None:  # the members' own density (a mass column)
-            from demstep.particles import particle_mass
 
             rho = float(np.median(m / particle_mass(data.r, 1.0, dim)))
         bodies = RigidBodies.from_members(x, data.r, body, rho)
@@ -771,8 +768,6 @@ def load_run(checkpoint, case_path=None):
     """(Simulation, case_changed): a Simulation restored from a checkpoint of a demstep
     run (with the stages that had started applied, as a restart does), and whether the
     case is not the one that wrote the checkpoint."""
-    from demstep.case import apply_stage, build_simulation, load_case
-
     checkpoint = find_checkpoint(checkpoint)
     if case_path is None:
         case_path = checkpoint.resolve().parent.parent / "case.toml"

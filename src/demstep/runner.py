@@ -677,7 +677,6 @@ def _version_info() -> dict:
     import numba  # (deferred: a heavy import, loaded only when used)
     import numpy  # (deferred: a heavy import, loaded only when used)
 
-    from demstep import __version__
 
     return {"demstep_version": __version__, "python": platform.python_version(),
             "numpy": numpy.__version__, "numba": numba.__version__,
@@ -913,7 +912,6 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
                              f"({type(exc).__name__}: {exc})") from None
         restart_info = {"checkpoint": str(checkpoint), "step": sim.step, "time": sim.time,
                         "case_changed": case_changed}
-    from demstep import __version__
 
     stop = StopRequest(exit_now=exit_on_abort)
     stop.install()

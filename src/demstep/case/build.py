@@ -231,8 +231,6 @@ def _build_simulation(case: Case, checkpoint_dir):
             particles = particles.take(source_index)
             x, r = particles.x, particles.r
     if clumps is not None:
-        from demstep.clumps import expand
-
         xm, rm = expand(clumps)[:2]
         x = xm if x is None or len(x) == 0 else np.concatenate([x, xm])
         r = rm if r is None or len(r) == 0 else np.concatenate([r, rm])

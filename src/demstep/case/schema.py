@@ -884,8 +884,6 @@ def check_case(case: Case) -> None:
                              f"(1 - 2 jitter) >= 2 radius_max = {2 * p.radius_max:g}, "
                              f"got {p.spacing!r}")
     elif p.density is None:
-        from demstep.io.formats import read_particle_file
-
         if read_particle_file(case.particle_file(), p.format, p.snapshot).m is None:
             raise InputError("particles.density: required (the file has no masses), got nothing")
     if p.fixed is not None:

@@ -69,8 +69,6 @@ class PaperSettings:
 
     @classmethod
     def make(cls, quick: bool = False, **kw) -> "PaperSettings":
-        from demstep.experiments.fcc_plane_strain import FCCConfig
-
         s = cls(quick=quick, **kw)
         if quick:
             s.strain = 0.004
@@ -234,7 +232,7 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
 
 def _run_paper_locked(out: Path, settings: PaperSettings, show_progress: bool) -> dict:
     """The part of :func:`run_paper` that computes and writes (the folder is locked)."""
-    from demstep.experiments.fcc_plane_strain import FCCConfig, run_stage1, thornton_peak_ratio
+    from demstep.experiments.fcc_plane_strain import run_stage1, thornton_peak_ratio
 
     (out / "data").mkdir(exist_ok=True)
     started = time.perf_counter()

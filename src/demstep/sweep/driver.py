@@ -60,8 +60,6 @@ def _lock_out(out: Path):
 def mark_unfinished(run_dir: Path, message: str) -> None:
     """A run given up for want of workers: if its folder says 'running' and no
     process holds it, record status 'unfinished' in its run.json."""
-    from demstep.io.lock import FolderLock
-
     path = run_dir / "run.json"
     if not path.is_file():
         return
@@ -98,8 +96,7 @@ def run_sweep(case_path, out, params: Sequence[str] = (), runs_file=None,
     without a worker (None: no limit) the runs not done are marked 'unfinished'
     (summary.csv, and run.json of a run a lost worker had started) and the sweep
     returns. Returns a :class:`SweepResult`."""
-    from demstep.io.lock import check_folder_creatable
-    from demstep.runner import LOG_LEVELS, _write_text
+    from demstep.runner import LOG_LEVELS
 
     check_folder_creatable(out, "out")  # (an empty name first: it would resolve to here)
     out = Path(out).resolve()

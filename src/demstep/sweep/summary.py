@@ -223,8 +223,6 @@ def _cell(value) -> str:
 def write_summary(path, plan: SweepPlan, rows: list[dict | None]) -> Path:
     """summary.csv: run_id, the swept keys, then :data:`SUMMARY_TAIL` (runs not yet
     finished have status 'pending')."""
-    from demstep.runner import _write_text
-
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow([*SUMMARY_LEAD, *plan.key_names, *SUMMARY_TAIL])

@@ -381,7 +381,7 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     dim = particles.dim
     exact = None
     if "exact" in methods or "exact-undamped" in methods:
-        from demstep.timestep.exact import FIRST_TOL, exact_critical_step
+        from demstep.timestep.exact import FIRST_TOL
 
         options = {} if exact_tol is None else {"tol": check_certified_tol("exact_tol",
                                                                            exact_tol)}
