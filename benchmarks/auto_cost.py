@@ -42,10 +42,10 @@ numba.set_num_threads(threads)
 x, spec = make_problem(problem, n)
 sim = demstep_simulation(x, spec, TimeStep.auto(safety=0.8, method="exact", every=500))
 if sys.argv[6] == "1":  # every estimate an exact solve: no kept certificate, no element bound
-    sim.AUTO_REFRESH_RTOL = -1.0
-    sim._estimate_cannot_change_dt = lambda *a, **k: False
+    sim.auto.AUTO_REFRESH_RTOL = -1.0
+    sim.auto.estimate_cannot_change_dt = lambda *a, **k: False
 spent = {"choose_dt": 0.0, "covered": 0.0, "estimates": 0, "checks": 0}  # checks: coverage and extensions
-choose, still = sim._choose_dt, sim._still_certified
+choose, still = sim.auto.propose_dt, sim.auto.accept
 
 def timed(func, key, count):
     def wrapper(*a, **k):
@@ -54,8 +54,8 @@ def timed(func, key, count):
         return out
     return wrapper
 
-sim._choose_dt = timed(choose, "choose_dt", "estimates")
-sim._still_certified = timed(still, "covered", "checks")
+sim.auto.propose_dt = timed(choose, "choose_dt", "estimates")
+sim.auto.accept = timed(still, "covered", "checks")
 sim.run(steps=20)  # compile / load caches, first estimate
 for key in ("choose_dt", "covered", "estimates", "checks"):
     spent[key] = 0

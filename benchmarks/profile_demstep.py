@@ -51,14 +51,14 @@ def main(argv=None):
 
     # a whole step, as the benchmark times it
     t = time.perf_counter()
-    r0 = sim.n_rebuilds
+    r0 = sim.lists.n_rebuilds
     sim.run(steps=args.reps)
     t_step = (time.perf_counter() - t) / args.reps
-    rebuilds_per_step = (sim.n_rebuilds - r0) / args.reps
+    rebuilds_per_step = (sim.lists.n_rebuilds - r0) / args.reps
 
     params = sim.law.params()
-    parallel = sim._parallel()
-    pairs = sim._work_space(parallel)
+    parallel = sim.threaded()
+    pairs = sim.lists.work_space(parallel)
     chunks, spans, force_band, torque_band, geo = (pairs.chunks, pairs.spans, pairs.force_band,
                                                    pairs.torque_band, pairs.geo)
     names = {
@@ -119,7 +119,7 @@ def main(argv=None):
     neighbors.build_wall_list(sim.x, sim.r, sim.wall_point, sim.wall_normal, sim.skin)
     parts["build_wall_list"] = time.perf_counter() - t
     t = time.perf_counter()
-    sim._rebuild()
+    sim.lists.rebuild()
     parts["_rebuild_total"] = time.perf_counter() - t
     out["rebuild_s"] = parts
     out["kernel_sum_s"] = sum(out["kernels_s"].values())

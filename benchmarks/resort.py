@@ -38,14 +38,14 @@ x, spec = make_problem(problem, n)
 if order == "random":
     x = x[np.random.default_rng(0).permutation(len(x))]
 sim = demstep_simulation(x, spec, TimeStep.fixed(spec["dt"]))
-sim.sort_every = sort_every or None
+sim.ordering.every = sort_every or None
 import warnings
 warnings.simplefilter("ignore")  # (the random-order warning)
 sim.run(steps=20)
 t = time.perf_counter()
 sim.run(steps=steps)
 elapsed = time.perf_counter() - t
-print(json.dumps({"rate": len(x) * steps / elapsed, "sorts": getattr(sim, "n_sorts", 0),
+print(json.dumps({"rate": len(x) * steps / elapsed, "sorts": sim.ordering.n_sorts,
                   "n": len(x)}))
 """
 

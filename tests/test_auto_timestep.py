@@ -15,7 +15,7 @@ from demstep.engine import Simulation, TimeStep
 from demstep.particles import Particles
 from demstep.runner import run_case
 from demstep.timestep import estimate_time_steps
-from demstep.timestep_input import from_checkpoint
+from demstep.analysis_input import from_checkpoint
 from demstep.walls import Wall, box_walls
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
@@ -123,11 +123,11 @@ def test_a_contact_outside_the_cover_forces_a_new_estimate():
                      timestep=TimeStep.auto(safety=0.9, method="exact", every=10**6))
     sim.prepare()
     assert sim.n_contacts == 0 and sim.n_dt_estimates == 1
-    sim._dt_cover = {}  # as if the last estimate had seen no pair
+    sim.auto.cover = {}  # as if the last estimate had seen no pair
     sim.run(steps=2000)
     assert sim.n_contacts == 1
     assert sim.n_dt_estimates == 2  # the one forced by the uncovered contact
-    assert sim._contacts_covered()
+    assert sim.auto.contacts_covered()
     assert sim.dt <= 0.9 * sim.critical_dt("exact") * (1 + 1e-9)
 
 
@@ -143,7 +143,7 @@ def test_an_uncovered_contact_is_caught_before_the_step_it_closes():
         sim = Simulation(p, LinearSpring(k_n=1e4, restitution=0.2), gravity=[0, 0, -9.81],
                          timestep=TimeStep.auto(safety=0.9, method="exact", every=10**6))
         sim.prepare()
-        sim._dt_cover = {}  # as if the last estimate had seen no pair
+        sim.auto.cover = {}  # as if the last estimate had seen no pair
         return sim
 
     # the first state in which the contact is closed, from a twin run step by step
@@ -156,8 +156,8 @@ def test_an_uncovered_contact_is_caught_before_the_step_it_closes():
 
     sim = falling()
     estimates = []
-    choose = sim._choose_dt
-    sim._choose_dt = lambda *a, **k: (estimates.append(sim.step), choose(*a, **k))[1]
+    choose = sim.auto.propose_dt
+    sim.auto.propose_dt = lambda *a, **k: (estimates.append(sim.step), choose(*a, **k))[1]
     sim.run(steps=400)
     assert len(estimates) == 1 and closing - 2 <= estimates[0] <= closing
     assert sim.n_dt_estimates == 2
@@ -353,7 +353,7 @@ def test_the_pair_loops_cover_follows_the_record_through_rebuilds(law):
     seen = {"rebuilds": set(), "pairs": 0, "covered": 0}
 
     def check(s):
-        rec = s._dt_cover
+        rec = s.auto.cover
         n, nw = len(s.r), max(1, len(s.walls))
         for keys, cover, name in ((s.pairs.i * n + s.pairs.j, s.pairs.cover, "pairs"),
                                   (s.wall_state.p * nw + s.wall_state.wall,
@@ -365,7 +365,7 @@ def test_the_pair_loops_cover_follows_the_record_through_rebuilds(law):
             assert np.all((cover == 0) | (cover == expect))
             seen["pairs"] += len(keys)
             seen["covered"] += int(np.count_nonzero(cover))
-        seen["rebuilds"].add(s.n_rebuilds)
+        seen["rebuilds"].add(s.lists.n_rebuilds)
 
     sim.every(7, check)
     sim.run(steps=1500)
@@ -397,7 +397,7 @@ def test_a_restart_continues_the_auto_run_bit_for_bit_and_reads_older_checkpoint
     third = settling_simulation(law, 0.9)
     third.load_state_dict(older)
     keys = third.pairs.i * len(third.r) + third.pairs.j
-    assert np.array_equal(third.pairs.cover, cover_limits(keys, *third._dt_cover["pairs"], True))
+    assert np.array_equal(third.pairs.cover, cover_limits(keys, *third.auto.cover["pairs"], True))
     assert np.all(third.pairs.cover >= state["pairs.cover"])  # the record: at least as much
     third.run(steps=400)
     assert np.all(np.isfinite(third.x)) and third.dt <= third.critical_dt("exact") * (1 + 1e-9)
@@ -426,9 +426,9 @@ def test_estimates_that_cannot_change_dt_skip_the_exact_solve(monkeypatch):
     run's own last certificate, which differ.)"""
     def run(skip):
         sim = falling_grid()
-        monkeypatch.setattr(sim, "AUTO_REFRESH_RTOL", -1.0)
+        monkeypatch.setattr(sim.auto, "AUTO_REFRESH_RTOL", -1.0)
         if not skip:
-            monkeypatch.setattr(sim, "_estimate_cannot_change_dt", lambda *a, **k: False)
+            monkeypatch.setattr(sim.auto, "estimate_cannot_change_dt", lambda *a, **k: False)
         history = []
         sim.every(10, lambda s: history.append((s.step, s.dt, s.critical_dt("exact"))))
         sim.run(steps=5000)
@@ -472,7 +472,7 @@ def test_a_certificate_holds_only_for_the_law_and_damping_it_was_made_with(chang
     law = LinearSpring(k_n=1e4, k_s=5e3, mu=0.5, restitution=0.5)
     sim = packed_box(law)
     sim.run(steps=300)
-    solves, cert = sim.n_dt_solves, sim._dt_cert
+    solves, cert = sim.n_dt_solves, sim.auto.certificate
     if change == "viscous damping":
         sim.damping.viscous = 0.8 * 2.0 / sim.critical_dt("exact")
     elif change == "stiffer law":
@@ -483,7 +483,7 @@ def test_a_certificate_holds_only_for_the_law_and_damping_it_was_made_with(chang
     sim.every(10, lambda s: ratios.append(s.dt / s.critical_dt("exact")))
     sim.run(steps=300)
     if change == "friction":
-        assert sim.n_dt_solves == solves and sim._dt_cert is cert
+        assert sim.n_dt_solves == solves and sim.auto.certificate is cert
     else:
         assert sim.n_dt_solves > solves
     # (the exact step moves a little between estimates: certified, not at 0.8 exactly)
@@ -651,10 +651,10 @@ def test_a_restart_while_the_motion_limit_holds_continues_bit_for_bit():
     assert np.array_equal(second.x, first.x) and np.array_equal(second.v, first.v)
     older = soft_free_fall()
     older.load_state_dict({k: v for k, v in state.items() if k != "ts_dt_certified"})
-    assert older.dt_certified == older.dt == state["scalars"][2]
+    assert older.dt_certified == older.dt == state["scalars.dt"][0]
     from demstep.errors import InputError
 
-    for bad in (0.5 * state["scalars"][2], -1.0):  # below the step taken; not a step
+    for bad in (0.5 * state["scalars.dt"][0], -1.0):  # below the step taken; not a step
         with pytest.raises(InputError, match="ts_dt_certified"):
             soft_free_fall().load_state_dict({**state, "ts_dt_certified": np.array([bad])})
 
@@ -689,10 +689,10 @@ def watch_additions(sim, on_added):
     """Call ``on_added(sim, group, keys)`` after each extension of the certificate by
     contacts closed outside its cover (``group`` their ContactSet as the control built
     it, ``keys`` a key per contact: (i, j) or (p, -1 - wall))."""
-    original = sim._certify_added
+    original = sim.auto.certify_added
 
     def certify(pair_mask, wall_mask):
-        group = sim._contacts_of(pair_mask, wall_mask)[0]
+        group = sim.auto.contacts_of(pair_mask, wall_mask)[0]
         keys = [(int(a), int(b) if b >= 0 else -1 - int(w))
                 for a, b, w in zip(group.i, group.j, group.wall)]
         ok = original(pair_mask, wall_mask)
@@ -700,7 +700,7 @@ def watch_additions(sim, on_added):
             on_added(sim, group, keys)
         return ok
 
-    sim._certify_added = certify
+    sim.auto.certify_added = certify
 
 
 def test_contacts_added_since_an_estimate_stay_bounded_together():
@@ -709,7 +709,7 @@ def test_contacts_added_since_an_estimate_stay_bounded_together():
     together, assembled densely (M^-1/2 K M^-1/2 and the same for the dashpots), after
     each extension; they are at most the sum of the groups' bounds, and below it once
     a particle has several added contacts (one mass split over all of them)."""
-    from demstep.contacts import ContactSet
+    from demstep.contact.sets import ContactSet
     from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
     from demstep.timestep.certificate import added_contacts_bound
 
@@ -718,7 +718,7 @@ def test_contacts_added_since_an_estimate_stay_bounded_together():
     seen = {"cert": None, "union": {}, "sums": (0.0, 0.0), "checks": 0, "tighter": 0}
 
     def check(s, group, keys):
-        cert = s._dt_cert
+        cert = s.auto.certificate
         if cert is not seen["cert"]:
             seen.update(cert=cert, union={}, sums=(0.0, 0.0))
         longest = replace(group, arm_i=s.r[group.i],
@@ -753,13 +753,13 @@ def test_one_bound_for_all_added_contacts_spares_estimates():
     for together in (True, False):
         sim = settling_simulation(law, 0.5)
         if not together:  # the groups' bounds summed only (the record unknown)
-            record = sim._record_certificate
+            record = sim.auto.record_certificate
 
             def weyl_only(*args, _record=record, _sim=sim):
                 _record(*args)
-                _sim._added_record = None
+                _sim.auto.added = None
 
-            sim._record_certificate = weyl_only
+            sim.auto.record_certificate = weyl_only
         sim.run(steps=3000)
         counts[together] = sim.n_dt_estimates
     assert counts[True] < 0.8 * counts[False]
@@ -777,7 +777,7 @@ def test_the_record_of_added_contacts_restarts_bit_for_bit():
     first = settling_simulation(law, 0.5)
     first.run(steps=300)
     for _ in range(100):  # (until the record holds a few contacts)
-        if len((first._added_record or {}).get("pairs", ((),))[0]) >= 3:
+        if len((first.auto.added or {}).get("pairs", ((),))[0]) >= 3:
             break
         first.run(steps=5)
     state = {k: np.array(v, copy=True) for k, v in first.state_dict().items()}
@@ -789,7 +789,7 @@ def test_the_record_of_added_contacts_restarts_bit_for_bit():
     second = settling_simulation(law, 0.5)
     second.load_state_dict(state)
     assert all(np.array_equal(a, state[f"ts_added_pairs_{b}"])
-               for a, b in zip(second._added_record["pairs"], ("keys", "overlap")))
+               for a, b in zip(second.auto.added["pairs"], ("keys", "overlap")))
     second.run(steps=600)
     assert second.step == first.step and second.dt == first.dt
     assert np.array_equal(second.x, first.x) and np.array_equal(second.v, first.v)
@@ -797,7 +797,7 @@ def test_the_record_of_added_contacts_restarts_bit_for_bit():
     older = {k: v for k, v in state.items() if not k.startswith("ts_added")}
     third = settling_simulation(law, 0.5)
     third.load_state_dict(older)
-    assert third._added_record is None
+    assert third.auto.added is None
     third.run(steps=50)
 
     n = len(first.r)
@@ -820,15 +820,15 @@ def test_the_record_of_added_contacts_follows_a_renumbering():
     sim = settling_simulation(law, 0.5)
     sim.run(steps=300)
     for _ in range(100):
-        if len((sim._added_record or {}).get("pairs", ((),))[0]) >= 3:
+        if len((sim.auto.added or {}).get("pairs", ((),))[0]) >= 3:
             break
         sim.run(steps=5)
-    before = sim._added_contacts(sim._added_record)
+    before = sim.auto.added_contacts(sim.auto.added)
     bound = added_contacts_bound(sim.particles_now(), before, True)
     order = np.random.default_rng(4).permutation(len(sim.r))
     inv = np.argsort(order)  # old particle p is new particle inv[p]
     sim.reorder(order)
-    after = sim._added_contacts(sim._added_record)
+    after = sim.auto.added_contacts(sim.auto.added)
 
     def named(c, rename):
         return sorted((min(rename[a], rename[b]) if b >= 0 else rename[a],

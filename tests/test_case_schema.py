@@ -50,7 +50,7 @@ REFUSED = [
     (setitem(("contact", "youngs_modulus"), 1e9), "contact.youngs_modulus: unknown key"),
     (delitem(("contact", "k_n")), "contact.k_n: required key is missing"),
     (delitem(("contact", "law")), "contact.law: required key is missing"),
-    (setitem(("contact", "law"), "hooke"), "contact.law: must be one of 'linear', 'hertz', got 'hooke'"),
+    (setitem(("contact", "law"), "hooke"), "contact.law: must be one of 'cohesive', 'hertz', 'linear', got 'hooke'"),
     (setitem(("contact", "restitution"), 1.5), "contact.restitution"),
     (setitem(("particles", "radius"), 0), "particles.radius: input should be greater than 0, got 0"),
     (setitem(("particles", "density"), -2650.0), "particles.density"),

@@ -184,7 +184,7 @@ def test_dt_models_an_engine_law_with_the_engine_s_dashpots(law):
     dashpots added to those of a restitution (they were refused, naming options the
     user never gave)."""
     from demstep.contact.laws import HertzMindlin, LinearSpring
-    from demstep.timestep_input import model_from_law
+    from demstep.analysis_input import model_from_law
 
     for engine_law in (LinearSpring(k_n=1e6, mu=0.3, **law),
                        HertzMindlin(youngs_modulus=1e8, poisson_ratio=0.3, **law)):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from demstep.cli import main
-from demstep.contacts import find_contacts
+from demstep.contact.sets import find_contacts
 from demstep.packings import lattice
 from demstep.particles import Particles
 from demstep.timestep.exact import exact_critical_step
@@ -361,7 +361,7 @@ def test_hertz_checkpoint_brings_its_materials_and_the_impact_velocity(tmp_path,
     law's checkpoint is refused (it was dropped without a word)."""
     from demstep.case import case_from_text
     from demstep.runner import run_case
-    from demstep.timestep_input import load_run
+    from demstep.analysis_input import load_run
 
     run_case(case_from_text(HERTZ_CASE), tmp_path / "run", quiet=True)
     ck = sorted((tmp_path / "run" / "checkpoints").glob("*.npz"))[-1]
@@ -409,7 +409,8 @@ def test_hertz_checkpoint_brings_its_materials_and_the_impact_velocity(tmp_path,
     (["--kn", "1e6", "--wall", "q+"], "wall"),
     (["--kn", "1e6", "--plot", "out.txt"], "plot"),
     (["--kn", "1e6", "--mode-vtk", "mode.csv"], "mode-vtk"),
-    (["--kn", "1e6", "--overlap", "0.01"], "overlap: only used with the hertz model"),
+    (["--kn", "1e6", "--overlap", "0.01"],
+     "overlap: only used with a law whose stiffness depends on the overlap"),
     (["--kn", "1e6", "--impact-velocity", "2"],
      "impact-velocity: only used by the Hertz time of the hertz model"),
 ])

@@ -12,12 +12,13 @@ import scipy.spatial.transform
 from demstep.clumps import (ClumpTemplate, _integrate_union, _separate, mass_properties, place,
                             principal_frame, quat_to_matrix, random_quaternions)
 from demstep.contact.laws import LinearSpring
-from demstep.contacts import ContactSet, find_contacts
+from demstep.contact.sets import ContactSet, find_contacts
 from demstep.engine import Damping, Simulation, TimeStep
+from demstep.engine.analysis import global_damping
 from demstep.errors import InputError
 from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness
-from demstep.timestep.bodies import RigidBodies, body_element_dt
+from demstep.timestep.clumps import RigidBodies, body_element_dt
 from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.exact import exact_critical_step
 from demstep.walls import Wall
@@ -189,38 +190,65 @@ def test_dimer_rolls_down_an_incline_at_the_analytic_acceleration():
 
 @pytest.mark.parametrize("auto", [False, True])
 def test_clump_restart_is_bit_identical(tmp_path, auto):
-    """A clump run restarted from a checkpoint continues bit for bit; with the 'auto'
-    time step the certificate (with its clumps' rows) comes back with it, so the
-    restarted run estimates when the uninterrupted one does (and not at its start),
-    and a checkpoint whose
-    certificate rows are corrupted is refused naming the array."""
+    """A clump run (the clumps spinning about z as they land) restarted from a
+    checkpoint continues bit for bit; with the 'auto' time step the certificate (with
+    its clumps' rows) comes back with it, so the restarted run estimates when the
+    uninterrupted one does (and not at its start), forced estimates between the
+    scheduled ones included. The checkpoint is taken with both drift budgets of the
+    last check partly spent (the bodies turned part of the way it allows): the turn
+    budget is not saved, so the restarted run checks the drift at its first step, where
+    the uninterrupted one does not, and still takes the same steps and estimates. A
+    checkpoint whose certificate rows are corrupted is refused naming the array."""
     from demstep.io.checkpoint import load_checkpoint, save_checkpoint
+    from demstep.kernels import dem
 
     def build():
         rng = np.random.default_rng(2)
         pos = np.stack(np.meshgrid(np.arange(3), np.arange(3), [0], indexing="ij"), -1).reshape(-1, 3) * 4.5
         cs = place([ASYM], [0] * len(pos), pos + [0, 0, 2.0], random_quaternions(len(pos), rng), 1.0)
+        spin = np.zeros((len(pos), 3))
+        spin[:, 2] = rng.uniform(1.0, 3.0, len(pos))
         return Simulation(None, LinearSpring(k_n=1e4, mu=0.4, restitution=0.5),
                           walls=[Wall(np.zeros(3), np.array([0, 0, 1.0]), name="floor")],
                           gravity=[0, 0, -9.81], clumps=cs,
                           timestep=TimeStep.auto(safety=0.8) if auto else TimeStep.from_alpha(0.1),
-                          clump_velocities=rng.normal(0, 0.5, (len(pos), 3)))
+                          clump_velocities=rng.normal(0, 0.5, (len(pos), 3)),
+                          clump_angular_velocities=spin)
+
+    def checks_of(sim):
+        """The steps at which ``sim``'s 'auto' control checks the drift, from now on."""
+        steps = []
+        check = sim.auto.renew_drift_budget
+
+        def recorded():
+            steps.append(sim.step)
+            return check()
+
+        sim.auto.renew_drift_budget = recorded
+        return steps
 
     a = build()
     a.run(steps=300)
+    if auto:  # both budgets of the last check partly spent
+        assert 0.0 < a.auto.turned_since_check() < a.auto.turn_budget
+        assert 0.0 < dem.drift_used(a.counters) < a.auto.check_budget
     save_checkpoint(a, tmp_path / "c.npz")
-    before = a.n_dt_estimates if auto else 0
+    saved, before = a.step, a.n_dt_estimates if auto else 0
+    checks_a = checks_of(a)
     a.run(steps=400)
     b = build()
     load_checkpoint(b, tmp_path / "c.npz")
+    checks_b = checks_of(b)
     b.run(steps=400)
     assert np.array_equal(a.bodies.x, b.bodies.x) and np.array_equal(a.bodies.q, b.bodies.q)
     assert np.array_equal(a.x, b.x) and np.array_equal(a.ledger.acc, b.ledger.acc)
     assert a.n_contacts > 0
     if not auto:
         return
-    assert a.dt == b.dt and b._dt_cert.has_bodies and len(b._dt_cert.body_pairs)
-    assert a.n_dt_estimates - before == b.n_dt_estimates > 0  # (b: none at its start)
+    assert checks_b[0] == saved + 1 < checks_a[0]  # (the restart's own check)
+    assert a.dt == b.dt and b.auto.certificate.has_bodies and len(b.auto.certificate.body_pairs)
+    # (b: none at its start; the scheduled one at step 500 and forced ones)
+    assert a.n_dt_estimates - before == b.n_dt_estimates > 1
     data = dict(np.load(tmp_path / "c.npz"))
     assert len(data["ts_cert_body_pairs"])
     for key, value, needle in (("ts_cert_body_pairs", lambda p: p + [0, 0, 5, 0], "wall"),
@@ -873,7 +901,7 @@ def test_element_steps_of_some_rows_take_the_mass_shares_of_all_contacts():
     owners' masses split among all their contacts, not the rows' only), so their min is
     an upper bound on the min over all (the 'auto' control's screen of an element
     estimate); the rows likeliest stiffest hold the smallest step here."""
-    from demstep.timestep.bodies import likely_stiffest_elements
+    from demstep.timestep.clumps import likely_stiffest_elements
 
     p, contacts, bodies = mixed_owner_assembly(3, 5)
     every = body_element_dt(p, contacts, bodies, True, 0.05, 0.01)
@@ -915,14 +943,14 @@ def test_the_element_screen_only_skips_bounds_that_could_not_be_kept():
     from demstep.timestep.estimates import element_coupled_dt
 
     sim = landing_clumps()
-    screen = sim._element_bound_falls_short
+    screen = sim.auto.element_bound_falls_short
     seen = {"short": 0, "checked": 0}
 
     def checked(contacts, keep):
         short = screen(contacts, keep)
-        if contacts.n > 4 * sim.ELEMENT_SCREEN:
+        if contacts.n > 4 * sim.auto.ELEMENT_SCREEN:
             full = element_coupled_dt(sim.particles_now(), contacts, sim.rotation,
-                                      damping=sim._global_damping(), bodies=sim.rigid_bodies())
+                                      damping=global_damping(sim), bodies=sim.rigid_bodies())
             assert not (short and keep(full))
             for factor in (0.5, 0.999, 1.0, 1.001, 2.0):  # other thresholds on the bound
                 at_most = lambda dt, t=factor * full: dt >= t  # noqa: E731
@@ -931,7 +959,7 @@ def test_the_element_screen_only_skips_bounds_that_could_not_be_kept():
             seen["checked"] += 1
         return short
 
-    sim._element_bound_falls_short = checked
+    sim.auto.element_bound_falls_short = checked
     worst = 0.0
     for _ in range(30):
         sim.run(steps=10)
@@ -949,23 +977,21 @@ def test_solves_under_the_motion_limit_run_to_a_looser_residual():
     above it. Landing clumps solve with both (measured: 33 loose, 24 tight in 400
     steps)."""
     sim = landing_clumps()
-    solve = sim.critical_dt
+    solve = sim.auto.solve
     seen = {"loose": 0, "tight": 0}
 
-    def checked(method, rotation=True, horizon=None, tol=None, _record=False, _contacts=None):
-        if not _record:
-            return solve(method, rotation, horizon, tol)
-        certified, limit = sim.dt_certified, sim._motion_limit()
+    def checked(method, horizon, tol, prepared=None):
+        certified, limit = sim.dt_certified, sim.auto.motion_limit()
         loose = certified is not None and limit < 0.95 * certified
-        assert tol == (sim.AUTO_MOTION_TOL if loose else sim.AUTO_EXACT_TOL)
-        estimate = solve(method, rotation, horizon, tol, _record, _contacts)
+        assert tol == (sim.auto.AUTO_MOTION_TOL if loose else sim.auto.AUTO_EXACT_TOL)
+        estimate = solve(method, horizon, tol, prepared)
         if estimate is not None:
-            tight = solve(method, rotation, horizon)  # (to the package's 1e-10)
+            tight = sim.critical_dt(method, horizon=horizon)  # (to the package's 1e-10)
             assert tight * (1 - 8 * tol) <= estimate <= tight * (1 + 1e-8)
             seen["loose" if loose else "tight"] += 1
         return estimate
 
-    sim.critical_dt = checked
+    sim.auto.solve = checked
     sim.run(steps=400)
     assert seen["loose"] >= 10 and seen["tight"] >= 10
 
@@ -975,7 +1001,7 @@ def test_owner_mass_shares_split_each_owner_among_its_contacts(dim):
     """Each side's share: the owner's inverse mass and inverse inertia (world; 2D: the
     zz moment) times its number of contacts in the set (walls: none; fixed: zero), for
     the whole set and for a part of it, against a loop over the contacts."""
-    from demstep.timestep.bodies import owner_mass_shares
+    from demstep.timestep.clumps import owner_mass_shares
 
     p, contacts, bodies = mixed_owner_assembly(dim, 7)
     body = bodies.sphere_body

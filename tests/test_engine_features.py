@@ -8,6 +8,7 @@ import pytest
 
 from demstep.contact.laws import HertzMindlin, LinearSpring
 from demstep.engine import Damping, Simulation, TimeStep
+from demstep.engine.lists import NeighbourLists
 from demstep.energy import E_STRAIN_R, EnergyMonitor
 from demstep.experiments.stability import build_specimen, is_unstable, specimen_estimates
 from demstep.particles import Particles
@@ -41,7 +42,7 @@ def test_auto_timestep_follows_exact_estimate_with_capped_growth():
     # tightly solved step
     assert first == pytest.approx(0.5 * sim.dt_estimate, rel=1e-12)
     tight = sim.critical_dt("exact", horizon=sim.dt_horizon)  # (certified within 4e-9)
-    assert tight * (1 - 8 * sim.AUTO_EXACT_TOL) <= sim.dt_estimate <= tight * (1 + 1e-8)
+    assert tight * (1 - 8 * sim.auto.AUTO_EXACT_TOL) <= sim.dt_estimate <= tight * (1 + 1e-8)
     assert first <= 0.5 * sim.critical_dt("exact") * (1 + 1e-12)
     dts = []
     sim.every(50, lambda s: dts.append((s.dt, s.dt_estimate)))
@@ -122,7 +123,7 @@ def test_periodic_box_rate_work_closes_the_ledger():
     sim, = [build_specimen("fcc", 0.1)]
     sim.monitor = EnergyMonitor(every=1)
     sim.set_box(2, "rate", rate=-1e-3)
-    sim.set_box(0, "servo", target_stress=float(sim.love_stress()[0]) if sim._pairs_built else 1e3,
+    sim.set_box(0, "servo", target_stress=float(sim.love_stress()[0]) if sim.lists.built else 1e3,
                 max_speed=1e-3)
     sim.run(steps=3000)
     assert abs(sim.ledger.acc[8]) > 0.5 * abs(sim.ledger.external - sim.ledger.acc[7])
@@ -193,11 +194,11 @@ def test_neighbour_scratch_kept_only_while_rebuilds_come_often():
                      LinearSpring(k_n=1e3), timestep=TimeStep.fixed(1e-3))
     sim.prepare()
     held = []
-    for step in (10, 10 + Simulation.KEEP_SCRATCH_STEPS,
-                 11 + 2 * Simulation.KEEP_SCRATCH_STEPS, 20 + 2 * Simulation.KEEP_SCRATCH_STEPS):
+    for step in (10, 10 + NeighbourLists.KEEP_SCRATCH_STEPS,
+                 11 + 2 * NeighbourLists.KEEP_SCRATCH_STEPS, 20 + 2 * NeighbourLists.KEEP_SCRATCH_STEPS):
         sim.step = step
-        sim._rebuild()
-        held.append(sim._neighbour_work is not None)
+        sim.lists.rebuild()
+        held.append(sim.lists.scratch is not None)
         pi, pj = build_pair_list(sim.x, sim.r, sim.skin, sim.periodic_len)
         assert np.array_equal(sim.pairs.i, pi) and np.array_equal(sim.pairs.j, pj)
     assert held == [True, True, False, True]

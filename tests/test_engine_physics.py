@@ -321,7 +321,7 @@ def test_energy_conserved_second_order(dim):
     errs = []
     for alpha in (0.1, 0.05, 0.025):
         sim = gas(dim, 7, alpha, steps_time=6.0)
-        assert sim.n_rebuilds > 3  # particles travelled, collided and re-paired
+        assert sim.lists.n_rebuilds > 3  # particles travelled, collided and re-paired
         errs.append(sim.monitor.max_error)  # the worst of eq. 22 over the run
     assert errs[0] < 2e-3  # (omega dt)^2 / 4 x the strain fraction: far below 1e-2
     # order of convergence over two halvings of dt (collisions start and end between
@@ -371,7 +371,7 @@ def test_newton_third_law_and_angular_momentum(dim):
                                             np.abs(s.force).max(), s.n_contacts)))
     sim.run(steps=2000)
     scale = np.abs(np.cross(sim.x, sim.m[:, None] * sim.v)).sum() + np.abs(spin_before).sum()
-    assert sim.ledger.friction > 0 and sim.n_rebuilds > 1
+    assert sim.ledger.friction > 0 and sim.lists.n_rebuilds > 1
     loaded = [(total, largest) for _, total, largest, n in records if n > 0]
     assert len(loaded) >= 5  # records with contacts
     for total, largest in loaded:
@@ -428,7 +428,7 @@ def test_damping_switched_on_and_off_keeps_the_ledger():
         for local, viscous in ((0.3, 2.0), (0.0, 0.0), (0.0, 0.0), (0.2, 0.0), (0.0, 0.0)):
             sim.damping = Damping(local=local, viscous=viscous)
             if always_store:
-                sim._damping_history = True
+                sim.damping_history = True
             sim.run(steps=150)
         return sim
 
@@ -449,7 +449,7 @@ def test_dashpot_switched_on_and_off_keeps_the_ledger():
         for e in (0.6, None, None, 0.5, None):
             sim.law = LinearSpring(k_n=1e3, mu=0.3, restitution=e)
             if always_store:
-                sim._dashpot_history = True
+                sim.dashpot_history = True
             sim.run(steps=200)
         return sim
 

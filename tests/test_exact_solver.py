@@ -15,7 +15,7 @@ from demstep.kernels.timestep_kernels import (_chunked_scaled_matvec_parallel,
                                               contact_matvec, ordered_contact_runs,
                                               ordered_scaled_contact_matvec,
                                               contact_gram, contact_quadratic_forms)
-from demstep.contacts import ContactSet
+from demstep.contact.sets import ContactSet
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
 from demstep.timestep.elements import dofs_per_particle
 from demstep.timestep.damping import GlobalDamping
@@ -444,9 +444,9 @@ def test_a_warm_start_on_a_cluster_member_still_bounds_the_top(damped, tol):
     stop on it: the "certified" step was 0.7 % above the critical one at 1e-4 and 1e-5,
     damped or not. The certifying solves start from the fixed random vector: the step
     stays below the dense path's at every tolerance."""
-    from demstep.timestep_input import ContactModel, from_lattice
+    from demstep.analysis_input import ContactModel, from_lattice
 
-    model = ContactModel(k_n=1e6, k_t=5e5)
+    model = ContactModel(parameters={"k_n": 1e6, "k_s": 5e5})
     inp = from_lattice("fcc", 5, 1.0, 1000.0, model)
     contacts = inp.contacts
     damping = None
@@ -475,9 +475,9 @@ def test_a_loose_undamped_solve_still_certifies_the_damped_step():
     certified one (below the dense path's, within the certifying margin of it), for
     fewer products; ``dt_undamped`` is then a looser certified bound (below the dense
     path's undamped step, within the looser tolerance)."""
-    from demstep.timestep_input import ContactModel, from_lattice
+    from demstep.analysis_input import ContactModel, from_lattice
 
-    model = ContactModel(k_n=1e6, k_t=5e5)
+    model = ContactModel(parameters={"k_n": 1e6, "k_s": 5e5})
     inp = from_lattice("fcc", 5, 1.0, 1000.0, model)
     contacts = replace(inp.contacts, c_n=np.full(inp.contacts.n, 2.0),
                        c_t=np.full(inp.contacts.n, 1.0))
@@ -501,9 +501,9 @@ def test_estimates_solve_the_undamped_problem_tightly_only_when_it_is_listed():
     the tight one; without it the undamped solve is loose (fewer products) and the
     damped step the same certified one."""
     from demstep.timestep.estimates import estimate_time_steps
-    from demstep.timestep_input import ContactModel, from_lattice
+    from demstep.analysis_input import ContactModel, from_lattice
 
-    inp = from_lattice("fcc", 5, 1.0, 1000.0, ContactModel(k_n=1e6, k_t=5e5))
+    inp = from_lattice("fcc", 5, 1.0, 1000.0, ContactModel(parameters={"k_n": 1e6, "k_s": 5e5}))
     contacts = replace(inp.contacts, c_n=np.full(inp.contacts.n, 2.0),
                        c_t=np.full(inp.contacts.n, 1.0))
     both = estimate_time_steps(inp.particles, contacts, True, methods=["exact", "exact-undamped"])
@@ -532,9 +532,9 @@ def test_a_tolerance_that_certifies_nothing_is_refused(name, options):
     """Above MAX_CERTIFIED_TOL a solve may stop below the top of a clustered spectrum:
     the API refuses it (as the CLI does) with an error naming the parameter."""
     from demstep.timestep.estimates import estimate_time_steps
-    from demstep.timestep_input import ContactModel, from_lattice
+    from demstep.analysis_input import ContactModel, from_lattice
 
-    inp = from_lattice("fcc", 3, 1.0, 1000.0, ContactModel(k_n=1e6, k_t=5e5))
+    inp = from_lattice("fcc", 3, 1.0, 1000.0, ContactModel(parameters={"k_n": 1e6, "k_s": 5e5}))
     if name == "exact_tol":
         call = lambda: estimate_time_steps(inp.particles, inp.contacts, True, **options)
     else:

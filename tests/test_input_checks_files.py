@@ -8,13 +8,14 @@ import tomllib
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import assert_one_line_error, cli as run_cli
 
-from demstep.case import case_from_text, dump_case, load_case
+from demstep.case import build_simulation, case_from_text, dump_case, load_case
 from demstep.errors import InputError
 from demstep.io.formats import read_bond_csv, read_csv, read_liggghts_dump, read_yade_text
-from demstep.timestep_input import read_materials
+from demstep.analysis_input import read_materials
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
@@ -117,10 +118,23 @@ def test_2d_body_file_refuses_a_turn_out_of_the_plane(tmp_path, capsys):
 
 
 def test_2d_body_file_takes_turns_about_z(tmp_path):
-    """Turns about z (qx = qy = 0, also within rounding of a unit quaternion) load."""
+    """Turns about z (qx = qy = 0, also within rounding of a unit quaternion) load, and
+    the clumps are placed as turned: the first body (qw = qz = 0.7071, a quarter turn)
+    has its template's members (0, 0) and (0, 1) at its position plus those offsets
+    turned by 90 degrees about z, the second (qx = 1e-17, qy = -1e-17 beside qw = 1)
+    its members at its position plus the offsets unturned."""
     (tmp_path / "b.csv").write_text("x,y,template,qw,qx,qy,qz\n0,0,pair,0.7071,0,0,0.7071\n"
                                     "5,0,pair,1,1e-17,-1e-17,0\n")
-    case_from_text(CLUMPS, base_dir=tmp_path, source="case.toml")
+    sim = build_simulation(case_from_text(CLUMPS, base_dir=tmp_path, source="case.toml"))
+    offsets = np.array([[0.0, 0.0], [0.0, 1.0]])  # the template "pair"'s members
+    for body, (position, angle) in enumerate((([0.0, 0.0], 2 * np.arctan2(0.7071, 0.7071)),
+                                              ([5.0, 0.0], 0.0))):
+        c, s = np.cos(angle), np.sin(angle)
+        expected = np.asarray(position) + offsets @ np.array([[c, s], [-s, c]])
+        members = sim.x[sim.bodies.sphere_body == body]
+        assert len(members) == 2 and not members[:, 2:].any()  # (2D: z stays 0)
+        np.testing.assert_allclose(members[np.lexsort(members[:, :2].T[::-1])][:, :2],
+                                   expected[np.lexsort(expected.T[::-1])], rtol=0, atol=1e-12)
 
 
 # ---------------------------------------------------------- 4. huge integer columns
@@ -194,10 +208,10 @@ REFUSED_UNUSED = [
     (PERIODIC + '[stages.periodic.x]\nmotion = "rate"\nrate = 1.0\nservo_factor = 0.2\n',
      "stages[0].periodic.x.servo_factor: only used with motion = 'servo'"),
     (BASE + "\n[timestep]\noverlap = 0.5\n",
-     "timestep.overlap: only used with law = 'hertz' (a linear spring's stiffness does not "
-     "depend on it), got 0.5"),
+     "timestep.overlap: only used with a law whose stiffness depends on the overlap (the "
+     "linear law's does not), got 0.5"),
     (BASE.replace("steps = 5", "steps = 5\n[stages.timestep]\nalpha = 0.1\noverlap = 0.02"),
-     "stages[0].timestep.overlap: only used with law = 'hertz'"),
+     "stages[0].timestep.overlap: only used with a law whose stiffness depends"),
     (BASE.replace("k_n = 1.0e6", "k_n = 1.0e6\nrestitution = 0.5\ndamping_normal = 3.0"),
      "contact.damping_normal: give the normal dashpot by restitution or by damping_normal, "
      "not both (they would add up; restitution is 0.5), got 3.0"),

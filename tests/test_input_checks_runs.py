@@ -313,7 +313,7 @@ def test_paper_refuses_a_non_empty_or_locked_folder(tmp_path, capsys, monkeypatc
     def never(*args, **kwargs):
         raise AssertionError("the study started")
 
-    monkeypatch.setattr("demstep.timestep.paper_table.paper_table", never)
+    monkeypatch.setattr("demstep.experiments.paper.paper_table", never)
     out = tmp_path / "paper"
     out.mkdir()
     (out / "notes.txt").write_text("mine\n")

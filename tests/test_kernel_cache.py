@@ -76,8 +76,8 @@ print(repr(float(k_r[0])))
 
 def test_a_cached_kernel_follows_a_change_of_an_inlined_function(tmp_path):
     """A copy of the package: a kernel of kernels/timestep_kernels.py that inlines the
-    rolling stiffness of contact/laws.py, run, cached; the formula changed in laws.py
-    only; the next process must compute the new value (with numba's own stamp it
+    rolling stiffness of contact/laws/, run, cached; the formula changed in laws/ only;
+    the next process must compute the new value (with numba's own stamp it
     loaded the stale kernel and printed the old one)."""
     copy = tmp_path / "src" / "demstep"
     shutil.copytree(_numba.PACKAGE_DIR, copy,
@@ -93,7 +93,7 @@ def test_a_cached_kernel_follows_a_change_of_an_inlined_function(tmp_path):
     before = k_r()
     assert before == 2.25 * 1.0 * 0.5**2 * 1.0  # k_r = 2.25 k_n mu_r^2 R*^2, all ones
     assert any((tmp_path / "cache").rglob("*.nbi"))  # cached
-    laws = copy / "contact" / "laws.py"
+    laws = copy / "contact" / "laws" / "__init__.py"
     text = laws.read_text(encoding="utf-8")
     assert text.count("k_r = 2.25 * k_sec") == 1
     laws.write_text(text.replace("k_r = 2.25 * k_sec", "k_r = 3.0 * k_sec"), encoding="utf-8")

@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from demstep.contact.laws import LAW_HERTZ, HertzMindlin, LinearSpring, damping_ratio_from_restitution
+from demstep.contact.laws import HertzMindlin, LinearSpring, damping_ratio_from_restitution
 from demstep.kernels import dem
 from demstep.kernels.neighbors import build_pair_list, transfer_history
 
@@ -178,7 +178,7 @@ def test_pair_forces_equal_numpy_reference(kernel):
     delta = r[pi] + r[pj] - np.linalg.norm(x[pj] - x[pi], axis=1)
     cover = np.choose(np.arange(P) % 3, [np.zeros(P), np.full(P, np.inf), 0.5 * np.abs(delta)])
     e_n, e_t, fric, dash, nc, uncovered, headroom = fn(
-        x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0, params, dt, ft2, fd2, et2,
+        x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), params, dt, ft2, fd2, et2,
         True, chunks, spans, f, t, fbuf, tbuf, sums, np.empty((P, 4)), cover)
     assert uncovered == np.count_nonzero(delta > cover) > 0
     # the smallest headroom cover - delta over every pair (here a touching one's < 0)
@@ -230,7 +230,7 @@ def test_hertz_pair_forces_equal_numpy_reference(kernel):
     fn = dem.pair_forces_serial if kernel == "serial" else dem.pair_forces
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
     e_n, e_t, fric, dash, nc, _, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
-                                  LAW_HERTZ, params, dt, ft2, fd2, et2, True, chunks, spans,
+                                  params, dt, ft2, fd2, et2, True, chunks, spans,
                                   f, t, fbuf, tbuf, sums, np.empty((P, 4)), np.zeros(0))
     tol = dict(rtol=1e-10, atol=1e-12)
     assert np.allclose(ft2, new_t, **tol)
@@ -258,7 +258,7 @@ def test_pair_forces_without_dashpot_skip_its_history():
     for store in (True, False):
         ft2, fd2, et2 = ft.copy(), np.zeros((P, 3)), etan.copy()
         f, t = np.zeros((len(r), 3)), np.zeros((len(r), 3))
-        out = dem.pair_forces_serial(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
+        out = dem.pair_forces_serial(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
                                      params, 1e-3, ft2, fd2, et2, store, np.array([0, P]),
                                      np.array([[0, len(r)]]), f, t, np.zeros((1, 0, 3)),
                                      np.zeros((1, 0, 3)), np.zeros((4, 3)), np.empty((P, 4)),
@@ -437,7 +437,7 @@ def test_pair_blocks_any_chunking_equal_numpy_reference(n_chunks):
     chunks, spans, f, t, fbuf, tbuf = chunk_buffers(pi, pj, len(r), n_chunks)
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
     fn = dem.pair_forces_serial if n_chunks == 1 else dem.pair_forces
-    e_n, e_t, fric, dash, nc, _, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0,
+    e_n, e_t, fric, dash, nc, _, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
                                   law.params(), dt, ft2, fd2, et2, True, chunks, spans, f, t,
                                   fbuf, tbuf, np.zeros((4, 3)), np.empty((0, 4)), np.zeros(0))
     tol = dict(rtol=1e-10, atol=1e-12)
@@ -486,7 +486,7 @@ def test_rolling_loop_in_chunks_equals_one_chunk():
     params = law.params()
     inertia = 0.4 * m * r**2
     geo = np.empty((P, 4))
-    dem.pair_forces_serial(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), 0, params,
+    dem.pair_forces_serial(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), params,
                            1e-3, ft.copy(), fd.copy(), etan.copy(), True, np.array([0, P]),
                            np.array([[0, len(r)]]), np.zeros((len(r), 3)),
                            np.zeros((len(r), 3)), np.zeros((1, 0, 3)), np.zeros((1, 0, 3)),
@@ -500,7 +500,7 @@ def test_rolling_loop_in_chunks_equals_one_chunk():
             tbuf[:] = 0.0  # (the pair loop zeroes the bands; here the rolling loop alone)
         roll = roll0.copy()
         fn = dem.rolling_forces_serial if n_chunks == 1 else dem.rolling_forces
-        out = fn(w, r, m, inertia, 1.0 / m, pi, pj, geo, 0, params, 1e-3, roll, chunks, spans,
+        out = fn(w, r, m, inertia, 1.0 / m, pi, pj, geo, params, 1e-3, roll, chunks, spans,
                  t, tbuf)
         if n_chunks > 1:
             dem.reduce_forces(fbuf * 0.0, tbuf, spans, np.zeros((len(r), 3)), t)
@@ -538,7 +538,7 @@ def test_pair_loop_for_a_law_and_box_equals_the_general_one(parallel, dashpot, p
         ft, fd, et = ft0.copy(), fd0.copy(), np.sum(ft0**2, axis=1) / 1600.0
         sums = np.zeros((4, 3))
         cover = np.full(P, 0.01)
-        out = fn(x, v, w, r, m, 1.0 / m, pi, pj, box, np.array([0.1, 0.0, 0.0]), 0, params,
+        out = fn(x, v, w, r, m, 1.0 / m, pi, pj, box, np.array([0.1, 0.0, 0.0]), params,
                  1e-3, ft, fd, et, store_dashpot, chunks, spans, f, t, fbuf, tbuf, sums,
                  np.empty((0, 4)), cover)
         f, t = reduced("parallel" if parallel else "serial", fbuf, tbuf, spans, f, t)
@@ -578,7 +578,7 @@ def test_a_pair_across_a_moving_periodic_boundary_is_its_unwrapped_image():
         f, t = np.zeros((2, 3)), np.zeros((2, 3))
         ft, fd, et = np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1)
         dem.pair_forces_serial(x, vel, w, r, m, 1.0 / m, np.array([0]), np.array([1]), box,
-                               box_rate, 0, law.params(), 1e-3, ft, fd, et, True,
+                               box_rate, law.params(), 1e-3, ft, fd, et, True,
                                np.array([0, 1]), np.array([[0, 2]]), f, t,
                                np.zeros((1, 0, 3)), np.zeros((1, 0, 3)), np.zeros((4, 3)),
                                np.empty((1, 4)), np.zeros(0))

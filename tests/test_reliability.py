@@ -6,7 +6,6 @@ pipe, no numba cache) end cleanly with the state recorded."""
 
 import csv
 import json
-import math
 import os
 import shutil
 import signal
@@ -920,15 +919,31 @@ def test_energy_alarm_in_history_and_run_json(tmp_path):
 
 
 def test_energy_alarm_survives_a_restart(tmp_path):
+    """The energy monitor owns the run's alarm record (its checkpointed state: whether
+    the balance is above eps now, the first alarm, the number of alarms); run.json
+    reports it. A run stopped (SIGINT) in the middle of an excursion above eps, after
+    its first alarm, and restarted from the checkpoint written then reports the same
+    first alarm (step, time and error: those of the history's first row with the alarm
+    set) and the same number of alarms (the excursions the history shows, the one the
+    restart cut counted once) as the uninterrupted run, and writes the same history."""
     case = load_case(write_case(tmp_path, steps=400, checkpoint_every=0, extra=ALARM))
     straight = run_case(case, tmp_path / "a", quiet=True, chunk_steps=50)
     stopped = run_case(case, tmp_path / "b", quiet=True, chunk_steps=50,
                        on_chunk=send_at(300, signal.SIGINT))
     assert stopped.status == "interrupted"
-    first = run_json(tmp_path / "b")["first_energy_alarm"]
+    h = read_history(tmp_path / "a" / "history.csv")  # (a row at every energy check)
+    alarm = h["energy_alarm"]
+    assert set(np.unique(alarm)) <= {0.0, 1.0}
+    k = int(np.argmax(alarm == 1))
+    stop = int(np.flatnonzero(h["step"] == run_json(tmp_path / "b")["step"])[0])
+    assert alarm[k] == 1 and k < stop and alarm[stop] == 1  # the first alarm, then an
+    # excursion the stop cuts
+    excursions = int(np.count_nonzero(np.diff(np.r_[0.0, alarm]) == 1))
     resumed = run_case(case, tmp_path / "b", quiet=True, chunk_steps=50, restart=stopped.checkpoint)
     assert resumed.status == straight.status == "completed"
     assert (tmp_path / "a" / "history.csv").read_text() == (tmp_path / "b" / "history.csv").read_text()
-    assert run_json(tmp_path / "b")["first_energy_alarm"] == run_json(tmp_path / "a")["first_energy_alarm"] == first
-    assert read_history(tmp_path / "b" / "history.csv")["energy_alarm"][-1] in (0.0, 1.0)
-    assert not math.isnan(first["energy_error"])
+    first = {"step": int(h["step"][k]), "time": h["time"][k], "energy_error": h["energy_error"][k]}
+    assert run_json(tmp_path / "a")["first_energy_alarm"] == first
+    assert run_json(tmp_path / "b")["first_energy_alarm"] == first
+    assert run_json(tmp_path / "a")["energy_alarms"] == excursions
+    assert run_json(tmp_path / "b")["energy_alarms"] == excursions

@@ -5,6 +5,7 @@ restarts, and a log that is never written through a symbolic link."""
 import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -291,3 +292,28 @@ def test_the_sweep_summary_and_the_run_agree_on_the_energy_error(tmp_path, capsy
     assert info["max_energy_error"] > 0
     assert summarize_run(out)["max_energy_error"] == info["max_energy_error"] \
         == float(np.nanmax(errors))
+
+
+# ------------------------------------------- checkpoints of the previous format
+def test_a_checkpoint_of_the_previous_format_restarts_bit_for_bit(tmp_path, capsys):
+    """tests/data/format3: a run of an earlier demstep (format 3: the scalars in one
+    array; Hertz contacts with friction and dashpots, local damping, a moving wall)
+    checkpointed at step 200 and completed at step 300. Restarted from step 200 by this
+    demstep, it ends at the old run's final state bit for bit: the format loads, and
+    the physics are those of the earlier code. (An 'auto' checkpoint loads too; its
+    certificate, made with the old law parameters, is estimated anew at the restart.)"""
+    data = Path(__file__).resolve().parent / "data" / "format3"
+    for name in ("case.toml", "step0000000200.npz", "step0000000200.json"):
+        shutil.copy(data / name, tmp_path / name)
+    code, _, err = cli(["run", tmp_path / "case.toml", "--out", tmp_path / "out", "--quiet",
+                        "--restart", tmp_path / "step0000000200.npz"], capsys)
+    assert code == 0, err
+    new = dict(np.load(tmp_path / "out" / "checkpoints" / "step0000000300.npz"))
+    old = dict(np.load(data / "step0000000300.npz"))
+    assert int(old["format"][0]) == 3 and int(new["format"][0]) == 4
+    for key in ("spheres.x", "spheres.v", "spheres.w", "pairs.shear", "wall_state.point",
+                "ledger.acc", "ledger.energy"):
+        width = min(len(old[key]), len(new[key])) if key.startswith("ledger") else None
+        assert np.array_equal(old[key][:width], new[key][:width]), key
+    assert new["scalars.dt"][0] == old["scalars"][2]
+    assert new["scalars.step"][0] == old["scalars"][0] == 300

@@ -7,7 +7,7 @@ import pytest
 
 import demstep.case.build as case_build
 from demstep.case import build_simulation, load_case
-from demstep.contacts import find_contacts
+from demstep.contact.sets import find_contacts
 from demstep.errors import InputError
 from demstep.io.formats import write_csv
 from demstep.io.vtk import particle_mesh
@@ -105,10 +105,10 @@ def test_a_file_in_random_order_runs_reordered_and_named_by_its_rows(tmp_path, m
     monkeypatch.setattr(case_build, "SPATIAL_ORDER_MIN", 10**9)
     plain = build_simulation(case)
     assert plain.source_index is None and plain.sort_every == 1000  # (the case's default)
-    plain.sort_every = None  # (nor sorted by the engine at its first build)
+    plain.ordering.every = None  # (nor sorted by the engine at its first build)
     np.testing.assert_array_equal(particle_mesh(plain).point_data["id"], np.arange(len(x)))
     sim.run(steps=60)
-    assert getattr(sim, "n_sorts", 0) == 0  # the file's order, sorted by the case already
+    assert sim.ordering.n_sorts == 0  # the file's order, sorted by the case already
     with pytest.warns(RuntimeWarning, match="random order"):  # the engine notices
         plain.run(steps=60)
     moved = np.abs(plain.x - x).max()
@@ -202,7 +202,7 @@ def test_dt_of_a_file_in_random_order_is_solved_reordered_and_reports_its_rows(t
 
     import meshio
 
-    import demstep.timestep_input as ti
+    import demstep.analysis_input as ti
     from demstep.cli import main
 
     x, _ = shuffled_packing()
@@ -219,11 +219,11 @@ def test_dt_of_a_file_in_random_order_is_solved_reordered_and_reports_its_rows(t
     mesh = meshio.read(vtk)
     np.testing.assert_allclose(mesh.point_data["radius"], r[mesh.point_data["id"]],
                                rtol=1e-12)
-    reordered = ti.from_file(tmp_path / "spheres.csv", ti.ContactModel(k_n=1e5, k_t=1e5),
+    reordered = ti.from_file(tmp_path / "spheres.csv", ti.ContactModel(parameters={"k_n": 1e5, "k_s": 1e5}),
                              density=2500.0, contact_tol=0.05)
     assert reordered.ids is not None
     original = ti.from_particles(Particles.from_density(x, r, 2500.0),
-                                 ti.ContactModel(k_n=1e5, k_t=1e5), None, None, (), 0.05)
+                                 ti.ContactModel(parameters={"k_n": 1e5, "k_s": 1e5}), None, None, (), 0.05)
     assert original.contacts.n == reordered.contacts.n
     np.testing.assert_array_equal(reordered.particles.r, r[reordered.ids])
     from demstep.timestep.exact import exact_critical_step
@@ -327,16 +327,16 @@ def test_sorting_during_a_run_keeps_neighbours_close_and_the_run_unchanged():
     plain.run(steps=300)
     sorted_.run(steps=300)
     # sorted at the first build; looked at again at a later rebuild: nothing to gain
-    assert sorted_.n_sorts == 1 and sorted_._last_sort > 0
+    assert sorted_.ordering.n_sorts == 1 and sorted_.ordering.last_sort > 0
     tidy = spread(sorted_)
     assert tidy < 0.25 * spread(plain)
     for sim in (plain, sorted_):
         sim.reorder(scramble)
     assert spread(sorted_) > 4 * tidy
-    rebuilds = sorted_.n_rebuilds
+    rebuilds = sorted_.lists.n_rebuilds
     sorted_.run(steps=300)
     plain.run(steps=300)
-    assert sorted_.n_rebuilds > rebuilds and sorted_.n_sorts == 2
+    assert sorted_.lists.n_rebuilds > rebuilds and sorted_.ordering.n_sorts == 2
     assert spread(sorted_) < 0.25 * spread(plain)
     np.testing.assert_array_equal(np.sort(sorted_.source_index), np.arange(216))
     np.testing.assert_allclose(by_row(sorted_, sorted_.x), by_row(plain, plain.x), rtol=0,
@@ -354,7 +354,7 @@ def test_a_checkpoint_of_a_sorted_run_restarts_bit_for_bit(tmp_path):
     whole.run(steps=700)
     part = _shuffled_box(sort_every=100)
     part.run(steps=350)
-    assert part.n_sorts >= 1 and not np.array_equal(part.source_index, np.arange(216))
+    assert part.ordering.n_sorts >= 1 and not np.array_equal(part.source_index, np.arange(216))
     path = save_checkpoint(part, tmp_path / "c.npz")
     fresh = _shuffled_box(sort_every=100)  # (built in the input order again)
     load_checkpoint(fresh, path)
@@ -375,14 +375,14 @@ def test_the_auto_step_certificate_follows_a_renumbering():
     a, b = (_mixed_box(timestep=ts(), gravity=(0, 0, 0)) for _ in range(2))
     a.run(steps=250)
     b.run(steps=250)
-    drift = b._drift(b._dt_cert)
+    drift = b.auto.drift(b.auto.certificate)
     assert drift[0] > 0
     order = np.random.default_rng(2).permutation(len(b.r))
     b.reorder(order)
-    assert b._contacts_covered()
-    assert b._drift(b._dt_cert) == pytest.approx(drift, rel=1e-12)
-    np.testing.assert_array_equal(b._dt_mode.reshape(len(b.r), -1),
-                                  a._dt_mode.reshape(len(a.r), -1)[order])
+    assert b.auto.contacts_covered()
+    assert b.auto.drift(b.auto.certificate) == pytest.approx(drift, rel=1e-12)
+    np.testing.assert_array_equal(b.auto.mode.reshape(len(b.r), -1),
+                                  a.auto.mode.reshape(len(a.r), -1)[order])
     a.run(steps=300)
     b.run(steps=300)
     assert b.dt == pytest.approx(a.dt, rel=1e-9)

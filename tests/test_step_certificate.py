@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from demstep.contact.laws import LinearSpring
-from demstep.contacts import ContactSet, find_contacts
+from demstep.contact.sets import ContactSet, find_contacts
 from demstep.energy import EnergyMonitor
 from demstep.engine import Simulation, TimeStep
 from demstep.particles import Particles
@@ -319,26 +319,53 @@ def quiet_packing(safety=0.8, every=100):
 
 
 def test_a_kept_certificate_is_within_its_tolerance_of_a_new_solve():
-    """In a quiet packing the scheduled estimates keep the last certificate instead of a
-    new solve; each kept step is below the exact step of the contacts it covers (a new
-    solve, dense on this size) and within AUTO_REFRESH_RTOL of it."""
+    """A scheduled estimate keeps the last certificate instead of a new solve only when
+    its step is within AUTO_REFRESH_RTOL of what a new solve would give. In a quiet
+    packing each kept step is the certificate's own (2 / its smallest certified root,
+    the drift included), below the exact step of the contacts it covers (a new solve,
+    dense on this size) and within AUTO_REFRESH_RTOL of it. Then the certificate of
+    the coupled element bound of the same contacts (a rigorous lower bound on the
+    critical step, here about 40 % below the exact one: out of tolerance) is not kept:
+    the scheduled estimate is a new solve, and gives the exact step (to its residual)."""
     sim = quiet_packing()
-    kept = []
-    refresh = sim._refreshed_estimate
+    auto = sim.auto
+    rtol = auto.AUTO_REFRESH_RTOL
+    seen = []  # (the certificate's step, the step the refresh gave, the exact step)
+    refresh = auto.refreshed_estimate
+
+    def certificate_step():
+        cert = auto.certificate
+        return 2.0 / cert.smallest_sigma(auto.drift(cert))
 
     def recorded(horizon):
+        step = certificate_step()
         value, prepared = refresh(horizon)
-        if value is not None:
-            kept.append((value, sim.critical_dt("exact", horizon=horizon)))
+        seen.append((step, value, sim.critical_dt("exact", horizon=horizon)))
         return value, prepared
 
-    sim._refreshed_estimate = recorded
+    auto.refreshed_estimate = recorded
     sim.run(steps=1000)
-    assert sim.n_rebuilds == 1  # the cover is the whole Verlet list all along
+    assert sim.lists.n_rebuilds == 1  # the cover is the whole Verlet list all along
+    kept = [(step, value, crit) for step, value, crit in seen if value is not None]
     assert len(kept) >= 8
-    for value, crit in kept:
+    for step, value, crit in kept:
+        assert value == step
         assert value <= crit * (1 + 1e-9)
-        assert value >= crit / (1 + sim.AUTO_REFRESH_RTOL)
+        assert value >= crit / (1 + rtol)
+    # a certificate out of tolerance: the element bound's, recorded by its estimate
+    horizon = sim.dt_horizon
+    crit = sim.critical_dt("exact", horizon=horizon)
+    element = auto.solve("element-coupled", horizon, auto.AUTO_EXACT_TOL)
+    assert element == pytest.approx(sim.critical_dt("element-coupled", horizon=horizon),
+                                     rel=1e-12)
+    assert certificate_step() == pytest.approx(element, rel=1e-12)
+    assert certificate_step() < crit / (1 + rtol)
+    refreshes, solves, seen[:] = sim.n_dt_refreshes, sim.n_dt_solves, []
+    auto.propose_dt(force=True)
+    assert len(seen) == 1 and seen[0][1] is None  # refused
+    assert sim.n_dt_refreshes == refreshes and sim.n_dt_solves == solves + 1  # a new solve
+    assert sim.dt_estimate <= crit * (1 + 1e-9)
+    assert sim.dt_estimate == pytest.approx(crit, rel=10 * auto.AUTO_EXACT_TOL)
 
 
 def test_a_refused_refresh_hands_its_contact_set_to_the_new_estimate(monkeypatch):
@@ -347,7 +374,7 @@ def test_a_refused_refresh_hands_its_contact_set_to_the_new_estimate(monkeypatch
     new estimate and its cover are those of a contact set built afresh."""
     sim = quiet_packing()
     sim.run(steps=150)
-    monkeypatch.setattr(sim, "AUTO_REFRESH_RTOL", 0.0)
+    monkeypatch.setattr(sim.auto, "AUTO_REFRESH_RTOL", 0.0)
     build = sim.contact_set
     calls = []
 
@@ -357,18 +384,18 @@ def test_a_refused_refresh_hands_its_contact_set_to_the_new_estimate(monkeypatch
 
     monkeypatch.setattr(sim, "contact_set", counted)
     refreshes = sim.n_dt_refreshes
-    sim._choose_dt(force=True)
+    sim.auto.propose_dt(force=True)
     assert len(calls) == 1
     assert sim.n_dt_refreshes == refreshes  # refused: a new solve
     cover = {}
     build(sim.dt_horizon, cover)
-    assert set(cover) == set(sim._dt_cover)
+    assert set(cover) == set(sim.auto.cover)
     for key, (keys, overlaps) in cover.items():
-        np.testing.assert_array_equal(sim._dt_cover[key][0], keys)
-        np.testing.assert_array_equal(sim._dt_cover[key][1], overlaps)
+        np.testing.assert_array_equal(sim.auto.cover[key][0], keys)
+        np.testing.assert_array_equal(sim.auto.cover[key][1], overlaps)
     # (both certified steps of solves at AUTO_EXACT_TOL: within ~4 tol of the exact one)
-    fresh = sim.critical_dt("exact", horizon=sim.dt_horizon, tol=sim.AUTO_EXACT_TOL)
-    assert sim.dt_estimate == pytest.approx(fresh, rel=10 * sim.AUTO_EXACT_TOL)
+    fresh = sim.critical_dt("exact", horizon=sim.dt_horizon, tol=sim.auto.AUTO_EXACT_TOL)
+    assert sim.dt_estimate == pytest.approx(fresh, rel=10 * sim.auto.AUTO_EXACT_TOL)
 
 
 def test_normals_turned_too_far_force_a_new_estimate():
@@ -379,18 +406,18 @@ def test_normals_turned_too_far_force_a_new_estimate():
     looked at."""
     sim = quiet_packing(safety=0.9, every=10**6)
     sim.run(steps=50)
-    assert sim._still_certified() and 0 < sim._check_budget < np.inf
+    assert sim.auto.accept() and 0 < sim.auto.check_budget < np.inf
     from demstep.kernels import dem
 
     sim.x[:] += [1e-3, 0.0, 0.0]
     # the budget spent by both of the kernels' bounds (dem.drift_used): checked, a new one
     sim.counters[dem.DRIFT_SUM] = sim.counters[dem.DRIFT_NOW] = np.inf
-    assert sim._still_certified() and sim.counters[dem.DRIFT_SUM] == 0
+    assert sim.auto.accept() and sim.counters[dem.DRIFT_SUM] == 0
     c, s = np.cos(np.radians(20)), np.sin(np.radians(20))
     sim.x[:] = sim.x @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
-    assert sim._still_certified()  # (budget not spent: not looked at)
-    sim.counters[dem.DRIFT_SUM] = 1.01 * sim._check_budget
-    assert not sim._still_certified()
+    assert sim.auto.accept()  # (budget not spent: not looked at)
+    sim.counters[dem.DRIFT_SUM] = 1.01 * sim.auto.check_budget
+    assert not sim.auto.accept()
 
 
 def test_uncovered_masks_equal_a_numpy_search():
@@ -568,27 +595,27 @@ def test_the_kernels_drift_bound_covers_every_move_since_the_check():
                      LinearSpring(k_n=1e4, k_s=5e3, mu=0.4, restitution=0.5), walls=walls,
                      gravity=[0, 0, -9.81], timestep=TimeStep.auto(safety=0.9, every=100))
     at_check = {}
-    renew = sim._renew_drift_budget
+    renew = sim.auto.renew_drift_budget
 
     def recording():
         at_check.update(x=sim.x.copy(), lid=sim.wall_point[-1].copy())
         return renew()
 
-    sim._renew_drift_budget = recording
+    sim.auto.renew_drift_budget = recording
     sim.prepare()
     smaller = set()
-    rebuilds = sim.n_rebuilds
+    rebuilds = sim.lists.n_rebuilds
     for _ in range(2500):
         sim.run(steps=1)
         moved = 2.0 * np.linalg.norm(sim.x - at_check["x"], axis=1).max()
         lid = np.linalg.norm(sim.wall_point[-1] - at_check["lid"])
-        if sim._check_budget == np.inf:  # (no certificate with a drift to follow)
+        if sim.auto.check_budget == np.inf:  # (no certificate with a drift to follow)
             continue
         used = dem.drift_used(sim.counters)
         # (attained, up to rounding, while the particles and the lid move straight on)
         assert used >= (moved + lid) * (1 - 1e-9)
         smaller.add("sum" if used == sim.counters[dem.DRIFT_SUM] else "displacement")
-    assert smaller == {"sum", "displacement"} and sim.n_rebuilds > rebuilds + 10
+    assert smaller == {"sum", "displacement"} and sim.lists.n_rebuilds > rebuilds + 10
 
 
 def test_a_vibrating_packing_checks_its_drift_far_less_often_by_displacement():
@@ -610,15 +637,15 @@ def test_a_vibrating_packing_checks_its_drift_far_less_often_by_displacement():
                          energy=EnergyMonitor(every=10**9),
                          timestep=TimeStep.auto(safety=0.9, every=10**6))
         if not displacement_bound:
-            sim._displacements = lambda: (-1.0, 0.0)
+            sim.lists.moved_since_build = lambda: (-1.0, 0.0)
         count = [0]
-        renew = sim._renew_drift_budget
+        renew = sim.auto.renew_drift_budget
 
         def counting():
             count[0] += 1
             return renew()
 
-        sim._renew_drift_budget = counting
+        sim.auto.renew_drift_budget = counting
         sim.run(steps=2000)
         return count[0], sim.dt
 

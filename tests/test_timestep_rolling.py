@@ -19,14 +19,14 @@ import pytest
 
 from demstep.cli import main
 from demstep.contact.laws import LinearSpring, rolling_coefficients, rolling_inertia
-from demstep.contacts import ContactSet, find_contacts
+from demstep.contact.sets import ContactSet, find_contacts
 from demstep.kernels.timestep_kernels import (contact_energies, contact_gram, contact_matvec,
                                               contact_quadratic_forms)
 from demstep.packings import lattice
 from demstep.particles import Particles
 from demstep.timestep import estimate_time_steps
 from demstep.timestep.assembly import assemble_stiffness, stiffness_diagonal
-from demstep.timestep.bodies import RigidBodies, body_element_dt, body_stiffness_diagonal
+from demstep.timestep.clumps import RigidBodies, body_element_dt, body_stiffness_diagonal
 from demstep.timestep.certificate import StepCertificate, added_contacts_bound
 from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.elements import coupled_element_damped_dt, coupled_element_lambda
@@ -207,7 +207,7 @@ def test_contact_set_copies_leave_absent_coefficients_untouched():
     mmap threshold fixed), so that its growth counts exactly the pages written."""
     code = """
 import os, numpy as np
-from demstep.contacts import ContactSet
+from demstep.contact.sets import ContactSet
 def rss():
     return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 n = 500_000
@@ -836,10 +836,10 @@ def test_cli_epsd_convention_with_viscous_part_on_a_file(tmp_path, capsys):
     c = find_contacts(p, 100.0)
     r_star = 0.5
     i_star = float(rolling_inertia(p.inertia[0], p.m[0], 1.0, p.inertia[0], p.m[0], 1.0))
-    from demstep.contact.laws import ContactLaw
+    from demstep.contact.laws import LinearSpring
 
-    params = ContactLaw(rolling_convention="epsd", rolling_friction=0.4, twisting_friction=0.2,
-                        rolling_damping=0.3).params()
+    params = LinearSpring(k_n=100.0, rolling_convention="epsd", rolling_friction=0.4,
+                          twisting_friction=0.2, rolling_damping=0.3).params()
     k_r, k_w, c_r, c_w = rolling_coefficients(params, 100.0, 100.0, r_star, i_star)
     assert k_r == pytest.approx(2.25 * 100 * 0.16 * 0.25)
     assert c_r == pytest.approx(2 * 0.3 * math.sqrt(i_star * k_r))
@@ -927,13 +927,13 @@ def test_fixed_particle_counts_as_a_wall_in_the_rolling_inertia():
     """I* of a contact with a fixed particle is the moving side's I + m r^2 alone (the
     engine's convention), so its viscous rolling part is 2 eta sqrt(I* k_r); between two
     free particles of radii 0.2 and 0.3, the harmonic combination of both."""
-    from demstep.timestep_input import ContactModel, from_particles
+    from demstep.analysis_input import ContactModel, from_particles
 
     x = np.array([[0.0, 0, 0], [0.5, 0, 0]])
     radii = np.array([0.2, 0.3])  # radii other than 1: m r^2 is no m r
     p0 = Particles.from_density(x, radii, 1.0)
     p = Particles(p0.x, p0.r, p0.m, p0.inertia, fixed=np.array([True, False]))
-    model = ContactModel("linear", k_n=100.0, rolling_convention="beta", rolling_stiffness=1.0,
+    model = ContactModel("linear", parameters={"k_n": 100.0}, rolling_convention="beta", rolling_stiffness=1.0,
                          rolling_damping=0.5)
     c = from_particles(p, model).contacts
     assert c.n == 1
@@ -953,7 +953,7 @@ def test_laws_with_rolling_reach_the_analysis_from_a_case_law_and_a_simulation()
     dt`; the contacts of a Simulation get the law's rolling springs from their tangent
     stiffnesses when the engine's contact set has none."""
     from demstep.engine import Simulation, TimeStep
-    from demstep.timestep_input import from_particles, from_simulation, model_from_law
+    from demstep.analysis_input import from_particles, from_simulation, model_from_law
 
     law = LinearSpring(k_n=1e4, k_s=6e3, rolling_convention="beta", rolling_stiffness=0.5,
                        twisting_stiffness=0.2, rolling_damping=0.1)

@@ -27,7 +27,7 @@ the demstep experiment); the threshold is found by bisection to 0.2 % within [0.
   A clump's spin is set through its angular momentum (what the aspherical path
   integrates).
 * demstep: the exact critical step of the packing's state (six DOFs per body, world
-  inertia tensors; ``demstep.timestep.bodies``) and the engine's threshold by the same
+  inertia tensors; ``demstep.timestep.clumps``) and the engine's threshold by the same
   bisection (``clump_stability.measured_threshold``).
 
 Both thresholds and the exact step are reported as alpha = dt / sqrt(m_body / k).

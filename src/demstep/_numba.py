@@ -13,6 +13,7 @@ as plain Python (the tests use this against slow numpy references).
 import functools
 import hashlib
 import os
+import pickle
 import types
 import warnings
 from pathlib import Path
@@ -53,7 +54,7 @@ def _cache_writable(dispatcher) -> bool:
 #: file formats, plots, the runner): the kernels' cache does not depend on them
 PACKAGE_DIR = Path(__file__).resolve().parent
 NOT_COMPILED = ("cli", "case", "sweep", "experiments", "io", "plotting.py",
-                "plotting_run.py", "runner.py", "engine.py", "timestep_input.py",
+                "plotting_run.py", "runner.py", "engine", "analysis_input.py",
                 "packings.py", "walls.py")
 
 
@@ -119,12 +120,35 @@ def _kernel_cache_class():
 KERNEL_CACHE = _kernel_cache_class()
 
 
+def _stale_safe(cache_file):
+    """``cache_file`` (numba's index of a kernel's cache) reading an index it cannot
+    unpickle as an empty one (a miss), instead of raising: an index written by an older
+    demstep names types it no longer has (its signatures are pickled before the stamp
+    that says the entry is stale can be compared; seen when the law parameters' type
+    changed: "Can't get attribute 'LawParams'")."""
+    load = cache_file._load_index
+
+    def load_index():
+        try:
+            return load()
+        except (AttributeError, ImportError, ModuleNotFoundError, EOFError, TypeError,
+                ValueError, pickle.UnpicklingError):
+            return {}
+
+    cache_file._load_index = load_index
+    return cache_file
+
+
 def _with_package_cache(dispatcher):
     """The dispatcher (compiled with ``cache=True``) with its cache stamped by the
-    package's compiled sources (:func:`kernel_source_stamp`)."""
+    package's compiled sources (:func:`kernel_source_stamp`), and an index left by an
+    older version read as a miss (:func:`_stale_safe`)."""
     py_func = getattr(dispatcher, "py_func", None)  # (None: NUMBA_DISABLE_JIT, plain Python)
     if KERNEL_CACHE is not None and py_func is not None:
         dispatcher._cache = KERNEL_CACHE(py_func)
+        cache_file = getattr(dispatcher._cache, "_cache_file", None)
+        if cache_file is not None and hasattr(cache_file, "_load_index"):
+            _stale_safe(cache_file)
     return dispatcher
 
 

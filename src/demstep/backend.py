@@ -12,9 +12,9 @@ bundles of :mod:`demstep.state` without touching the engine. A backend offers:
 ``transfer_history(old_i, old_j, new_i, new_j, *history)`` -> history on the new list;
 ``pair_chunks(i, j, n, n_chunks)`` -> (chunks, spans): the work split of the pair loop;
 ``copy_positions(x, out)``: out[:] = x, the positions (N, 3) at a build of the lists;
-``advance(n_steps, controls, spheres, bodies, pairs, bonds, walls, box, ledger, law, params)``
+``advance(n_steps, controls, spheres, bodies, pairs, bonds, walls, box, ledger, params)``
     -> (steps done, stop reason): whole steps in the documented order;
-``pair_contact_forces(x, r, i, j, periodic_len, law, params, shear, dashpot, force, normal)``
+``pair_contact_forces(x, r, i, j, periodic_len, params, shear, dashpot, force, normal)``
     -> mask of touching pairs, filling their forces and normals (output only).
 
 The ``cpu`` backend is the numba kernels of :mod:`demstep.kernels`.
@@ -23,6 +23,7 @@ The ``cpu`` backend is the numba kernels of :mod:`demstep.kernels`.
 from __future__ import annotations
 
 from demstep.errors import InputError
+from demstep.kernels import dem, integration, neighbors
 
 
 class CPUBackend:
@@ -31,8 +32,6 @@ class CPUBackend:
     name = "cpu"
 
     def __init__(self):
-        from demstep.kernels import dem, integration, neighbors
-
         self.build_pair_list = neighbors.build_pair_list
         self.build_wall_list = neighbors.build_wall_list
         self.transfer_history = neighbors.transfer_history

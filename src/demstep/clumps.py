@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from demstep.errors import InputError
+from demstep.particles import INERTIA_FACTOR, Particles
+from demstep.state import Bodies
 
 #: relative convergence of the numerical mass properties of overlapping members
 MASS_RTOL = 1e-4
@@ -373,9 +375,6 @@ def with_members(free, clumps: ClumpSet, rotation: bool = True, fixed=None,
     LIGGGHTS' multisphere does). ``fixed`` (B,) holds bodies in place; ``velocities``
     (B, dim) [L/T] and ``angular_velocities`` (B, 3) [1/T] (2D: (B,)) are the bodies'
     at t = 0. Returns (Particles of every sphere, Bodies, index of the first member)."""
-    from demstep.particles import INERTIA_FACTOR, Particles
-    from demstep.state import Bodies
-
     dim = clumps.dim
     if free is not None and free.dim != dim:
         raise InputError(f"clumps: {dim}D bodies with {free.dim}D free particles")

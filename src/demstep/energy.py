@@ -259,11 +259,14 @@ class EnergyMonitor:
     every: int = 100
     action: str = "warn"
     floor: float | None = None
+    #: (step, time [T], error) of each alarm raised by this object (not restored)
     alarms: list = field(default_factory=list)
     max_error: float = 0.0
     _alarmed: bool = False
     #: (step, time [T], error) of the first alarm of the run, kept across restarts
     first_alarm: tuple | None = None
+    #: how many alarms (excursions above ``eps``) the run raised, kept across restarts
+    n_alarms: int = 0
 
     @property
     def alarm(self) -> bool:
@@ -272,17 +275,22 @@ class EnergyMonitor:
         return self._alarmed
 
     def state(self) -> np.ndarray:
-        """What a checkpoint keeps: [alarm, first alarm step, time, error] (step -1:
-        no alarm yet)."""
+        """What a checkpoint keeps: [alarm, first alarm step, time, error, number of
+        alarms] (step -1: no alarm yet). The monitor owns the run's alarm record: run.json
+        reports it (:mod:`demstep.runner`), as of the step the state describes."""
         first = self.first_alarm if self.first_alarm is not None else (-1, 0.0, 0.0)
-        return np.array([float(self._alarmed), *map(float, first)])
+        return np.array([float(self._alarmed), *map(float, first), float(self.n_alarms)])
 
     def restore_state(self, values) -> None:
-        """Restore :meth:`state` (a restart)."""
+        """Restore :meth:`state` (a restart; older checkpoints without the number of
+        alarms: the first alarm's only)."""
         values = np.asarray(values, dtype=np.float64).reshape(-1)
         self._alarmed = bool(values[0])
+        self.first_alarm = None
         if len(values) >= 4 and values[1] >= 0:
             self.first_alarm = (int(values[1]), float(values[2]), float(values[3]))
+        self.n_alarms = (int(values[4]) if len(values) >= 5
+                         else int(self.first_alarm is not None))
 
     def __post_init__(self):
         if self.action not in ("warn", "stop"):
@@ -301,6 +309,7 @@ class EnergyMonitor:
         if err > self.eps:
             if not self._alarmed:
                 self.alarms.append((step, time, err))
+                self.n_alarms += 1
                 if self.first_alarm is None:
                     self.first_alarm = (step, time, err)
                 log.warning("energy balance error %.3g exceeds %.3g at step %d (t = %.6g)",

@@ -1,3 +1,5 @@
+import os
+
 """Exceptions that reach the user as one-line messages, and the range of magnitudes
 every input number must lie in."""
 
@@ -37,8 +39,6 @@ class SimulationDiverged(RuntimeError):
 def missing_file(path, what: str = "file") -> InputError:
     """The InputError for ``path`` that is not an existing regular file, naming why:
     ``"<path>: a folder, not a <what>"`` or ``"<path>: no such <what>"``."""
-    import os
-
     if os.path.isdir(path):
         return InputError(f"{path}: a folder, not a {what}")
     return InputError(f"{path}: no such {what}")

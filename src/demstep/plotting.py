@@ -6,20 +6,20 @@ from pathlib import Path
 
 import numpy as np
 
+from demstep.io.atomic import atomic_path
+
 
 def _pyplot():
-    import matplotlib
+    import matplotlib  # (deferred: a heavy import, loaded only when used)
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # (deferred: a heavy import, loaded only when used)
 
     return plt
 
 
 def save_figure(fig, path) -> Path:
     """Save atomically: a temporary file in the same folder, then rename."""
-    from demstep.io.atomic import atomic_path
-
     path = Path(path)
     try:
         with atomic_path(path, suffix=path.suffix) as tmp:

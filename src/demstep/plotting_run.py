@@ -21,6 +21,7 @@ import numpy as np
 
 from demstep.energy import DEFAULT_EPS
 from demstep.errors import InputError
+from demstep.io.history import read_history
 from demstep.io.manifest import OutputManifest
 from demstep.plotting import _pyplot, save_figure
 
@@ -42,8 +43,6 @@ HISTORY_COLUMNS = ("step", "time", "dt", "dt_estimate", "kinetic_translational",
 def plot_run(out_dir) -> list[Path]:
     """Draw the run's figures from ``out_dir/history.csv`` into ``out_dir/plots``;
     returns the files written."""
-    from demstep.io.history import read_history
-
     out_dir = Path(out_dir)
     path = out_dir / "history.csv" if out_dir.is_dir() else out_dir
     if not path.is_file():

@@ -38,12 +38,17 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
+from demstep import __version__
 from demstep.case import Case, apply_stage, build_simulation, check_stages, dump_case
+from demstep.energy import EnergyBalanceError
+from demstep.errors import InputError, SimulationDiverged
 from demstep.io.atomic import remove_orphans, write_text_atomic
+from demstep.io.checkpoint import load_checkpoint, save_checkpoint
+from demstep.io.history import HistoryWriter
 from demstep.io.lock import FolderLock, check_folder_creatable, folder_is_empty, make_folder
 from demstep.io.manifest import OutputManifest, remove_written
 from demstep.io.textfile import not_a_file_reason
-from demstep.errors import InputError, SimulationDiverged
+from demstep.io.vtk import VtkWriter
 
 log = logging.getLogger("demstep")
 
@@ -113,8 +118,6 @@ def state_path(checkpoint) -> Path:
 
 
 def write_state(checkpoint, pos: RunPosition, case: Case, sim, reason: str) -> Path:
-    from demstep import __version__
-
     data = {"format": STATE_FORMAT, "demstep_version": __version__, "reason": reason,
             "checkpoint": Path(checkpoint).name, "step": sim.step, "time": sim.time,
             "stage_name": case.stage_label(pos.stage) if pos.stage < len(case.stages) else None,
@@ -323,9 +326,10 @@ class _RichProgress:
     """rich progress bar per stage: steps, simulated time, dt, energy error, ETA."""
 
     def __init__(self):
-        from rich.console import Console
-        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                                   TimeElapsedColumn, TimeRemainingColumn)
+        from rich.console import Console  # (deferred: a heavy import, loaded only when used)
+        from rich.progress import (BarColumn,  # (deferred: a heavy import, loaded only when used)
+                                   MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                                   TimeRemainingColumn)
 
         self.console = Console(stderr=True)
         self.progress = Progress(
@@ -384,7 +388,7 @@ def _setup_logging(out_dir: Path, level: str, console) -> list[logging.Handler]:
     fh.setFormatter(fmt)
     handlers.append(fh)
     if console is not None:
-        from rich.logging import RichHandler
+        from rich.logging import RichHandler  # (deferred: a heavy import, loaded only when used)
 
         handlers.append(RichHandler(console=console, show_path=False))
     else:
@@ -401,9 +405,6 @@ def _setup_logging(out_dir: Path, level: str, console) -> list[logging.Handler]:
 class _Runner:
     def __init__(self, case, sim, out_dir, pos, max_steps, quiet, on_chunk, chunk_steps,
                  stop: StopRequest, progress, manifest: OutputManifest):
-        from demstep.io.history import HistoryWriter
-        from demstep.io.vtk import VtkWriter
-
         self.case, self.sim, self.out_dir, self.pos = case, sim, out_dir, pos
         self.max_steps = max_steps
         self.on_chunk = on_chunk
@@ -443,8 +444,6 @@ class _Runner:
         """Save a checkpoint and its run state; then, past ``checkpoint_keep``, remove
         the oldest of the kept ones (:func:`kept_checkpoints`: every reason but a
         failure; the newest is never removed)."""
-        from demstep.io.checkpoint import save_checkpoint
-
         path = self.ckpt_dir / f"step{self.sim.step:010d}.npz"
         self.manifest.record(path, state_path(path))
         save_checkpoint(self.sim, path)
@@ -579,8 +578,6 @@ class _Runner:
 
     # ---- the loop
     def run(self) -> RunResult:
-        from demstep.energy import EnergyBalanceError
-
         sim, case = self.sim, self.case
         try:
             fresh_run = self.pos is None
@@ -677,10 +674,9 @@ def remove_outputs(out_dir: Path, outputs=OUTPUTS) -> str | None:
             f"(e.g. {kept[0]})")
 
 def _version_info() -> dict:
-    import numba
-    import numpy
+    import numba  # (deferred: a heavy import, loaded only when used)
+    import numpy  # (deferred: a heavy import, loaded only when used)
 
-    from demstep import __version__
 
     return {"demstep_version": __version__, "python": platform.python_version(),
             "numpy": numpy.__version__, "numba": numba.__version__,
@@ -834,14 +830,15 @@ class _RunRecord:
         self.written = True
 
     def finish(self, status: str, sim, message: str, checkpoint=None, **fields):
+        # the energy monitor owns the alarm record (checkpointed with the state, restored
+        # on a restart): run.json reports it, as of the step the run ended at
         monitor = sim.monitor
         alarm = None
         if monitor.first_alarm is not None:
             a_step, a_time, a_err = monitor.first_alarm
             alarm = {"step": int(a_step), "time": float(a_time), "energy_error": float(a_err)}
-        if self.info.get("first_energy_alarm") is None:  # a restart keeps the earlier one
-            self.info["first_energy_alarm"] = alarm
-        self.info["energy_alarms"] = int(self.info.get("energy_alarms") or 0) + len(monitor.alarms)
+        self.info["first_energy_alarm"] = alarm
+        self.info["energy_alarms"] = int(monitor.n_alarms)
         self.write(status=status, finished=wallclock.strftime("%Y-%m-%dT%H:%M:%S%z"),
                    step=sim.step, time=sim.time, message=message,
                    checkpoint=None if checkpoint is None else str(checkpoint),
@@ -879,8 +876,6 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
     divergence and an energy monitor set to 'stop' end the run with a checkpoint and
     a status, not an exception. An unexpected exception is recorded in run.json
     (status 'failed') and raised."""
-    from demstep.io.checkpoint import load_checkpoint
-
     level = str(log_level).upper()
     if level not in LOG_LEVELS:
         raise InputError(f"log-level: must be one of {', '.join(LOG_LEVELS)}, got {log_level!r}")
@@ -917,7 +912,6 @@ def run_case(case: Case, out_dir, quiet: bool = False, log_level: str = "INFO",
                              f"({type(exc).__name__}: {exc})") from None
         restart_info = {"checkpoint": str(checkpoint), "step": sim.step, "time": sim.time,
                         "case_changed": case_changed}
-    from demstep import __version__
 
     stop = StopRequest(exit_now=exit_on_abort)
     stop.install()

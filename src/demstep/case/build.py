@@ -7,12 +7,20 @@ import math
 
 import numpy as np
 
-from demstep.case.schema import (
-    AXES, MAX_COORDINATE_RADII, MAX_INITIAL_OVERLAP, MAX_MAGNITUDE, MIN_MAGNITUDE, Case,
-    TimestepSection, WallMotion,
-)
+from demstep.case.schema import (AXES, MAX_COORDINATE_RADII, MAX_INITIAL_OVERLAP, MAX_MAGNITUDE,
+                                 MIN_MAGNITUDE, Case, TimestepSection, WallMotion, clump_templates,
+                                 read_body_file)
+from demstep.clumps import clumps_from_members, expand, place, random_quaternions
+from demstep.contact.geometry import minimum_image_arrays
+from demstep.contact.laws import RollingResistance, law_class
+from demstep.energy import EnergyMonitor
+from demstep.engine import Damping, Simulation, TimeStep
 from demstep.errors import InputError
-from demstep.packings import SPATIAL_ORDER_MIN, spatial_order
+from demstep.io.formats import read_particle_file
+from demstep.kernels.neighbors import build_pair_list
+from demstep.packings import SPATIAL_ORDER_MIN, lattice as make_lattice, spatial_order
+from demstep.particles import Particles, particle_inertia
+from demstep.walls import Wall, box_walls
 
 
 # -------------------------------------------------------------------- building
@@ -25,13 +33,9 @@ def generate_particles(case: Case, with_body: bool = False):
     m = None
     body = None
     if p.generator == "clumps":
-        from demstep.clumps import expand
-
         x, r, body_of = expand(_clump_set(case))[:3]
         return (x, r, None, body_of) if with_body else (x, r, None)
     if p.generator == "lattice":
-        from demstep.packings import lattice as make_lattice
-
         lat = make_lattice(p.lattice, p.radius)
         sizes = p.size if isinstance(p.size, list) else [p.size] * dim
         grid = np.stack(np.meshgrid(*[np.arange(s) for s in sizes], indexing="ij"), -1)
@@ -59,8 +63,6 @@ def generate_particles(case: Case, with_body: bool = False):
             x = x + np.asarray(p.origin)
         r = rng.uniform(p.radius_min, p.radius_max, len(x))
     else:
-        from demstep.io.formats import read_particle_file
-
         data = read_particle_file(case.particle_file(), p.format, p.snapshot)
         x, r, m = data.x, data.r, data.m
         body = data.extra.get("body")
@@ -79,8 +81,6 @@ def mass_and_density(path, key: str, density) -> InputError:
 
 def _particles(case: Case, x, r, m):
     """Particles of the case's spheres (masses from the file, or from the density)."""
-    from demstep.particles import Particles, particle_inertia
-
     p = case.particles
     fixed = _fixed_flags(case, x)
     if m is None:
@@ -95,16 +95,11 @@ def _particles(case: Case, x, r, m):
 
 def _clump_set(case: Case):
     """The bodies of ``generator = "clumps"``: the templates in turn on the grid."""
-    from demstep.case.schema import clump_templates
-    from demstep.clumps import place, random_quaternions
-
     p = case.particles
     templates = clump_templates(case)
     dim = case.dim
     q = None
     if p.file is not None:
-        from demstep.case.schema import read_body_file
-
         pos, names, q = read_body_file(case)
         order = sorted(set(names))
         chosen = [templates[name] for name in order]
@@ -141,16 +136,13 @@ def _fixed_flags(case: Case, x: np.ndarray) -> np.ndarray:
 
 def build_law(case: Case):
     """The contact law object of the case."""
-    from demstep.contact.laws import HertzMindlin, LinearSpring, RollingResistance
-
     c = case.contact
+    cls = law_class(c.law)
     common = dict(mu=c.mu, mu_wall=c.mu_wall, damping_normal=c.damping_normal,
                   damping_tangential=c.damping_tangential, restitution=c.restitution,
                   restitution_tangential=c.restitution_tangential,
                   **{name: getattr(c, name) for name in RollingResistance.field_names()})
-    if c.law == "linear":
-        return LinearSpring(k_n=c.k_n, k_s=c.k_s, **common)
-    return HertzMindlin(youngs_modulus=c.youngs_modulus, poisson_ratio=c.poisson_ratio, **common)
+    return cls(**{f.name: getattr(c, f.name) for f in cls.own_fields()}, **common)
 
 
 def apply_motion(wall, motion: WallMotion):
@@ -167,8 +159,6 @@ def apply_motion(wall, motion: WallMotion):
 
 def build_timestep(ts: TimestepSection):
     """The engine's TimeStep for a (resolved) [timestep] section."""
-    from demstep.engine import TimeStep
-
     return TimeStep(mode=ts.mode, dt=ts.dt, alpha=ts.alpha if ts.alpha is not None else 0.1,
                     safety=ts.safety, method=ts.method, every=ts.every, growth=ts.growth,
                     overlap=ts.overlap, motion=ts.motion)
@@ -176,8 +166,6 @@ def build_timestep(ts: TimestepSection):
 
 def build_walls(case: Case, x: np.ndarray, r: np.ndarray) -> list:
     """The walls of the case: box walls first (x-, x+, ...), then [[walls]]."""
-    from demstep.walls import Wall, box_walls
-
     walls = []
     if case.box is not None:
         b = case.box
@@ -212,9 +200,6 @@ def build_simulation(case: Case, checkpoint_dir=None):
 
 
 def _build_simulation(case: Case, checkpoint_dir):
-    from demstep.energy import EnergyMonitor
-    from demstep.engine import Damping, Simulation
-
     p = case.particles
     clumps = clump_fixed = body = None
     if p.generator == "clumps":
@@ -227,8 +212,6 @@ def _build_simulation(case: Case, checkpoint_dir):
         if m is not None and p.density is not None:
             raise mass_and_density(case.particle_file(), "particles.density", p.density)
     if clumps is None and body is not None and (body >= 0).any():
-        from demstep.clumps import clumps_from_members
-
         if p.density is None:
             raise InputError("particles.density: clumps need a density (the mass properties "
                              "of their members' union)")
@@ -249,8 +232,6 @@ def _build_simulation(case: Case, checkpoint_dir):
             particles = particles.take(source_index)
             x, r = particles.x, particles.r
     if clumps is not None:
-        from demstep.clumps import expand
-
         xm, rm = expand(clumps)[:2]
         x = xm if x is None or len(x) == 0 else np.concatenate([x, xm])
         r = rm if r is None or len(r) == 0 else np.concatenate([r, rm])
@@ -288,9 +269,6 @@ def check_initial_state(sim, max_overlap: float = MAX_INITIAL_OVERLAP) -> None:
     * masses, moments of inertia, stiffness, the time step or the energy scale that
       are not finite and positive (e.g. a density whose masses overflow).
     """
-    from demstep.contact.geometry import minimum_image_arrays
-    from demstep.kernels.neighbors import build_pair_list
-
     r_min = float(sim.r.min())
     far = np.abs(sim.x).max(axis=1)
     k = int(np.argmax(far))

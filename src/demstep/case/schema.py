@@ -55,8 +55,10 @@ must touch or overlap one another (one rigid body), radii > 0.
 ``[particles.fixed]``: particles held in place: ``indices`` (0-based) and/or the box
 ``lower``/``upper`` [L] (lower <= upper on every axis; every centre inside is fixed).
 
-``[contact]``: ``law`` = "linear" (``k_n``, ``k_s`` [M/T^2]; k_s defaults to k_n) or
-"hertz" (``youngs_modulus`` [M/(L T^2)], ``poisson_ratio``); for both ``mu``
+``[contact]``: ``law``, one of the contact laws (:mod:`demstep.contact.laws`: "linear"
+with ``k_n``, ``k_s`` [M/T^2], k_s defaulting to k_n; "hertz" with ``youngs_modulus``
+[M/(L T^2)] and ``poisson_ratio``; each law's module lists its own keys), and for every
+law ``mu``
 (particle-particle friction), ``mu_wall`` (default mu), dashpots by ``restitution``
 (normal, in (0, 1]) and ``restitution_tangential`` or by coefficients
 ``damping_normal``/``damping_tangential`` [M/T] (one or the other for each direction:
@@ -150,19 +152,26 @@ values) raise
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import tomllib
+import unicodedata
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
 import numpy as np
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, ValidationError
+from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, ValidationError,
+                      create_model)
 
+from demstep.clumps import ClumpTemplate
 # (MIN_MAGNITUDE, MAX_MAGNITUDE: the case files' range, documented above, one for all input)
+from demstep.contact.laws import LAWS, law_class
 from demstep.errors import MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem
+from demstep.io.formats import _number, detect_format, read_csv, read_particle_file
 from demstep.io.textfile import (csv_rows, not_a_file_message, not_a_file_reason, open_text,
                                  read_small_text)
+from demstep.packings import LATTICE_DIM, lattice as make_lattice
 
 #: the largest assembly a case file may generate (a guard against typos in ``size``)
 MAX_PARTICLES = 2_000_000
@@ -196,8 +205,6 @@ Vector = Annotated[list[Real], Field(min_length=2, max_length=3)]
 def _printable(name: str) -> str:
     """``name`` when it has no control character (newline, tab, escape, line or
     paragraph separator)."""
-    import unicodedata
-
     bad = next((c for c in name if unicodedata.category(c) in ("Cc", "Zl", "Zp")), None)
     if bad is not None:
         raise ValueError(f"must not hold control characters ({bad!r})")
@@ -332,23 +339,21 @@ class _ContactBase(_Section):
     rolling_damping: NonNegative = 0.0
 
 
-class LinearContact(_ContactBase):
-    """Linear springs ``k_n``, ``k_s`` [M/T^2] (k_s defaults to k_n)."""
-
-    law: Literal["linear"]
-    k_n: Positive
-    k_s: NonNegative | None = None
-
-
-class HertzContact(_ContactBase):
-    """Hertz-Mindlin no-slip contact of one material."""
-
-    law: Literal["hertz"]
-    youngs_modulus: Positive
-    poisson_ratio: Bounded(gt=-1, lt=0.5)
+def _law_section(cls) -> type:
+    """The [contact] section of the law ``cls`` (:data:`demstep.contact.laws.LAWS`):
+    ``law`` = its name and its own parameters, checked by their bounds."""
+    fields = {"law": (Literal[cls.name], ...)}
+    for f in cls.own_fields():
+        meta = f.metadata
+        kind = Bounded(**meta["bounds"])
+        fields[f.name] = (kind, ...) if meta["required"] else (kind | None, f.default)
+    return create_model(f"{cls.__name__}Contact", __base__=_ContactBase,
+                        __doc__=f"The {cls.name} law: {(cls.__doc__ or '').strip()}", **fields)
 
 
-ContactSection = Annotated[Union[LinearContact, HertzContact], Field(discriminator="law")]
+#: the [contact] section of each registered law, by law name
+LAW_SECTIONS = {name: _law_section(cls) for name, cls in LAWS.items()}
+ContactSection = Annotated[Union[tuple(LAW_SECTIONS.values())], Field(discriminator="law")]
 
 
 # ------------------------------------------------------------------------ walls
@@ -597,8 +602,6 @@ _DISCRIMINATORS = ("generator", "law")
 def _quoted(key: str) -> str:
     """A TOML key that is not bare, quoted as TOML writes it (control characters
     escaped: an error stays one line)."""
-    import json
-
     return json.dumps(key, ensure_ascii=False)
 
 
@@ -692,7 +695,7 @@ def case_from_dict(data: dict, base_dir=None, source: str = "case") -> Case:
 
 def dump_case(case: Case) -> str:
     """The resolved case as TOML text."""
-    import tomli_w
+    import tomli_w  # (deferred: a heavy import, loaded only when used)
 
     return tomli_w.dumps(case.resolved())
 
@@ -704,8 +707,6 @@ def _need_len(key: str, vec, dim: int):
 
 
 def _particle_dim(case: Case) -> int:
-    from demstep.packings import LATTICE_DIM
-
     p = case.particles
     if p.generator == "lattice":
         return LATTICE_DIM[p.lattice]
@@ -713,7 +714,6 @@ def _particle_dim(case: Case) -> int:
         return len(p.count or [0, 0, 0])
     if p.generator == "clumps":
         return len(read_body_file(case)[0][0])
-    from demstep.io.formats import read_particle_file
 
     path = _case_file("particles.path", p.path, case.particle_file())
     return read_particle_file(path, p.format, p.snapshot).dim
@@ -751,8 +751,6 @@ def read_body_file(case: Case):
 
 def _read_bodies(path, rows):
     """The body file ``path`` from its CSV ``rows`` (an iterator; read_body_file)."""
-    from demstep.io.formats import _number
-
     first = next(rows, None)
     if first is None:
         raise InputError(f"particles.file: {path}: empty file")
@@ -804,8 +802,6 @@ def _read_bodies(path, rows):
 
 def clump_templates(case: Case) -> dict:
     """The ``[[clumps]]`` shapes by name (:class:`demstep.clumps.ClumpTemplate`)."""
-    from demstep.clumps import ClumpTemplate
-
     out = {}
     for k, spec in enumerate(case.clumps):
         where = f"clumps[{k}]"
@@ -814,7 +810,6 @@ def clump_templates(case: Case) -> dict:
         if spec.file is not None:
             if spec.members:
                 raise InputError(f"{where}: give members or file, not both")
-            from demstep.io.formats import read_csv
 
             data = read_csv(_case_file(f"{where}.file", spec.file, _relative(case, spec.file)))
             centers, radii = data.x, data.r
@@ -869,7 +864,6 @@ def check_case(case: Case) -> None:
     if p.generator == "lattice":
         if isinstance(p.size, list):
             _need_len("particles.size", p.size, dim)
-        from demstep.packings import lattice as make_lattice
 
         nb = len(make_lattice(p.lattice, p.radius).basis)
         sizes = p.size if isinstance(p.size, list) else [p.size] * dim
@@ -890,8 +884,6 @@ def check_case(case: Case) -> None:
                              f"(1 - 2 jitter) >= 2 radius_max = {2 * p.radius_max:g}, "
                              f"got {p.spacing!r}")
     elif p.density is None:
-        from demstep.io.formats import read_particle_file
-
         if read_particle_file(case.particle_file(), p.format, p.snapshot).m is None:
             raise InputError("particles.density: required (the file has no masses), got nothing")
     if p.fixed is not None:
@@ -1014,14 +1006,14 @@ def _unused_keys(case: Case) -> list:
             out.append((f"contact.{name}", ("contact", name), c, name,
                         f"give the {other} dashpot by {value} or by {name}, not both (they "
                         f"would add up; {value} is {getattr(c, value)!r})"))
-    if c.law == "linear":
+    if not law_class(c.law).kernels.nonlinear:
         sections = [("timestep", ("timestep",), case.timestep)]
         sections += [(f"stages[{k}].timestep", ("stages", k, "timestep"), st.timestep)
                      for k, st in enumerate(case.stages) if st.timestep is not None]
         for key, path, ts in sections:
             out.append((f"{key}.overlap", path + ("overlap",), ts, "overlap",
-                        "only used with law = 'hertz' (a linear spring's stiffness does not "
-                        "depend on it)"))
+                        f"only used with a law whose stiffness depends on the overlap (the "
+                        f"{c.law} law's does not)"))
     p = case.particles
     if p.generator == "file":
         fmt = _file_format(case)
@@ -1056,8 +1048,6 @@ def _unused_keys(case: Case) -> list:
 
 def _file_format(case: Case) -> str:
     """The format of the particle file of ``generator = "file"`` (csv, liggghts, yade)."""
-    from demstep.io.formats import detect_format
-
     p = case.particles
     return p.format if p.format != "auto" else detect_format(case.particle_file())
 

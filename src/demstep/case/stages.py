@@ -9,7 +9,11 @@ import numpy as np
 
 from demstep.case.build import apply_motion, build_simulation, build_timestep
 from demstep.case.schema import AXES, Case
+from demstep.contact.bonds import ParallelBonds
 from demstep.errors import InputError
+from demstep.io.formats import read_bond_csv
+from demstep.kernels import dem
+from demstep.packings import inverse_order
 
 
 def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
@@ -59,9 +63,6 @@ def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
 def create_bonds(sim, case: Case) -> None:
     """Bonds of the case's ``[bonds]``: every pair within ``gap``, or the pairs of its
     ``file`` (a CSV with 0-based particle columns i, j)."""
-    from demstep.contact.bonds import ParallelBonds
-    from demstep.io.formats import read_bond_csv
-
     b = case.bonds
     params = ParallelBonds(b.normal_stiffness, b.shear_stiffness, b.tensile_strength,
                            b.shear_strength, b.radius_multiplier, b.gap)
@@ -74,7 +75,6 @@ def create_bonds(sim, case: Case) -> None:
                 and ((pairs >= 0) & (pairs < n)).all()):
             # the file's rows -> the reordered particles (invalid rows are left for
             # add_bonds to name as they are in the file)
-            from demstep.packings import inverse_order
 
             pairs = inverse_order(sim.source_index)[pairs]
     try:
@@ -86,8 +86,6 @@ def create_bonds(sim, case: Case) -> None:
 def _check_servo_areas(sim, case: Case, k: int) -> None:
     """A servo wall needs its loaded area: given, or from the opposite box walls or
     periodic lengths along the other axes (else its speed is NaN at the first step)."""
-    from demstep.kernels import dem
-
     servo = np.flatnonzero(sim.wall_motion == dem.WALL_SERVO)
     if not len(servo):
         return

@@ -77,17 +77,22 @@ def add_dt_parser(sub):
     src.add_argument("--contact-tol", type=number("contact-tol", 0), default=1e-6,
                      help="relative gap still counted as contact (default 1e-6)")
     mod = p.add_argument_group("contact model and damping")
-    mod.add_argument("--model", choices=("linear", "hertz"), default=None,
-                     help="linear (--kn, --ks) or hertz (--youngs, --poisson); default: hertz "
-                     "when --youngs or --materials is given, else linear")
-    mod.add_argument("--kn", type=number("kn", 0, strict=True), default=None,
-                     help=f"linear normal stiffness (default {DEFAULT_KN:g}, the paper's Table I)")
-    mod.add_argument("--ks", type=number("ks", 0), default=None,
-                     help="linear tangential stiffness (default: equal to --kn)")
-    mod.add_argument("--youngs", type=number("youngs", 0, strict=True), default=None,
-                     help="Hertz: Young's modulus of every particle")
-    mod.add_argument("--poisson", type=number("poisson"), default=None,
-                     help="Hertz: Poisson's ratio of every particle")
+    from demstep.contact.laws import LAWS
+
+    law_options = _law_options()
+    mod.add_argument("--model", choices=tuple(LAWS), default=None,
+                     help="the contact law: " + "; ".join(
+                         f"{name} ({', '.join('--' + o for o in cls.cli)})"
+                         for name, cls in LAWS.items())
+                     + "; default: the law of the options given, else "
+                     + next(n for n, c in LAWS.items() if c.default))
+    for option, (help_text, laws, bounds) in law_options.items():
+        low = bounds.get("gt", bounds.get("ge"))
+        mod.add_argument(f"--{option}", type=number(option, low, strict="gt" in bounds),
+                         default=None,
+                         help=f"{help_text} ({', '.join(laws)})"
+                         + (f"; default {DEFAULT_KN:g}, the paper's Table I" if option == "kn"
+                            else ""))
     mod.add_argument("--materials", metavar="FILE.toml",
                      help="Hertz: materials per particle type ([[material]] type, youngs, "
                      "poisson, density)")
@@ -195,36 +200,65 @@ def check_memory(n_particles: int, limit_gb: float | None, what: str):
                          f"{limit:.3g} GB {'available' if limit_gb is None else 'allowed'}")
 
 
-def _model(args, default_convention: str):
-    from demstep.timestep_input import ContactModel, Material, read_materials
+def _law_options() -> dict:
+    """``demstep dt``'s options of the laws' own parameters (every law's ``cli``): option ->
+    (help, the laws that take it)."""
+    from demstep.contact.laws import LAWS
 
-    hertz_given = args.youngs is not None or args.poisson is not None or args.materials
-    model = args.model or ("hertz" if hertz_given else "linear")
-    if model == "linear":
-        if hertz_given:
-            raise InputError("model: --youngs/--poisson/--materials belong to the hertz model, "
-                             "not linear")
-        kn = DEFAULT_KN if args.kn is None else args.kn
-        materials = {}
-    else:
-        if args.kn is not None or args.ks is not None:
-            raise InputError("model: --kn/--ks belong to the linear model; hertz takes --youngs "
-                             "and --poisson")
+    out = {}
+    for name, cls in LAWS.items():
+        meta = {f.name: f.metadata for f in cls.own_fields()}
+        for option, field_name in cls.cli.items():
+            doc, unit = meta[field_name]["doc"], meta[field_name]["unit"]
+            help_text, laws, bounds = out.get(option, (f"{doc} [{unit}]", [],
+                                                       meta[field_name]["bounds"]))
+            out[option] = (help_text, laws + [name], bounds)
+    return out
+
+
+def _model(args, default_convention: str):
+    from demstep.analysis_input import ContactModel, Material, read_materials
+    from demstep.contact.laws import LAWS
+
+    given = {o: getattr(args, o) for o in _law_options() if getattr(args, o) is not None}
+    if args.model is not None:
+        cls = LAWS[args.model]
+    else:  # the one law that takes every option given, else the default law
+        takes = [c for c in LAWS.values() if set(given) <= set(c.cli)
+                 and (not args.materials or c.uses_materials)]
+        default = next(c for c in LAWS.values() if c.default)
+        cls = default if default in takes or not takes else takes[0]
+    for option in given:
+        if option not in cls.cli:
+            others = [n for n, c in LAWS.items() if option in c.cli]
+            raise InputError(f"model: --{option} belongs to the {'/'.join(others)} model(s), "
+                             f"not {cls.name} (its options: "
+                             f"{', '.join('--' + o for o in cls.cli)})")
+    parameters, materials = {}, {}
+    if cls.uses_materials:
         if args.materials:
-            if args.youngs is not None or args.poisson is not None:
-                raise InputError("materials: give either --materials or --youngs/--poisson")
+            if given:
+                raise InputError(f"materials: give either --materials or "
+                                 f"{'/'.join('--' + o for o in cls.cli)}")
             materials = read_materials(args.materials)
         else:
-            if args.youngs is None or args.poisson is None:
-                raise InputError("youngs: the hertz model needs both --youngs and --poisson")
-            materials = {None: Material(args.youngs, args.poisson, args.density)}
-        kn = None
+            missing = [o for o in cls.cli if o not in given]
+            if missing:
+                raise InputError(f"{missing[0]}: the {cls.name} model needs both "
+                                 f"{' and '.join('--' + o for o in cls.cli)}")
+            materials = {None: Material(*(given[o] for o in cls.cli), args.density)}
+    else:
+        if args.materials:
+            raise InputError(f"materials: only for a model with materials, not {cls.name}")
+        parameters = {cls.cli[o]: v for o, v in given.items()}
+        if "kn" in cls.cli and "kn" not in given:
+            parameters[cls.cli["kn"]] = DEFAULT_KN
     convention = args.convention or default_convention
-    if model == "linear" and args.overlap is not None:
-        raise InputError(f"overlap: only used with the hertz model (a linear spring's "
-                         f"stiffness does not depend on it), got {args.overlap!r}")
+    if not cls.kernels.nonlinear and args.overlap is not None:
+        raise InputError(f"overlap: only used with a law whose stiffness depends on the "
+                         f"overlap (a {cls.name} spring's does not), got {args.overlap!r}")
     overlap = args.overlap if args.overlap is not None else 0.0
-    cm = ContactModel(model, kn, args.ks, materials, args.restitution, args.restitution_t,
+    cm = ContactModel(cls.name, parameters, materials, args.restitution, args.restitution_t,
                       args.gamma_n, args.gamma_t, args.tangential_damping, convention, overlap,
                       **_rolling(args))
     cm.validate()
@@ -234,7 +268,7 @@ def _model(args, default_convention: str):
 def _rolling(args) -> dict:
     """The rolling-resistance fields of the ContactModel from the options (argparse
     attributes of the same names; 0 when not given, the convention None: none)."""
-    from demstep.timestep_input import ROLLING_OPTIONS
+    from demstep.analysis_input import ROLLING_OPTIONS
 
     out = {name: (getattr(args, name) if getattr(args, name) is not None else 0.0)
            for name in ROLLING_OPTIONS}
@@ -285,7 +319,7 @@ def _periodic_axes(text):
 
 def load_input(args):
     """The AnalysisInput for the command line (every check before any work)."""
-    from demstep import timestep_input as ti
+    from demstep import analysis_input as ti
 
     if args.mode_vtk:
         _check_output_path("mode-vtk", args.mode_vtk, (".vtu",))
@@ -325,8 +359,8 @@ def load_input(args):
     fmt = _file_format(args)
     _check_source_options(args, fmt)
     if fmt in ("case", "checkpoint"):
-        given = [o for o, v in (("--kn", args.kn), ("--ks", args.ks), ("--youngs", args.youngs),
-                                ("--poisson", args.poisson), ("--materials", args.materials),
+        given = [o for o, v in (*(("--" + opt, getattr(args, opt)) for opt in _law_options()),
+                                ("--materials", args.materials),
                                 ("--restitution", args.restitution),
                                 ("--model", args.model), ("--box", args.box),
                                 ("--periodic", args.periodic), ("--density", args.density))
@@ -362,7 +396,7 @@ def load_input(args):
 def _check_run_position(path, case_path):
     """The run state beside a checkpoint read with the number of stages of its case
     (:func:`demstep.runner.read_state`: the stage must be one of them, or their end),
-    before :func:`demstep.timestep_input.from_checkpoint` applies the stages that had
+    before :func:`demstep.analysis_input.from_checkpoint` applies the stages that had
     started. (The case as from_checkpoint finds it; a missing one it reports.)"""
     from demstep.case import load_case
     from demstep.runner import find_checkpoint, read_state
@@ -486,7 +520,7 @@ def critical_mode_report(report, data, top: int) -> dict | None:
     order = largest_first(share, top)
     counts = data.contacts.count_per_particle(p.n)
     if data.bodies is not None and data.bodies.n:  # owners: free spheres, then bodies
-        from demstep.timestep.bodies import owners
+        from demstep.timestep.clumps import owners
 
         owner, n_free, _ = owners(p.n, data.bodies)
         free = np.flatnonzero(data.bodies.sphere_body < 0)

@@ -39,7 +39,7 @@ import numpy as np
 
 from demstep._numba import njit
 from demstep.contact.geometry import minimum_image_arrays
-from demstep.contact.laws import _check
+from demstep.contact.laws.base import check_number as _check
 
 
 @njit(inline="always")
@@ -105,7 +105,7 @@ def bond_candidates(x, r, gap, periodic_len, dim):
     """Pairs (i < j, sorted) whose surfaces are at most ``gap`` [L] apart (overlapping
     included), with the minimum image along axes of ``periodic_len`` > 0 [L]
     (:func:`~demstep.contact.geometry.minimum_image_arrays`)."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # (deferred: a heavy import, loaded only when used)
 
     x = np.asarray(x, dtype=np.float64)
     pts = x[:, :dim].copy()

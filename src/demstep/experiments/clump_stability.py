@@ -10,7 +10,7 @@ rest by symmetry with every contact closed (a random packing relaxed numerically
 residual motion that hides the onset of instability). Then:
 
 * the exact critical step of the state (six DOFs per body, the world inertia tensors;
-  :mod:`demstep.timestep.bodies`), the rigorous body element bound, YADE's nodal rule
+  :mod:`demstep.timestep.clumps`), the rigorous body element bound, YADE's nodal rule
   for clumps and Itasca's sqrt(m_min / K_max);
 * the engine's own stability threshold found by bisection: every body gets a small
   random velocity and spin, friction 0.5 keeps every contact stuck, and a run is
@@ -34,6 +34,7 @@ from demstep.contact.laws import LinearSpring
 from demstep.energy import EnergyMonitor
 from demstep.engine import Simulation, TimeStep
 from demstep.errors import SimulationDiverged
+from demstep.timestep import estimate_time_steps
 
 #: member centres of the studied shapes in units of the member radius, before the
 #: overlap factor: spacing 2 (touching) times ``spacing`` (< 1: overlapping)
@@ -119,8 +120,6 @@ def specimen_simulation(spec: ClumpSpecimen, alpha: float, k: float = 1.0e6, den
 
 def estimates(spec: ClumpSpecimen, rotation: bool = True, k: float = 1.0e6) -> dict:
     """alpha of the exact step, the body element bound, the nodal rule and Itasca."""
-    from demstep.timestep import estimate_time_steps
-
     sim = specimen_simulation(spec, 0.1, k=k, rotation=rotation)
     sim.prepare()
     report = estimate_time_steps(sim.particles_now(), sim.contact_set(), rotation=rotation,

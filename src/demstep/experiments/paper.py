@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import platform
 import sys
 import time
@@ -30,7 +31,19 @@ from pathlib import Path
 
 import numpy as np
 
+from demstep import __version__, plotting
 from demstep.errors import InputError
+from demstep.experiments.clump_stability import clump_study
+from demstep.experiments.fcc_plane_strain import FCCConfig, build_fcc, run_stage2
+from demstep.experiments.report import write_report
+from demstep.experiments.stability import damping_study, stability_threshold
+from demstep.io.atomic import remove_orphans, write_text_atomic
+from demstep.io.checkpoint import load_checkpoint, save_checkpoint
+from demstep.io.lock import FolderLock, check_folder_creatable, make_folder
+from demstep.io.manifest import OutputManifest
+from demstep.runner import check_out_empty, remove_outputs
+from demstep.sweep import WORKER_TIMEOUT, dask_client
+from demstep.timestep.paper_table import paper_table, table_json
 
 ALPHAS = (0.05, 0.35, 0.40, 0.45, 0.75)
 #: supplementary runs with particle rotation blocked (translation-only model)
@@ -56,8 +69,6 @@ class PaperSettings:
 
     @classmethod
     def make(cls, quick: bool = False, **kw) -> "PaperSettings":
-        from demstep.experiments.fcc_plane_strain import FCCConfig
-
         s = cls(quick=quick, **kw)
         if quick:
             s.strain = 0.004
@@ -71,9 +82,6 @@ class PaperSettings:
 
 def fcc_task(item):
     """One stage-2 run from the shared stage-1 checkpoint. item = (config dict, path)."""
-    from demstep.experiments.fcc_plane_strain import FCCConfig, build_fcc, run_stage2
-    from demstep.io.checkpoint import load_checkpoint
-
     cfg_dict, stage1_path = item
     _quiet_logs()
     cfg = FCCConfig(**cfg_dict)
@@ -91,8 +99,6 @@ def fcc_task(item):
 
 def stability_task(item):
     """Bisection for one specimen. item = (name, rtol, steps)."""
-    from demstep.experiments.stability import stability_threshold
-
     name, rtol, steps = item
     _quiet_logs()
     start = time.perf_counter()
@@ -106,8 +112,6 @@ def stability_task(item):
 
 def damping_task(item):
     """The damping study at one restitution. item = (restitution, rtol, steps)."""
-    from demstep.experiments.stability import damping_study
-
     restitution, rtol, steps = item
     _quiet_logs()
     start = time.perf_counter()
@@ -119,8 +123,6 @@ def damping_task(item):
 def clump_task(item):
     """The clump study of one shape, rotation free and locked. item = (shape, spacing,
     rtol, steps)."""
-    from demstep.experiments.clump_stability import clump_study
-
     shape, spacing, rtol, steps = item
     _quiet_logs()
     start = time.perf_counter()
@@ -133,8 +135,6 @@ def clump_task(item):
 
 def _quiet_logs():
     """The energy monitor's warnings are recorded in the results; keep the console clean."""
-    import logging
-
     logging.getLogger("demstep").setLevel(logging.ERROR)
 
 
@@ -154,7 +154,6 @@ def _map(func, items, settings, progress, label):
             if progress:
                 progress(label)
         return results
-    from demstep.sweep import WORKER_TIMEOUT
 
     def waiting(pending, seconds):  # a cluster without workers: say so, give up in time
         print(f"demstep paper: waiting for workers: {pending} task(s) of {label} pending, no "
@@ -198,11 +197,6 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
     ``overwrite`` (then the results of an earlier paper run there, :data:`OUTPUTS`, are
     removed first), and is locked while the study writes into it (a second process
     gets an InputError). Everything is checked before the folder is created."""
-    from demstep.io.atomic import remove_orphans
-    from demstep.io.lock import FolderLock, check_folder_creatable, make_folder
-    from demstep.io.manifest import OutputManifest
-    from demstep.runner import check_out_empty, remove_outputs
-
     check_folder_creatable(out_dir, "out")
     out = Path(out_dir)
     check_out_empty(out, overwrite, NOT_EMPTY_HINT)
@@ -210,7 +204,6 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
         raise InputError(f"--workers: must be >= 1, got {workers}")
     settings = PaperSettings.make(quick=quick, workers=workers, scheduler=scheduler)
     if scheduler:  # unreachable: say so before anything is written
-        from demstep.sweep import dask_client
 
         with dask_client(scheduler, workers):
             pass
@@ -239,10 +232,7 @@ def run_paper(out_dir, quick: bool = False, workers: int = 2, scheduler: str | N
 
 def _run_paper_locked(out: Path, settings: PaperSettings, show_progress: bool) -> dict:
     """The part of :func:`run_paper` that computes and writes (the folder is locked)."""
-    from demstep import __version__
-    from demstep.experiments.fcc_plane_strain import FCCConfig, run_stage1, thornton_peak_ratio
-    from demstep.io.checkpoint import save_checkpoint
-    from demstep.timestep.paper_table import paper_table, table_json
+    from demstep.experiments.fcc_plane_strain import run_stage1, thornton_peak_ratio
 
     (out / "data").mkdir(exist_ok=True)
     started = time.perf_counter()
@@ -320,7 +310,6 @@ def _run_paper_locked(out: Path, settings: PaperSettings, show_progress: bool) -
     _write_json(out / "data" / "clumps.json", clumps)
 
     # 4. figures and report
-    from demstep import plotting
 
     figures = {
         "critical_steps": plotting.plot_critical_step_table(table, out / "critical_steps.png"),
@@ -345,7 +334,6 @@ def _run_paper_locked(out: Path, settings: PaperSettings, show_progress: bool) -
     }
     summary["wall_time_s"] = time.perf_counter() - started
     _write_json(out / "summary.json", summary)
-    from demstep.experiments.report import write_report
 
     write_report(out, summary, table, figures)
     progress("report")
@@ -358,7 +346,8 @@ def _run_paper_locked(out: Path, settings: PaperSettings, show_progress: bool) -
 def _progress(show: bool, total: int):
     if not show:
         return (lambda label: None), (lambda: None)
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import (BarColumn,  # (deferred: a heavy import, loaded only when used)
+                               Progress, TextColumn, TimeElapsedColumn)
 
     bar = Progress(TextColumn("[bold]demstep paper[/bold] {task.description}"), BarColumn(),
                    TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn(), transient=False)
@@ -372,8 +361,6 @@ def _progress(show: bool, total: int):
 
 
 def _write_json(path: Path, data):
-    from demstep.io.atomic import write_text_atomic
-
     write_text_atomic(path, json.dumps(data, indent=2, default=_json_default))
 
 

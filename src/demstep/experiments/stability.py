@@ -28,12 +28,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from demstep.contact.laws import LinearSpring
-from demstep.engine import Simulation, TimeStep
 from demstep.energy import EnergyMonitor
+from demstep.engine import Simulation, TimeStep
 from demstep.errors import InputError, SimulationDiverged
+from demstep.experiments.fcc_plane_strain import FCCConfig, fcc_specimen
 from demstep.packings import LATTICE_NAMES, lattice
 from demstep.particles import Particles
 from demstep.timestep.estimates import estimate_time_steps
+from demstep.timestep.rules import rayleigh_time
 
 SPECIMEN = "fcc-specimen"
 STUDY_NAMES = LATTICE_NAMES + (SPECIMEN,)
@@ -66,8 +68,6 @@ def build_specimen(name: str, alpha: float, k: float = 1.0e6, density: float = 1
     friction ``mu`` (default 0.5);
     ``bonds`` (:class:`demstep.contact.bonds.ParallelBonds`) bonds every contact."""
     if name == SPECIMEN:
-        from demstep.experiments.fcc_plane_strain import FCCConfig, fcc_specimen
-
         cfg = FCCConfig()
         x, length, _ = fcc_specimen(cfg)
         x[:, 2] -= cfg.radius - math.sqrt(2.0) * cfg.radius / 2
@@ -187,8 +187,6 @@ def equivalent_rayleigh_alpha(precompression: float = 1.0e-3,
     Hertz-model user would apply): K = 2 E* sqrt(R* delta) with delta = 2 p r and
     R* = r (1 + p) / 2 for a relative pre-compression p, E = 2 (1 - nu^2) E*.
     Dimensionless: independent of K, r and the density."""
-    from demstep.timestep.rules import rayleigh_time
-
     r, k, rho = 1.0, 1.0, 1.0
     rad = r * (1.0 + precompression)
     e_star = k / (2.0 * math.sqrt(0.5 * rad * 2.0 * precompression * r))

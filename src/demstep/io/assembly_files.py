@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from demstep.io.formats import read_csv as read_csv_particles, read_particle_file
 from demstep.io.textfile import check_regular_file
 
 
@@ -32,8 +33,6 @@ class AssemblyData:
 
 def read_assembly(path, format: str = "auto") -> AssemblyData:
     """Read an assembly file; ``format`` 'auto' chooses by extension, then content."""
-    from demstep.io.formats import read_particle_file
-
     path = check_regular_file(path)
     data = read_particle_file(path, format=format)
     return AssemblyData(data.x, data.r, data.m, data.source)
@@ -41,7 +40,5 @@ def read_assembly(path, format: str = "auto") -> AssemblyData:
 
 def read_csv(path) -> AssemblyData:
     """CSV assembly with header x,y[,z],r[,m] (any column order, extra columns ignored)."""
-    from demstep.io.formats import read_csv as read_csv_particles
-
     data = read_csv_particles(path)
     return AssemblyData(data.x, data.r, data.m, data.source)

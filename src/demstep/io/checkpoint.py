@@ -10,21 +10,26 @@ reference positions, wall state, the energy ledger, step, time and time step.
 from __future__ import annotations
 
 import os
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 
+from demstep import __version__
 from demstep.errors import InputError
 from demstep.io.atomic import atomic_path
+from demstep.io.textfile import not_a_file_reason
 
-#: format 3: the state of the bundles of :mod:`demstep.state` (``Simulation.state_dict``)
-FORMAT_VERSION = 3
+#: format 4: the state of the bundles of :mod:`demstep.state` and of the Simulation's
+#: parts (``Simulation.state_dict``), its scalars by name; format 3 (the scalars in one
+#: array) still loads
+FORMAT_VERSION = 4
+READABLE_FORMATS = (3, 4)
 
 
 def save_checkpoint(sim, path) -> Path:
     """Write ``sim.state_dict()`` to ``path`` (.npz) atomically."""
-    from demstep import __version__
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     data = dict(sim.state_dict())
@@ -45,11 +50,6 @@ def read_checkpoint_arrays(path) -> dict:
     """Every array of the checkpoint ``path``, read and decompressed; InputError with
     one line saying why when it is not a readable demstep checkpoint (a folder, a
     missing file, another kind of file, a damaged or truncated archive)."""
-    import zipfile
-    import zlib
-
-    from demstep.io.textfile import not_a_file_reason
-
     path = Path(path)
     reason = not_a_file_reason(path)
     if reason == "a folder":
@@ -76,9 +76,11 @@ def read_checkpoint_arrays(path) -> dict:
         raise InputError(f"{path}: a damaged or truncated checkpoint "
                          f"({type(exc).__name__}: {text})") from None
     if "format" not in arrays or arrays["format"].shape != (1,) \
-            or int(arrays["format"][0]) != FORMAT_VERSION:
-        raise InputError(f"{path}: not a demstep checkpoint (format {FORMAT_VERSION})")
-    missing = [name for name in ("r", "scalars", "spheres.x", "wall_state.point")
+            or int(arrays["format"][0]) not in READABLE_FORMATS:
+        raise InputError(f"{path}: not a demstep checkpoint (format "
+                         f"{' or '.join(map(str, READABLE_FORMATS))})")
+    missing = [name for name in ("r", "scalars" if int(arrays["format"][0]) == 3
+                                 else "scalars.step", "spheres.x", "wall_state.point")
                if name not in arrays]
     if missing:
         raise InputError(f"{path}: a damaged checkpoint (array {missing[0]!r} missing)")

@@ -33,15 +33,17 @@ from pathlib import Path
 
 import numpy as np
 
-from demstep.io.atomic import atomic_path, write_text_atomic
+from demstep.clumps import quat_to_matrix
+from demstep.contact.geometry import pair_geometry_arrays
 from demstep.errors import InputError
+from demstep.io.atomic import atomic_path, write_text_atomic
 
 SERIES = ("particles", "contacts", "walls", "bodies")
 _FRAME = re.compile(r"_(\d+)\.vtu$")
 
 
 def _meshio():
-    import meshio
+    import meshio  # (deferred: a heavy import, loaded only when used)
 
     return meshio
 
@@ -80,8 +82,6 @@ def body_mesh(sim):
     ``angular_momentum`` [M L^2/T], ``mass`` [M], the principal ``moments`` [M L^2] and
     the principal axes ``axis_1``, ``axis_2``, ``axis_3`` (unit vectors, world frame;
     in ParaView: Glyph, arrows, orientation by an axis)."""
-    from demstep.clumps import quat_to_matrix
-
     meshio = _meshio()
     b = sim.bodies
     R = quat_to_matrix(b.q)
@@ -98,11 +98,9 @@ def body_mesh(sim):
 def contact_lines(sim):
     """Pairs in contact (i, j) (C, 2), their normal force (C,) [M L/T^2] (compression
     positive) and force on j (C, 3); pairs across periodic boundaries left out."""
-    if not getattr(sim, "_pairs_built", False) or len(sim.pi) == 0:
+    pairs, force, normal = sim.contact_forces()  # (none before the lists are built)
+    if len(pairs) == 0:
         return np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.zeros((0, 3))
-    from demstep.contact.geometry import pair_geometry_arrays
-
-    pairs, force, normal = sim.contact_forces()
     i, j = pairs[:, 0], pairs[:, 1]
     images = pair_geometry_arrays(sim.x, sim.r, i, j, sim.periodic_len)[5]
     wrapped = np.any(images != 0, axis=1)

@@ -25,9 +25,10 @@ from demstep.contact.geometry import (
     any_periodic, into_tangent_plane, pair_geometry, wall_geometry,
 )
 from demstep.contact.laws import (
-    LAW_LINEAR, dashpot_coefficients, normal_force, rolling_coefficients, tangential_stiffness,
+    coulomb_load, dashpot_coefficients, needs_r_star as law_needs_r_star, normal_force,
+    rolling_coefficients, tangential_stiffness,
 )
-from demstep.kernels.bodies import body_step, body_step_serial
+from demstep.kernels.clumps import body_step, body_step_serial
 from demstep.kernels.bonds import bond_forces
 from demstep.kernels.integration import moved_since_build, step_weights, store_step_terms
 
@@ -74,7 +75,7 @@ def coulomb_dashpot(tx, ty, tz, dx, dy, dz, limit):
 
 
 @njit(inline="always")
-def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy, vz, dt,
+def contact_response(params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy, vz, dt,
                      ox, oy, oz, fdx, fdy, fdz, etan_old):
     """Force of one contact and its history update (the contact law applied once).
 
@@ -101,9 +102,9 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
         d_dash = -0.5 * (fdx * dux + fdy * duy + fdz * duz)
         return (0.0, 0.0, 0.0, 0.0, 0.0, d_fric, d_dash, 0.0, 0.0,
                 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    f_el, k_n, e_n = normal_force(law, params, delta, r_star)
-    k_t = tangential_stiffness(law, params, delta, r_star)
-    c_n, c_t = dashpot_coefficients(law, params, m_star, k_n, k_t)
+    f_el, k_n, e_n = normal_force(params, delta, r_star)
+    k_t = tangential_stiffness(params, delta, r_star)
+    c_n, c_t = dashpot_coefficients(params, m_star, k_n, k_t)
     # normal dashpot on the lagged normal velocity (not clipped: the total may pull
     # briefly at the end of an impact, as in the model whose restitution is e)
     v_n = vx * nx + vy * ny + vz * nz
@@ -111,7 +112,7 @@ def contact_response(law, params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy,
     # tangential spring: trial increment, then the Coulomb slider
     tx, ty, tz = ox - k_t * dtx, oy - k_t * dty, oz - k_t * dtz
     mag2 = tx * tx + ty * ty + tz * tz
-    limit = mu * f_el
+    limit = mu * coulomb_load(params, f_el)
     tdx, tdy, tdz = 0.0, 0.0, 0.0
     if mag2 > limit * limit:  # (squares: the root only for a sliding contact)
         s = limit / math.sqrt(mag2)
@@ -204,7 +205,7 @@ def rolling_inertia_pair(inertia_i, m_i, r_i, inertia_j, m_j, r_j):
 
 
 @njit(inline="always")
-def _rolling_contact(law, params, h, nx, ny, nz, delta, r_star, inertia_i, m_i, r_i,
+def _rolling_contact(params, h, nx, ny, nz, delta, r_star, inertia_i, m_i, r_i,
                      inertia_j, m_j, r_j, wx, wy, wz, dt):
     """:func:`rolling_response` of one contact whose history row is ``h``
     (ROLL_WIDTH values, updated in place): the law's normal force and tangent
@@ -220,8 +221,9 @@ def _rolling_contact(law, params, h, nx, ny, nz, delta, r_star, inertia_i, m_i, 
     k_t = 0.0
     f_el = 0.0
     if delta > 0.0:
-        f_el, k_n, _ = normal_force(law, params, delta, r_star)
-        k_t = tangential_stiffness(law, params, delta, r_star)
+        f_el, k_n, _ = normal_force(params, delta, r_star)
+        f_el = coulomb_load(params, f_el)  # (the load the moment limits scale with)
+        k_t = tangential_stiffness(params, delta, r_star)
     (mx, my, mz, e_new, c_p, c_v, h0, h1, h2, h3, h4, h5, h6, h7) = rolling_response(
         params, nx, ny, nz, delta, r_star, i_star, k_n, k_t, f_el, wx, wy, wz, dt,
         h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7])
@@ -236,7 +238,7 @@ def _rolling_contact(law, params, h, nx, ny, nz, delta, r_star, inertia_i, m_i, 
     return True, mx, my, mz, e_new, c_p, c_v
 
 
-def _rolling_loop(w, r, m, inertia, inv_m, pi, pj, geo, law, params, dt, roll, chunks,
+def _rolling_loop(w, r, m, inertia, inv_m, pi, pj, geo, params, dt, roll, chunks,
                   spans, torque, torque_band):
     """Rolling and twisting resistance of all Verlet pairs (compiled twice), after the
     pair loop of the same step: reads its unit normals and distances ``geo``, adds the
@@ -257,7 +259,7 @@ def _rolling_loop(w, r, m, inertia, inv_m, pi, pj, geo, law, params, dt, roll, c
             free_i = inv_m[i] > 0.0  # a fixed particle counts as a wall
             free_j = inv_m[j] > 0.0
             touched, mx, my, mz, e_new, c_p, c_v = _rolling_contact(
-                law, params, roll[k], geo[k, 0], geo[k, 1], geo[k, 2], r[i] + r[j] - geo[k, 3],
+                params, roll[k], geo[k, 0], geo[k, 1], geo[k, 2], r[i] + r[j] - geo[k, 3],
                 r[i] * r[j] / (r[i] + r[j]), inertia[i] if free_i else 0.0,
                 m[i] if free_i else 0.0, r[i], inertia[j] if free_j else 0.0,
                 m[j] if free_j else 0.0, r[j], w[j, 0] - w[i, 0], w[j, 1] - w[i, 1],
@@ -281,7 +283,7 @@ def _rolling_loop(w, r, m, inertia, inv_m, pi, pj, geo, law, params, dt, roll, c
     return e_s, d_p, d_v
 
 
-def _wall_rolling_loop(x, w, r, m, inertia, wp, ww, wall_point, wall_normal, law, params, dt,
+def _wall_rolling_loop(x, w, r, m, inertia, wp, ww, wall_point, wall_normal, params, dt,
                        roll, torque, n_chunks):
     """Rolling and twisting resistance of the particle-wall contacts (compiled twice),
     after the wall loop of the same step, in its runs of wall pairs cut between
@@ -301,7 +303,7 @@ def _wall_rolling_loop(x, w, r, m, inertia, wp, ww, wall_point, wall_normal, law
                 x[p, 0], x[p, 1], x[p, 2], r[p], wall_point[wi, 0], wall_point[wi, 1],
                 wall_point[wi, 2], wall_normal[wi, 0], wall_normal[wi, 1], wall_normal[wi, 2])
             touched, mx, my, mz, e_new, c_p, c_v = _rolling_contact(
-                law, params, roll[q], nx, ny, nz, delta, r[p], inertia[p], m[p], r[p], 0.0, 0.0,
+                params, roll[q], nx, ny, nz, delta, r[p], inertia[p], m[p], r[p], 0.0, 0.0,
                 0.0, -w[p, 0], -w[p, 1], -w[p, 2], dt)
             if not touched:
                 continue
@@ -379,7 +381,7 @@ PAIR_BLOCK = 64
 PAIR_ROWS = 36
 
 
-def _law_block(law, params, count, dt, store_dashpot, needs_m_star, needs_r_star, s):
+def _law_block(params, count, dt, store_dashpot, needs_m_star, needs_r_star, s):
     """The contact law (:func:`contact_response`) applied to the ``count`` gathered pairs
     of a block; ``s`` is the block's scratch (rows S_*, PAIR_BLOCK columns). Its own
     compiled function over contiguous rows only, without branches the compiler cannot
@@ -394,7 +396,7 @@ def _law_block(law, params, count, dt, store_dashpot, needs_m_star, needs_r_star
         m_star = s[S_MSTAR * B + b] if needs_m_star else 0.0
         r_star = s[S_RSTAR * B + b] if needs_r_star else 0.0
         (fx, fy, fz, c_en, c_et, c_fric, c_dash, c_kn, _, tx, ty, tz, ndx, ndy, ndz,
-         _) = contact_response(law, params, mu, s[S_NX * B + b], s[S_NY * B + b],
+         _) = contact_response(params, mu, s[S_NX * B + b], s[S_NY * B + b],
                                s[S_NZ * B + b], s[S_DELTA * B + b], r_star, m_star,
                                s[S_VX * B + b], s[S_VY * B + b], s[S_VZ * B + b], dt,
                                s[S_OX * B + b], s[S_OY * B + b], s[S_OZ * B + b],
@@ -425,7 +427,7 @@ _PAIR_DASHPOT = -1
 _PAIR_PERIODIC = -1
 
 
-def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
+def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params, dt,
                 ft, fd, etan, store_dashpot, chunks, spans, force, torque, force_band,
                 torque_band, geo, cover):
     """The pairs of chunk ``c`` of :func:`_pair_loop` (``chunks[c]`` to
@@ -465,7 +467,7 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, pa
     kc1 = 0.0
     kc2 = 0.0
     needs_m_star = params.beta_n > 0.0 or params.beta_t > 0.0
-    needs_r_star = law != LAW_LINEAR
+    needs_r_star = law_needs_r_star(params)
     store_geo = geo.shape[0] > 0
     track_cover = cover.shape[0] == pi.shape[0]
     len0, len1, len2 = periodic_len[0], periodic_len[1], periodic_len[2]
@@ -560,7 +562,7 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, pa
             if needs_r_star:
                 s[S_RSTAR * B + b] = r_i * r_j / (r_i + r_j)
         # (2) the law, vectorised
-        law_block(law, params, count, dt, store_dashpot, needs_m_star, needs_r_star, s)
+        law_block(params, count, dt, store_dashpot, needs_m_star, needs_r_star, s)
         # (3) scatter
         for b in range(count):
             k = k0 + b
@@ -654,7 +656,7 @@ pair_chunk = njit(fastmath=CONTRACT)(_pair_chunk)
 pair_chunk_inline = njit(fastmath=CONTRACT, inline="always")(_pair_chunk)
 
 
-def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params, dt,
+def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params, dt,
                ft, fd, etan, store_dashpot, chunks, spans, force, torque, force_band,
                torque_band, box_sums, geo, cover):
     """Forces of all Verlet pairs (compiled twice: parallel and serial), history ``ft``,
@@ -701,7 +703,7 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params
     n_chunks = chunks.shape[0] - 1
     sums = np.zeros((max(n_chunks, 1), PAIR_SUMS))
     for c in prange(n_chunks):
-        got = pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, law, params,
+        got = pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params,
                          dt, ft, fd, etan, store_dashpot, chunks, spans, force, torque,
                          force_band, torque_band, geo, cover)
         for q in range(PAIR_SUMS):
@@ -738,7 +740,7 @@ def _reduce_loop(force_band, torque_band, spans, force, torque):
 
 
 @njit
-def pair_contact_forces(x, r, pi, pj, periodic_len, law, params, ft, fd, force, normal):
+def pair_contact_forces(x, r, pi, pj, periodic_len, params, ft, fd, force, normal):
     """For output: force on j of every touching pair (elastic at the current positions
     plus the stored tangential and dashpot forces) and the unit normal; returns the
     boolean mask of touching pairs."""
@@ -752,7 +754,7 @@ def pair_contact_forces(x, r, pi, pj, periodic_len, law, params, ft, fd, force, 
         if delta <= 0.0:
             continue
         on[k] = True
-        f_el, _, _ = normal_force(law, params, delta, r[i] * r[j] / (r[i] + r[j]))
+        f_el, _, _ = normal_force(params, delta, r[i] * r[j] / (r[i] + r[j]))
         for a, d in enumerate((d0, d1, d2)):
             normal[k, a] = d / dist
             force[k, a] = f_el * d / dist + ft[k, a] + fd[k, a]
@@ -768,7 +770,7 @@ def _particle_boundary(wp, q):
     return q
 
 
-def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu, law,
+def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
                params, dt, wft, wfd, wetan, force, torque, wall_force, wall_contacts, wall_k,
                n_chunks, cover):
     """Particle-wall contacts (compiled twice: parallel and serial), in ``n_chunks`` runs
@@ -831,7 +833,7 @@ def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu
             viz = V[b + two] + a * (W[b] * ny - W[b + one] * nx)
             (fx, fy, fz, c_en, c_et, c_fric, c_dash, c_kn, _, tx, ty, tz, ndx, ndy, ndz,
              e_new) = contact_response(
-                law, params, wall_mu[wi], nx, ny, nz, delta, r[p], m[p],
+                params, wall_mu[wi], nx, ny, nz, delta, r[p], m[p],
                 wall_vel[wi, 0] - vix, wall_vel[wi, 1] - viy, wall_vel[wi, 2] - viz, dt,
                 ox, oy, oz, fdx, fdy, fdz, e_old)
             FT[h] = tx
@@ -951,7 +953,7 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
     ``fd_prev``/``td_prev`` (N, 6) hold the damping forces of the last step (local,
     global) for the trapezoid; ``store_damping`` False (damping off and those arrays
     all zero) skips reading and writing them. Members of rigid bodies
-    (``sphere_body`` >= 0) are left to :mod:`demstep.kernels.bodies`. The (N, 3) arrays
+    (``sphere_body`` >= 0) are left to :mod:`demstep.kernels.clumps`. The (N, 3) arrays
     are read through flat views with unsigned indices, a sphere's scalars once.
 
     Compiled twice more as :func:`integrate_plain` (and its serial twin), with the
@@ -1140,6 +1142,10 @@ def closing_beyond_cover(x, v, r, pi, pj, periodic_len, cover, wp, ww, wall_poin
     return count
 
 
+#: ``ledger.counters``: the particle-particle and particle-wall contacts touching after
+#: the last step, the largest |v| dt / r of the last step, the contacts found closed
+#: beyond the 'auto' step's cover since the engine last reset the count
+COUNT_PAIR_CONTACTS, COUNT_WALL_CONTACTS, COUNT_JUMP, COUNT_UNCOVERED = 0, 1, 2, 3
 #: ``ledger.counters``: the slots of the drift's displacement bound (:func:`drift_used`)
 DRIFT_SUM, DRIFT_OFFSET, DRIFT_WALL_OFFSET, DRIFT_NOW, DRIFT_WALL_NOW = 4, 5, 6, 7, 8
 N_COUNTERS = 9
@@ -1166,7 +1172,7 @@ def drift_used(counters):
     return used
 
 
-def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params):
+def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params):
     """Run up to ``n_steps`` steps of the documented order
     (:meth:`demstep.engine.Simulation.run`) on the bundles of :mod:`demstep.state`
     (``ctl`` Controls, ``sph`` Spheres, ``bodies`` Bodies, ``pairs`` Pairs, ``bonds`` Bonds,
@@ -1224,7 +1230,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         for k in range(3):
             box_rate[k] = 0.0 if first else box_state[5, k] / dt_prev
         e_n, e_t, d_fric, d_dash, n_pp, pp_uncovered, pp_headroom = pair_forces(
-            x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, law, params,
+            x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, params,
             dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
             pairs.chunks, pairs.spans, force, torque, force_band, torque_band, box_sums,
             pairs.geo, pairs.cover)
@@ -1232,18 +1238,18 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         er_s, er_p, er_v = 0.0, 0.0, 0.0
         if pairs.roll.shape[0] > 0:
             er_s, er_p, er_v = rolling_forces(
-                w, r, m, sph.inertia, inv_m, pairs.i, pairs.j, pairs.geo, law, params,
+                w, r, m, sph.inertia, inv_m, pairs.i, pairs.j, pairs.geo, params,
                 dt_slip, pairs.roll, pairs.chunks, pairs.spans, torque, torque_band)
         if n_chunks > 1:
             reduce_forces(force_band, torque_band, pairs.spans, force, torque)
         # 2. particle-wall contact forces
         we_n, we_t, wd_fric, wd_dash, pw_uncovered, pw_headroom = wall_forces(
             x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
-            law, params, dt_slip, walls.shear, walls.dashpot, walls.shear_energy, force,
+            params, dt_slip, walls.shear, walls.dashpot, walls.shear_energy, force,
             torque, wall_force, walls.contacts, walls.k_sum, wall_chunks, walls.cover)
         if walls.roll.shape[0] > 0:
             wr_s, wr_p, wr_v = wall_rolling(
-                x, w, r, m, sph.inertia, walls.p, walls.wall, wall_point, wall_normal, law,
+                x, w, r, m, sph.inertia, walls.p, walls.wall, wall_point, wall_normal,
                 params, dt_slip, walls.roll, torque, wall_chunks)
             er_s += wr_s
             er_p += wr_p
@@ -1352,13 +1358,13 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         acc[A_BOND_BROKEN] += eb_r
         acc[A_ROLLING] += er_p
         acc[A_ROLLING_VISCOUS] += er_v
-        counters[0] = n_pp
+        counters[COUNT_PAIR_CONTACTS] = n_pp
         wc = 0
         for wi in range(nw):
             wc += walls.contacts[wi]
-        counters[1] = wc
-        counters[2] = out[7]
-        counters[3] += pp_uncovered + pw_uncovered
+        counters[COUNT_WALL_CONTACTS] = wc
+        counters[COUNT_JUMP] = out[7]
+        counters[COUNT_UNCOVERED] += pp_uncovered + pw_uncovered
         counters[DRIFT_NOW] = math.sqrt(out[6])
         counters[DRIFT_WALL_NOW] = boundary_move
         if budget < np.inf:  # how far any pair's ends can have moved relative to each other
@@ -1385,13 +1391,13 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, p
         # each, and the walls' or the box's); the engine covers them before the next
         # step's forces (after a rebuild too)
         if min(pp_headroom, pw_headroom) <= 2.0 * (2.0 * r_max * out[7] + boundary_step):
-            counters[3] += closing_beyond_cover(x, v, r, pairs.i, pairs.j, periodic_len,
+            counters[COUNT_UNCOVERED] += closing_beyond_cover(x, v, r, pairs.i, pairs.j, periodic_len,
                                                 pairs.cover, walls.p, walls.wall, wall_point,
                                                 wall_normal, walls.cover, dt, boundary_step)
         # neighbour lists expire after skin / 2 of particle, wall or box motion
         if math.sqrt(out[6]) + boundary_move > 0.5 * ctl.skin:
             return step + 1, STOP_REBUILD
-        if counters[3] > 0:
+        if counters[COUNT_UNCOVERED] > 0:
             return step + 1, STOP_UNCOVERED
         # the drift of the certified step is due for a check
         if drift_used(counters) > budget:
@@ -1455,11 +1461,11 @@ def step_kernel(parallel: bool, rolling: bool, bonds: bool, bodies: bool,
     return kernel
 
 
-def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params):
+def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params):
     """:func:`_advance` compiled for this call's loops (threaded when ``ctl.parallel``)
     and features (rolling history, bonds, rigid bodies present), with the pair loop for
     its law's dashpot history and its box (periodic axes or none)."""
     run = step_kernel(ctl.parallel, pairs.roll.shape[0] > 0 or walls.roll.shape[0] > 0,
                       bonds.i.shape[0] > 0, bodies.m.shape[0] > 0, ctl.store_dashpot,
                       bool(any_periodic(box.length)))
-    return run(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, law, params)
+    return run(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params)

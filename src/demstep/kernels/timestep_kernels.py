@@ -4,6 +4,7 @@ import numpy as np
 
 from demstep._numba import CONTRACT, compile_parallel_and_serial, njit, prange
 from demstep.contact.laws import rolling_coefficients
+from demstep.kernels.dem import band_rows, pair_chunks
 
 
 @njit
@@ -656,7 +657,7 @@ _owner_matvec_parallel, _owner_matvec_serial = \
 
 def owner_expand(owner_map, q, u):
     """u (N, nd) = the spheres' physical DOFs of owner DOFs q (owners, nd) scaled by
-    M^1/2 (:class:`demstep.timestep.bodies.OwnerMap`)."""
+    M^1/2 (:class:`demstep.timestep.clumps.OwnerMap`)."""
     om = owner_map
     _owner_expand(np.ascontiguousarray(q, dtype=np.float64), om.free_index, om.free_scale,
                   om.member_index, om.member_body, om.arm, om.body_trans, om.body_rot,
@@ -802,8 +803,6 @@ def ordered_contact_runs(contacts, n_particles: int, n_runs: int):
     earlier runs (their bands); the walls after the last pair start at chunks[-1].
     ``unheld``: the particles that are no such contact's i (their rows get other terms
     only)."""
-    from demstep.kernels.dem import band_rows, pair_chunks
-
     i, j = contacts.i, contacts.j
     pairs = np.flatnonzero(j >= 0)
     end = int(pairs[-1]) + 1 if len(pairs) else 0

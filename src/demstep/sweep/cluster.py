@@ -17,7 +17,6 @@ from typing import Any, Callable, Iterable, Sequence
 
 from demstep.errors import InputError
 
-
 #: environment of local-cluster worker processes: one thread each for numba, OpenMP
 #: and BLAS (the worker processes themselves use the cores)
 WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
@@ -86,7 +85,7 @@ def _call_captured(func: Callable, item) -> TaskResult:
 def worker_info(item=None) -> dict:
     """Where a task runs: host, process id and numba threads (check a cluster with
     ``dask_map(worker_info, range(4), scheduler=...)``)."""
-    import numba
+    import numba  # (deferred: a heavy import, loaded only when used)
 
     return {"item": item, "host": platform.node(), "pid": os.getpid(),
             "numba_threads": numba.get_num_threads(),
@@ -115,7 +114,8 @@ def probe_scheduler(address: str, timeout: float) -> None:
     asks whether it is an HTTP server (the dashboard's port). A scheduler whose event
     loop was blocked that long answers with its handshake and is accepted (it logs an
     error for the probe's bytes, which it reads as a frame length)."""
-    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.addressing import (  # (deferred: a heavy import, loaded only when used)
+        parse_address, parse_host_port)
 
     try:
         scheme, location = parse_address(address)
@@ -199,7 +199,8 @@ def _greeting(sock: socket.socket, until: float) -> bytes | None:
 def _is_dask_handshake(data: bytes) -> bool:
     """``data`` is a message as Dask's TCP comm writes it: its length (8 bytes, little
     endian), then frames packed by ``distributed.protocol.utils.pack_frames``."""
-    from distributed.protocol.utils import unpack_frames
+    from distributed.protocol.utils import \
+        unpack_frames  # (deferred: a heavy import, loaded only when used)
 
     if len(data) < 16:
         return False
@@ -225,7 +226,8 @@ def dask_client(scheduler: str | None = None, workers: int = 2):
     workers run with :data:`WORKER_ENV` (shut down on exit). Raises InputError when
     the scheduler cannot be reached or the address is no Dask scheduler's
     (:func:`probe_scheduler`)."""
-    from distributed import Client, LocalCluster
+    from distributed import (Client,  # (deferred: a heavy import, loaded only when used)
+                             LocalCluster)
 
     if scheduler:
         address = check_scheduler_address(scheduler)
@@ -271,7 +273,7 @@ def map_on_client(client, func: Callable, items: Sequence,
     and how long no worker has been connected. After ``worker_timeout`` seconds
     without a worker (None: wait for ever) the items still pending are given up: their
     results have ``ok`` False, ``unfinished`` True and an error saying why."""
-    from distributed import as_completed
+    from distributed import as_completed  # (deferred: a heavy import, loaded only when used)
 
     items = list(items)
     if not items:

@@ -11,14 +11,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
+from demstep import __version__
 from demstep.errors import InputError
-
-from demstep.sweep.cluster import (
-    WORKER_TIMEOUT, TaskResult, check_scheduler_address, dask_client, map_on_client, one_line,
-)
+from demstep.io.atomic import remove_orphans
+from demstep.io.lock import FolderLock, check_folder_creatable, folder_is_empty, make_folder
+from demstep.runner import _write_text
+from demstep.sweep.cluster import (WORKER_TIMEOUT, TaskResult, check_scheduler_address, dask_client,
+                                   map_on_client, one_line)
 from demstep.sweep.plan import SweepPlan, key_text, plan_sweep
-from demstep.sweep.summary import RunTask, is_finished, plot_summary, run_task, summarize_run, write_summary
-
+from demstep.sweep.summary import (RunTask, is_finished, plot_summary, run_task, summarize_run,
+                                   write_summary)
 
 log = logging.getLogger("demstep")
 
@@ -41,8 +43,6 @@ class SweepResult:
 
 
 def _check_out(out: Path) -> None:
-    from demstep.io.lock import check_folder_creatable, folder_is_empty
-
     check_folder_creatable(out, "out")
     if out.is_dir() and not folder_is_empty(out) and not (out / "sweep.json").is_file():
         raise InputError(f"out: {out} exists, is not empty and holds no sweep (sweep.json)")
@@ -51,9 +51,6 @@ def _check_out(out: Path) -> None:
 def _lock_out(out: Path):
     """Create ``out`` and lock it for this sweep (InputError when another process
     holds it); temporary files of interrupted writes are removed."""
-    from demstep.io.atomic import remove_orphans
-    from demstep.io.lock import FolderLock, make_folder
-
     make_folder(out, "out")
     lock = FolderLock(out, "out").acquire()
     remove_orphans(out)
@@ -63,9 +60,6 @@ def _lock_out(out: Path):
 def mark_unfinished(run_dir: Path, message: str) -> None:
     """A run given up for want of workers: if its folder says 'running' and no
     process holds it, record status 'unfinished' in its run.json."""
-    from demstep.io.lock import FolderLock
-    from demstep.runner import _write_text
-
     path = run_dir / "run.json"
     if not path.is_file():
         return
@@ -102,9 +96,7 @@ def run_sweep(case_path, out, params: Sequence[str] = (), runs_file=None,
     without a worker (None: no limit) the runs not done are marked 'unfinished'
     (summary.csv, and run.json of a run a lost worker had started) and the sweep
     returns. Returns a :class:`SweepResult`."""
-    from demstep import __version__
-    from demstep.io.lock import check_folder_creatable
-    from demstep.runner import LOG_LEVELS, _write_text
+    from demstep.runner import LOG_LEVELS
 
     check_folder_creatable(out, "out")  # (an empty name first: it would resolve to here)
     out = Path(out).resolve()

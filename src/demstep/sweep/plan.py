@@ -16,9 +16,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
+from demstep.case import case_from_dict, check_stages
 from demstep.errors import InputError
+from demstep.io.history import columns_for
 from demstep.io.textfile import read_small_text
-
+from demstep.runner import case_hash
 from demstep.sweep.cluster import one_line
 
 #: longest run id before it is shortened and a hash appended
@@ -93,7 +95,7 @@ def parse_value(text: str):
 def value_text(value) -> str:
     """A value as TOML text on one line (``0.1``, ``true``, ``"hertz"``, ``[0.0, -1.0]``,
     ``{local = 0.1}``)."""
-    import tomli_w
+    import tomli_w  # (deferred: a heavy import, loaded only when used)
 
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(value_text(v) for v in value) + "]"
@@ -305,9 +307,6 @@ def plan_sweep(case_path, params: Sequence[str] = (), runs_file=None,
     and every stage's changes: :func:`demstep.case.check_stages`), and that ``peak``,
     when given, is a column of each run's history; raises a one-line InputError naming
     the run, key and value of the first bad one."""
-    from demstep.case import case_from_dict, check_stages
-    from demstep.runner import case_hash
-
     case_path = Path(case_path)
     case_text = read_small_text(case_path, "case file")
     try:
@@ -352,8 +351,6 @@ def plan_sweep(case_path, params: Sequence[str] = (), runs_file=None,
 def check_peak_column(peak: str, case, where: str) -> None:
     """InputError unless ``peak`` is a column of the history the run of ``case``
     writes (the runner adds ``stage``)."""
-    from demstep.io.history import columns_for
-
     if not case.output.history_every:
         raise InputError(f"peak: {where}: the case writes no history (output.history_every "
                          f"= 0), so there is no column {peak!r}")

@@ -20,8 +20,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
+from demstep.case import case_from_dict
 from demstep.errors import InputError
-
+from demstep.io.history import read_history
+from demstep.plotting import _pyplot, save_figure
+from demstep.runner import _write_text, run_case
 from demstep.sweep.cluster import numba_one_thread, one_line
 from demstep.sweep.plan import SweepPlan, key_text, value_text
 
@@ -56,9 +59,6 @@ def run_task(task: RunTask) -> dict:
     """Run one case of a sweep into ``task.run_dir`` (on a worker) and return its
     summary row. Any exception is recorded (status 'failed', in ``run.json`` too),
     never raised. The runner's console log is silenced; ``run.log`` keeps it."""
-    from demstep.case import case_from_dict
-    from demstep.runner import run_case
-
     numba_one_thread()
     run_dir = Path(task.run_dir)
     start = wallclock.perf_counter()
@@ -113,8 +113,6 @@ def _quiet_stderr():
 def _record_run(run_dir: Path, task: RunTask, status: str, wall: float, error: str,
                 trace: str) -> None:
     """Add the sweep's record to run.json (creating it for a run that failed early)."""
-    from demstep.runner import _write_text
-
     path = run_dir / "run.json"
     info: dict = {}
     if path.is_file():
@@ -150,9 +148,7 @@ def summarize_run(run_dir, peak: str | None = None, status: str | None = None,
                   error: str | None = None, wall_time: float | None = None) -> dict:
     """The summary of a run folder: status, max energy error of the history, peak of
     ``peak`` (default :func:`default_peak_column`), final step and time, wall time."""
-    import numpy as np
-
-    from demstep.io.history import read_history
+    import numpy as np  # (deferred: a heavy import, loaded only when used)
 
     run_dir = Path(run_dir)
     info: dict = {}
@@ -227,8 +223,6 @@ def _cell(value) -> str:
 def write_summary(path, plan: SweepPlan, rows: list[dict | None]) -> Path:
     """summary.csv: run_id, the swept keys, then :data:`SUMMARY_TAIL` (runs not yet
     finished have status 'pending')."""
-    from demstep.runner import _write_text
-
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow([*SUMMARY_LEAD, *plan.key_names, *SUMMARY_TAIL])
@@ -247,9 +241,7 @@ def plot_summary(path, plan: SweepPlan, rows: list[dict | None]) -> Path:
     """summary.png: max energy error (log scale, the monitor's limit drawn) and the peak
     value against the first swept key, one line per combination of the other keys;
     runs that did not complete are marked with a red x."""
-    import numpy as np
-
-    from demstep.plotting import _pyplot, save_figure
+    import numpy as np  # (deferred: a heavy import, loaded only when used)
 
     plt = _pyplot()
     fig, (ax_err, ax_peak) = plt.subplots(1, 2, figsize=(11, 4.2))

@@ -123,8 +123,10 @@ import numpy as np
 
 from demstep._numba import njit
 from demstep.contact.geometry import (any_periodic, contact_arms, minimum_image, pair_geometry,
-                                     wall_geometry)
-
+                                      wall_geometry)
+from demstep.timestep.clumps import cross_matrix, owner_mass_shares
+from demstep.timestep.elements import coupled_element_lambda
+from demstep.timestep.mass_split import element_mass
 
 #: relative margin added to the root :func:`_turn_factor` finds (its Newton iterates
 #: approach the root from above in exact arithmetic; this covers their rounding), and
@@ -775,7 +777,7 @@ def added_contacts_bound(particles, added, rotation: bool, bodies=None) -> tuple
     that holds at any orientation of the bodies (module doc, Clumps): an element's
     |L M_e^-1/2|^2 is at most w = tau^2 + rho_i^2 + rho_j^2 (+ |S_i|^2 + |S_j|^2 with
     rolling and twisting), taken with the owners' shares
-    (:func:`demstep.timestep.bodies.owner_mass_shares`, S^2 the share's inverse
+    (:func:`demstep.timestep.clumps.owner_mass_shares`, S^2 the share's inverse
     inertia) and rho = |[o]x S| + r |S| >= |[o + r n]x S| for any normal n (o the
     member's arm from its body's centre, r its radius; both norms the same in any
     orientation of the body); times the largest of the element's springs (dashpots).
@@ -783,14 +785,10 @@ def added_contacts_bound(particles, added, rotation: bool, bodies=None) -> tuple
     if added.n == 0:
         return 0.0, 0.0
     if bodies is None:
-        from demstep.timestep.elements import coupled_element_lambda
-        from demstep.timestep.mass_split import element_mass
-
         mass = element_mass(particles, added)
         add_k = float(np.max(coupled_element_lambda(added, mass, rotation)))
         add_c = float(np.max(coupled_element_lambda(added.dashpot_springs(), mass, rotation)))
         return add_k, add_c
-    from demstep.timestep.bodies import cross_matrix, owner_mass_shares
 
     mi, Ii, mj, Ij = owner_mass_shares(particles, added, bodies, rotation)
     pair = added.j >= 0

@@ -40,6 +40,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from demstep.errors import InputError
+from demstep.kernels import timestep_kernels as tk
+from demstep.kernels.timestep_kernels import _norm2, _rayleigh_residual
 from demstep.scratch import Workspace
 
 #: systems up to this many DOFs are solved densely (exact to rounding); above, Lanczos
@@ -151,8 +153,6 @@ def check_certified_tol(name: str, value: float) -> float:
 
 def _squared_norm(x: np.ndarray) -> float:
     """|x|^2 by the compiled kernel (inf or nan when x has a non-finite element)."""
-    from demstep.kernels.timestep_kernels import _norm2
-
     return float(_norm2(x))
 
 
@@ -190,8 +190,6 @@ def lanczos_top(matvec, v0: np.ndarray, tol: float = EIGSH_TOL, basis: int = LAN
     an explicit residual (:func:`top_eigenpair`). The basis lives in ``workspace`` when
     given.
     """
-    from demstep.kernels import timestep_kernels as tk
-
     n = v0.shape[0]
     semi = min(LANCZOS_SEMI, LANCZOS_SEMI_PER_TOL * tol)
     m = max(2, min(basis, n))
@@ -295,7 +293,6 @@ def top_eigenpair(A, v0: np.ndarray | None = None, dense_limit: int = DENSE_LIMI
         w, V = scipy.linalg.eigh(M, subset_by_index=[n - 1, n - 1])
         y = V[:, 0]
         return Eigenpair(float(w[0]), y, float(np.linalg.norm(M @ y - w[0] * y)))
-    from demstep.kernels.timestep_kernels import _rayleigh_residual
 
     into = getattr(A, "matvec_into", None)
     if into is None:

@@ -11,7 +11,7 @@ Two formulations, both vectorised over contacts (leading axis C):
   du_s = P (u_j - u_i) - (a_i theta_i + a_j theta_j) x n (P = I - n n^T, a_i and a_j
   the arms from the centres to the contact point; docs/time-step-elements.md), i.e. the
   linearised equations the engine integrates, and the rolling and twisting springs
-  (:class:`~demstep.contacts.ContactSet` ``k_r``, ``k_w``) on the relative rotation
+  (:class:`~demstep.contact.sets.ContactSet` ``k_r``, ``k_w``) on the relative rotation
   phi = theta_j - theta_i: a rotational element [[B, -B], [-B, B]] with
   B = k_r (I - n n^T) + k_w n n^T (2D: B = k_r). Its element eigenvalues bound the
   assembly's (Rayleigh, eq. 4) for any polydisperse assembly.
@@ -26,7 +26,9 @@ from __future__ import annotations
 import numpy as np
 
 from demstep.contact.geometry import tangent_basis
+from demstep.kernels.timestep_kernels import symmetric2_top, tangential_rolling_dt
 from demstep.timestep.mass_split import ElementMass
+from demstep.timestep.stability import damped_dt
 
 
 def n_rotations(dim: int, rotation: bool) -> int:
@@ -276,8 +278,6 @@ def coupled_element_lambda(contacts, mass: ElementMass, rotation: bool) -> np.nd
         c_r = contacts.arm_i**2 * mass.inv_I_i + contacts.arm_j**2 * mass.inv_I_j
     lam = np.maximum(contacts.k_n * c_m, contacts.k_s * (c_m + c_r))
     if rotation and contacts.has_rolling:
-        from demstep.kernels.timestep_kernels import symmetric2_top
-
         c_th, e2 = _rotation_weights(contacts, mass)
         k_t, k_r = contacts.k_s, contacts.k_r
         rolled = np.maximum(contacts.k_n * c_m,
@@ -322,8 +322,6 @@ def coupled_element_damped_dt(contacts, mass: ElementMass, rotation: bool,
     method from Weyl's upper bound and returned from above
     (:func:`demstep.kernels.timestep_kernels.tangential_rolling_dt`). Contacts without
     rolling springs or viscous parts give exactly the value above."""
-    from demstep.timestep.stability import damped_dt
-
     c_m = mass.inv_m_i + mass.inv_m_j
     c_r = 0.0
     if rotation:
@@ -333,8 +331,6 @@ def coupled_element_damped_dt(contacts, mass: ElementMass, rotation: bool,
     dt_n = damped_dt(contacts.k_n * c_m, a1 + (a2 * contacts.k_n + contacts.c_n) * c_m)
     dt_t = damped_dt(contacts.k_s * w_t, a1 + (a2 * contacts.k_s + contacts.c_t) * w_t)
     if rotation and contacts.has_rolling:
-        from demstep.kernels.timestep_kernels import tangential_rolling_dt
-
         c_th, e2 = _rotation_weights(contacts, mass)
         rolls = _rolling_elements(contacts)
         dt_tr = tangential_rolling_dt(contacts.k_s, a2 * contacts.k_s + contacts.c_t,

@@ -30,12 +30,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from demstep.contacts import ContactSet
+from demstep.contact.sets import ContactSet, find_contacts
 from demstep.errors import InputError
-from demstep.particles import Particles
+from demstep.kernels.timestep_kernels import damping_diagonal_kernel
+from demstep.packings import lattice
+from demstep.particles import INERTIA_FACTOR, Particles
 from demstep.timestep.assembly import inverse_sqrt_mass, lumped_mass, stiffness_diagonal
+from demstep.timestep.bloch import bloch_lambda_max
+from demstep.timestep.clumps import body_element_dt, body_stiffness_diagonal, owner_mass_diagonal
 from demstep.timestep.damping import GlobalDamping
-from demstep.timestep.elements import coupled_element_damped_dt, dofs_per_particle
+from demstep.timestep.eigen import EIGSH_TOL, check_certified_tol
+from demstep.timestep.elements import (coupled_element_damped_dt, dofs_per_particle,
+                                       paper_element_lambda)
+from demstep.timestep.exact import exact_critical_step
 from demstep.timestep.mass_split import element_mass
 from demstep.timestep.rules import RAYLEIGH_FRACTIONS, hertz_time, rayleigh_time
 from demstep.timestep.stability import GUIDANCE_ALPHA, alpha_of, damped_dt, dt_from_lambda
@@ -150,8 +157,6 @@ def element_paper_dt(particles, contacts, rotation, mass_split="uniform", dampin
     as described in the module docstring. The paper's elements have no rolling or
     twisting springs: the contacts' ``k_r``, ``k_w`` (and ``c_r``, ``c_w``) are
     ignored, so with rolling resistance this is no bound of any kind."""
-    from demstep.timestep.elements import paper_element_lambda
-
     d = _damping(damping)
     mass = element_mass(particles, contacts, mass_split)
     if not (contacts.damped or d.active):
@@ -171,11 +176,9 @@ def element_coupled_dt(particles, contacts, rotation, mass_split="uniform", damp
     """min over contacts of the coupled elements' steps [T]: a rigorous lower bound on the
     exact (damped) step for any partition of the masses
     (:func:`~demstep.timestep.elements.coupled_element_damped_dt`; with ``bodies``, the
-    elements of :func:`~demstep.timestep.bodies.body_element_dt`)."""
+    elements of :func:`~demstep.timestep.clumps.body_element_dt`)."""
     d = _damping(damping)
     if bodies is not None and bodies.n:
-        from demstep.timestep.bodies import body_element_dt
-
         dt = body_element_dt(particles, contacts, bodies, rotation, d.mass, d.stiffness).min()
     else:
         dt = coupled_element_damped_dt(contacts, element_mass(particles, contacts, mass_split),
@@ -188,8 +191,6 @@ def element_coupled_dt(particles, contacts, rotation, mass_split="uniform", damp
 def exact_dt(particles, contacts, rotation, damping=None, bodies=None) -> float:
     """The certified exact critical step [T] (damped when the contacts have dashpots or
     ``damping`` is given; :func:`demstep.timestep.exact.exact_critical_step`)."""
-    from demstep.timestep.exact import exact_critical_step
-
     return exact_critical_step(particles, contacts, rotation, _damping(damping),
                                bodies=bodies).dt
 
@@ -201,11 +202,8 @@ def nodal_dt(particles, contacts, rotation, damping=None, bodies=None) -> float:
     at their arms plus the rolling and twisting springs, as YADE adds its rotational
     stiffness of cohesive contacts). Damped: :func:`damped_dt` (2 K_dd/M_dd,
     a1 + 2 (a2 K_dd + C_dd)/M_dd) per DOF."""
-    from demstep.kernels.timestep_kernels import damping_diagonal_kernel
-
     d = _damping(damping)
     if bodies is not None and bodies.n:  # YADE's rule for clumps: members summed to the body
-        from demstep.timestep.bodies import body_stiffness_diagonal, owner_mass_diagonal
 
         kdiag = body_stiffness_diagonal(particles, contacts, bodies, rotation)
         cdiag = body_stiffness_diagonal(particles, contacts, bodies, rotation, "c")
@@ -279,10 +277,6 @@ def densest_packing_dt(dim: int, mass: float, k_n: float, k_t: float, c_n: float
     twisting springs k_r, k_w [M L^2/T^2 per rad], viscous parts c_r, c_w [M L^2/T],
     for particles of ``radius`` [L] (their moment of inertia; without rolling springs
     the bound does not depend on it)."""
-    from demstep.contacts import find_contacts
-    from demstep.packings import lattice
-    from demstep.particles import INERTIA_FACTOR
-
     lat = lattice(_DENSEST[dim], 1.0)
     x, box = lat.supercell(3)
     n = len(x)
@@ -331,7 +325,7 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     ``dt_undamped`` and ``lambda_undamped`` are then that loose solve's (still from an
     upper bound; its tolerance in ``report.exact.undamped_tol``, and a note says so).
     ``bodies``
-    (:class:`~demstep.timestep.bodies.RigidBodies`): clumps (``element-paper`` and
+    (:class:`~demstep.timestep.clumps.RigidBodies`): clumps (``element-paper`` and
     ``exact-periodic`` are not defined for them; m_min is the lightest free sphere or
     body).
     """
@@ -387,8 +381,7 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     dim = particles.dim
     exact = None
     if "exact" in methods or "exact-undamped" in methods:
-        from demstep.timestep.eigen import EIGSH_TOL, check_certified_tol
-        from demstep.timestep.exact import FIRST_TOL, exact_critical_step
+        from demstep.timestep.exact import FIRST_TOL
 
         options = {} if exact_tol is None else {"tol": check_certified_tol("exact_tol",
                                                                            exact_tol)}
@@ -456,8 +449,6 @@ def material_rules(particles: Particles, materials: Materials) -> dict:
 
 
 def _periodic_dt(lattice, contacts, density, rotation, damping: GlobalDamping):
-    from demstep.timestep.bloch import bloch_lambda_max
-
     if density is None:
         raise InputError("density: needed for the exact-periodic estimate")
     lam, _ = bloch_lambda_max(lattice, float(contacts.k_n.max()), float(contacts.k_s.max()),

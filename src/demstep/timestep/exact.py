@@ -41,19 +41,21 @@ from typing import NamedTuple
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from demstep.contacts import ContactSet
+from demstep.contact.sets import ContactSet
 from demstep.errors import InputError
-from demstep.kernels.timestep_kernels import (chunked_scaled_contact_matvec, contact_chunks,
-                                              contact_energies, contact_gram,
+from demstep.kernels.timestep_kernels import (chunked_scaled_contact_matvec, combine_rows,
+                                              contact_chunks, contact_energies, contact_gram,
                                               contact_quadratic_forms, ordered_contact_runs,
-                                              ordered_scaled_contact_matvec,
-                                              owner_contact_matvec, scaled_contact_matvec)
+                                              ordered_scaled_contact_matvec, owner_contact_matvec,
+                                              scaled_contact_matvec)
 from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
+from demstep.timestep.clumps import OwnerMap, body_element_matrices, check_bodies
 from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.eigen import (DENSE_LIMIT, EIGSH_TOL, LANCZOS_ARRAYS, WARM_START_MIX,
                                     Eigenpair, Workspace, check_certified_tol, top_eigenpair)
-from demstep.timestep.elements import dofs_per_particle
+from demstep.timestep.elements import coupled_element_lambda, dofs_per_particle
+from demstep.timestep.mass_split import element_mass
 from demstep.timestep.stability import damped_sigma
 
 #: relative convergence of the safeguarded iteration
@@ -126,7 +128,7 @@ class ScaledContactOperator:
     infinite mass (their DOFs are scaled by zero). K and C_d hold every contact's
     springs and dashpots: normal and tangential on the slip at the contact point, and
     with rotation the rolling and twisting ones on the relative rotation
-    (:class:`~demstep.contacts.ContactSet`). ``pencil(sigma)`` is the operator
+    (:class:`~demstep.contact.sets.ContactSet`). ``pencil(sigma)`` is the operator
     (1 + sigma a2) K^ + sigma C^_d; the mass-proportional part sigma a1 I of
     A(sigma) = sigma C^ + K^ is a shift added by the caller. Its buffers (its scaling
     M^-1/2 too) and the eigensolver's basis live in ``workspace``
@@ -158,14 +160,12 @@ class ScaledContactOperator:
         self.owner_map = None
         self._damping_bound = None
         if self.bodies is not None:
-            from demstep.timestep.bodies import OwnerMap, check_bodies
-
             check_bodies(particles, self.bodies)
             self.owner_map = OwnerMap(self.scale, self.bodies, particles.dim, self.rotation)
             self.size = self.owner_map.n_owners * self.nd
             self._body_forces = self.workspace.array("operator_body_forces", self.scale.shape)
         if threads is None:
-            import numba
+            import numba  # (deferred: a heavy import, loaded only when used)
 
             threads = numba.get_num_threads() if contacts.n >= PARALLEL_MIN_CONTACTS else 1
         #: number of contact runs summed in parallel (1: the serial product)
@@ -207,7 +207,7 @@ class ScaledContactOperator:
               quadratic: bool = False):
         """S K(springs) S x for flat x (size,) (into ``out`` when given); on
         ``threads`` > 1 the contact runs are summed in parallel; with bodies, G^T K G
-        through the owner map (:mod:`demstep.timestep.bodies`). With ``quadratic``,
+        through the owner map (:mod:`demstep.timestep.clumps`). With ``quadratic``,
         (y, x.y) when the product computed x.y on its way (the ordered runs), else
         (y, None)."""
         k_n, k_t, k_r, k_w = springs
@@ -289,7 +289,7 @@ class ScaledContactOperator:
         undamped top modes, not the top one (measured: dense packing, overlap 0.98 with
         the 2nd-8th). ``spare`` (k, size): rows free to take the projections' input
         (:attr:`Eigenpair.spare`; at 1e6 spheres an array of 192 MB otherwise)."""
-        import scipy.linalg
+        import scipy.linalg  # (deferred: a heavy import, loaded only when used)
 
         k = Y.shape[0]
         if self.owner_map is not None:
@@ -311,7 +311,6 @@ class ScaledContactOperator:
             if new <= s * (1.0 + 1e-14):
                 break
             s = new
-        from demstep.kernels.timestep_kernels import combine_rows
 
         z = np.empty((1, Y.shape[1]))
         combine_rows(Y, k, u[:, None], z)
@@ -327,14 +326,9 @@ class ScaledContactOperator:
         return self._damping_bound
 
     def _element_damping_bound(self) -> float:
-        from demstep.timestep.elements import coupled_element_lambda
-        from demstep.timestep.mass_split import element_mass
-
         d = self.damping
         bound = d.mass
         if self.contacts.n and self.bodies is not None:
-            from demstep.timestep.bodies import body_element_matrices
-
             # with rolling resistance W, D, G act on the strains (Delta, phi)
             # lambda_max(W^1/2 X W^1/2) <= lambda_max(X) lambda_max(W) per element; D and
             # G are springs (dashpots) times complementary projectors (n n^T, I - n n^T on
@@ -467,7 +461,7 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
     ``threads``: contact runs summed in parallel in each product (None: numba's threads
     from :data:`PARALLEL_MIN_CONTACTS` contacts on); ``solver``: "lanczos" or "arpack"
     (scipy's eigsh, the earlier solver, for comparison); ``bodies``
-    (:class:`demstep.timestep.bodies.RigidBodies`): clumps, six DOFs each;
+    (:class:`demstep.timestep.clumps.RigidBodies`): clumps, six DOFs each;
     ``workspace``: the scratch arrays, kept by a caller that solves again (a run);
     without one, the Lanczos basis is released on return (the result's operator keeps
     only its product buffers); ``undamped_tol``: when damping enters, the relative

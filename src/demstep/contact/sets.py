@@ -15,7 +15,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from demstep.contact.geometry import pair_geometry_arrays
+from demstep.contact.laws import rolling_inertia
 from demstep.errors import InputError
+from demstep.kernels.neighbors import build_pair_list
+from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
 from demstep.particles import Particles
 
 #: default relative tolerance for "touching" contacts found from geometry
@@ -250,8 +253,6 @@ def _pair_contacts(x, r, tol, periodic, compiled_min: int | None = None) -> Cont
         pairs = tree.query_pairs(reach, output_type="ndarray")
         lengths = np.array([0.0 if v is None else float(v) for v in periodic])
     elif n >= compiled_min:
-        from demstep.kernels.neighbors import build_pair_list
-
         x3 = np.zeros((n, 3))
         x3[:, :dim] = x
         # candidates |x_j - x_i| < r_i + r_j + skin: all within (r_i + r_j)(1 + tol),
@@ -294,8 +295,6 @@ def contact_rolling_inertia(contacts: ContactSet, r, m, inertia, moving) -> np.n
     """I* (C,) [M L^2] of every contact: 1 / (1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2))
     (:func:`demstep.contact.laws.rolling_inertia`) over the particles that move
     (``moving``); a wall or a fixed particle adds nothing, as in the engine's kernels."""
-    from demstep.contact.laws import rolling_inertia
-
     i, j = contacts.i, contacts.j
     jj = np.maximum(j, 0)
     inertia = np.where(moving, inertia, 0.0)
@@ -315,8 +314,6 @@ def with_rolling(contacts: ContactSet, r, m, inertia, moving, params) -> Contact
     if not params.has_rolling or contacts.n == 0:
         return contacts
     from dataclasses import replace
-
-    from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
 
     k_r, k_w, c_r, c_w = rolling_coefficient_arrays(
         params, contacts.k_n, contacts.k_s, contact_effective_radius(contacts, r),

@@ -7,7 +7,7 @@ K_body = G^T K_members G. The mass matrix is block diagonal: m I and the world i
 tensor I_w = R I_principal R^T of each body, whose M^-1/2 block is
 R diag(I_k^-1/2) R^T. Free spheres keep their own DOFs; a sphere that belongs to a body
 is an "owner" no more. The central-difference scheme of the engine for bodies
-(:mod:`demstep.kernels.bodies`) linearised about rest is the central difference with
+(:mod:`demstep.kernels.clumps`) linearised about rest is the central difference with
 this mass matrix, so lambda_max(M^-1/2 K M^-1/2) gives its exact critical step.
 
 Owners are numbered: the free spheres in their order, then the bodies.
@@ -19,7 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from demstep.clumps import check_connected, mass_properties
 from demstep.errors import InputError
+from demstep.kernels.timestep_kernels import owner_expand
 
 
 @dataclass
@@ -52,8 +54,6 @@ class RigidBodies:
         a ``body`` id (>= 0; -1: a free sphere), for a ``density``: the mass
         properties of each union of members (:func:`demstep.clumps.mass_properties`) in
         the world frame."""
-        from demstep.clumps import check_connected, mass_properties
-
         x = np.asarray(x, dtype=np.float64)
         body = np.asarray(body, dtype=np.int64)
         dim = x.shape[1]
@@ -130,8 +130,6 @@ class OwnerMap:
     def expand(self, q: np.ndarray, n_spheres: int, out: np.ndarray | None = None) -> np.ndarray:
         """The spheres' physical DOFs (N, nd) of scaled owner DOFs q (owners, nd) (into
         ``out`` when given): :func:`demstep.kernels.timestep_kernels.owner_expand`."""
-        from demstep.kernels.timestep_kernels import owner_expand
-
         u = np.empty((n_spheres, self.nd)) if out is None else out
         return owner_expand(self, q, u)
 

@@ -3,7 +3,7 @@ coefficients, and the damping, from particle files of other codes, lattices, dem
 case files and checkpoints (``demstep dt``).
 
 The contact model turns each contact's geometry into the coefficients of
-:class:`~demstep.contacts.ContactSet`:
+:class:`~demstep.contact.sets.ContactSet`:
 
 * ``linear``: k_n, k_t [M/T^2] given;
 * ``hertz``: tangent stiffnesses k_n = 2 E* sqrt(R* delta), k_t = 8 G* sqrt(R* delta)
@@ -37,20 +37,32 @@ and of the linear c_t are made here.
 from __future__ import annotations
 
 import math
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from demstep.contact.laws import RollingResistance
-from demstep.contacts import DEFAULT_CONTACT_TOL, ContactSet, find_contacts
+from demstep.case import apply_stage, build_simulation, load_case
+from demstep.case.stages import create_bonds
+from demstep.contact import sets as cs
+from demstep.contact.laws import (ContactLaw, RollingResistance, contact_coefficients,
+                                  damping_ratio_from_restitution, law_class)
+from demstep.contact.sets import (DEFAULT_CONTACT_TOL, ContactSet, contact_effective_radius,
+                                  contact_rolling_inertia, find_contacts)
 from demstep.errors import InputError, magnitude_problem
-from demstep.packings import SPATIAL_ORDER_MIN
-from demstep.particles import Particles, particle_inertia
+from demstep.io.checkpoint import load_checkpoint
+from demstep.io.formats import read_particle_file
+from demstep.io.textfile import not_a_file_message, not_a_file_reason, read_small_text
+from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
+from demstep.packings import SPATIAL_ORDER_MIN, inverse_order, lattice, spatial_order
+from demstep.particles import Particles, particle_inertia, particle_mass
+from demstep.runner import case_hash, find_checkpoint, read_state
+from demstep.timestep.clumps import RigidBodies
 from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.estimates import Materials
+from demstep.walls import Wall
 
-MODELS = ("linear", "hertz")
 CONVENTIONS = ("demstep", "liggghts")
 
 
@@ -76,16 +88,19 @@ class Material:
 
 @dataclass
 class ContactModel(RollingResistance):
-    """How contacts become coefficients (module docstring). ``materials`` maps a particle
-    type to its :class:`Material` (type 1 for files without a type column; the key None
-    gives the material of every type). Rolling and twisting resistance as in
+    """How contacts become coefficients (module docstring): the contact law ``model``
+    (a name of :data:`demstep.contact.laws.LAWS`) with its own ``parameters`` (field
+    name: value, e.g. {"k_n": 1e7}), or, for a law whose parameters are the particles'
+    materials (Hertz), ``materials``: a particle type -> its :class:`Material` (type 1
+    for files without a type column; the key None gives the material of every type).
+    Dashpots by restitution or absolute coefficients, in the ``convention`` "demstep"
+    or "liggghts". Rolling and twisting resistance as in
     :class:`demstep.contact.laws.ContactLaw`: ``rolling_convention`` ("beta", "epsd" or
     None: none), ``rolling_stiffness`` beta_r, ``twisting_stiffness`` beta_w,
     ``rolling_friction`` mu_r, ``twisting_friction`` mu_w, ``rolling_damping`` eta."""
 
     model: str = "linear"
-    k_n: float | None = None
-    k_t: float | None = None
+    parameters: dict = field(default_factory=dict)
     materials: dict = field(default_factory=dict)
     restitution: float | None = None
     restitution_tangential: float | None = None
@@ -95,33 +110,52 @@ class ContactModel(RollingResistance):
     convention: str = "demstep"
     overlap: float = 0.0
 
+    @property
+    def law_class(self) -> type:
+        return law_class(self.model, "model")
+
+    def _law(self, **own) -> ContactLaw:
+        """The law with the model's parameters (``own``: a material pair's instead) and
+        its common settings, checked (messages name the ``demstep dt`` options)."""
+        cls = self.law_class
+        law = cls(**(self.parameters if not own else {}), **self.rolling_settings())
+        try:
+            law.validate()
+        except InputError as exc:
+            text = str(exc)
+            for option, name in cls.cli.items():
+                text = text.replace(f"{name}:", f"{option}:", 1) if text.startswith(name) else text
+            for name in ROLLING_OPTIONS:
+                text = text.replace(name, name.replace("_", "-"))
+            raise InputError(text) from None
+        return law
+
     def validate(self):
-        if self.model not in MODELS:
-            raise InputError(f"model: must be one of {', '.join(MODELS)}, got {self.model!r}")
+        cls = self.law_class
         if self.convention not in CONVENTIONS:
             raise InputError(f"convention: must be one of {', '.join(CONVENTIONS)}, got "
                              f"{self.convention!r}")
-        if self.model == "linear":
-            if self.k_n is None:
-                raise InputError("kn: the linear model needs --kn")
-            _positive("kn", self.k_n)
-            if self.k_t is not None:
-                _non_negative("ks", self.k_t)
-        else:
-            if self.k_n is not None or self.k_t is not None:
-                raise InputError("kn: --kn/--ks belong to the linear model; the hertz model "
-                                 "takes --youngs and --poisson")
+        if cls.uses_materials:
+            if self.parameters:
+                raise InputError(f"model: the {cls.name} model takes the materials' "
+                                 f"properties, got {sorted(self.parameters)}")
             if not self.materials:
-                raise InputError("youngs: the hertz model needs --youngs and --poisson "
-                                 "(or --materials)")
+                options = " and ".join(f"--{o}" for o in cls.cli)
+                raise InputError(f"{next(iter(cls.cli))}: the {cls.name} model needs both "
+                                 f"{options} (or --materials)")
             for t, m in self.materials.items():
                 m.validate("" if t is None else f"material {t}:")
+        else:
+            self._law()
         for name, v in (("restitution", self.restitution),
                         ("restitution-t", self.restitution_tangential)):
             if v is not None and not (math.isfinite(v) and 0.0 < v <= 1.0):
                 raise InputError(f"{name}: must lie in (0, 1], got {v!r}")
         _non_negative("gamma-n", self.gamma_n)
         _non_negative("gamma-t", self.gamma_t)
+        if self.convention == "liggghts" and cls.liggghts_tangential is None:
+            raise InputError(f"convention: the {cls.name} model has no LIGGGHTS counterpart "
+                             f"(use --convention demstep)")
         if (self.convention == "liggghts" and self.restitution is not None
                 and (self.gamma_n or self.gamma_t)):
             raise InputError("restitution: the liggghts convention takes either --restitution "
@@ -134,20 +168,18 @@ class ContactModel(RollingResistance):
             raise InputError(f"overlap: must be finite and >= 0, got {self.overlap!r}")
         self._rolling_law()
 
-    def _rolling_law(self):
-        """The rolling-resistance part as a checked :class:`~demstep.contact.laws.ContactLaw`
-        (the law's own checks; messages name the options: rolling-stiffness, ...)."""
-        from demstep.contact.laws import ContactLaw
-
-        law = ContactLaw(**self.rolling_settings())
+    def _rolling_law(self) -> RollingResistance:
+        """The rolling-resistance settings, checked (messages name the options:
+        rolling-stiffness, ...)."""
+        rolling = RollingResistance(**self.rolling_settings())
         try:
-            law.validate()
+            rolling.validate_rolling()
         except InputError as exc:
             text = str(exc)
             for name in ROLLING_OPTIONS:
                 text = text.replace(name, name.replace("_", "-"))
             raise InputError(text) from None
-        return law
+        return rolling
 
     @property
     def has_rolling(self) -> bool:
@@ -171,18 +203,19 @@ class ContactModel(RollingResistance):
                     or (et is not None and et < 1.0 and self.tangential_damping))
 
     def describe(self) -> str:
-        if self.model == "linear":
-            text = f"linear k_n = {self.k_n:g}, k_t = {self.k_t if self.k_t is not None else self.k_n:g}"
-        else:
+        cls = self.law_class
+        if cls.uses_materials:
             mats = "; ".join(("every type" if t is None else f"type {t}")
                              + f": E = {m.youngs:g}, nu = {m.poisson:g}"
                              for t, m in sorted(self.materials.items(), key=lambda kv: kv[0] or 0))
-            text = f"Hertz-Mindlin tangent stiffnesses at each overlap ({mats})"
+            text = f"{cls.name}: tangent stiffnesses at each overlap ({mats})"
+        else:
+            text = self._law().describe()
         if self.gamma_n or self.gamma_t:
             text += f"; dashpots gamma_n = {self.gamma_n:g}, gamma_t = {self.gamma_t:g} (absolute)"
         if self.restitution is not None and self.convention == "liggghts":
             tang = ("tangential dashpot " + ("on" if self.tangential_damping else "off"))
-            form = ("c_t = c_n" if self.model == "linear" else "c_t from k_t")
+            form = ("c_t = c_n" if cls.liggghts_tangential == "c_n" else "c_t from k_t")
             text += (f"; dashpots from restitution {self.restitution:g}, LIGGGHTS "
                      f"convention ({tang}; {form})")
         elif self.restitution is not None or self._tangential_restitution is not None:
@@ -204,42 +237,37 @@ class ContactModel(RollingResistance):
         return text
 
     # -------------------------------------------------------------- coefficients
-    def law_params(self, e_star: float = 0.0, g_star: float = 0.0):
-        """The engine's :class:`~demstep.contact.laws.LawParams` for one material pair."""
-        from demstep.contact import laws
-
-        if self.model == "linear":
-            p = laws.LawParams(law=float(laws.LAW_LINEAR), k_n=float(self.k_n),
-                               k_s=float(self.k_n if self.k_t is None else self.k_t))
+    def law_params(self, a: Material | None = None, b: Material | None = None):
+        """The engine's parameter tuple of the model's law (for a law with materials,
+        of a contact between materials ``a`` and ``b``), with the dashpots of the
+        model's convention and its rolling resistance."""
+        cls = self.law_class
+        if cls.uses_materials:
+            if a is None:  # (the material of every type, or the first given)
+                a = self.materials.get(None) or next(iter(self.materials.values()))
+            p = cls.Params(**cls.pair_params(a, a if b is None else b))
         else:
-            p = laws.LawParams(law=float(laws.LAW_HERTZ), e_star=float(e_star),
-                               g_star=float(g_star))
+            law = self._law()
+            p = cls.Params(**law.own_params())
         p = p._replace(c_n=float(self.gamma_n), c_t=float(self.gamma_t))
         if self.restitution is not None:
-            beta = laws.damping_ratio_from_restitution(self.restitution)
+            beta = damping_ratio_from_restitution(self.restitution)
             p = p._replace(beta_n=beta)
-            # liggghts, Hertz: the same beta on k_t; linear: c_t = c_n (set after)
+            # liggghts: the normal ratio on k_t (hertz) or c_t = c_n (hooke, set after)
             if (self.convention == "liggghts" and self.tangential_damping
-                    and self.model == "hertz"):
+                    and cls.liggghts_tangential == "beta"):
                 p = p._replace(beta_t=beta)
         if self._tangential_restitution is not None:  # (with a normal one or not)
-            p = p._replace(beta_t=laws.damping_ratio_from_restitution(
-                self._tangential_restitution))
+            p = p._replace(beta_t=damping_ratio_from_restitution(self._tangential_restitution))
         if not self.tangential_damping:
             p = p._replace(c_t=0.0, beta_t=0.0)
         if self.has_rolling:
-            roll = self._rolling_law().params()
-            p = p._replace(roll_mode=roll.roll_mode, beta_r=roll.beta_r, beta_w=roll.beta_w,
-                           mu_r=roll.mu_r, mu_w=roll.mu_w, eta_r=roll.eta_r)
+            p = p._replace(**self._rolling_law().rolling_params())
         return p
 
     def apply(self, contacts: ContactSet, particles: Particles, types: np.ndarray) -> ContactSet:
         """Fill the contacts' k_n, k_s, c_n, c_t (and k_r, k_w, c_r, c_w with rolling
         resistance) from the model and the geometry."""
-        from demstep.contact.laws import contact_coefficients
-        from demstep.contacts import contact_effective_radius, contact_rolling_inertia
-        from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
-
         i, j = contacts.i, contacts.j
         wall = j < 0
         jj = np.where(wall, i, j)
@@ -255,7 +283,8 @@ class ContactModel(RollingResistance):
         p = particles
         i_star = (contact_rolling_inertia(contacts, p.r, p.m, p.inertia, ~p.fixed)
                   if self.has_rolling else None)
-        if self.model == "linear":  # (one group: views and plain copies, no masks)
+        cls = self.law_class
+        if not cls.uses_materials:  # (one group: views and plain copies, no masks)
             groups = [(slice(None), self.law_params())]
         else:
             ti, tj = types[i], types[jj]
@@ -263,11 +292,9 @@ class ContactModel(RollingResistance):
             for a in np.unique(ti):
                 for b in np.unique(tj[ti == a]):
                     sel = (ti == a) & (tj == b)
-                    e_star, g_star = effective_moduli(self.material(a), self.material(b))
-                    groups.append((sel, self.law_params(e_star, g_star)))
+                    groups.append((sel, self.law_params(self.material(a), self.material(b))))
         for sel, params in groups:
-            coeffs = contact_coefficients(int(params.law), params, delta[sel], r_star[sel],
-                                          m_star[sel])
+            coeffs = contact_coefficients(params, delta[sel], r_star[sel], m_star[sel])
             for k in range(4):
                 out[k][sel] = coeffs[k]
             if i_star is not None:
@@ -276,7 +303,7 @@ class ContactModel(RollingResistance):
                 for k in range(4):
                     out[4 + k][sel] = rolling[k]
         k_n, k_t, c_n, c_t, k_r, k_w, c_r, c_w = out
-        if (self.convention == "liggghts" and self.model == "linear"
+        if (self.convention == "liggghts" and cls.liggghts_tangential == "c_n"
                 and self.restitution is not None):
             c_t = c_n.copy() if self.tangential_damping else np.zeros_like(c_n)
         return ContactSet(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
@@ -289,19 +316,16 @@ ROLLING_OPTIONS = RollingResistance.field_names()
 
 def with_rolling(contacts: ContactSet, particles: Particles, params) -> ContactSet:
     """The contacts with the law's rolling and twisting springs (``params`` a LawParams):
-    :func:`demstep.contacts.with_rolling` with the particles' own masses and inertias."""
-    from demstep import contacts as cs
-
+    :func:`demstep.contact.sets.with_rolling` with the particles' own masses and inertias."""
     p = particles
     return cs.with_rolling(contacts, p.r, p.m, p.inertia, ~p.fixed, params)
 
 
-def effective_moduli(a: Material, b: Material) -> tuple[float, float]:
-    """E*, G* [M/(L T^2)] of a contact between materials a and b (module docstring)."""
-    e_star = 1.0 / ((1 - a.poisson**2) / a.youngs + (1 - b.poisson**2) / b.youngs)
-    g_star = 1.0 / (2 * (2 - a.poisson) * (1 + a.poisson) / a.youngs
-                    + 2 * (2 - b.poisson) * (1 + b.poisson) / b.youngs)
-    return e_star, g_star
+def effective_moduli(model: ContactModel, a: Material, b: Material) -> tuple[float, float]:
+    """E*, G* [M/(L T^2)] of a contact between materials a and b by the model's law
+    (module docstring)."""
+    moduli = model.law_class.pair_params(a, b)
+    return moduli["e_star"], moduli["g_star"]
 
 
 def _positive(name, v):
@@ -341,10 +365,6 @@ def read_materials(path) -> dict:
 
     Only ``[[material]]`` tables at the top level, only these keys in them, numbers
     as TOML numbers (not strings, not booleans)."""
-    import tomllib
-
-    from demstep.io.textfile import not_a_file_message, not_a_file_reason, read_small_text
-
     path = Path(path)
     reason = not_a_file_reason(path)
     if reason is not None:
@@ -444,14 +464,14 @@ def periodic_lengths(box: np.ndarray, periodic: np.ndarray, x: np.ndarray, r: np
 
 def make_materials(model: ContactModel, particles: Particles, types: np.ndarray,
                    impact_velocity: float | None) -> Materials | None:
-    """Per-particle material data for the rules (Hertz model only)."""
-    if model.model != "hertz":
+    """Per-particle material data for the rules (a law with materials only)."""
+    if not model.law_class.uses_materials:
         return None
     mats = [model.material(t) for t in types]
     volume = (4.0 / 3.0 * np.pi * particles.r**3 if particles.dim == 3 else np.pi * particles.r**2)
     density = np.array([m.density if m.density is not None else np.nan for m in mats])
     density = np.where(np.isnan(density), particles.m / volume, density)
-    e_star = np.array([effective_moduli(m, m)[0] for m in mats])
+    e_star = np.array([effective_moduli(model, m, m)[0] for m in mats])
     return Materials(np.array([m.youngs for m in mats]), np.array([m.poisson for m in mats]),
                      density, e_star, impact_velocity)
 
@@ -460,7 +480,7 @@ def _impact_velocity(model: ContactModel, given: float | None, velocities) -> fl
     """The impact velocity of the Hertz time [L/T]: ``given``, else twice the largest
     particle speed (as LIGGGHTS), None without motion. Given with a model that is not
     Hertz: InputError (the Hertz time is the only estimate that reads it)."""
-    if model.model != "hertz":
+    if not model.law_class.uses_materials:
         if given is not None:
             raise InputError(f"impact-velocity: only used by the Hertz time of the hertz "
                              f"model; this input's contact model is {model.model}, got {given!r}")
@@ -472,7 +492,7 @@ def _impact_velocity(model: ContactModel, given: float | None, velocities) -> fl
 
 
 def check_types(model: ContactModel, types: np.ndarray, source: str):
-    if model.model != "hertz":
+    if not model.law_class.uses_materials:
         return
     missing = sorted(set(int(t) for t in np.unique(types)) - set(model.materials))
     if missing and None not in model.materials:
@@ -513,18 +533,16 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
               damping=None, impact_velocity=None, snapshot: int = -1) -> AnalysisInput:
     """A particle file (CSV, LIGGGHTS/LAMMPS dump, YADE text). ``box`` (dim, 2) and
     ``periodic_axes`` (a string of axis letters) override the file's box and flags."""
-    from demstep.io.formats import read_particle_file
-
     path = Path(path)
     data = read_particle_file(path, format=fmt, snapshot=snapshot)
     dim = data.dim
     notes = [f"read {path} ({data.x.shape[0]} particles, {dim}D)"]
     if data.m is None:
-        if density is None and model.model == "hertz" and model.materials:
+        if density is None and model.law_class.uses_materials and model.materials:
             dens = [m.density for m in model.materials.values()]
             if all(d is not None for d in dens):
                 density = None  # per type below
-        if density is None and not (model.model == "hertz" and _all_densities(model)):
+        if density is None and not (model.law_class.uses_materials and _all_densities(model)):
             raise InputError(f"{path}: no mass column: give --density")
     types = data.types if data.types is not None else np.ones(len(data.r), dtype=np.int64)
     check_types(model, types, str(path))
@@ -532,12 +550,8 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
         m = data.m
         notes.append("masses from the file's mass column")
     elif density is not None:
-        from demstep.particles import particle_mass
-
         m = particle_mass(data.r, density, dim)
     else:
-        from demstep.particles import particle_mass
-
         m = np.array([particle_mass(r, model.material(t).density, dim)
                       for r, t in zip(data.r, types)])
     box_arr = data.box
@@ -566,11 +580,8 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
     bodies = None
     body = data.extra.get("body")
     if body is not None and (body >= 0).any():
-        from demstep.timestep.bodies import RigidBodies
-
         rho = density
         if rho is None:  # the members' own density (a mass column)
-            from demstep.particles import particle_mass
 
             rho = float(np.median(m / particle_mass(data.r, 1.0, dim)))
         bodies = RigidBodies.from_members(x, data.r, body, rho)
@@ -592,8 +603,6 @@ def _put_in_spatial_order(data: AnalysisInput) -> None:
     file's rows in any message so far) in spatial order, the file's row of each kept in
     ``ids`` for the reports: the products of the exact step gather by index (1e5 dense
     spheres in random order: 5.0 s against 1.6 s in spatial order)."""
-    from demstep.packings import inverse_order, spatial_order
-
     p = data.particles
     order = spatial_order(p.x, 2.0 * float(p.r.max()))
     new_index = inverse_order(order)
@@ -615,8 +624,6 @@ WALL_NAMES = ("x-", "x+", "y-", "y+", "z-", "z+")
 def _walls(specs, box, dim: int) -> list:
     """Walls from specs: a box side ('x-', 'z+', ...: the plane of the box's bound, facing
     in) or 'px,py[,pz]:nx,ny[,nz]' (a point and the normal pointing into the packing)."""
-    from demstep.walls import Wall
-
     walls = []
     for spec in specs:
         if isinstance(spec, Wall):
@@ -652,8 +659,6 @@ def _walls(specs, box, dim: int) -> list:
 def from_lattice(name: str, size: int, radius: float, density: float, model: ContactModel,
                  periodic: bool = False, contact_tol=DEFAULT_CONTACT_TOL, damping=None,
                  impact_velocity=None) -> AnalysisInput:
-    from demstep.packings import lattice
-
     lat = lattice(name, radius)
     if periodic:
         x, box = lat.supercell(size)
@@ -695,16 +700,15 @@ def from_simulation(sim, source: str, notes=None,
 
 def model_from_law(law, overlap: float = 0.0) -> ContactModel:
     """The :class:`ContactModel` (demstep convention) of an engine law."""
-    from demstep.contact.laws import HertzMindlin
-
     common = dict(restitution=law.restitution, restitution_tangential=law.restitution_tangential,
                   gamma_n=float(law.damping_normal), gamma_t=float(law.damping_tangential),
                   convention="demstep", overlap=overlap)
     common.update(law.rolling_settings())
-    if isinstance(law, HertzMindlin):
-        return ContactModel("hertz", materials={None: Material(law.youngs_modulus, law.poisson_ratio)},
-                            **common)
-    return ContactModel("linear", k_n=law.k_n, k_t=law.k_s, **common)
+    own = {f.name: getattr(law, f.name) for f in law.own_fields()}
+    if law.uses_materials:
+        values = list(own.values())  # (the law's material: Young's modulus, Poisson's ratio)
+        return ContactModel(law.name, materials={None: Material(*values)}, **common)
+    return ContactModel(law.name, parameters=own, **common)
 
 
 def from_case(path, stage: int = 1, contact_tol: float = DEFAULT_CONTACT_TOL,
@@ -713,8 +717,6 @@ def from_case(path, stage: int = 1, contact_tol: float = DEFAULT_CONTACT_TOL,
     (1-based) applied: contacts touching within ``contact_tol``, the case's law, walls,
     periodic box and global damping. Touching contacts of a Hertz law are evaluated at
     the case's ``timestep.overlap`` (zero overlap has zero stiffness)."""
-    from demstep.case import apply_stage, build_simulation, load_case
-
     case = load_case(path)
     if not 1 <= stage <= max(1, len(case.stages)):
         raise InputError(f"stage: must lie in [1, {max(1, len(case.stages))}], got {stage}")
@@ -729,7 +731,6 @@ def from_case(path, stage: int = 1, contact_tol: float = DEFAULT_CONTACT_TOL,
         notes.append("rotation locked in the case")
     bond_stage = case.bond_stage()
     if bond_stage is not None and bond_stage < stage - 1:  # bonded at an earlier stage
-        from demstep.case.stages import create_bonds
 
         create_bonds(sim, case)
     out = from_particles(sim.particles_now(), model, None,
@@ -767,10 +768,6 @@ def load_run(checkpoint, case_path=None):
     """(Simulation, case_changed): a Simulation restored from a checkpoint of a demstep
     run (with the stages that had started applied, as a restart does), and whether the
     case is not the one that wrote the checkpoint."""
-    from demstep.case import apply_stage, build_simulation, load_case
-    from demstep.io.checkpoint import load_checkpoint
-    from demstep.runner import case_hash, find_checkpoint, read_state
-
     checkpoint = find_checkpoint(checkpoint)
     if case_path is None:
         case_path = checkpoint.resolve().parent.parent / "case.toml"
