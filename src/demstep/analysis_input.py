@@ -323,7 +323,7 @@ ROLLING_OPTIONS = RollingResistance.field_names()
 
 
 def with_rolling(contacts: ContactSet, particles: Particles, params) -> ContactSet:
-    """The contacts with the law's rolling and twisting springs (``params`` a LawParams):
+    """The contacts with the law's rolling and twisting springs (``params`` a law's Params tuple):
     :func:`demstep.contact.sets.with_rolling` with the particles' own masses and inertias."""
     p = particles
     return cs.with_rolling(contacts, p.r, p.m, p.inertia, ~p.fixed, params)

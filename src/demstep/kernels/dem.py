@@ -603,7 +603,7 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params, dt,
     row per pair, it receives the unit normal and the centre distance of every pair
     (the rolling-resistance loop reads them). ``cover`` (P,) or (0,): when it has a row
     per pair, the largest overlap [L] the last certified time step covered each pair at
-    (0: not covered; see :meth:`demstep.engine.Simulation._still_certified`): the
+    (0: not covered; see :meth:`demstep.engine.auto_step.AutoStep.accept`): the
     touching pairs whose overlap exceeds it are counted (``uncovered``), and the
     smallest headroom cover - delta [L] over all pairs is returned last (+inf without a
     cover): a pair whose gap or overlap changes by less than it in the next step stays
@@ -1032,7 +1032,7 @@ def closing_beyond_cover(x, v, r, pi, pj, periodic_len, cover, wp, ww, wall_poin
     overlap taken (|v_i| + |v_j|) dt + ``boundary`` ahead, ``boundary`` the walls' and
     the box's last move [L]): a pass of the geometry alone, which :func:`_advance`
     makes only after a step whose headrooms left room for such a contact. The engine
-    covers them before the next step (:meth:`demstep.engine.Simulation._uncovered`
+    covers them before the next step (:meth:`demstep.engine.auto_step.AutoStep.uncovered`
     looks further ahead): a contact closed beyond its cover must not act in a step,
     and a contact about to close had better close at a step certified for it (a light
     particle that closes at a step certified for heavy ones only penetrates deep in
@@ -1124,7 +1124,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
     keep the largest displacement since the lists were built and the boundaries' move,
     and the chunk ends (STOP_CHECK) once the smaller of the two bounds of
     :func:`drift_used` exceeds the budget: the engine then checks the drift of the
-    certified step (:meth:`demstep.engine.Simulation._still_certified`)."""
+    certified step (:meth:`demstep.engine.auto_step.AutoStep.accept`)."""
     x, v, w, r, m = sph.x, sph.v, sph.w, sph.r, sph.m
     inv_m, force, torque = sph.inv_m, sph.force, sph.torque
     acc, energy, counters = ledger.acc, ledger.energy, ledger.counters
