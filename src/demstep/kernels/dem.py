@@ -351,9 +351,7 @@ _PAIR_DASHPOT = -1
 _PAIR_PERIODIC = -1
 
 
-def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params, dt,
-                ft, fd, etan, store_dashpot, chunks, spans, force, torque, force_band,
-                torque_band, geo, cover):
+def _pair_chunk(c, sph, pairs, periodic_len, box_rate, params, dt, store_dashpot):
     """The pairs of chunk ``c`` of :func:`_pair_loop` (``chunks[c]`` to
     ``chunks[c + 1]``), compiled once and called by the serial and the
     threaded driver alike: the same loop compiled inside a prange body ran 12 % slower
@@ -368,6 +366,11 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params,
     and whether the box is periodic are constants, and the branches on them are gone
     from the gather and scatter loops (dense 1e5, one thread: 8-10 % less time per
     pair); its driver refuses a call that does not match them."""
+    x, v, w, r, m, inv_m = sph.x, sph.v, sph.w, sph.r, sph.m, sph.inv_m
+    force, torque = sph.force, sph.torque
+    pi, pj, ft, fd, etan = pairs.i, pairs.j, pairs.shear, pairs.dashpot, pairs.shear_energy
+    chunks, spans, geo, cover = pairs.chunks, pairs.spans, pairs.geo, pairs.cover
+    force_band, torque_band = pairs.force_band, pairs.torque_band
     periodic = any_periodic(periodic_len) if _PAIR_PERIODIC < 0 else _PAIR_PERIODIC == 1
     if _PAIR_DASHPOT >= 0:
         store_dashpot = _PAIR_DASHPOT == 1
@@ -580,16 +583,17 @@ pair_chunk = njit(fastmath=CONTRACT)(_pair_chunk)
 pair_chunk_inline = njit(fastmath=CONTRACT, inline="always")(_pair_chunk)
 
 
-def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params, dt,
-               ft, fd, etan, store_dashpot, chunks, spans, force, torque, force_band,
-               torque_band, box_sums, geo, cover):
-    """Forces of all Verlet pairs (compiled twice: parallel and serial), history ``ft``,
-    ``fd``, ``etan`` (see :func:`contact_response`). The pairs are cut into chunks
-    (``chunks``: pair-index boundaries at particle starts, one chunk per thread;
+def _pair_loop(sph, pairs, periodic_len, box_rate, params, dt, store_dashpot, box_sums):
+    """Forces of all Verlet pairs (compiled twice: parallel and serial) of the Spheres
+    ``sph`` and the Pairs ``pairs`` (:mod:`demstep.state`): the pairs ``i``, ``j`` and
+    their history ``shear`` (ft), ``dashpot`` (fd), ``shear_energy`` (etan) (see
+    :func:`contact_response`), at the slip step ``dt`` [T] with the law's ``params``.
+    The pairs are cut into chunks
+    (``pairs.chunks``: pair-index boundaries at particle starts, one chunk per thread;
     :func:`pair_chunks`); chunk c adds the force (on j +F, on i -F) and torque (-a n x F
-    on each) of its pairs to the ``force``/``torque`` rows (N, 3) of the particles it
+    on each) of its pairs to the ``sph.force``/``sph.torque`` rows (N, 3) of the particles it
     owns, which it zeroes first, and those of particles beyond (its band: up to
-    ``spans[c, 1]``) to ``force_band[c]``/``torque_band[c]`` (rows from the first
+    ``spans[c, 1]``) to ``pairs.force_band[c]``/``torque_band[c]`` (rows from the first
     particle past its own), which :func:`_reduce_loop` adds once every chunk is done:
     no two threads write the same memory, and with one chunk there is no band. Returns
     (strain_n, strain_t, friction, dashpot, contacts, uncovered, headroom). ``box_sums`` (4, 3)
@@ -599,9 +603,9 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params, dt,
     the number of crossing contacts and the sum of their k_n. ``box_rate`` (3,): rate of
     change of the periodic lengths; the image of j across a boundary moves with
     v_j - n_img dL/dt. ``store_dashpot`` False (a law without dashpots, ``fd`` all
-    zero) skips reading and writing ``fd``. ``geo`` (P, 4) or (0, 4): when it has a
+    zero) skips reading and writing ``fd``. ``pairs.geo`` (P, 4) or (0, 4): when it has a
     row per pair, it receives the unit normal and the centre distance of every pair
-    (the rolling-resistance loop reads them). ``cover`` (P,) or (0,): when it has a row
+    (the rolling-resistance loop reads them). ``pairs.cover`` (P,) or (0,): when it has a row
     per pair, the largest overlap [L] the last certified time step covered each pair at
     (0: not covered; see :meth:`demstep.engine.auto_step.AutoStep.accept`): the
     touching pairs whose overlap exceeds it are counted (``uncovered``), and the
@@ -624,12 +628,10 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params, dt,
         raise ValueError("pair loop: compiled for another kind of box")
     if _PAIR_DASHPOT >= 0 and store_dashpot != (_PAIR_DASHPOT == 1):
         raise ValueError("pair loop: compiled for another kind of law")
-    n_chunks = chunks.shape[0] - 1
+    n_chunks = pairs.chunks.shape[0] - 1
     sums = np.zeros((max(n_chunks, 1), PAIR_SUMS))
     for c in prange(n_chunks):
-        got = pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params,
-                         dt, ft, fd, etan, store_dashpot, chunks, spans, force, torque,
-                         force_band, torque_band, geo, cover)
+        got = pair_chunk(c, sph, pairs, periodic_len, box_rate, params, dt, store_dashpot)
         for q in range(PAIR_SUMS):
             sums[c, q] = got[q]
     # the chunks' sums added in chunk order: the same whatever the threads did
@@ -694,17 +696,22 @@ def _particle_boundary(wp, q):
     return q
 
 
-def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
-               params, dt, wft, wfd, wetan, force, torque, wall_force, wall_contacts, wall_k,
-               n_chunks, cover):
-    """Particle-wall contacts (compiled twice: parallel and serial), in ``n_chunks`` runs
+def _wall_loop(sph, walls, params, dt, n_chunks):
+    """Particle-wall contacts (compiled twice: parallel and serial) of the Spheres ``sph``
+    with the Walls ``walls`` (their particle-wall list ``p``, ``wall`` and its history),
+    at the slip step ``dt`` [T] with the law's ``params``, in ``n_chunks`` runs
     of wall pairs cut between particles, so that each run adds to the ``force``/
-    ``torque`` rows of its own particles only. ``wall_force`` (W, 3) receives the force
-    the particles exert on each wall, ``wall_contacts`` and ``wall_k`` the number of
-    touching particles and the sum of their k_n (per run first, then summed). ``cover``
+    ``torque`` rows of its own particles only. ``walls.force`` (W, 3) receives the force
+    the particles exert on each wall, ``walls.contacts`` and ``walls.k_sum`` the number of
+    touching particles and the sum of their k_n (per run first, then summed). ``walls.cover``
     as in :func:`_pair_loop` (per wall pair). Returns (strain_n, strain_t, friction,
     dashpot, uncovered, headroom). Arrays of particles and wall pairs are read
     through flat views with unsigned indices (as in :func:`_pair_loop`)."""
+    x, v, w, r, m, force, torque = sph.x, sph.v, sph.w, sph.r, sph.m, sph.force, sph.torque
+    wp, ww, cover = walls.p, walls.wall, walls.cover
+    wall_point, wall_normal, wall_vel, wall_mu = walls.point, walls.normal, walls.vel, walls.mu
+    wft, wfd, wetan = walls.shear, walls.dashpot, walls.shear_energy
+    wall_force, wall_contacts, wall_k = walls.force, walls.contacts, walls.k_sum
     e_n = 0.0
     e_t = 0.0
     d_fric = 0.0
@@ -865,10 +872,12 @@ def servo_speed(stress, target, gain, factor, area, n_contacts, k_sum, dt, max_s
 _ANY_STEP = True
 
 
-def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
-                    dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first,
-                    store_damping, acc_out, sphere_body):
-    """Central-difference update of all particles with damping and the particle terms
+def _integrate_loop(sph, ctl, dt, dt_prev, first, acc_out, sphere_body):
+    """Central-difference update of all particles of the Spheres ``sph`` (positions,
+    half-step velocities, forces, applied forces ``applied``, the last step's damping
+    forces ``damp_force``/``damp_torque``) under the Controls ``ctl`` (gravity, local and
+    global damping, ``store_damping``), over the step ``dt`` after ``dt_prev`` [T]
+    (``first``: initialise the half step), with damping and the particle terms
     of the ledger (a change of step from ``dt_prev`` to ``dt`` kicks by their mean,
     :func:`~demstep.kernels.integration.step_weights`). ``acc_out`` (8,): work of
     gravity, of applied forces, local and global damping dissipation, kinetic energy
@@ -885,6 +894,12 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
     on ``first``, the damping coefficients and ``store_damping`` are then dead code
     (measured on 1e5 spheres, one thread: 0.67 against 1.02 ms per call, the same
     results to the bit)."""
+    x, v, w, m, r = sph.x, sph.v, sph.w, sph.m, sph.r
+    inertia, inv_m, inv_I = sph.inertia, sph.inv_m, sph.inv_I
+    force, torque, f_app, x_ref = sph.force, sph.torque, sph.applied, sph.x_ref
+    fd_prev, td_prev = sph.damp_force, sph.damp_torque
+    gravity, store_damping = ctl.gravity, ctl.store_damping
+    local_damping, global_damping = ctl.local_damping, ctl.viscous_damping
     w_body = 0.0
     w_app = 0.0
     d_local = 0.0
@@ -1154,10 +1169,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
         for k in range(3):
             box_rate[k] = 0.0 if first else box_state[5, k] / dt_prev
         e_n, e_t, d_fric, d_dash, n_pp, pp_uncovered, pp_headroom = pair_forces(
-            x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, params,
-            dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
-            pairs.chunks, pairs.spans, force, torque, force_band, torque_band, box_sums,
-            pairs.geo, pairs.cover)
+            sph, pairs, periodic_len, box_rate, params, dt_slip, ctl.store_dashpot, box_sums)
         # 1b. rolling and twisting resistance of the pairs (a law with it only)
         er_s, er_p, er_v = 0.0, 0.0, 0.0
         if pairs.roll.shape[0] > 0:
@@ -1168,9 +1180,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
             reduce_forces(force_band, torque_band, pairs.spans, force, torque)
         # 2. particle-wall contact forces
         we_n, we_t, wd_fric, wd_dash, pw_uncovered, pw_headroom = wall_forces(
-            x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
-            params, dt_slip, walls.shear, walls.dashpot, walls.shear_energy, force,
-            torque, wall_force, walls.contacts, walls.k_sum, wall_chunks, walls.cover)
+            sph, walls, params, dt_slip, wall_chunks)
         if walls.roll.shape[0] > 0:
             wr_s, wr_p, wr_v = wall_rolling(
                 x, w, r, m, sph.inertia, walls.p, walls.wall, wall_point, wall_normal,
@@ -1239,22 +1249,12 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
                                                 box.servo[k, S_MAXSPEED])
         # 5. central-difference update with damping; particle ledger terms
         if first or ctl.store_damping or ctl.local_damping > 0.0 or ctl.viscous_damping > 0.0:
-            integrate(x, v, w, m, sph.inertia, inv_m, sph.inv_I, r, force, torque, sph.applied,
-                      ctl.gravity, dt, dt_prev, ctl.local_damping, ctl.viscous_damping,
-                      sph.damp_force, sph.damp_torque, sph.x_ref, first, ctl.store_damping,
-                      out, bodies.sphere_body)
-        else:
-            integrate_plain(x, v, w, m, sph.inertia, inv_m, sph.inv_I, r, force, torque,
-                            sph.applied, ctl.gravity, dt, dt_prev, 0.0, 0.0, sph.damp_force,
-                            sph.damp_torque, sph.x_ref, False, False, out, bodies.sphere_body)
+            integrate(sph, ctl, dt, dt_prev, first, out, bodies.sphere_body)
+        else:  # (no damping, not the first step: the copy without those branches)
+            integrate_plain(sph, ctl, dt, dt_prev, False, out, bodies.sphere_body)
         if bodies.m.shape[0] > 0:
             # rigid bodies: forces summed from their members, leapfrog, members follow
-            body_step(bodies.x, bodies.q, bodies.v, bodies.L, bodies.m, bodies.inertia,
-                      bodies.inv_m, bodies.inv_I, bodies.force, bodies.torque, bodies.applied,
-                      bodies.start, bodies.member, bodies.offset, bodies.damp_force,
-                      bodies.damp_torque, x, v, w, r, force, torque, sph.x_ref, ctl.gravity,
-                      dt, dt_prev, ctl.local_damping, ctl.viscous_damping, first,
-                      ctl.store_damping, out_bodies)
+            body_step(bodies, sph, ctl, dt, dt_prev, first, out_bodies)
             for k in range(6):
                 out[k] += out_bodies[k]
             out[6] = max(out[6], out_bodies[6])
