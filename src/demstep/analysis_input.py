@@ -3,7 +3,7 @@ coefficients, and the damping, from particle files of other codes, lattices, dem
 case files and checkpoints (``demstep dt``).
 
 The contact model turns each contact's geometry into the coefficients of
-:class:`~demstep.contact.sets.ContactSet`:
+:class:`~demstep.timestep.contacts.ContactSet`:
 
 * ``linear``: k_n, k_t [M/T^2] given;
 * ``hertz``: tangent stiffnesses k_n = 2 E* sqrt(R* delta), k_t = 8 G* sqrt(R* delta)
@@ -46,10 +46,10 @@ import numpy as np
 
 from demstep.case import apply_stage, build_simulation, load_case
 from demstep.case.stages import create_bonds
-from demstep.contact import sets as cs
+from demstep.timestep import contacts as cs
 from demstep.contact.laws import (ContactLaw, RollingResistance, contact_coefficients,
                                   damping_ratio_from_restitution, law_class)
-from demstep.contact.sets import (DEFAULT_CONTACT_TOL, ContactSet, contact_effective_radius,
+from demstep.timestep.contacts import (DEFAULT_CONTACT_TOL, ContactSet, contact_effective_radius,
                                   contact_rolling_inertia, find_contacts)
 from demstep.engine.meshes import touching_meshes
 from demstep.errors import InputError, magnitude_problem
@@ -324,7 +324,7 @@ ROLLING_OPTIONS = RollingResistance.field_names()
 
 def with_rolling(contacts: ContactSet, particles: Particles, params) -> ContactSet:
     """The contacts with the law's rolling and twisting springs (``params`` a law's Params tuple):
-    :func:`demstep.contact.sets.with_rolling` with the particles' own masses and inertias."""
+    :func:`demstep.timestep.contacts.with_rolling` with the particles' own masses and inertias."""
     p = particles
     return cs.with_rolling(contacts, p.r, p.m, p.inertia, ~p.fixed, params)
 

@@ -15,7 +15,7 @@ from demstep.clumps import quat_to_matrix
 from demstep.contact.bonds import bond_springs
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
 from demstep.contact.laws import contact_coefficients, params_from_row
-from demstep.contact.sets import ContactSet, with_rolling
+from demstep.timestep.contacts import ContactSet, with_rolling
 from demstep.engine.meshes import mesh_contacts
 from demstep.kernels import dem
 from demstep.kernels.integration import reach_speed as _reach_speed_kernel
@@ -196,7 +196,7 @@ def reachable_overlap(sim, delta, reach, r_star) -> np.ndarray:
 
 def with_rolling_and_bonds(sim, parts, params) -> ContactSet:
     """The contact parts as one ContactSet with the law's rolling and twisting
-    springs (:func:`demstep.contact.sets.with_rolling`, the kernels' rule for fixed
+    springs (:func:`demstep.timestep.contacts.with_rolling`, the kernels' rule for fixed
     particles), then the intact bonds as elements of their own."""
     contacts = with_rolling(_joined(sim, parts), sim.r, sim.m, sim.inertia, sim.inv_m > 0,
                             params)

@@ -32,7 +32,7 @@ import numpy as np
 
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
 from demstep.contact.laws import LAWS
-from demstep.contact.sets import ContactSet
+from demstep.timestep.contacts import ContactSet
 from demstep.engine.analysis import (NO_COVER, coefficients, contact_elements, global_damping,
                                      pair_keys, sorted_keys, wall_keys, walls_per_key)
 from demstep.errors import InputError

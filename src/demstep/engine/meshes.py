@@ -229,14 +229,3 @@ def _vector3(value, what: str) -> np.ndarray:
     if out.shape != (3,) or not np.isfinite(out).all():
         raise InputError(f"{what} must have 3 finite components, got {value!r}")
     return out.copy()
-
-
-def triangle_forces(meshes: Meshes) -> np.ndarray:
-    """The force the particles exert on each triangle (T, 3) [M L/T^2] at the last
-    force evaluation: the sum of the forces of the contacts it holds."""
-    out = np.zeros((len(meshes.tri), 3))
-    on = meshes.active == 1
-    for k in range(3):
-        out[:, k] = np.bincount(meshes.slot_tri[on], weights=meshes.fslot[on, k],
-                                minlength=len(meshes.tri))
-    return out

@@ -57,7 +57,7 @@ from demstep._numba import warn_slow_threading_layer
 from demstep.backend import get_backend
 from demstep.clumps import with_members
 from demstep.contact.laws import ContactLaw, LinearSpring
-from demstep.contact.sets import ContactSet
+from demstep.timestep.contacts import ContactSet
 from demstep.energy import EnergyBalanceError, EnergyLedger, EnergyMonitor, runaway_reference
 from demstep.engine import analysis, boundaries
 from demstep.engine.auto_step import AutoStep

@@ -40,7 +40,6 @@ import numpy as np
 
 from demstep.clumps import quat_to_matrix
 from demstep.contact.geometry import pair_geometry_arrays
-from demstep.engine.meshes import triangle_forces
 from demstep.errors import InputError
 from demstep.io.atomic import atomic_path, write_text_atomic
 
@@ -196,6 +195,18 @@ def wall_mesh(sim):
         "velocity": [np.array(sim.wall_vel, dtype=np.float64)],
         "wall_id": [np.arange(len(sim.walls), dtype=np.int64)],
     })
+
+
+def triangle_forces(meshes) -> np.ndarray:
+    """The force the particles exert on each triangle of the Meshes bundle ``meshes``
+    (T, 3) [M L/T^2] at the last force evaluation: the sum of the forces of the contacts
+    it holds (its active slots' ``fslot``)."""
+    out = np.zeros((len(meshes.tri), 3))
+    on = meshes.active == 1
+    for k in range(3):
+        out[:, k] = np.bincount(meshes.slot_tri[on], weights=meshes.fslot[on, k],
+                                minlength=len(meshes.tri))
+    return out
 
 
 def triangle_mesh(sim):

@@ -1191,13 +1191,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
         # 2c. triangle-mesh walls (serial: a sphere's contacts with a mesh are one list)
         me_n, me_t, md_fric, md_dash = 0.0, 0.0, 0.0, 0.0
         if meshes.tri.shape[0] > 0:
-            me_n, me_t, md_fric, md_dash = mesh_forces(
-                x, v, w, r, m, meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid,
-                meshes.tri_mesh, meshes.vel, meshes.omega, meshes.center, meshes.law, params,
-                dt_slip, meshes.active, meshes.slot_mesh, meshes.slot_tri, meshes.normal,
-                meshes.shear, meshes.dashpot, meshes.etan, meshes.fslot, force, torque,
-                meshes.force,
-                meshes.torque, meshes.power, meshes.contacts)
+            me_n, me_t, md_fric, md_dash = mesh_forces(sph, meshes, params, dt_slip)
         # 2b. parallel bonds (serial: bonds share particles)
         eb_s, eb_r = 0.0, 0.0
         if bonds.i.shape[0] > 0:

@@ -151,11 +151,9 @@ def mesh_contact_geometry(x, r, cand_p, cand_t, tri, vid, tri_mesh):
 
 
 @njit
-def mesh_forces(x, v, w, r, m, cand_p, cand_t, tri, vid, tri_mesh, mesh_vel, mesh_omega,
-                mesh_center, mesh_law, params, dt, active, slot_mesh, slot_tri, slot_normal,
-                shear, dashpot, etan, fslot, force, torque, mesh_force, mesh_torque, mesh_power,
-                mesh_contacts):
-    """Contact forces of the spheres on the meshes' triangles (module docstring).
+def mesh_forces(sph, meshes, params, dt):
+    """Contact forces of the Spheres ``sph`` on the triangles of the Meshes ``meshes``
+    (:mod:`demstep.state`; module docstring). The fields it reads, by their names here:
 
     ``cand_p``, ``cand_t`` (K,): the candidate (particle, triangle) rows, sorted by
     particle; ``tri`` (T, 9) the triangles' corners now [L], ``vid`` (T, 3) their vertex
@@ -174,6 +172,15 @@ def mesh_forces(x, v, w, r, m, cand_p, cand_t, tri, vid, tri_mesh, mesh_vel, mes
     exert ``mesh_force``, its torque about the centre ``mesh_torque``, the power the
     mesh puts into the particles ``mesh_power`` [M L^2/T^3] and the touching spheres
     ``mesh_contacts``. Returns (strain_n, strain_t, friction, dashpot)."""
+    x, v, w, r, m, force, torque = sph.x, sph.v, sph.w, sph.r, sph.m, sph.force, sph.torque
+    cand_p, cand_t, tri, vid, tri_mesh = (meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid,
+                                          meshes.tri_mesh)
+    mesh_vel, mesh_omega, mesh_center, mesh_law = meshes.vel, meshes.omega, meshes.center, meshes.law
+    active, slot_mesh, slot_tri, slot_normal = (meshes.active, meshes.slot_mesh, meshes.slot_tri,
+                                                meshes.normal)
+    shear, dashpot, etan, fslot = meshes.shear, meshes.dashpot, meshes.etan, meshes.fslot
+    mesh_force, mesh_torque = meshes.force, meshes.torque
+    mesh_power, mesh_contacts = meshes.power, meshes.contacts
     n_cand = cand_p.shape[0]
     n_mesh = mesh_force.shape[0]
     mesh_force[:] = 0.0
