@@ -112,8 +112,12 @@ RADII = (0.8, 1.2)             # x R0, uniform
 PHI_INSERT = 0.30              # solid fraction of the random insertion in the tube
 SETTLE_G = 2.0                 # m/s^2, gravity of stage A1 only
 LID_SPEED = 0.02               # m/s
-LID_CHECK = 20                 # steps between the checks of the lid force
-RELAX_CHUNKS = 30              # at most 30 x 5000 steps of relaxation (see "creep")
+LID_CHECK = 20                 # steps between the checks of the lid force (approach)
+PRESS_MOVE = 100               # steps of lid motion per pressing cycle (2.5 mm)
+PRESS_REST = 1500              # steps at rest after each
+RELAX_CHUNKS = 40              # at most 40 x 5000 steps of relaxation (see "creep")
+MAX_ROUNDS = 10                # press-relax-clean rounds per seed
+RELAX_VISCOUS = 0.1            # fix viscous of the relaxation / that of liggghts_thresholds
 
 
 @dataclass(frozen=True)
@@ -340,49 +344,74 @@ def stage_settle(setup: Setup, paths: dict, folder: Path, x, r, log) -> dict:
 
 def stage_press(setup: Setup, paths: dict, folder: Path, st: dict, log,
                 lid_start: float | None = None) -> tuple[float, dict]:
-    """A2: no gravity; the lid comes down at LID_SPEED (from just above the bed, or
-    from ``lid_start``) until the particles push it with ``lid_force`` (checked every
-    LID_CHECK steps, first before it moves); returns its height Z [m] and a record. A
-    weak ``fix viscous`` (a tenth of the relaxation's) keeps the drag of the moving
-    bed well below the target force."""
+    """A2: no gravity; the lid comes down (from just above the bed, or from
+    ``lid_start``) at LID_SPEED under a weak ``fix viscous`` until the particles push
+    it with a twentieth of ``lid_force`` (the approach), then in steps of
+    PRESS_MOVE steps of motion, each followed by PRESS_REST steps at rest under the
+    relaxation's damping, until they push it with ``lid_force`` at the end of a rest (a
+    lid pushed on continuously measures the drag and the waves of the moving bed, far
+    above the static force). Returns its height Z [m] and a record."""
     x, r = lt._positions(st), st["radius"]
     _write_state_data(folder / "press.data", setup, x, r)
     params = _prep_params()
     dt = prep_dt(float(r.min()))
-    g = 0.1 * gamma_viscous(float(sphere_mass(R0)))
+    g = gamma_viscous(float(sphere_mass(R0)))
     first = lid_start is None
     z0 = float(np.round((x[:, 2] + r).max() + 0.1, 3)) if first else lid_start
-    unload = 3000 if first else 1  # (1 step: LIGGGHTS' set-up step doubles f_lid)
+    unload = 3000 if first else 1  # (at least 1 step: LIGGGHTS' set-up step doubles f_lid)
+    touch = 0.05 * setup.lid_force
     lines = header("press.data") + model_lines(params) + wall_lines(paths, z0, params, True) + [
         "fix integr all nve/sphere",
-        f"fix visc all viscous {g!r}",
+        f"fix visc all viscous {0.1 * g!r}",
         f"timestep {dt!r}",
         "thermo_style custom step atoms ke f_lid[3]",
         "thermo_modify lost error norm no",
         "thermo 1000",
         f"run {unload}",
         "variable fz equal abs(f_lid[3])",
-        f'if "${{fz}} > {setup.lid_force!r}" then "jump SELF pressed"',
+        "variable s equal step",
+        f'if "${{fz}} > {touch!r}" then "jump SELF approached"',
         f"fix mv all move/mesh mesh lid linear 0.0 0.0 {-LID_SPEED!r}",
-        "variable p loop 200000",
-        "label press",
+        "variable a loop 200000",
+        "label approach",
         f"run {LID_CHECK} post no",  # ('pre no' aborts with fix move/mesh)
+        f'if "${{fz}} > {touch!r}" then "jump SELF touched"',
+        "next a",
+        "jump SELF approach",
+        "label touched",
+        "unfix mv",
+        'print "APPROACH_END ${s}"',
+        "label approached",
+        "unfix visc",
+        f"fix visc all viscous {g!r}",
+        "variable q loop 2000",
+        "label press",
+        f"fix mv all move/mesh mesh lid linear 0.0 0.0 {-LID_SPEED!r}",
+        f"run {PRESS_MOVE} post no",
+        "unfix mv",
+        'print "MOVED"',
+        f"run {PRESS_REST} post no",
         f'if "${{fz}} > {setup.lid_force!r}" then "jump SELF pressed"',
-        "next p",
+        "next q",
         "jump SELF press",
         "label pressed",
-        "variable s equal step",
-        'print "LID_STOP ${s}"',
+        'print "LID_STOP ${fz}"',
     ] + _dump_only_lines("pressed.dump")
     rc, out = run_liggghts("\n".join(lines) + "\n", folder, timeout=1800)
-    m = re.search(r"^LID_STOP (\d+)", out, re.M)
+    m = re.search(r"^LID_STOP (\S+)", out, re.M)
     if rc != 0 or not m:
         raise RuntimeError(f"pressing: LIGGGHTS failed ({rc}):\n{out[-3000:]}")
-    moved = int(m.group(1)) - unload
+    a = re.search(r"^APPROACH_END (\d+)", out, re.M)
+    approach = int(a.group(1)) - unload if a else 0
+    cycles = len(re.findall(r"^MOVED", out, re.M))
+    moved = approach + PRESS_MOVE * cycles
     z = float(z0 - LID_SPEED * dt * moved)
-    log(f"    lid from z = {z0:.6f} down {LID_SPEED * dt * moved:.4f} m in {moved} steps to {z:.6f}")
-    return z, {"lid_start": z0, "lid_speed": LID_SPEED, "lid_steps": moved, "unload_steps": unload,
-               "lid_force_target": setup.lid_force, "dt": dt, "gamma_viscous": g}
+    log(f"    lid from z = {z0:.6f} down {LID_SPEED * dt * moved:.4f} m ({approach} steps, then "
+        f"{cycles} x {PRESS_MOVE}) to {z:.6f}, pushed with {float(m.group(1)):.3g} N")
+    return z, {"lid_start": z0, "lid_speed": LID_SPEED, "approach_steps": approach,
+               "press_cycles": cycles, "press_move": PRESS_MOVE, "press_rest": PRESS_REST,
+               "lid_steps": moved, "unload_steps": unload, "lid_force_target": setup.lid_force,
+               "lid_force_at_stop": float(m.group(1)), "dt": dt}
 
 
 def stage_relax(setup: Setup, paths: dict, folder: Path, x, r, lid_z: float) -> dict:
@@ -391,7 +420,7 @@ def stage_relax(setup: Setup, paths: dict, folder: Path, x, r, lid_z: float) -> 
     _write_state_data(folder / "relax.data", setup, x, r)
     params = _prep_params()
     dt = prep_dt(float(r.min()))
-    g = gamma_viscous(float(sphere_mass(R0)))
+    g = RELAX_VISCOUS * gamma_viscous(float(sphere_mass(R0)))
     lines = header("relax.data") + model_lines(params) + wall_lines(paths, lid_z, params) + [
         "fix integr all nve/sphere",
         f"fix visc all viscous {g!r}",
@@ -475,6 +504,15 @@ def mean_normal_force(st: dict, meshes) -> float:
     return float(np.concatenate([fp, fw]).mean())
 
 
+def lid_force(st: dict, meshes) -> float:
+    """Static force [N] of the particles on the lid (the last mesh): the Hertz normal
+    forces of its contacts."""
+    (_, _, _), (p, mk, dw) = contacts_of(st, meshes)
+    sel = mk == len(meshes) - 1
+    e12 = 1.0 / ((1 - POISSON ** 2) / YOUNGS + (1 - POISSON ** 2) / MESH_YOUNGS)
+    return float((4 / 3 * e12 * np.sqrt(st["radius"][p[sel]]) * dw[sel] ** 1.5).sum())
+
+
 def build_state(setup: Setup, folder: Path, paths: dict, log) -> dict:
     """A1, A2, B and the cleaning; the first seed whose state is clean wins."""
     rejected = []
@@ -487,7 +525,7 @@ def build_state(setup: Setup, folder: Path, paths: dict, log) -> dict:
         a1 = stage_settle(setup, paths, work, x, r, log)
         st = read_dump(work / "settled.dump")
         lid_z, removed, rounds, presses = None, 0, [], []
-        for round_ in range(6):
+        for round_ in range(MAX_ROUNDS):
             # press (again: a packing without its rattlers has lost some pressure), relax
             folder_r = work / f"round{round_}"
             folder_r.mkdir(parents=True, exist_ok=True)
@@ -497,15 +535,25 @@ def build_state(setup: Setup, folder: Path, paths: dict, log) -> dict:
             meshes = demstep_meshes(paths, lid_z)
             res = stage_relax(setup, paths, folder_r / "relax", lt._positions(st), st["radius"], lid_z)
             rounds.append({k: res[k] for k in ("steps", "ke_end", "relaxed")})
-            log(f"    relaxed {res['steps']} steps: kinetic energy {res['ke_end']:.3g} J")
+            log(f"    relaxed {res['steps']} steps: kinetic energy {res['ke_end']:.3g} J, "
+                f"{len(st['radius'])} spheres")
             st = read_dump(res["dump"])
             bad = marginal(st, meshes)
-            if bad == 0:
+            f_lid = lid_force(st, meshes)
+            rounds[-1]["lid_force"] = f_lid
+            if bad == 0 and f_lid >= 0.5 * setup.lid_force:
                 break
+            if bad == 0:  # the packing crept into a denser one: press again
+                log(f"    static lid force {f_lid:.3g} N < half the target: pressing again")
+                continue
             keep = backbone(st, meshes)
             if keep.all():
                 log(f"    {bad} marginal contacts inside the backbone: seed rejected")
                 rejected.append({"seed": seed, "reason": "marginal contact in the backbone"})
+                st = None
+                break
+            if keep.sum() < 0.5 * setup.n_insert:
+                rejected.append({"seed": seed, "reason": "the backbone lost half the spheres"})
                 st = None
                 break
             removed += int((~keep).sum())
@@ -513,7 +561,7 @@ def build_state(setup: Setup, folder: Path, paths: dict, log) -> dict:
             st = {k: (v[keep] if isinstance(v, np.ndarray) and v.shape[:1] == keep.shape else v)
                   for k, v in st.items()}
         else:
-            rejected.append({"seed": seed, "reason": "still marginal after 6 rounds"})
+            rejected.append({"seed": seed, "reason": f"not clean after {MAX_ROUNDS} rounds"})
             st = None
         if st is None:
             continue
@@ -675,34 +723,80 @@ def compare_contacts(st: dict, meshes, lig: dict) -> dict:
             mesh = meshes[b]
             tri_info = []
             for t in tris.get(key, []):
-                c = np.asarray(mesh.corners)[t]
-                tri_info.append({"triangle": t, "normal": [round(float(v), 4) for v in np.asarray(mesh.normals)[t]],
-                                 "centre_dist": _point_tri_dist(x[a], c)})
+                pt, kind = closest_points(x[a], np.asarray(mesh.corners)[t])
+                tri_info.append({"triangle": t,
+                                 "normal": [round(float(v), 4) for v in np.asarray(mesh.normals)[t]],
+                                 "overlap": float(r[a] - np.linalg.norm(pt[0] - x[a])),
+                                 "closest_on": ("face", "edge", "corner")[int(kind[0])]})
             diffs.append({"particle": particle_info(st, meshes, a), "mesh": MESH_NAMES[b],
                           "liggghts": lg.get(key, 0), "demstep": dem.get(key, 0),
                           "liggghts_triangles": tri_info})
+    reach = triangles_within(st, meshes)
+    multi = [h for h in reach if len(h["triangles"]) > 1]
+    straddle = [h | {"demstep": dem.get((h["particle"], MESH_NAMES.index(h["mesh"])), 0),
+                     "liggghts": lg.get((h["particle"], MESH_NAMES.index(h["mesh"])), 0)}
+                for h in multi]
     return {"demstep_total": int(len(p)), "liggghts_total": int(len(lig["wall"])),
+            "patches_reaching_several_triangles": straddle,
             "demstep_per_mesh": {MESH_NAMES[k]: int((mk == k).sum()) for k in range(len(meshes))},
             "liggghts_per_mesh": lig["per_mesh"], "differences": diffs}
 
 
-def _point_tri_dist(q, c) -> dict:
-    """Distance from q to the triangle c (3, 3) and where the closest point lies
-    (face, edge or vertex), by a fine barycentric search (for reports only)."""
-    a, b, cc = c
-    best = (np.inf, None)
-    n = 400
-    s = np.linspace(0, 1, n + 1)
-    u, v = np.meshgrid(s, s, indexing="ij")
-    ok = u + v <= 1 + 1e-12
-    u, v = u[ok], v[ok]
-    pts = a + u[:, None] * (b - a) + v[:, None] * (cc - a)
-    d = np.sqrt(((pts - q) ** 2).sum(1))
-    k = int(d.argmin())
-    w = (1 - u[k] - v[k], u[k], v[k])
-    where = "face" if min(w) > 1e-9 else ("vertex" if sorted(w)[1] < 1e-9 else "edge")
-    best = (float(d[k]), where)
-    return {"distance": best[0], "closest_on": best[1]}
+def closest_points(q, c):
+    """Closest points of triangles to points (independent of demstep; Ericson's
+    region test): ``q`` (K, 3), corners ``c`` (K, 3, 3) -> points (K, 3) and where
+    they lie: 0 inside the face, 1 on an edge, 2 on a corner."""
+    q, c = np.atleast_2d(q).astype(float), np.asarray(c, float).reshape(-1, 3, 3)
+    a, b, cc = c[:, 0], c[:, 1], c[:, 2]
+    ab, ac, ap = b - a, cc - a, q - a
+    dot = lambda u, v: (u * v).sum(1)  # noqa: E731
+    d1, d2 = dot(ab, ap), dot(ac, ap)
+    bp, cp = q - b, q - cc
+    d3, d4, d5, d6 = dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    out = np.empty_like(q)
+    kind = np.zeros(len(q), int)
+    done = np.zeros(len(q), bool)
+
+    def put(mask, pts, k):
+        m = mask & ~done
+        out[m] = pts[m]
+        kind[m] = k
+        done[m] = True
+
+    put((d1 <= 0) & (d2 <= 0), a, 2)
+    put((d3 >= 0) & (d4 <= d3), b, 2)
+    put((d6 >= 0) & (d5 <= d6), cc, 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        put((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + (d1 / (d1 - d3))[:, None] * ab, 1)
+        put((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + (d2 / (d2 - d6))[:, None] * ac, 1)
+        put((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+            b + ((d4 - d3) / ((d4 - d3) + (d5 - d6)))[:, None] * (cc - b), 1)
+        den = 1.0 / (va + vb + vc)
+        put(np.ones(len(q), bool), a + (vb * den)[:, None] * ab + (vc * den)[:, None] * ac, 0)
+    return out, kind
+
+
+def triangles_within(st: dict, meshes, tol: float = 1e-6) -> list[dict]:
+    """Every (particle, mesh) whose sphere reaches a triangle of the mesh (closest
+    point within r (1 + tol)): the triangles reached and where their closest points
+    lie. A patch reaching several triangles of one surface straddles an edge or a
+    corner: the case where the codes' rules (one contact per surface; LIGGGHTS' edge
+    owners) could count differently."""
+    x, r = lt._positions(st), st["radius"]
+    out = []
+    for mk, mesh in enumerate(meshes):
+        corners = np.asarray(mesh.corners)
+        for k in range(len(r)):
+            q = np.repeat(x[k:k + 1], len(corners), 0)
+            pts, kind = closest_points(q, corners)
+            d = np.sqrt(((pts - x[k]) ** 2).sum(1))
+            hit = np.flatnonzero(d < r[k] * (1 + tol))
+            if len(hit):
+                out.append({"particle": k, "mesh": MESH_NAMES[mk], "triangles": hit.tolist(),
+                            "closest_on": [("face", "edge", "corner")[int(kind[t])] for t in hit],
+                            "overlaps": [float(r[k] - d[t]) for t in hit]})
+    return out
 
 
 # ---------------------------------------------------------------------------- demstep
@@ -724,6 +818,36 @@ def demstep_args(dump: Path, mats: Path, specs: dict | None, restitution, rotati
     for spec in (specs or {}).values():
         args += ["--mesh", spec]
     return args
+
+
+def exact_with_liggghts_wall_arm(argv: list[str]) -> float:
+    """demstep's exact step of ``demstep dt`` ``argv`` (through its Python API, from
+    the repository root) with one convention of LIGGGHTS changed: the lever arm of a
+    particle-wall contact r - delta / 2 (LIGGGHTS' surface model uses it for the
+    relative velocity at the contact and the torque of the tangential force) instead of
+    demstep's distance from the centre to the closest point of the wall, r - delta. The
+    stiffnesses and dashpots stay those demstep computed from the true overlap."""
+    from dataclasses import replace
+
+    from demstep.cli import build_parser
+    from demstep.cli.dt import load_input
+    from demstep.timestep import estimate_time_steps
+
+    cwd = os.getcwd()
+    os.chdir(REPO)
+    try:
+        args = build_parser().parse_args(argv)
+        data = load_input(args)
+    finally:
+        os.chdir(cwd)
+    c = data.contacts
+    wall = c.j < 0
+    arm = np.where(wall, 0.5 * (data.particles.r[c.i] + c.arm_i), c.arm_i)
+    rotation = data.rotation if args.rotation is None else (args.rotation and data.rotation)
+    report = estimate_time_steps(data.particles, replace(c, arm_i=arm), rotation=rotation,
+                                 damping=data.damping, methods=["exact"], materials=data.materials,
+                                 bodies=data.bodies)
+    return float(report.exact.dt)
 
 
 def write_materials(path: Path) -> None:
@@ -843,6 +967,13 @@ def main(argv=None) -> int:
                               "n_contacts": data.get("n_contacts"), "mesh_notes": notes,
                               "critical_mode": mode_summary(data, st, meshes),
                               "wall_s": time.perf_counter() - t1}
+            if rot:
+                t1 = time.perf_counter()
+                dem["with_meshes"]["exact_liggghts_wall_arm"] = exact_with_liggghts_wall_arm(
+                    demstep_args(dump_path, mats, specs, e, rot))
+                log(f"    demstep exact with LIGGGHTS' wall arm r - delta/2: "
+                    f"{dem['with_meshes']['exact_liggghts_wall_arm']:.7g} "
+                    f"({time.perf_counter() - t1:.0f} s)")
             lo, hi = res["bracket"]
             w, wo = dem["with_meshes"], dem["without_meshes"]
             rec = {"case": name, "restitution": e, "rotation": rot, "parameters": params,
