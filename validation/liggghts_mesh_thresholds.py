@@ -106,7 +106,9 @@ DEFAULT_OUT = RESULTS / "liggghts_mesh_thresholds.json"
 DOC = REPO / "docs" / "validation-meshes.md"
 
 MESH_YOUNGS = 100.0 * YOUNGS   # Pa, the meshes' material (type 2)
-MESH_NAMES = ("cylinder48", "floor", "pyramid", "lid")
+MESH_NAMES = ("cylinder48", "floor", "pyramid", "lid")  # the container's (set by configure)
+MESH_TYPE = 2                  # their material (set by configure)
+BOX_NAMES = ("xlo", "xhi", "ylo", "yhi", "floor", "lid")
 CYL_FACETS = 48
 RADII = (0.8, 1.2)             # x R0, uniform
 PHI_INSERT = 0.30              # solid fraction of the random insertion in the tube
@@ -126,15 +128,39 @@ class Setup:
 
     name: str
     n_insert: int
-    cyl_radius: float      # m, corners of the 48 facets on this circle
+    cyl_radius: float      # m, corners of the 48 facets on this circle (box: half its side)
     pyr_base: float        # m
     pyr_height: float      # m
     lid_force: float       # N, the lid stops when the particles push it this hard
     seed: int
+    kind: str = "cylinder"  # or "box": six plane walls of the particles' material
 
 
 FULL = Setup("mesh-container", 400, 4.0, 3.0, 1.5, 2.0e5, 20261207)
 QUICK = Setup("mesh-container-quick", 120, 2.5, 2.0, 1.0, 8.0e4, 20261207)
+BOX = Setup("plane-box", 300, 3.0, 0.0, 0.0, 1.5e5, 20261207, "box")
+
+
+def configure(setup: Setup) -> None:
+    """The container's mesh names and material type (module globals of this script)."""
+    global MESH_NAMES, MESH_TYPE
+    if setup.kind == "box":
+        MESH_NAMES, MESH_TYPE = BOX_NAMES, 1
+    else:
+        MESH_NAMES, MESH_TYPE = ("cylinder48", "floor", "pyramid", "lid"), 2
+
+
+def wall_youngs() -> float:
+    """Young's modulus of the container's material [Pa]."""
+    return MESH_YOUNGS if MESH_TYPE == 2 else YOUNGS
+
+
+def box_planes(setup: Setup, lid_z: float) -> list[str]:
+    """``demstep dt --wall`` of the box's six planes (point:normal into the packing), in
+    the order of BOX_NAMES."""
+    a = setup.cyl_radius
+    return [f"{-a!r},0,0:1,0,0", f"{a!r},0,0:-1,0,0", f"0,{-a!r},0:0,1,0", f"0,{a!r},0:0,-1,0",
+            "0,0,0:0,0,1", f"0,0,{lid_z!r}:0,0,-1"]
 
 CASES = (  # (name, restitution or None, rotation)
     ("mesh-hertz-undamped-rot", None, True),
@@ -145,7 +171,9 @@ CASES = (  # (name, restitution or None, rotation)
 
 # ---------------------------------------------------------------------------- meshes
 def _inscribed(setup: Setup) -> float:
-    """Radius of the circle inscribed in the 48-gon [m]."""
+    """Radius of the circle inscribed in the 48-gon [m] (box: half its side)."""
+    if setup.kind == "box":
+        return setup.cyl_radius
     return setup.cyl_radius * math.cos(math.pi / CYL_FACETS)
 
 
@@ -154,7 +182,7 @@ def tube_height(setup: Setup) -> float:
     r = R0 * np.array(RADII)
     mean_r3 = (r[1] ** 4 - r[0] ** 4) / (4 * (r[1] - r[0]))
     vol = setup.n_insert * 4 / 3 * math.pi * mean_r3
-    area = math.pi * (_inscribed(setup) - 1.2 * R0) ** 2
+    area = (math.pi if setup.kind != "box" else 4.0) * (_inscribed(setup) - 1.2 * R0) ** 2
     return float(math.ceil(vol / PHI_INSERT / area + 2.0))
 
 
@@ -170,6 +198,17 @@ def write_meshes(setup: Setup, folder: Path) -> dict:
     lid = shapes.square(plate).flipped()
     meshes = {"cylinder48": (cyl.vertices, cyl.triangles), "floor": (floor.vertices, floor.triangles),
               "pyramid": (pyr.vertices, sides), "lid": (lid.vertices, lid.triangles)}
+    if setup.kind == "box":  # four side plates (squares of 2 triangles) facing the inside
+        a = setup.cyl_radius
+        u = np.array([-1, 1, 1, -1], float) * (a + 0.5)    # along the wall
+        w = np.array([0, 0, 1, 1], float) * h              # up
+        tri = np.array([[0, 1, 2], [0, 2, 3]])
+        meshes = {
+            "xlo": (np.column_stack([np.full(4, -a), u, w]), tri[:, ::-1]),
+            "xhi": (np.column_stack([np.full(4, a), u, w]), tri),
+            "ylo": (np.column_stack([u, np.full(4, -a), w]), tri),
+            "yhi": (np.column_stack([u, np.full(4, a), w]), tri[:, ::-1]),
+            "floor": (floor.vertices, floor.triangles), "lid": (lid.vertices, lid.triangles)}
     paths = {}
     for name, (v, t) in meshes.items():
         path = folder / f"{name}.stl"
@@ -196,7 +235,7 @@ def mesh_specs(paths: dict, lid_z: float | None, rel_to: Path | None = None) -> 
             continue
         p = paths[name]
         p = p.relative_to(rel_to) if rel_to is not None else p
-        spec = f"{p} type 2"
+        spec = f"{p} type {MESH_TYPE}"
         if name == "lid":
             spec += f" move 0.0 0.0 {lid_z!r}"
         out[name] = spec
@@ -208,7 +247,7 @@ def demstep_meshes(paths: dict, lid_z: float) -> list:
     out = []
     for name, spec in mesh_specs(paths, lid_z).items():
         words = spec.split()
-        rest = " ".join(words[3:])  # after 'FILE type 2'
+        rest = " ".join(words[3:])  # after 'FILE type T'
         out.append(read_mesh(words[0], rest))
     return out
 
@@ -268,13 +307,17 @@ def random_insertion(setup: Setup, rng) -> tuple[np.ndarray, np.ndarray]:
     r = np.sort(R0 * rng.uniform(*RADII, size=n))[::-1]
     h = tube_height(setup) - 1.0
     rin = _inscribed(setup)
-    half = 0.5 * setup.pyr_base
+    half = max(0.5 * setup.pyr_base, 1e-12)
     x = np.empty((n, 3))
     for k in range(n):
         for _ in range(200_000):
-            rho = (rin - 1.05 * r[k]) * math.sqrt(rng.random())
-            phi = 2 * math.pi * rng.random()
-            p = np.array([rho * math.cos(phi), rho * math.sin(phi), r[k] + (h - 2 * r[k]) * rng.random()])
+            if setup.kind == "box":
+                xy = (rin - 1.05 * r[k]) * (2 * rng.random(2) - 1)
+            else:
+                rho = (rin - 1.05 * r[k]) * math.sqrt(rng.random())
+                phi = 2 * math.pi * rng.random()
+                xy = rho * np.array([math.cos(phi), math.sin(phi)])
+            p = np.array([xy[0], xy[1], r[k] + (h - 2 * r[k]) * rng.random()])
             m = max(abs(p[0]), abs(p[1]))
             ground = setup.pyr_height * (1 - m / half) if m < half else 0.0
             if p[2] - ground < 1.5 * r[k] or p[2] < 1.05 * r[k]:
@@ -291,7 +334,7 @@ def random_insertion(setup: Setup, rng) -> tuple[np.ndarray, np.ndarray]:
 def prep_dt(r_min: float) -> float:
     """Time step of the preparation [s]: a tenth of sqrt(m_min / k) for a sphere of
     radius r_min pressed 1 % of its radius into a mesh."""
-    e_star = 1.0 / ((1 - POISSON ** 2) / YOUNGS + (1 - POISSON ** 2) / MESH_YOUNGS)
+    e_star = 1.0 / ((1 - POISSON ** 2) / YOUNGS + (1 - POISSON ** 2) / wall_youngs())
     k = 2.0 * e_star * math.sqrt(r_min * 0.01 * r_min)
     return 0.1 * math.sqrt(float(sphere_mass(r_min)) / k)
 
@@ -498,7 +541,7 @@ def mean_normal_force(st: dict, meshes) -> float:
     (i, j, dp), (p, _, dw) = contacts_of(st, meshes)
     r = st["radius"]
     e11 = 1.0 / (2 * (1 - POISSON ** 2) / YOUNGS)
-    e12 = 1.0 / ((1 - POISSON ** 2) / YOUNGS + (1 - POISSON ** 2) / MESH_YOUNGS)
+    e12 = 1.0 / ((1 - POISSON ** 2) / YOUNGS + (1 - POISSON ** 2) / wall_youngs())
     fp = 4 / 3 * e11 * np.sqrt(r[i] * r[j] / (r[i] + r[j])) * dp ** 1.5
     fw = 4 / 3 * e12 * np.sqrt(r[p]) * dw ** 1.5
     return float(np.concatenate([fp, fw]).mean())
@@ -509,7 +552,7 @@ def lid_force(st: dict, meshes) -> float:
     forces of its contacts."""
     (_, _, _), (p, mk, dw) = contacts_of(st, meshes)
     sel = mk == len(meshes) - 1
-    e12 = 1.0 / ((1 - POISSON ** 2) / YOUNGS + (1 - POISSON ** 2) / MESH_YOUNGS)
+    e12 = 1.0 / ((1 - POISSON ** 2) / YOUNGS + (1 - POISSON ** 2) / wall_youngs())
     return float((4 / 3 * e12 * np.sqrt(st["radius"][p[sel]]) * dw[sel] ** 1.5).sum())
 
 
@@ -628,7 +671,7 @@ def hint_dt(state: dict, meshes) -> float:
     (i, j, dp), (p, _, dw) = contacts_of(state, meshes)
     r, m = state["radius"], state["mass"]
     g1 = 2 * (2 - POISSON) * (1 + POISSON) / YOUNGS
-    g2 = 2 * (2 - POISSON) * (1 + POISSON) / MESH_YOUNGS
+    g2 = 2 * (2 - POISSON) * (1 + POISSON) / wall_youngs()
     kp = 8 / (2 * g1) * np.sqrt(r[i] * r[j] / (r[i] + r[j]) * dp)
     kw = 8 / (g1 + g2) * np.sqrt(r[p] * dw)
     mp = m[i] * m[j] / (m[i] + m[j])
@@ -884,13 +927,19 @@ def main(argv=None) -> int:
     ap.add_argument("--states-only", action="store_true", help="build the state, no thresholds")
     ap.add_argument("--out", type=Path, default=None, help="JSON results file")
     ap.add_argument("--keep", action="store_true", help="keep the LIGGGHTS work folders")
+    ap.add_argument("--container", choices=("cylinder", "box"), default="cylinder",
+                    help="box: the contrast case, six plane walls of the particles' own material "
+                         "(demstep dt with --wall, and --mesh)")
     args = ap.parse_args(argv)
 
-    setup = QUICK if args.quick else FULL
+    setup = QUICK if args.quick else (BOX if args.container == "box" else FULL)
+    configure(setup)
     steps = args.steps or (4000 if args.quick else lt.DEFAULT_STEPS)
     tol = args.tol or (1e-2 if args.quick else lt.TOL)
-    out_path = args.out or (RESULTS / "liggghts_mesh_thresholds.quick.json" if args.quick else DEFAULT_OUT)
-    cases = [c for c in CASES if not args.cases or any(fnmatch.fnmatch(c[0], p) for p in args.cases)]
+    out_path = args.out or (RESULTS / "liggghts_mesh_thresholds.quick.json" if args.quick else
+                            DEFAULT_OUT if setup.kind != "box" else RESULTS / "liggghts_plane_box_thresholds.json")
+    cases = [(c[0].replace("mesh-", "box-") if setup.kind == "box" else c[0], *c[1:]) for c in CASES]
+    cases = [c for c in cases if not args.cases or any(fnmatch.fnmatch(c[0], p) for p in args.cases)]
 
     def log(msg):
         print(msg, file=sys.stderr, flush=True)
@@ -898,7 +947,8 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     version = lt.liggghts_version()
     workdir = Path(tempfile.mkdtemp(prefix="lig-mesh-"))
-    keep_dir = MESH_DIR if not args.quick else workdir / "meshes"
+    keep_dir = (MESH_DIR if setup.kind != "box" else STATES / setup.name) if not args.quick \
+        else workdir / "meshes"
     dump_path = (STATES / f"{setup.name}.dump") if not args.quick else workdir / f"{setup.name}.dump"
     meta_path = keep_dir / "state.json"
     mats = keep_dir / "materials.toml"
@@ -952,8 +1002,13 @@ def main(argv=None) -> int:
                        "trials": [t.as_dict() for t in runner.trials], "growing_mode": mode,
                        "wall_s": time.perf_counter() - t0}
             dem = {}
-            for label, sp in (("with_meshes", specs), ("without_meshes", None)):
+            runs = [("with_meshes", specs, None), ("without_meshes", None, None)]
+            if setup.kind == "box":
+                runs.append(("with_planes", None, box_planes(setup, lid_z)))
+            for label, sp, planes in runs:
                 a = demstep_args(dump_path, mats, sp, e, rot)
+                for w in planes or ():
+                    a.append(f"--wall={w}")
                 t1 = time.perf_counter()
                 data, why = run_cli([sys.executable, "-m", "demstep.cli"], a)
                 if data is None:
@@ -984,6 +1039,8 @@ def main(argv=None) -> int:
                    "exact_with_meshes_below_bracket_top": w["exact"] <= hi,
                    "element_below_bracket": w["element_coupled"] <= lo,
                    "without_meshes_above_bracket": wo["exact"] > hi}
+            if "with_planes" in dem:
+                rec["ratio_exact_with_planes"] = dem["with_planes"]["exact"] / res["dt"]
             records.append(rec)
             log(f"    -> LIGGGHTS {res['dt']:.7g} [{lo:.7g}, {hi:.7g}]; demstep with meshes "
                 f"{w['exact']:.7g} ({rec['ratio_exact_with_meshes'] - 1:+.3%}), element "
