@@ -23,15 +23,21 @@ The packing is prepared *in LIGGGHTS* (Hertz, frictionless, normal dashpots of
 restitution 0.1 and ``fix viscous``; no tangential dashpot, see the quirks of
 ``liggghts_thresholds.py``): polydisperse spheres (radii uniform in [0.8, 1.2] x R0)
 inserted at random in the tube settle on the floor and the pyramid under a weak gravity
-(stage A1); gravity is switched off, the lid comes down from just above the bed
-(``fix move/mesh``) until the particles push it with LID_FORCE (``fix
-mesh/surface/stress``) and stops there (A2); the lid is then fixed at that height Z
-(recomputed as the start height minus speed x dt x steps, and given to both codes) and
-the packing relaxed until the kinetic energy is below 1e-18 J (B). Rattlers (spheres
-outside the 4-core of the firm contacts, particle-mesh contacts included) are removed
-and B repeated, until no contact or near contact (pair or particle-mesh) has
-|gap| < MARGIN mean diameters; a seed whose backbone has one is rejected (the next
-seed). The state is dumped by LIGGGHTS at rest (``validation/states/mesh-container.dump``,
+(stage A1); gravity is switched off and the lid (``fix move/mesh``) comes down from just
+above the bed until the particles push it (``fix mesh/surface/stress``), then in steps
+of 2.5 mm, each followed by a pause at rest, until they push it with ``lid_force`` at
+the end of a pause (A2: a lid driven continuously measures the drag and the waves of
+the moving bed, not the static force); the lid is then fixed at that height Z
+(recomputed as the start height minus speed x dt x steps moved, and given to both
+codes) and the packing relaxed until the kinetic energy is below 1e-18 J (B). Rattlers
+(spheres outside the 4-core of the firm contacts, particle-mesh contacts included) are
+removed and A2 + B repeated, also when the static lid force has fallen below half the
+target, until no contact or near contact (pair or particle-mesh) has |gap| < MARGIN
+mean diameters; a seed whose backbone has one is rejected (the next seed). The
+relaxation's ``fix viscous`` is a tenth of ``liggghts_thresholds.py``'s: a frictionless
+packing in the 48-facet tube can creep as a whole about the axis (a slow rigid rotation
+held back only by the facets' corners and the pyramid), which a strong viscous force
+slows down without stopping. The state is dumped by LIGGGHTS at rest (``validation/states/mesh-container.dump``,
 %.17g, BOX BOUNDS ``ff ff ff``): a static, pre-stressed equilibrium without gravity,
 held by the cylinder, floor, pyramid and lid.
 
@@ -53,10 +59,25 @@ by contact, from ``demstep.engine.meshes.touching_meshes`` (the rule ``demstep d
 uses); a particle-mesh pair the two codes count differently is listed with its
 geometry. Where the critical mode sits: demstep's JSON (``critical_mode``) and, for
 LIGGGHTS, the per-atom half-step kinetic energy at the end of an unstable run 1 %
-above the bracket (the growing mode dominates it).
+above the bracket (the growing mode dominates it). With rotation, demstep's exact step
+is also recomputed through its API with LIGGGHTS' lever arm of a wall contact,
+r - delta/2 (LIGGGHTS' default surface model) in place of demstep's distance to the
+contact point, r - delta (``exact_with_liggghts_wall_arm``).
+
+``--container box``: the plane-wall contrast, the same preparation in a box of six
+plane walls (meshes of two triangles in LIGGGHTS) of the spheres' own material (type 1);
+demstep is run with the six planes as ``--wall`` (and with them as ``--mesh``, and
+without). State ``validation/states/plane-box.dump``, results
+``validation/results/liggghts_plane_box_thresholds.json``.
+
+LIGGGHTS 3.8.0 quirks met here: ``hard_particles yes`` is needed for the meshes'
+E = 5e9 Pa in SI units; ``run N pre no`` aborts (the message lost in the MPI abort)
+once a ``fix move/mesh`` is active, so the lid loop uses ``run N post no``; the force
+of ``fix mesh/surface/stress`` is reported doubled on a run's set-up step, so it is
+read only after a step.
 
 ``--quick``: a smaller container (about 120 spheres), N = 4000, tol 1e-2, the state
-built in a temporary folder; a few minutes. Results: ``validation/results/
+built in a temporary folder; about a minute. Results: ``validation/results/
 liggghts_mesh_thresholds.json`` (``.quick.json`` with --quick), docs in
 ``docs/validation-meshes.md``.
 
