@@ -143,3 +143,24 @@ def test_bad_mesh_options_are_one_line(tmp_path, capsys, monkeypatch, argv, word
     assert code == 2 and len(lines) == 1 and out == "", err
     for w in words:
         assert w in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("convention, arm_of", [("demstep", lambda r, d: r - d),
+                                                 ("liggghts", lambda r, d: r - d / 2)])
+def test_the_wall_arm_of_each_convention(tmp_path, capsys, convention, arm_of):
+    """One sphere pressed by delta = 5 % of its radius into a mesh floor, rotation free:
+    the slip-roll mode k_t (1/m + a^2/I) sets the step, with the arm a of the convention
+    (demstep's engine: the distance to the contact point, r - delta; LIGGGHTS' surface
+    model: r - delta/2)."""
+    delta = 0.05 * R
+    state = write_csv(tmp_path / "one.csv", [[0.1, 0.2, R - delta]], [R])
+    floor = write_floor(tmp_path / "floor.stl", n=2)
+    code, out, err = run(["dt", state, "--kn", "1e5", "--ks", "8e4", "--density", RHO,
+                          "--json", "--convention", convention, "--mesh", str(floor)], capsys)
+    assert code == 0, err
+    dt, data = exact_dt(out)
+    m = RHO * 4 / 3 * math.pi * R ** 3
+    inertia = 0.4 * m * R ** 2
+    lam = max(1e5 / m, 8e4 * (1 / m + arm_of(R, delta) ** 2 / inertia))
+    assert data["n_contacts"] == 1
+    assert dt == pytest.approx(2 / math.sqrt(lam), rel=1e-9)

@@ -59,10 +59,11 @@ by contact, from ``demstep.engine.meshes.touching_meshes`` (the rule ``demstep d
 uses); a particle-mesh pair the two codes count differently is listed with its
 geometry. Where the critical mode sits: demstep's JSON (``critical_mode``) and, for
 LIGGGHTS, the per-atom half-step kinetic energy at the end of an unstable run 1 %
-above the bracket (the growing mode dominates it). With rotation, demstep's exact step
-is also recomputed through its API with LIGGGHTS' lever arm of a wall contact,
-r - delta/2 (LIGGGHTS' default surface model) in place of demstep's distance to the
-contact point, r - delta (``exact_with_liggghts_wall_arm``).
+above the bracket (the growing mode dominates it). ``demstep dt`` reads a LIGGGHTS dump
+in LIGGGHTS' convention, whose lever arm of a wall contact is r - delta/2 (its default
+surface model); with rotation, demstep's exact step is also recomputed through its API
+with the arm of demstep's own engine, the distance to the contact point, r - delta
+(``exact_with_contact_point_arm``), which puts it above LIGGGHTS' threshold.
 
 ``--container box``: the plane-wall contrast, the same preparation in a box of six
 plane walls (meshes of two triangles in LIGGGHTS) of the spheres' own material (type 1);
@@ -884,13 +885,12 @@ def demstep_args(dump: Path, mats: Path, specs: dict | None, restitution, rotati
     return args
 
 
-def exact_with_liggghts_wall_arm(argv: list[str]) -> float:
+def exact_with_contact_point_arm(argv: list[str]) -> float:
     """demstep's exact step of ``demstep dt`` ``argv`` (through its Python API, from
-    the repository root) with one convention of LIGGGHTS changed: the lever arm of a
-    particle-wall contact r - delta / 2 (LIGGGHTS' surface model uses it for the
-    relative velocity at the contact and the torque of the tangential force) instead of
-    demstep's distance from the centre to the closest point of the wall, r - delta. The
-    stiffnesses and dashpots stay those demstep computed from the true overlap."""
+    the repository root) with the lever arm of every particle-wall contact taken as
+    demstep's engine takes it, the distance from the centre to the contact point,
+    r - delta, instead of LIGGGHTS' r - delta/2 (the liggghts convention of a dump);
+    stiffnesses and dashpots unchanged."""
     from dataclasses import replace
 
     from demstep.cli import build_parser
@@ -905,8 +905,8 @@ def exact_with_liggghts_wall_arm(argv: list[str]) -> float:
     finally:
         os.chdir(cwd)
     c = data.contacts
-    wall = c.j < 0
-    arm = np.where(wall, 0.5 * (data.particles.r[c.i] + c.arm_i), c.arm_i)
+    r = data.particles.r[c.i]
+    arm = np.where((c.j < 0) & (c.arm_i < r), 2.0 * c.arm_i - r, c.arm_i)  # r - delta
     rotation = data.rotation if args.rotation is None else (args.rotation and data.rotation)
     report = estimate_time_steps(data.particles, replace(c, arm_i=arm), rotation=rotation,
                                  damping=data.damping, methods=["exact"], materials=data.materials,
@@ -1045,10 +1045,10 @@ def main(argv=None) -> int:
                               "wall_s": time.perf_counter() - t1}
             if rot:
                 t1 = time.perf_counter()
-                dem["with_meshes"]["exact_liggghts_wall_arm"] = exact_with_liggghts_wall_arm(
+                dem["with_meshes"]["exact_contact_point_arm"] = exact_with_contact_point_arm(
                     demstep_args(dump_path, mats, specs, e, rot))
-                log(f"    demstep exact with LIGGGHTS' wall arm r - delta/2: "
-                    f"{dem['with_meshes']['exact_liggghts_wall_arm']:.7g} "
+                log(f"    demstep exact with its engine's wall arm r - delta: "
+                    f"{dem['with_meshes']['exact_contact_point_arm']:.7g} "
                     f"({time.perf_counter() - t1:.0f} s)")
             lo, hi = res["bracket"]
             w, wo = dem["with_meshes"], dem["without_meshes"]

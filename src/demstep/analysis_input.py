@@ -20,7 +20,13 @@ beta = -ln e / sqrt(ln^2 e + pi^2), in one of two conventions:
   with beta_t from a tangential restitution (none by default); f = 2 (linear),
   2 sqrt(5/6) (Hertz, Tsuji et al. 1992);
 * ``liggghts`` (LIGGGHTS 3.8): Hertz as above with beta_t = beta (``tangential_damping``
-  on, its default); linear (``hooke``) c_n = 2 beta sqrt(m* k_n) and c_t = c_n.
+  on, its default); linear (``hooke``) c_n = 2 beta sqrt(m* k_n) and c_t = c_n; and the
+  lever arm of a particle-wall contact (plane or mesh) is r - delta/2, as LIGGGHTS' surface
+  model takes it for the contact point's velocity and the tangential force's torque
+  (demstep's engine, and the ``demstep`` convention, take the distance from the centre
+  to the contact point, r - delta: with rotation LIGGGHTS' longer arm stiffens the
+  roll-and-slip mode of a sphere pressed into a wall, measured 0.24 % on the critical
+  step of a packing in a stiff mesh container, docs/validation-meshes.md).
 
 Rolling and twisting resistance (either model, :mod:`demstep.contact.laws`): per
 contact k_r, k_w [M L^2/T^2 per rad] by the convention ``beta`` (k = beta k_t R*^2,
@@ -314,7 +320,10 @@ class ContactModel(RollingResistance):
         if (self.convention == "liggghts" and cls.liggghts_tangential == "c_n"
                 and self.restitution is not None):
             c_t = c_n.copy() if self.tangential_damping else np.zeros_like(c_n)
-        return ContactSet(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
+        arm_i = contacts.arm_i
+        if self.convention == "liggghts" and wall.any():  # (module docstring)
+            arm_i = np.where(wall, r_i - 0.5 * np.maximum(r_i - contacts.arm_i, 0.0), arm_i)
+        return ContactSet(contacts.i, contacts.j, contacts.normal, arm_i,
                           contacts.arm_j, k_n, k_t, contacts.wall, c_n, c_t, k_r, k_w, c_r, c_w)
 
 

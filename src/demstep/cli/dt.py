@@ -115,7 +115,8 @@ def add_dt_parser(sub):
     mod.add_argument("--tangential-damping", action=argparse.BooleanOptionalAction,
                      default=True, help="LIGGGHTS' tangential_damping (default on)")
     mod.add_argument("--convention", choices=("demstep", "liggghts"), default=None,
-                     help="restitution to dashpots: demstep's engine or LIGGGHTS 3.8 "
+                     help="restitution to dashpots, and the lever arm of wall contacts "
+                     "(r - delta or r - delta/2): demstep's engine or LIGGGHTS 3.8 "
                      "(default: liggghts for dumps, demstep otherwise)")
     mod.add_argument("--rolling-convention", choices=("beta", "epsd"), default=None,
                      help="rolling and twisting resistance: 'beta' (k_r = beta_r k_t R*^2, "
