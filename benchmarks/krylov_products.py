@@ -25,7 +25,7 @@ import numpy as np
 
 def fcc_operator(side: int):
     """The mass-scaled stiffness operator of an FCC block (rotation on) and its size."""
-    from demstep.contact.sets import find_contacts
+    from demstep.timestep.contacts import find_contacts
     from demstep.packings import lattice
     from demstep.particles import Particles
     from demstep.timestep.exact import ScaledContactOperator

@@ -41,7 +41,7 @@ CASE = r"""
 import json, math, resource, statistics, sys, time
 from dataclasses import replace
 import numpy as np
-from demstep.contact.sets import find_contacts
+from demstep.timestep.contacts import find_contacts
 from demstep.packings import jittered_polydisperse, lattice
 from demstep.particles import Particles
 from demstep.timestep.estimates import element_coupled_dt, element_paper_dt, nodal_dt

@@ -4,7 +4,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from demstep.contact.sets import find_contacts
+from demstep.timestep.contacts import find_contacts
 from demstep.packings import jittered_polydisperse
 from demstep.particles import Particles
 from demstep.walls import Wall

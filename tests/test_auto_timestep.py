@@ -709,7 +709,7 @@ def test_contacts_added_since_an_estimate_stay_bounded_together():
     together, assembled densely (M^-1/2 K M^-1/2 and the same for the dashpots), after
     each extension; they are at most the sum of the groups' bounds, and below it once
     a particle has several added contacts (one mass split over all of them)."""
-    from demstep.contact.sets import ContactSet
+    from demstep.timestep.contacts import ContactSet
     from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
     from demstep.timestep.certificate import added_contacts_bound
 

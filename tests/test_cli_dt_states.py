@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from demstep.cli import main
-from demstep.contact.sets import find_contacts
+from demstep.timestep.contacts import find_contacts
 from demstep.packings import lattice
 from demstep.particles import Particles
 from demstep.timestep.exact import exact_critical_step

@@ -12,7 +12,7 @@ import scipy.spatial.transform
 from demstep.clumps import (ClumpTemplate, _integrate_union, _separate, mass_properties, place,
                             principal_frame, quat_to_matrix, random_quaternions)
 from demstep.contact.laws import LinearSpring
-from demstep.contact.sets import ContactSet, find_contacts
+from demstep.timestep.contacts import ContactSet, find_contacts
 from demstep.engine import Damping, Simulation, TimeStep
 from demstep.engine.analysis import global_damping
 from demstep.errors import InputError

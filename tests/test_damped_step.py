@@ -14,7 +14,7 @@ import pytest
 import scipy.linalg
 from hypothesis import given, settings, strategies as st
 
-from demstep.contact.sets import find_contacts
+from demstep.timestep.contacts import find_contacts
 from demstep.packings import lattice
 from demstep.particles import Particles
 from demstep.timestep import estimate_time_steps, rayleigh_damped_dt

@@ -15,7 +15,7 @@ from demstep.kernels.timestep_kernels import (_chunked_scaled_matvec_parallel,
                                               contact_matvec, ordered_contact_runs,
                                               ordered_scaled_contact_matvec,
                                               contact_gram, contact_quadratic_forms)
-from demstep.contact.sets import ContactSet
+from demstep.timestep.contacts import ContactSet
 from demstep.timestep.assembly import assemble_stiffness, inverse_sqrt_mass
 from demstep.timestep.elements import dofs_per_particle
 from demstep.timestep.damping import GlobalDamping

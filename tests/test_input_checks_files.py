@@ -301,7 +301,7 @@ def test_keys_a_mode_reads_still_load_and_the_resolved_case_reloads(tmp_path):
         path = tmp_path / f"{example.stem}.toml"
         path.write_text(text)
         again = load_case(path)
-        assert again.model_dump() == case.model_dump() and dump_case(again) == text
+        assert again.resolved() == case.resolved() and dump_case(again) == text
 
 
 def test_restitution_with_damping_normal_refused_by_the_command_line(tmp_path, capsys):

@@ -7,7 +7,7 @@ import pytest
 
 import demstep.case.build as case_build
 from demstep.case import build_simulation, load_case
-from demstep.contact.sets import find_contacts
+from demstep.timestep.contacts import find_contacts
 from demstep.errors import InputError
 from demstep.io.formats import write_csv
 from demstep.io.vtk import particle_mesh

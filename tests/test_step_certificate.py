@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from demstep.contact.laws import LinearSpring
-from demstep.contact.sets import ContactSet, find_contacts
+from demstep.timestep.contacts import ContactSet, find_contacts
 from demstep.energy import EnergyMonitor
 from demstep.engine import Simulation, TimeStep
 from demstep.particles import Particles

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from demstep.contact.sets import find_contacts
+from demstep.timestep.contacts import find_contacts
 from demstep.packings import lattice
 from demstep.particles import Particles
 from demstep.timestep.assembly import (
@@ -160,7 +160,7 @@ def test_compiled_contact_search_finds_the_k_d_trees_contacts(dim, tol):
     """Large assemblies search their contacts with the engine's cell list instead of
     scipy's k-d tree: the same contacts in the same order, for touching lattice
     neighbours (tol 0: a distance exactly r_i + r_j) and polydisperse gaps within tol."""
-    from demstep.contact.sets import _pair_contacts
+    from demstep.timestep.contacts import _pair_contacts
     from demstep.packings import jittered_polydisperse
 
     for x, r in ((lattice("fcc" if dim == 3 else "hex", 0.5).block(6), None),

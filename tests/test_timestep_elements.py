@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from demstep.contact.geometry import tangent_basis
-from demstep.contact.sets import ContactSet
+from demstep.timestep.contacts import ContactSet
 from demstep.timestep.elements import (
     coupled_element_lambda, coupled_element_matrices, coupled_strain_operator,
     element_lambda_numeric, paper_element_lambda, paper_element_matrices,

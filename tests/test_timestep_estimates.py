@@ -7,7 +7,7 @@ import pytest
 import scipy.linalg
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from demstep.contact.sets import find_contacts
+from demstep.timestep.contacts import find_contacts
 from demstep.errors import InputError
 from demstep.packings import lattice
 from demstep.particles import Particles

@@ -19,7 +19,7 @@ import pytest
 
 from demstep.cli import main
 from demstep.contact.laws import LinearSpring, rolling_coefficients, rolling_inertia
-from demstep.contact.sets import ContactSet, find_contacts
+from demstep.timestep.contacts import ContactSet, find_contacts
 from demstep.kernels.timestep_kernels import (contact_energies, contact_gram, contact_matvec,
                                               contact_quadratic_forms)
 from demstep.packings import lattice
@@ -207,7 +207,7 @@ def test_contact_set_copies_leave_absent_coefficients_untouched():
     mmap threshold fixed), so that its growth counts exactly the pages written."""
     code = """
 import os, numpy as np
-from demstep.contact.sets import ContactSet
+from demstep.timestep.contacts import ContactSet
 def rss():
     return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 n = 500_000

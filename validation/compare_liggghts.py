@@ -108,7 +108,7 @@ def estimates_by_method(data: dict) -> dict:
 def api_exact_undamped(rec: dict) -> tuple[dict | None, str]:
     """demstep's exact step through the Python API for an undamped linear record."""
     try:
-        from demstep.contact.sets import find_contacts
+        from demstep.timestep.contacts import find_contacts
         from demstep.io.formats import read_liggghts_dump
         from demstep.particles import Particles, particle_inertia
         from demstep.timestep.estimates import element_coupled_dt, exact_dt

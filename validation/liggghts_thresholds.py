@@ -309,7 +309,8 @@ def run_liggghts(script: str, folder: Path, timeout: float = TRIAL_TIMEOUT) -> t
     env = dict(os.environ, OMP_NUM_THREADS="1")
     try:
         proc = subprocess.run([liggghts_exe(), "-in", "in.lmp", "-log", "log.lmp", "-echo", "none"],
-                              cwd=folder, env=env, capture_output=True, text=True, timeout=timeout)
+                              cwd=folder, env=env, capture_output=True, text=True, errors="replace",
+                              timeout=timeout)
         return proc.returncode, proc.stdout + proc.stderr
     except subprocess.TimeoutExpired as exc:
         out = (exc.stdout or b"")
@@ -325,14 +326,16 @@ def liggghts_version() -> str:
     return m.group(1) if m else "unknown"
 
 
-def write_data(path: Path, x, r, box, v=None, w=None, title="demstep validation"):
+def write_data(path: Path, x, r, box, v=None, w=None, title="demstep validation",
+               lo=(0.0, 0.0, 0.0), atom_types: int = 1):
     """LAMMPS data file for ``atom_style granular``: rows 'id type diameter density x y z'
-    at %.17g; box [0, L) per axis; a Velocities section 'id vx vy vz wx wy wz' when v is
-    given (w defaults to 0)."""
+    at %.17g (every sphere of type 1); box [lo, lo + L) per axis; ``atom_types`` types
+    declared (a mesh wall of type 2 needs 2); a Velocities section 'id vx vy vz wx wy wz'
+    when v is given (w defaults to 0)."""
     n = len(x)
-    lines = [title, "", f"{n} atoms", "1 atom types", ""]
+    lines = [title, "", f"{n} atoms", f"{atom_types} atom types", ""]
     for k, a in enumerate("xyz"):
-        lines.append(f"0.0 {float(box[k])!r} {a}lo {a}hi")
+        lines.append(f"{float(lo[k])!r} {float(lo[k]) + float(box[k])!r} {a}lo {a}hi")
     lines += ["", "Atoms", ""]
     for i in range(n):
         lines.append("%d 1 %.17g %.17g %.17g %.17g %.17g" % (i + 1, 2.0 * r[i], DENSITY, *x[i]))
@@ -399,11 +402,11 @@ def model_lines(params: dict, mu: float | None = None) -> list[str]:
     ]
 
 
-def header_lines(data_file: str, skin: float) -> list[str]:
+def header_lines(data_file: str, skin: float, boundary: str = "p p p") -> list[str]:
     return [
         "atom_style granular",
         "atom_modify map array",
-        "boundary p p p",
+        f"boundary {boundary}",
         "newton off",
         "communicate single vel yes",
         "units si",
@@ -795,6 +798,35 @@ def _float(s: str) -> float:
         return float("nan")
 
 
+def trial_lines(dt: float, steps: int, rotation: bool) -> list[str]:
+    """The commands of one trial after the set-up (state, contact model, walls): the
+    integrator, the half-step energy, LIGGGHTS' set-up (``run 0``, SETUP_OK) and the
+    ``steps`` steps in chunks of CHUNK, stopping early when E > BLOWUP E(0) (RUN_END)."""
+    integ = "nve/sphere" if rotation else "nve"
+    chunks = max(1, math.ceil(steps / CHUNK))
+    return [
+        f"fix integr all {integ}",
+        "compute erot all erotate/sphere",
+        *half_step_energy_lines(0.5 * dt, rotation),
+        "variable etot equal c_ehalf",
+        f"timestep {dt!r}",
+        "thermo_style custom step atoms c_ehalf ke c_erot",
+        "thermo_modify lost ignore norm no format float %.17g",
+        f"thermo {SAMPLE}",
+        "run 0",
+        'print "SETUP_OK"',
+        f"variable limit equal ${{etot}}*{BLOWUP!r}",
+        f"variable k loop {chunks}",
+        "label chunk",
+        f"run {CHUNK} pre no post no",
+        'if "${etot} > ${limit}" then "jump SELF done"',
+        "next k",
+        "jump SELF chunk",
+        "label done",
+        'print "RUN_END"',
+    ]
+
+
 class Runner:
     """Trials of one case: the perturbed data file is written once (fixed seed), only
     dt and N change."""
@@ -823,29 +855,8 @@ class Runner:
         self.trials: list[Trial] = []
 
     def script(self, dt: float, steps: int) -> str:
-        integ = "nve/sphere" if self.case.rotation else "nve"
-        chunks = max(1, math.ceil(steps / CHUNK))
-        lines = header_lines("perturbed.data", 0.1 * R0) + model_lines(self.params) + [
-            f"fix integr all {integ}",
-            "compute erot all erotate/sphere",
-            *half_step_energy_lines(0.5 * dt, self.case.rotation),
-            "variable etot equal c_ehalf",
-            f"timestep {dt!r}",
-            "thermo_style custom step atoms c_ehalf ke c_erot",
-            "thermo_modify lost ignore norm no format float %.17g",
-            f"thermo {SAMPLE}",
-            "run 0",
-            'print "SETUP_OK"',
-            f"variable limit equal ${{etot}}*{BLOWUP!r}",
-            f"variable k loop {chunks}",
-            "label chunk",
-            f"run {CHUNK} pre no post no",
-            'if "${etot} > ${limit}" then "jump SELF done"',
-            "next k",
-            "jump SELF chunk",
-            "label done",
-            'print "RUN_END"',
-        ]
+        lines = header_lines("perturbed.data", 0.1 * R0) + model_lines(self.params) + \
+            trial_lines(dt, steps, self.case.rotation)
         return "\n".join(lines) + "\n"
 
     def trial(self, dt: float, steps: int) -> Trial:

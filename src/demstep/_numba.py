@@ -80,7 +80,7 @@ def kernel_source_stamp() -> bytes:
     hash of the kernel's own file only, so a cached kernel that inlines a function of
     another module (a contact law, a constant of the ledger) outlived a change of it,
     silently running the old code (found when the epsd rolling stiffness changed in
-    contact/laws.py and the pair loop in kernels/dem.py kept the old one)."""
+    the contact laws and the pair loop in kernels/dem.py kept the old one)."""
     digest = hashlib.sha256()
     for path in compiled_sources():
         digest.update(str(path.relative_to(PACKAGE_DIR)).encode())

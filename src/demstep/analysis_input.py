@@ -3,7 +3,7 @@ coefficients, and the damping, from particle files of other codes, lattices, dem
 case files and checkpoints (``demstep dt``).
 
 The contact model turns each contact's geometry into the coefficients of
-:class:`~demstep.contact.sets.ContactSet`:
+:class:`~demstep.timestep.contacts.ContactSet`:
 
 * ``linear``: k_n, k_t [M/T^2] given;
 * ``hertz``: tangent stiffnesses k_n = 2 E* sqrt(R* delta), k_t = 8 G* sqrt(R* delta)
@@ -20,7 +20,13 @@ beta = -ln e / sqrt(ln^2 e + pi^2), in one of two conventions:
   with beta_t from a tangential restitution (none by default); f = 2 (linear),
   2 sqrt(5/6) (Hertz, Tsuji et al. 1992);
 * ``liggghts`` (LIGGGHTS 3.8): Hertz as above with beta_t = beta (``tangential_damping``
-  on, its default); linear (``hooke``) c_n = 2 beta sqrt(m* k_n) and c_t = c_n.
+  on, its default); linear (``hooke``) c_n = 2 beta sqrt(m* k_n) and c_t = c_n; and the
+  lever arm of a particle-wall contact (plane or mesh) is r - delta/2, as LIGGGHTS' surface
+  model takes it for the contact point's velocity and the tangential force's torque
+  (demstep's engine, and the ``demstep`` convention, take the distance from the centre
+  to the contact point, r - delta: with rotation LIGGGHTS' longer arm stiffens the
+  roll-and-slip mode of a sphere pressed into a wall, measured 0.24 % on the critical
+  step of a packing in a stiff mesh container, docs/validation-meshes.md).
 
 Rolling and twisting resistance (either model, :mod:`demstep.contact.laws`): per
 contact k_r, k_w [M L^2/T^2 per rad] by the convention ``beta`` (k = beta k_t R*^2,
@@ -37,6 +43,7 @@ and of the linear c_t are made here.
 from __future__ import annotations
 
 import math
+import shlex
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,16 +52,18 @@ import numpy as np
 
 from demstep.case import apply_stage, build_simulation, load_case
 from demstep.case.stages import create_bonds
-from demstep.contact import sets as cs
+from demstep.timestep import contacts as cs
 from demstep.contact.laws import (ContactLaw, RollingResistance, contact_coefficients,
                                   damping_ratio_from_restitution, law_class)
-from demstep.contact.sets import (DEFAULT_CONTACT_TOL, ContactSet, contact_effective_radius,
+from demstep.timestep.contacts import (DEFAULT_CONTACT_TOL, ContactSet, contact_effective_radius,
                                   contact_rolling_inertia, find_contacts)
+from demstep.engine.meshes import touching_meshes
 from demstep.errors import InputError, magnitude_problem
 from demstep.io.checkpoint import load_checkpoint
 from demstep.io.formats import read_particle_file
 from demstep.io.textfile import not_a_file_message, not_a_file_reason, read_small_text
 from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
+from demstep.mesh import TriangleMesh, read_mesh
 from demstep.packings import SPATIAL_ORDER_MIN, inverse_order, lattice, spatial_order
 from demstep.particles import Particles, particle_inertia, particle_mass
 from demstep.runner import case_hash, find_checkpoint, read_state
@@ -265,9 +274,12 @@ class ContactModel(RollingResistance):
             p = p._replace(**self._rolling_law().rolling_params())
         return p
 
-    def apply(self, contacts: ContactSet, particles: Particles, types: np.ndarray) -> ContactSet:
+    def apply(self, contacts: ContactSet, particles: Particles, types: np.ndarray,
+              wall_types: dict | None = None) -> ContactSet:
         """Fill the contacts' k_n, k_s, c_n, c_t (and k_r, k_w, c_r, c_w with rolling
-        resistance) from the model and the geometry."""
+        resistance) from the model and the geometry. A wall has the material of the
+        particle touching it, or of the type ``wall_types[wall index]`` (a mesh given
+        a type, as LIGGGHTS gives a mesh its own atom type)."""
         i, j = contacts.i, contacts.j
         wall = j < 0
         jj = np.where(wall, i, j)
@@ -288,6 +300,8 @@ class ContactModel(RollingResistance):
             groups = [(slice(None), self.law_params())]
         else:
             ti, tj = types[i], types[jj]
+            for w, t in (wall_types or {}).items():
+                tj = np.where(wall & (contacts.wall == w), t, tj)
             groups = []
             for a in np.unique(ti):
                 for b in np.unique(tj[ti == a]):
@@ -306,7 +320,10 @@ class ContactModel(RollingResistance):
         if (self.convention == "liggghts" and cls.liggghts_tangential == "c_n"
                 and self.restitution is not None):
             c_t = c_n.copy() if self.tangential_damping else np.zeros_like(c_n)
-        return ContactSet(contacts.i, contacts.j, contacts.normal, contacts.arm_i,
+        arm_i = contacts.arm_i
+        if self.convention == "liggghts" and wall.any():  # (module docstring)
+            arm_i = np.where(wall, r_i - 0.5 * np.maximum(r_i - contacts.arm_i, 0.0), arm_i)
+        return ContactSet(contacts.i, contacts.j, contacts.normal, arm_i,
                           contacts.arm_j, k_n, k_t, contacts.wall, c_n, c_t, k_r, k_w, c_r, c_w)
 
 
@@ -315,8 +332,8 @@ ROLLING_OPTIONS = RollingResistance.field_names()
 
 
 def with_rolling(contacts: ContactSet, particles: Particles, params) -> ContactSet:
-    """The contacts with the law's rolling and twisting springs (``params`` a LawParams):
-    :func:`demstep.contact.sets.with_rolling` with the particles' own masses and inertias."""
+    """The contacts with the law's rolling and twisting springs (``params`` a law's Params tuple):
+    :func:`demstep.timestep.contacts.with_rolling` with the particles' own masses and inertias."""
     p = particles
     return cs.with_rolling(contacts, p.r, p.m, p.inertia, ~p.fixed, params)
 
@@ -500,27 +517,100 @@ def check_types(model: ContactModel, types: np.ndarray, source: str):
                          f"(give it in --materials)")
 
 
+@dataclass
+class MeshInput:
+    """A triangle-mesh wall of an analysis: the ``mesh`` and the particle type whose
+    material it has (``type``; None: the material of the particle touching it)."""
+
+    mesh: TriangleMesh
+    type: int | None = None
+
+
+def parse_mesh(spec: str) -> MeshInput:
+    """A mesh wall written as LIGGGHTS' ``fix mesh/surface`` options: the file, then
+    ``type T`` (its material: that of particle type T) and the transforms ``scale s``,
+    ``move dx dy dz``, ``rotate axis ax ay az angle deg`` applied on load in order
+    (quotes around a file name with spaces)."""
+    try:
+        words = shlex.split(spec)
+    except ValueError as err:
+        raise InputError(f"mesh: {err}, got {spec!r}") from None
+    if not words:
+        raise InputError(f"mesh: expected a mesh file, got {spec!r}")
+    path, rest, mesh_type = words[0], [], None
+    k = 1
+    while k < len(words):
+        if words[k] == "type":
+            if k + 1 >= len(words) or not words[k + 1].isdigit() or int(words[k + 1]) < 1:
+                got = words[k + 1] if k + 1 < len(words) else "nothing"
+                raise InputError(f"mesh: type: expected a particle type (an integer >= 1), "
+                                 f"got {got!r}")
+            mesh_type = int(words[k + 1])
+            k += 2
+        else:
+            rest.append(words[k])
+            k += 1
+    try:
+        mesh = read_mesh(path, " ".join(rest))
+    except InputError as err:
+        raise InputError(f"mesh: {err}") from None
+    return MeshInput(mesh, mesh_type)
+
+
+def mesh_contacts_of(particles: Particles, meshes, first_wall: int,
+                     contact_tol: float) -> ContactSet:
+    """The particle-mesh contacts (MeshInput ``meshes``) touching within
+    ``contact_tol`` as wall contacts, mesh k numbered wall ``first_wall`` + k: the
+    normal towards the closest point of the surface, the arm the distance to it
+    (:func:`demstep.engine.meshes.touching_meshes`, the engine's rule)."""
+    if particles.dim != 3:
+        raise InputError(f"mesh: triangle meshes bound 3D packings, the particles are "
+                         f"{particles.dim}D")
+    p, mk, normal, dist = touching_meshes([m.mesh for m in meshes], particles.x,
+                                          particles.r, contact_tol)
+    c = len(p)
+    return ContactSet(p, np.full(c, -1), normal, dist, np.zeros(c), np.zeros(c), np.zeros(c),
+                      first_wall + mk)
+
+
 def from_particles(particles: Particles, model: ContactModel, types=None, periodic=None,
                    walls=(), contact_tol: float = DEFAULT_CONTACT_TOL,
                    damping: GlobalDamping | None = None, velocities=None,
                    impact_velocity: float | None = None, source: str = "particles",
-                   notes=None, bodies=None) -> AnalysisInput:
+                   notes=None, bodies=None, meshes=()) -> AnalysisInput:
     """Contacts from geometry (touching within ``contact_tol``) with the model's
-    coefficients; with ``bodies`` (RigidBodies), none within a body."""
+    coefficients; with ``bodies`` (RigidBodies), none within a body; ``meshes``
+    (:class:`MeshInput`) numbered as walls after ``walls``."""
     model.validate()
     types = np.ones(particles.n, dtype=np.int64) if types is None else np.asarray(types, np.int64)
     check_types(model, types, source)
     geometry = find_contacts(particles, 1.0, 1.0, contact_tol, walls=walls, periodic=periodic)
+    wall_types = {}
+    if meshes:
+        geometry = ContactSet.concatenate([geometry, mesh_contacts_of(
+            particles, meshes, len(walls), contact_tol)])
+        for k, m in enumerate(meshes):
+            if m.type is not None:
+                if not model.law_class.uses_materials:
+                    raise InputError(f"mesh: type {m.type}: the {model.law_class.name} law has "
+                                     f"no materials (a mesh's contacts take the law's "
+                                     f"stiffness)")
+                check_types(model, np.array([m.type]), f"mesh {m.mesh.name}")
+                wall_types[len(walls) + k] = m.type
     if bodies is not None and bodies.n:
         sb = bodies.sphere_body
         jj = np.maximum(geometry.j, 0)
         geometry = geometry.subset((geometry.j < 0) | (sb[geometry.i] < 0) | (sb[geometry.i] != sb[jj]))
-    contacts = model.apply(geometry, particles, types)
+    contacts = model.apply(geometry, particles, types, wall_types)
     impact_velocity = _impact_velocity(model, impact_velocity, velocities)
     out = AnalysisInput(particles, contacts, damping or GlobalDamping(), types,
                         make_materials(model, particles, types, impact_velocity),
                         velocities=velocities, notes=list(notes or []), bodies=bodies)
     out.notes.append("contacts: " + model.describe())
+    for m in meshes:
+        touching = int(np.count_nonzero(contacts.wall == len(walls) + meshes.index(m)))
+        out.notes.append(f"mesh {m.mesh.name}: {len(m.mesh.triangles)} triangles, {touching} "
+                         f"contacts" + (f", material of type {m.type}" if m.type else ""))
     if bodies is not None and bodies.n:
         out.notes.append(f"{bodies.n} clumps of {int((bodies.sphere_body >= 0).sum())} "
                          f"member spheres: six degrees of freedom each, the world inertia "
@@ -530,7 +620,8 @@ def from_particles(particles: Particles, model: ContactModel, types=None, period
 
 def from_file(path, model: ContactModel, fmt: str = "auto", density: float | None = None,
               box=None, periodic_axes=None, walls=(), contact_tol=DEFAULT_CONTACT_TOL,
-              damping=None, impact_velocity=None, snapshot: int = -1) -> AnalysisInput:
+              damping=None, impact_velocity=None, snapshot: int = -1,
+              meshes=()) -> AnalysisInput:
     """A particle file (CSV, LIGGGHTS/LAMMPS dump, YADE text). ``box`` (dim, 2) and
     ``periodic_axes`` (a string of axis letters) override the file's box and flags."""
     path = Path(path)
@@ -592,7 +683,7 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
     particles = Particles(x, data.r, m, inertia)
     out = from_particles(particles, model, types, periodic, _walls(walls, box_arr, dim),
                          contact_tol, damping, data.v, impact_velocity, str(path), notes,
-                         bodies)
+                         bodies, meshes)
     if bodies is None and particles.n >= SPATIAL_ORDER_MIN:
         _put_in_spatial_order(out)
     return out

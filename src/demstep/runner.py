@@ -736,7 +736,8 @@ def _replaceable(out_dir: Path) -> bool:
 
 def _input_files(case: Case) -> list[tuple[str, Path]]:
     """The files a run of ``case`` reads, each with the key that names it: the case file
-    itself, the particle file, the clumps' body file and template files, the bond file."""
+    itself, the particle file, the clumps' body file and template files, the bond file,
+    the mesh files."""
     def from_case(name) -> Path:  # (relative paths are taken from the case file's folder)
         p = Path(name).expanduser()
         return p if p.is_absolute() else case.base_dir / p
@@ -754,6 +755,8 @@ def _input_files(case: Case) -> list[tuple[str, Path]]:
             files.append((f"clumps[{k}].file", from_case(spec.file)))
     if case.bond_file() is not None:
         files.append(("bonds.file", case.bond_file()))
+    for k in range(len(case.meshes)):
+        files.append((f"meshes[{k}].file", case.mesh_file(k)))
     return files
 
 

@@ -17,6 +17,7 @@ from them.
 ``Pairs``    the Verlet pair list with each pair's contact history
 ``Bonds``    parallel bonds between particles (their own list, kept until they break)
 ``Walls``    rigid planes, their motion and servo state, and the particle-wall list
+``Meshes``   triangle-mesh walls, their motion and outputs, and their contact slots
 ``Box``      the periodic box: lengths, their motion and the boundary sums
 ``Ledger``   the energy ledger's arrays (layout: :mod:`demstep.energy`) and counters
 ``Controls`` the scalars of one call of the step: dt, damping, limits, switches
@@ -234,6 +235,65 @@ class Walls(NamedTuple):
 
     STATE = ("point", "vel", "motion", "servo", "force", "force_prev", "disp_prev", "ref",
              "k_sum", "p", "wall") + CONTACT_HISTORY
+
+
+class Meshes(NamedTuple):
+    """Triangle-mesh walls (:mod:`demstep.engine.meshes`): T triangles of M meshes and
+    the candidate list of K (particle, triangle) rows with their contact slots
+    (:mod:`demstep.kernels.meshes`).
+
+    Triangles: corners now ``tri`` (T, 9) [L] and as read ``tri0``, vertex ids ``vid``
+    (T, 3) (shared by the triangles of a mesh), the mesh of each ``tri_mesh`` (T,).
+    Meshes: ``motion`` (M,) (0 fixed, 1 moving), velocity ``vel`` (M, 3) [L/T], angular
+    velocity ``omega`` (M, 3) [1/T] about ``center`` (M, 3) [L] (moving with the mesh),
+    the translation ``shift`` (M, 3) [L] and the turn ``turn`` (M,) [rad] since the
+    start, the parameters of each mesh's contacts ``law`` (M, F) (a row of the law's
+    Params tuple: the mesh's material and friction); outputs: the force the particles exert ``force`` (M, 3), its
+    torque about the centre ``torque`` (M, 3), the power the mesh puts into the
+    particles now and at the last step ``power``, ``power_prev`` (M,) [M L^2/T^3],
+    touching particles ``contacts``; ``moved`` (1,): how far a corner moved since the
+    lists were built [L]. Candidates: ``cand_p``, ``cand_t`` (K,); slots: ``active``
+    (K,), their mesh ``slot_mesh`` and triangle ``slot_tri`` (K,), contact normal
+    ``normal`` (K, 3), tangential spring and dashpot forces ``shear``, ``dashpot``
+    (K, 3), stored tangential energy ``etan`` (K,) and the contact's force on the mesh
+    ``fslot`` (K, 3) [M L/T^2] (for the per-triangle output)."""
+
+    tri: np.ndarray
+    tri0: np.ndarray
+    vid: np.ndarray
+    tri_mesh: np.ndarray
+    motion: np.ndarray
+    vel: np.ndarray
+    omega: np.ndarray
+    center: np.ndarray
+    shift: np.ndarray
+    turn: np.ndarray
+    law: np.ndarray
+    force: np.ndarray
+    torque: np.ndarray
+    power: np.ndarray
+    power_prev: np.ndarray
+    contacts: np.ndarray
+    moved: np.ndarray
+    cand_p: np.ndarray
+    cand_t: np.ndarray
+    active: np.ndarray
+    slot_mesh: np.ndarray
+    slot_tri: np.ndarray
+    normal: np.ndarray
+    shear: np.ndarray
+    dashpot: np.ndarray
+    etan: np.ndarray
+    fslot: np.ndarray
+
+    #: the fields of a contact slot: one row per candidate, carried with it
+    SLOTS = ("active", "slot_mesh", "slot_tri", "normal", "shear", "dashpot", "etan", "fslot")
+    STATE = ("tri", "vel", "omega", "center", "shift", "turn", "law", "force", "torque",
+             "power", "power_prev", "moved", "cand_p", "cand_t") + SLOTS
+
+    @property
+    def n(self) -> int:
+        return len(self.motion)
 
 
 class Box(NamedTuple):

@@ -15,9 +15,11 @@ from demstep.contact.geometry import minimum_image_arrays
 from demstep.contact.laws import RollingResistance, law_class
 from demstep.energy import EnergyMonitor
 from demstep.engine import Damping, Simulation, TimeStep
+from demstep.engine.meshes import MeshWall
 from demstep.errors import InputError
 from demstep.io.formats import read_particle_file
 from demstep.kernels.neighbors import build_pair_list
+from demstep.mesh import read_mesh
 from demstep.packings import SPATIAL_ORDER_MIN, lattice as make_lattice, spatial_order
 from demstep.particles import Particles, particle_inertia
 from demstep.walls import Wall, box_walls
@@ -186,6 +188,29 @@ def build_walls(case: Case, x: np.ndarray, r: np.ndarray) -> list:
     return walls
 
 
+def build_meshes(case: Case, law) -> list[MeshWall]:
+    """The mesh walls of the case's [[meshes]]: each file read, checked and transformed
+    (:func:`demstep.mesh.read_mesh`), with its material checked against ``law``."""
+    walls = []
+    for k, spec in enumerate(case.meshes):
+        key = f"meshes[{k}]"
+        try:
+            mesh = read_mesh(case.mesh_file(k), spec.transforms, name=spec.name,
+                             file_format=spec.format)
+        except InputError as err:
+            raise InputError(f"{key}.file: {err}") from None
+        try:
+            law.wall_params(spec.material or None, spec.friction)
+        except InputError as err:
+            raise InputError(f"{key}.{err}") from None
+        zero = [0.0, 0.0, 0.0]
+        walls.append(MeshWall(mesh, name=spec.name, mu=spec.friction,
+                              material=dict(spec.material) or None,
+                              velocity=spec.velocity or zero, omega=spec.omega or zero,
+                              center=spec.center or zero))
+    return walls
+
+
 def build_simulation(case: Case, checkpoint_dir=None):
     """A Simulation of the case at t = 0 (stage changes are applied by the runner,
     :func:`apply_stage`). Raises InputError (prefixed with the case file) when the
@@ -242,8 +267,10 @@ def _build_simulation(case: Case, checkpoint_dir):
             periodic = None
     timestep = build_timestep(case.timestep)
     en = case.energy
+    law = build_law(case)
     sim = Simulation(
-        particles, build_law(case), walls=build_walls(case, x, r), gravity=case.gravity,
+        particles, law, walls=build_walls(case, x, r), meshes=build_meshes(case, law),
+        gravity=case.gravity,
         periodic=periodic, damping=Damping(case.damping.local, case.damping.viscous),
         timestep=timestep, skin=case.numerics.skin,
         energy=EnergyMonitor(eps=en.eps, every=en.every, action=en.action, floor=en.floor),

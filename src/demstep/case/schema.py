@@ -86,6 +86,19 @@ walls), ``friction`` (mu of this wall). A key the motion does not read is an err
 (``velocity``: velocity walls only; ``target_stress``, ``servo_gain``, ``servo_factor``,
 ``max_speed``, ``area``: servo walls only).
 
+``[[meshes]]`` (3D only): triangle-mesh walls (:mod:`demstep.mesh`,
+:mod:`demstep.engine.meshes`): ``name``, ``file`` (STL ASCII or binary, OBJ, or what
+meshio reads, relative to the case file), ``format`` (a meshio format name when the
+extension does not tell), ``transforms`` (applied on load, in LIGGGHTS' words: ``"scale
+0.001 move 0 0 0.1 rotate axis 0 0 1 angle 45"``), ``friction`` (mu of its contacts;
+default the law's ``mu_wall``), ``material`` (a table of the contact law's own
+parameters for the mesh: Hertz ``youngs_modulus`` and ``poisson_ratio``, paired with the
+particles'; linear ``stiffness_normal``, ... for its contacts; omitted: the particles'),
+its motion ``velocity`` [L/T] (a translation) and ``omega`` [1/T] (a rotation vector:
+axis times rate) about ``center`` [L] (which moves with the translation).
+``[stages.meshes."name"]`` changes ``velocity``, ``omega`` or ``friction`` from a
+stage on.
+
 ``[box]``: the 2 x dim axis-aligned walls named x-, x+, y-, y+(, z-, z+), none across a
 periodic axis (with ``[periodic] x``, no x- and x+): corners
 ``lower``/``upper`` [L], or (both omitted) the particles' extents plus ``margin`` [L].
@@ -171,6 +184,7 @@ from demstep.errors import MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_p
 from demstep.io.formats import _number, detect_format, read_csv, read_particle_file
 from demstep.io.textfile import (csv_rows, not_a_file_message, not_a_file_reason, open_text,
                                  read_small_text)
+from demstep.mesh import parse_transforms
 from demstep.packings import LATTICE_DIM, lattice as make_lattice
 
 #: the largest assembly a case file may generate (a guard against typos in ``size``)
@@ -387,6 +401,26 @@ class BoxSection(_Section):
     walls: dict[str, WallMotion] = {}
 
 
+class MeshMotion(_Section):
+    """How a mesh moves (and its friction); omitted keys keep their value."""
+
+    velocity: Vector | None = None
+    omega: Vector | None = None
+    friction: NonNegative | None = None
+
+
+class MeshSpec(MeshMotion):
+    """A triangle-mesh wall read from ``file`` with ``transforms``, its contact
+    ``material`` and its motion about ``center``."""
+
+    name: Name
+    file: str
+    format: Annotated[str, Field(min_length=1, max_length=32)] | None = None
+    transforms: Annotated[str, Field(max_length=4096)] = ""
+    material: dict[Annotated[str, Field(max_length=64)], Real] = {}
+    center: Vector | None = None
+
+
 class PeriodicSection(_Section):
     """Box length [L] of each periodic axis."""
 
@@ -461,6 +495,7 @@ class Stage(_Section):
     damping: DampingChange | None = None
     gravity: Vector | None = None
     walls: dict[str, WallMotion] = {}
+    meshes: dict[str, MeshMotion] = {}
     periodic: dict[str, BoxAxisMotion] = {}
     timestep: TimestepSection | None = None
     reset_ledger: bool = False
@@ -488,6 +523,7 @@ class Case(_Section):
     contact: ContactSection
     bonds: BondsSection | None = None
     walls: list[WallSpec] = []
+    meshes: list[MeshSpec] = []
     box: BoxSection | None = None
     damping: DampingSection = Field(default_factory=DampingSection)
     timestep: TimestepSection = Field(default_factory=TimestepSection)
@@ -559,7 +595,20 @@ class Case(_Section):
                 data["clumps"][k]["file"] = str(_relative(self, spec.file).resolve())
         if self.bond_file() is not None:
             data["bonds"]["file"] = str(self.bond_file())
+        for k, spec in enumerate(self.meshes):
+            data["meshes"][k]["file"] = str(self.mesh_file(k))
+        # a case without meshes resolves as it did before meshes existed (its hash, which
+        # a restart compares with the checkpoint's case, stays the same)
+        if not data.get("meshes"):
+            data.pop("meshes", None)
+        for stage in data["stages"]:
+            if not stage.get("meshes"):
+                stage.pop("meshes", None)
         return data
+
+    def mesh_file(self, k: int) -> Path:
+        """Absolute path of the file of ``meshes[k]``."""
+        return _relative(self, self.meshes[k].file).resolve()
 
     def bond_stage(self) -> int | None:
         """Index of the stage at whose start the bonds are created (None: no bonds)."""
@@ -938,6 +987,21 @@ def check_case(case: Case) -> None:
         if not math.hypot(*w.normal) > 0:
             raise InputError(f"{key}.normal: must be non-zero, got {w.normal}")
         _check_motion(key, w, WallMotion(), dim, initial=True)
+    # meshes
+    if case.meshes and dim != 3:
+        raise InputError(f"meshes[0]: triangle meshes bound 3D cases, the case is {dim}D")
+    for k, spec in enumerate(case.meshes):
+        key = f"meshes[{k}]"
+        if spec.name in names:
+            raise InputError(f"{key}.name: duplicate wall name, got {spec.name!r}")
+        names.append(spec.name)
+        _case_file(f"{key}.file", spec.file, case.mesh_file(k))
+        for vec in ("velocity", "omega", "center"):
+            _need_len(f"{key}.{vec}", getattr(spec, vec), 3)
+        try:
+            parse_transforms(spec.transforms)
+        except InputError as err:
+            raise InputError(f"{key}.{err}") from None
     # stages: replay the wall changes so every stage's resulting state is checked
     state: dict[str, WallMotion] = {}
     for w in case.walls:
@@ -945,6 +1009,8 @@ def check_case(case: Case) -> None:
     if case.box is not None:
         for nm in box_wall_names(dim, case.periodic_axes()):
             state[nm] = case.box.walls.get(nm, WallMotion())
+    axis_of = {m.name: (None if m.omega is None or not any(m.omega)
+                        else np.asarray(m.omega) / np.linalg.norm(m.omega)) for m in case.meshes}
     for k, stage in enumerate(case.stages):
         key = f"stages[{k}]"
         given = [n for n in ("steps", "duration", "until_kinetic_below")
@@ -972,6 +1038,20 @@ def check_case(case: Case) -> None:
                 raise InputError(f"{akey}.rate: required with motion = 'rate'")
             if change.motion == "servo" and change.target_stress is None:
                 raise InputError(f"{akey}.target_stress: required with motion = 'servo'")
+        for mname, change in stage.meshes.items():
+            mkey = f"{key}.meshes.{_quoted(mname)}"
+            if mname not in axis_of:
+                raise InputError(f"{mkey}: no such mesh (have "
+                                 f"{', '.join(axis_of) or 'none'})")
+            for vec in ("velocity", "omega"):
+                _need_len(f"{mkey}.{vec}", getattr(change, vec), 3)
+            if change.omega is not None and any(change.omega):
+                axis = np.asarray(change.omega) / np.linalg.norm(change.omega)
+                if axis_of[mname] is not None and not np.allclose(axis, axis_of[mname],
+                                                                  rtol=0, atol=1e-12):
+                    raise InputError(f"{mkey}.omega: a mesh keeps the axis it turns about "
+                                     f"(a new rate about it, or 0), got {change.omega}")
+                axis_of[mname] = axis
         for wname, change in stage.walls.items():
             if wname not in state:
                 raise InputError(f"{key}.walls.\"{wname}\": no such wall (have "

@@ -43,6 +43,10 @@ def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
                             target_stress=wall.target_stress, servo_gain=wall.servo_gain,
                             servo_factor=wall.servo_factor, max_speed=wall.max_speed,
                             area=wall.area, friction=wall.friction)
+    mesh_index = {m.name: i for i, m in enumerate(sim.mesh_walls)}
+    for name, change in stage.meshes.items():
+        sim.set_mesh_motion(mesh_index[name], velocity=change.velocity, omega=change.omega,
+                            friction=change.friction)
     for axis, change in stage.periodic.items():
         sim.set_box(AXES.index(axis), change.motion,
                     rate=change.rate if change.rate is not None else 0.0,

@@ -69,6 +69,11 @@ def add_dt_parser(sub):
                      "(normal into the packing); repeat for several; a negative first "
                      "coordinate as it is or after '=': --wall -1,0,0:1,0,0 or "
                      "--wall=-1,0,0:1,0,0")
+    src.add_argument("--mesh", action="append", default=[], metavar="SPEC",
+                     help="a triangle-mesh wall (3D): 'FILE [type T] [scale S] [move DX DY DZ] "
+                     "[rotate axis AX AY AZ angle DEG]' as LIGGGHTS' fix mesh/surface "
+                     "(STL, OBJ, or what meshio reads; type T: the material of particle "
+                     "type T, else the touching particle's); repeat for several")
     src.add_argument("--radius", type=number("radius", 0, strict=True), default=DEFAULT_RADIUS,
                      help=f"lattice particle radius (default {DEFAULT_RADIUS:g})")
     src.add_argument("--density", type=number("density", 0, strict=True), default=None,
@@ -110,7 +115,8 @@ def add_dt_parser(sub):
     mod.add_argument("--tangential-damping", action=argparse.BooleanOptionalAction,
                      default=True, help="LIGGGHTS' tangential_damping (default on)")
     mod.add_argument("--convention", choices=("demstep", "liggghts"), default=None,
-                     help="restitution to dashpots: demstep's engine or LIGGGHTS 3.8 "
+                     help="restitution to dashpots, and the lever arm of wall contacts "
+                     "(r - delta or r - delta/2): demstep's engine or LIGGGHTS 3.8 "
                      "(default: liggghts for dumps, demstep otherwise)")
     mod.add_argument("--rolling-convention", choices=("beta", "epsd"), default=None,
                      help="rolling and twisting resistance: 'beta' (k_r = beta_r k_t R*^2, "
@@ -336,8 +342,8 @@ def load_input(args):
                              f"{', '.join(LATTICE_NAMES)}")
         if args.periodic not in (None, "lattice"):
             raise InputError("periodic: with --lattice, give --periodic without axes")
-        if args.wall or args.box:
-            raise InputError("wall: --wall and --box apply to files, not to --lattice")
+        if args.wall or args.box or args.mesh:
+            raise InputError("wall: --wall, --mesh and --box apply to files, not to --lattice")
         _check_source_options(args, "lattice")
         lat = lattice(args.lattice, args.radius)
         check_memory(len(lat.basis) * args.size ** lat.dim, args.max_memory,
@@ -367,6 +373,7 @@ def load_input(args):
                  + tuple(("--" + name.replace("_", "-"), getattr(args, name))
                          for name in ti.ROLLING_OPTIONS)
                  if v is not None] + (["--wall"] if args.wall else []) \
+            + (["--mesh"] if args.mesh else []) \
             + (["--gamma-n/--gamma-t"] if args.gamma_n or args.gamma_t else []) \
             + (["--viscous/--rayleigh"] if args.viscous or args.rayleigh else [])
         if given:
@@ -390,7 +397,7 @@ def load_input(args):
         density = DEFAULT_DENSITY
     return ti.from_file(path, model, fmt, density, _box(args), _periodic_axes(args.periodic),
                         args.wall, args.contact_tol, damping, args.impact_velocity,
-                        args.snapshot)
+                        args.snapshot, [ti.parse_mesh(spec) for spec in args.mesh])
 
 
 def _check_run_position(path, case_path):

@@ -14,8 +14,9 @@ import numpy as np
 from demstep.clumps import quat_to_matrix
 from demstep.contact.bonds import bond_springs
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
-from demstep.contact.laws import contact_coefficients
-from demstep.contact.sets import ContactSet, with_rolling
+from demstep.contact.laws import contact_coefficients, params_from_row
+from demstep.timestep.contacts import ContactSet, with_rolling
+from demstep.engine.meshes import mesh_contacts
 from demstep.kernels import dem
 from demstep.kernels.integration import reach_speed as _reach_speed_kernel
 from demstep.particles import Particles
@@ -106,6 +107,9 @@ def contact_set(sim, horizon: float | None = None, cover: dict | None = None) ->
         parts.append(_walls_part(sim, p, wi, arm, delta_eval, params))
         if cover is not None:
             cover["walls"] = sorted_keys(wall_keys(walls_per_key(sim), p, wi), delta_eval)
+    if len(sim.meshes.cand_p):  # the 'auto' step does not cover meshes yet
+        parts.append(meshes_part(sim.meshes, sim.x, sim.r, sim.m, sim.dim, len(sim.walls),
+                                 params))
     return with_rolling_and_bonds(sim, parts, params)
 
 
@@ -145,6 +149,23 @@ def _walls_part(sim, p, w, arm, overlaps, params) -> ContactSet:
                       np.zeros(len(p)), kn, kt, w, c_n=cn, c_t=ct)
 
 
+def meshes_part(meshes, x, r, m, dim: int, first_wall: int, params) -> ContactSet:
+    """The particle-mesh contacts touching at positions ``x`` [L] (one per surface,
+    :func:`demstep.engine.meshes.mesh_contacts`; radii ``r``, masses ``m``) as wall
+    elements, mesh k numbered wall ``first_wall`` + k: the arm the distance from the
+    centre to the closest point, R* = r, m* = m, and each mesh's own law parameters
+    (its material; the rows ``meshes.law``, of the law of ``params``)."""
+    p, mk, normal, dist, delta = mesh_contacts(meshes, x, r)
+    c = len(p)
+    kn, kt, cn, ct = (np.empty(c) for _ in range(4))
+    for k in np.unique(mk):
+        on = mk == k
+        kn[on], kt[on], cn[on], ct[on] = coefficients(params_from_row(params, meshes.law[k]),
+                                                      delta[on], r[p[on]], m[p[on]])
+    return ContactSet(p, np.full(c, -1), normal[:, :dim], dist, np.zeros(c), kn, kt,
+                      first_wall + mk, c_n=cn, c_t=ct)
+
+
 def _joined(sim, parts) -> ContactSet:
     if parts:
         return ContactSet.concatenate(parts)
@@ -175,7 +196,7 @@ def reachable_overlap(sim, delta, reach, r_star) -> np.ndarray:
 
 def with_rolling_and_bonds(sim, parts, params) -> ContactSet:
     """The contact parts as one ContactSet with the law's rolling and twisting
-    springs (:func:`demstep.contact.sets.with_rolling`, the kernels' rule for fixed
+    springs (:func:`demstep.timestep.contacts.with_rolling`, the kernels' rule for fixed
     particles), then the intact bonds as elements of their own."""
     contacts = with_rolling(_joined(sim, parts), sim.r, sim.m, sim.inertia, sim.inv_m > 0,
                             params)

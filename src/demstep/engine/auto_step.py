@@ -32,7 +32,7 @@ import numpy as np
 
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
 from demstep.contact.laws import LAWS
-from demstep.contact.sets import ContactSet
+from demstep.timestep.contacts import ContactSet
 from demstep.engine.analysis import (NO_COVER, coefficients, contact_elements, global_damping,
                                      pair_keys, sorted_keys, wall_keys, walls_per_key)
 from demstep.errors import InputError
@@ -200,7 +200,7 @@ class AutoStep:
     def inputs(self) -> np.ndarray:
         """What an 'auto' estimate depends on besides the geometry, the masses and the
         bonds (changing those drops the certificate where they change): the law's kind,
-        springs and dashpots (its parameters, :class:`demstep.contact.laws.LawParams`,
+        springs and dashpots (its parameters, the law's ``Params`` tuple,
         without the friction limits, which the analysis does not use: sliding contacts
         count as sticking ones) and the global viscous damping a1 [1/T]. A certificate
         made with other inputs certifies nothing now (a stage that changes the damping

@@ -16,6 +16,7 @@ import numba
 import numpy as np
 
 from demstep.energy import A_ROLLING, E_STRAIN_R
+from demstep.engine.meshes import build_candidates, carry_slots
 from demstep.kernels import dem
 from demstep.kernels.clumps import place_members
 from demstep.scratch import Workspace
@@ -135,6 +136,10 @@ class NeighbourLists:
             wcover, = be.transfer_history(ws.p, ws.wall, wp, ww, wcover)
         sim.wall_state = ws._replace(p=wp, wall=ww, shear=wshear, dashpot=wdash,
                                      shear_energy=wenergy, roll=wroll, cover=wcover)
+        if sim.meshes.tri.shape[0] > 0:  # the triangles near each sphere, slots carried
+            cand_p, cand_t = build_candidates(sim.meshes, sim.x, sim.r, sim.skin, sim.particle_id)
+            sim.meshes = carry_slots(sim.meshes, cand_p, cand_t)
+            sim.meshes.moved[0] = 0.0
         if sim.auto.new_pairs_closing(cover, wcover):
             sim.counters[dem.COUNT_UNCOVERED] += 1.0  # (covered before the next step)
         sim.ordering.after_build(first=not built)

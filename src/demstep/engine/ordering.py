@@ -18,7 +18,7 @@ from demstep.errors import InputError
 from demstep.kernels import dem
 from demstep.packings import SPATIAL_ORDER_MIN, inverse_order, spatial_order
 from demstep.particles import Particles
-from demstep.state import CONTACT_HISTORY, Pairs
+from demstep.state import CONTACT_HISTORY, Meshes, Pairs
 
 
 class SpatialOrder:
@@ -151,6 +151,12 @@ def reorder(sim, order) -> None:
     sim.wall_state = ws._replace(p=p[rows], wall=ws.wall[rows], **{
         f: getattr(ws, f)[rows] if len(getattr(ws, f)) else getattr(ws, f)
         for f in CONTACT_HISTORY})
+    meshes = sim.meshes
+    if len(meshes.cand_p):  # a sphere's rows stay together and in their order
+        p = inv[meshes.cand_p]
+        rows = np.lexsort((np.arange(len(p)), p))
+        sim.meshes = meshes._replace(cand_p=p[rows], **{
+            f: getattr(meshes, f)[rows] for f in ("cand_t",) + Meshes.SLOTS})
     bonds = sim.bonds
     if bonds.n:
         i, j, sign = ends_in_order(inv[bonds.i], inv[bonds.j])

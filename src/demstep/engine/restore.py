@@ -14,12 +14,13 @@ import numpy as np
 
 from demstep.engine.auto_step import AutoStep
 from demstep.errors import InputError
-from demstep.state import CONTACT_HISTORY
+from demstep.state import CONTACT_HISTORY, Meshes
 
 #: fields of the pair and particle-wall lists: one row per listed contact (``roll``
 #: and ``cover`` may have none: no rolling resistance, no cover tracked)
 LIST_FIELDS = {"pairs": ("i", "j") + CONTACT_HISTORY,
-               "wall_state": ("p", "wall") + CONTACT_HISTORY}
+               "wall_state": ("p", "wall") + CONTACT_HISTORY,
+               "meshes": ("cand_p", "cand_t") + Meshes.SLOTS}
 
 #: the Simulation's scalars in a checkpoint, each an array ``scalars.<name>`` of one
 #: value (a checkpoint of format 3 held them in one array ``scalars``, in this order):
@@ -99,7 +100,8 @@ def checked_state(sim, data: dict, source: str) -> dict:
                 raise fail(key, f"holds the non-finite value {a[at]} at {list(map(int, at))}")
 
     counts = {"spheres": f" ({n} particles)", "wall_state": f" ({n_walls} walls)",
-              "bodies": f" ({sim.bodies.n} bodies)", "box": ""}
+              "bodies": f" ({sim.bodies.n} bodies)", "box": "",
+              "meshes": f" ({sim.meshes.n} meshes, {len(sim.meshes.tri)} triangles)"}
     for name in sim.BUNDLES:
         bundle = getattr(sim, name)
         lists = LIST_FIELDS.get(name, ())
@@ -124,8 +126,11 @@ def checked_state(sim, data: dict, source: str) -> dict:
             # (inf is a value of: unused servo limits, the cover of a contact covered
             # at any overlap, a bond without a strength limit)
             finite(key, nan_only=f in ("servo", "cover", "sigma_c", "tau_c"))
-    for key in ("pairs.i", "pairs.j", "wall_state.p", "bonds.i", "bonds.j"):
+    for key in ("pairs.i", "pairs.j", "wall_state.p", "bonds.i", "bonds.j", "meshes.cand_p"):
         in_range(key, n, "particle")
+    for key in ("meshes.cand_t", "meshes.slot_tri"):
+        in_range(key, len(sim.meshes.tri), "triangle")
+    in_range("meshes.slot_mesh", max(1, sim.meshes.n), "mesh")
     in_range("wall_state.wall", n_walls, "wall")
     for key, like in (("ledger.acc", sim.ledger.acc), ("ledger.energy", sim.ledger.energy),
                       ("ledger.counters", sim.counters)):

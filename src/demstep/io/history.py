@@ -11,12 +11,16 @@ Columns, in order:
   ends with ``energy_error`` (the normalized difference of the paper's eq. 22);
 * ``energy_alarm``: 1 when the energy monitor's last check (every ``energy.every``
   steps) found the error above its ``eps``, else 0 (run.json records the first alarm);
-* ``n_contacts`` (particle-particle plus particle-wall);
+* ``n_contacts`` (particle-particle, particle-wall and particle-mesh);
 * per wall ``NAME.fx``, ``NAME.fy``(, ``NAME.fz``) the force the particles exert on
   the wall [M L/T^2] (2D: per unit thickness), ``NAME.stress`` its compressive normal
   stress [M/(L T^2)] (:meth:`Simulation.wall_stress`; NaN when the loaded area is
   unknown) and ``NAME.x``, ``NAME.y``(, ``NAME.z``) the position of its reference
   point [L];
+* per mesh wall ``NAME.fx``, ``NAME.fy``, ``NAME.fz`` the force the particles exert on
+  the mesh [M L/T^2], ``NAME.tx``, ``NAME.ty``, ``NAME.tz`` its torque about the mesh's
+  centre [M L^2/T^2] (the torque a drum's motor must supply, negated) and
+  ``NAME.contacts`` the particles touching it;
 * with periodic axes: ``box.Lx`` ... the current periodic lengths [L] and ``love.xx``,
   ``love.yy``(, ``love.zz``) the Love-Weber stress of the contacts [M/(L T^2)]
   (:meth:`Simulation.love_stress`; NaN along an axis of unknown extent);
@@ -58,14 +62,15 @@ def history_columns(sim, extra: dict | None = None) -> list[str]:
     """Column names of the history of ``sim`` (plus the keys of ``extra``)."""
     return columns_for(sim.dim, [wall.name for wall in sim.walls],
                        "".join(_periodic_axes(sim)), extra,
-                       love=hasattr(sim, "love_stress"))
+                       love=hasattr(sim, "love_stress"),
+                       mesh_names=[m.name for m in getattr(sim, "mesh_walls", ())])
 
 
 def columns_for(dim: int, wall_names, periodic_axes: str, extra=None,
-                love: bool = True) -> list[str]:
+                love: bool = True, mesh_names=()) -> list[str]:
     """Column names of the history of a ``dim``-dimensional run with the walls
     ``wall_names`` (in the simulation's order) and the periodic axes ``periodic_axes``
-    (e.g. "xz"), plus ``extra`` (names, or a dict of them): known before the run is
+    (e.g. "xz"), the mesh walls ``mesh_names``, plus ``extra`` (names, or a dict of them): known before the run is
     built (``demstep sweep`` checks its ``--peak`` against them)."""
     cols = ["step", "time", "dt", "dt_estimate"]
     cols += list(EnergyLedger().as_dict())
@@ -75,6 +80,10 @@ def columns_for(dim: int, wall_names, periodic_axes: str, extra=None,
         cols += [f"{name}.f{a}" for a in AXES[:dim]]
         cols.append(f"{name}.stress")
         cols += [f"{name}.{a}" for a in AXES[:dim]]
+    for name in mesh_names:
+        cols += [f"{name}.f{a}" for a in AXES]
+        cols += [f"{name}.t{a}" for a in AXES]
+        cols.append(f"{name}.contacts")
     cols += [f"box.L{a}" for a in periodic_axes]
     if periodic_axes and love:
         cols += [f"love.{a}{a}" for a in AXES[:dim]]
@@ -102,6 +111,10 @@ def history_row(sim, extra: dict | None = None) -> list:
             row += [float(v) for v in sim.wall_force[k, : sim.dim]]
             row.append(float(stress[k]))
             row += [float(v) for v in sim.wall_point[k, : sim.dim]]
+    for k in range(len(getattr(sim, "mesh_walls", ()))):
+        row += [float(v) for v in sim.mesh_force[k]]
+        row += [float(v) for v in sim.mesh_torque[k]]
+        row.append(int(sim.meshes.contacts[k]))
     periodic = _periodic_axes(sim)
     row += [float(sim.periodic_len[AXES.index(a)]) for a in periodic]
     if periodic and hasattr(sim, "love_stress"):

@@ -17,11 +17,16 @@ Each frame writes up to three unstructured-grid files (``.vtu``, via meshio):
 * ``walls_STEP.vtu``: each wall as a quad (3D) or a line (2D) spanning the specimen,
   with cell data ``force`` (exerted by the particles), ``stress``, ``velocity`` and
   ``wall_id``.
+* ``meshes_STEP.vtu`` (mesh walls only): the triangles of every mesh where they are
+  now, with cell data ``force`` (the force the particles exert on the triangle
+  [M L/T^2], the sum of the contacts it holds), ``pressure`` (its normal component over
+  the triangle's area [M/(L T^2)], positive when the particles push along the normal as
+  stored, whichever side they are on) and ``mesh_id`` (the mesh's place in the case).
 * ``bodies_STEP.vtu`` (clumps only): one vertex per body at its centre of mass with its
   velocity, angular momentum, mass, principal moments and axes (:func:`body_mesh`); the
   particles' ``body`` point data says which body each member sphere belongs to.
 
-``particles.pvd``, ``contacts.pvd``, ``walls.pvd`` (and ``bodies.pvd``) list the frames with their
+``particles.pvd``, ``contacts.pvd``, ``walls.pvd`` (and ``meshes.pvd``, ``bodies.pvd``) list the frames with their
 simulated times [T]; they are rewritten atomically after every frame.
 """
 
@@ -38,7 +43,7 @@ from demstep.contact.geometry import pair_geometry_arrays
 from demstep.errors import InputError
 from demstep.io.atomic import atomic_path, write_text_atomic
 
-SERIES = ("particles", "contacts", "walls", "bodies")
+SERIES = ("particles", "contacts", "walls", "meshes", "bodies")
 _FRAME = re.compile(r"_(\d+)\.vtu$")
 
 
@@ -192,6 +197,33 @@ def wall_mesh(sim):
     })
 
 
+def triangle_forces(meshes) -> np.ndarray:
+    """The force the particles exert on each triangle of the Meshes bundle ``meshes``
+    (T, 3) [M L/T^2] at the last force evaluation: the sum of the forces of the contacts
+    it holds (its active slots' ``fslot``)."""
+    out = np.zeros((len(meshes.tri), 3))
+    on = meshes.active == 1
+    for k in range(3):
+        out[:, k] = np.bincount(meshes.slot_tri[on], weights=meshes.fslot[on, k],
+                                minlength=len(meshes.tri))
+    return out
+
+
+def triangle_mesh(sim):
+    """The mesh walls' triangles where they are now, with the force on each."""
+    meshio = _meshio()
+    m = sim.meshes
+    corners = m.tri.reshape(-1, 3, 3)
+    force = triangle_forces(m)
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    area2 = np.linalg.norm(normal, axis=1)  # twice the area
+    pressure = 2.0 * np.einsum("ij,ij->i", force, normal) / (area2 * area2)
+    return meshio.Mesh(m.tri.reshape(-1, 3),
+                       [("triangle", np.arange(3 * len(m.tri), dtype=np.int64).reshape(-1, 3))],
+                       cell_data={"force": [force], "pressure": [pressure],
+                                  "mesh_id": [np.asarray(m.tri_mesh, dtype=np.int64)]})
+
+
 def write_mesh(path, mesh) -> Path:
     """Write a meshio mesh as .vtu atomically."""
     meshio = _meshio()
@@ -266,6 +298,8 @@ class VtkWriter:
             meshes["contacts"] = contact_mesh
         if len(sim.walls):
             meshes["walls"] = wall_mesh
+        if len(sim.meshes.tri):
+            meshes["meshes"] = triangle_mesh
         if sim.bodies.n:
             meshes["bodies"] = body_mesh
         for series, make in meshes.items():

@@ -156,15 +156,23 @@ def _kick(b, k, f, t, omega, m, inv_m, rotating, gravity, v, L, x, applied, damp
     return L_old, w_body, w_app, d_local, d_global, 0.5 * m * vm * vm
 
 
-def _body_loop(bx, bq, bv, bL, bm, binertia, binv_m, binv_I, bforce, btorque, bapplied,
-               start, member, offset, damp_force, damp_torque, x, v, w, r, force, torque,
-               x_ref, gravity, dt, dt_prev, local_damping, global_damping, first,
-               store_damping, out):
+def _body_loop(bodies, sph, ctl, dt, dt_prev, first, out):
     """Sum the member forces to each body, update the bodies (module docstring) and move
     their members; ledger terms as :func:`demstep.kernels.dem._integrate_loop` fills
     them (``out`` (8,): work of gravity, of applied forces, local and global damping
     dissipation, kinetic energy of translation and rotation at t, the largest squared
-    member displacement since the lists were built, the largest member |v| dt / r)."""
+    member displacement since the lists were built, the largest member |v| dt / r).
+    ``bodies``, ``sph``: the Bodies and Spheres bundles (:mod:`demstep.state`); ``ctl``
+    the Controls (gravity, damping); the step ``dt``, the previous one ``dt_prev`` [T],
+    ``first`` (initialise the half step)."""
+    bx, bq, bv, bL, bm = bodies.x, bodies.q, bodies.v, bodies.L, bodies.m
+    binertia, binv_m, binv_I = bodies.inertia, bodies.inv_m, bodies.inv_I
+    bforce, btorque, bapplied = bodies.force, bodies.torque, bodies.applied
+    start, member, offset = bodies.start, bodies.member, bodies.offset
+    damp_force, damp_torque = bodies.damp_force, bodies.damp_torque
+    x, v, w, r, force, torque, x_ref = sph.x, sph.v, sph.w, sph.r, sph.force, sph.torque, sph.x_ref
+    gravity, store_damping = ctl.gravity, ctl.store_damping
+    local_damping, global_damping = ctl.local_damping, ctl.viscous_damping
     w_body = 0.0
     w_app = 0.0
     d_local = 0.0

@@ -25,12 +25,14 @@ from demstep.contact.geometry import (
     any_periodic, into_tangent_plane, pair_geometry, wall_geometry,
 )
 from demstep.contact.laws import (
-    coulomb_load, dashpot_coefficients, needs_r_star as law_needs_r_star, normal_force,
-    rolling_coefficients, tangential_stiffness,
+    coulomb_load, needs_r_star as law_needs_r_star, normal_force, rolling_coefficients,
+    tangential_stiffness,
 )
 from demstep.kernels.clumps import body_step, body_step_serial
 from demstep.kernels.bonds import bond_forces
 from demstep.kernels.integration import moved_since_build, step_weights, store_step_terms
+from demstep.kernels.meshes import mesh_forces, move_meshes
+from demstep.kernels.response import coulomb_dashpot, contact_response
 
 from demstep.energy import (  # the ledger's layout and sums are the energy module's
     A_APPLIED, A_BODY, A_BOND_BROKEN, A_BOX, A_DASHPOT, A_FRICTION, A_GLOBAL, A_INITIAL, A_LOCAL,
@@ -54,84 +56,6 @@ WALL_FIXED, WALL_VELOCITY, WALL_SERVO = 0, 1, 2
 S_TARGET, S_GAIN, S_MAXSPEED, S_AREA, S_FACTOR = range(5)
 # periodic box motions (per axis)
 BOX_FIXED, BOX_RATE, BOX_SERVO = 0, 1, 2
-
-
-@njit(inline="always")
-def coulomb_dashpot(tx, ty, tz, dx, dy, dz, limit):
-    """The tangential dashpot force (d_x, d_y, d_z) of a sticking contact, scaled down
-    (by the largest alpha in [0, 1]) so that the total tangential force, spring t plus
-    dashpot, stays within the Coulomb limit mu F_n [M L/T^2] (|t| <= limit here).
-    LIGGGHTS adds the dashpot unchecked, which let the total reach several times mu F_n
-    when a contact starts or turns; LAMMPS' granular pair styles cap the total too."""
-    sx, sy, sz = tx + dx, ty + dy, tz + dz
-    limit2 = limit * limit
-    if sx * sx + sy * sy + sz * sz <= limit2:
-        return dx, dy, dz
-    a = dx * dx + dy * dy + dz * dz
-    b = tx * dx + ty * dy + tz * dz
-    c = tx * tx + ty * ty + tz * tz - limit2  # <= 0: the root lies in [0, 1)
-    alpha = (math.sqrt(max(b * b - a * c, 0.0)) - b) / a
-    return alpha * dx, alpha * dy, alpha * dz
-
-
-@njit(inline="always")
-def contact_response(params, mu, nx, ny, nz, delta, r_star, m_star, vx, vy, vz, dt,
-                     ox, oy, oz, fdx, fdy, fdz, etan_old):
-    """Force of one contact and its history update (the contact law applied once).
-
-    Inputs: unit normal n (i -> j), overlap ``delta`` [L] (<= 0: not touching),
-    effective radius and mass, relative velocity of j's contact point w.r.t. i's
-    (v_x, v_y, v_z) [L/T] at t - dt/2, step ``dt`` (the one that produced x(t)), and
-    the history: tangential spring force on j (o_x, o_y, o_z), dashpot force on j
-    (fd_x, fd_y, fd_z) and stored tangential energy. Returns (F_x, F_y, F_z) on j, the
-    normal and tangential strain energies, the friction and dashpot dissipation of the
-    step, k_n and k_t (tangent stiffnesses, 0 when not touching), then the new history
-    (tangential force, dashpot force, tangential energy).
-
-    Scalars only: array arguments cost a reference-count update per call, which
-    measured 60 % of the pair loop.
-    """
-    dux, duy, duz = vx * dt, vy * dt, vz * dt
-    dun = dux * nx + duy * ny + duz * nz
-    dtx, dty, dtz = dux - dun * nx, duy - dun * ny, duz - dun * nz
-    # the old tangential force, rotated into the current tangent plane (magnitude kept)
-    ox, oy, oz = into_tangent_plane(ox, oy, oz, nx, ny, nz)
-    if delta <= 0.0:
-        # separated: the stored tangential energy is released (dissipated)
-        d_fric = -0.5 * (ox * dtx + oy * dty + oz * dtz) + etan_old
-        d_dash = -0.5 * (fdx * dux + fdy * duy + fdz * duz)
-        return (0.0, 0.0, 0.0, 0.0, 0.0, d_fric, d_dash, 0.0, 0.0,
-                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    f_el, k_n, e_n = normal_force(params, delta, r_star)
-    k_t = tangential_stiffness(params, delta, r_star)
-    c_n, c_t = dashpot_coefficients(params, m_star, k_n, k_t)
-    # normal dashpot on the lagged normal velocity (not clipped: the total may pull
-    # briefly at the end of an impact, as in the model whose restitution is e)
-    v_n = vx * nx + vy * ny + vz * nz
-    f_nd = -c_n * v_n
-    # tangential spring: trial increment, then the Coulomb slider
-    tx, ty, tz = ox - k_t * dtx, oy - k_t * dty, oz - k_t * dtz
-    mag2 = tx * tx + ty * ty + tz * tz
-    limit = mu * coulomb_load(params, f_el)
-    tdx, tdy, tdz = 0.0, 0.0, 0.0
-    if mag2 > limit * limit:  # (squares: the root only for a sliding contact)
-        s = limit / math.sqrt(mag2)
-        tx, ty, tz = tx * s, ty * s, tz * s
-    elif c_t > 0.0:
-        vtx, vty, vtz = vx - v_n * nx, vy - v_n * ny, vz - v_n * nz
-        tdx, tdy, tdz = coulomb_dashpot(tx, ty, tz, -c_t * vtx, -c_t * vty, -c_t * vtz,
-                                        limit)
-    e_t = 0.0
-    if k_t > 0.0:
-        e_t = (tx * tx + ty * ty + tz * tz) / (2.0 * k_t)
-    # work done on the tangential spring over the step (trapezoid) minus its stored change
-    w_in = -0.5 * ((ox + tx) * dtx + (oy + ty) * dty + (oz + tz) * dtz)
-    ndx, ndy, ndz = f_nd * nx + tdx, f_nd * ny + tdy, f_nd * nz + tdz
-    d_fric = w_in - (e_t - etan_old)
-    d_dash = -0.5 * ((fdx + ndx) * dux + (fdy + ndy) * duy + (fdz + ndz) * duz)
-    f_total = f_el + f_nd
-    return (f_total * nx + tx + tdx, f_total * ny + ty + tdy, f_total * nz + tz + tdz,
-            e_n, e_t, d_fric, d_dash, k_n, k_t, tx, ty, tz, ndx, ndy, ndz, e_t)
 
 
 @njit(inline="always")
@@ -427,9 +351,7 @@ _PAIR_DASHPOT = -1
 _PAIR_PERIODIC = -1
 
 
-def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params, dt,
-                ft, fd, etan, store_dashpot, chunks, spans, force, torque, force_band,
-                torque_band, geo, cover):
+def _pair_chunk(c, sph, pairs, periodic_len, box_rate, params, dt, store_dashpot):
     """The pairs of chunk ``c`` of :func:`_pair_loop` (``chunks[c]`` to
     ``chunks[c + 1]``), compiled once and called by the serial and the
     threaded driver alike: the same loop compiled inside a prange body ran 12 % slower
@@ -444,6 +366,11 @@ def _pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params,
     and whether the box is periodic are constants, and the branches on them are gone
     from the gather and scatter loops (dense 1e5, one thread: 8-10 % less time per
     pair); its driver refuses a call that does not match them."""
+    x, v, w, r, m, inv_m = sph.x, sph.v, sph.w, sph.r, sph.m, sph.inv_m
+    force, torque = sph.force, sph.torque
+    pi, pj, ft, fd, etan = pairs.i, pairs.j, pairs.shear, pairs.dashpot, pairs.shear_energy
+    chunks, spans, geo, cover = pairs.chunks, pairs.spans, pairs.geo, pairs.cover
+    force_band, torque_band = pairs.force_band, pairs.torque_band
     periodic = any_periodic(periodic_len) if _PAIR_PERIODIC < 0 else _PAIR_PERIODIC == 1
     if _PAIR_DASHPOT >= 0:
         store_dashpot = _PAIR_DASHPOT == 1
@@ -656,16 +583,17 @@ pair_chunk = njit(fastmath=CONTRACT)(_pair_chunk)
 pair_chunk_inline = njit(fastmath=CONTRACT, inline="always")(_pair_chunk)
 
 
-def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params, dt,
-               ft, fd, etan, store_dashpot, chunks, spans, force, torque, force_band,
-               torque_band, box_sums, geo, cover):
-    """Forces of all Verlet pairs (compiled twice: parallel and serial), history ``ft``,
-    ``fd``, ``etan`` (see :func:`contact_response`). The pairs are cut into chunks
-    (``chunks``: pair-index boundaries at particle starts, one chunk per thread;
+def _pair_loop(sph, pairs, periodic_len, box_rate, params, dt, store_dashpot, box_sums):
+    """Forces of all Verlet pairs (compiled twice: parallel and serial) of the Spheres
+    ``sph`` and the Pairs ``pairs`` (:mod:`demstep.state`): the pairs ``i``, ``j`` and
+    their history ``shear`` (ft), ``dashpot`` (fd), ``shear_energy`` (etan) (see
+    :func:`contact_response`), at the slip step ``dt`` [T] with the law's ``params``.
+    The pairs are cut into chunks
+    (``pairs.chunks``: pair-index boundaries at particle starts, one chunk per thread;
     :func:`pair_chunks`); chunk c adds the force (on j +F, on i -F) and torque (-a n x F
-    on each) of its pairs to the ``force``/``torque`` rows (N, 3) of the particles it
+    on each) of its pairs to the ``sph.force``/``sph.torque`` rows (N, 3) of the particles it
     owns, which it zeroes first, and those of particles beyond (its band: up to
-    ``spans[c, 1]``) to ``force_band[c]``/``torque_band[c]`` (rows from the first
+    ``spans[c, 1]``) to ``pairs.force_band[c]``/``torque_band[c]`` (rows from the first
     particle past its own), which :func:`_reduce_loop` adds once every chunk is done:
     no two threads write the same memory, and with one chunk there is no band. Returns
     (strain_n, strain_t, friction, dashpot, contacts, uncovered, headroom). ``box_sums`` (4, 3)
@@ -675,11 +603,11 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params, dt,
     the number of crossing contacts and the sum of their k_n. ``box_rate`` (3,): rate of
     change of the periodic lengths; the image of j across a boundary moves with
     v_j - n_img dL/dt. ``store_dashpot`` False (a law without dashpots, ``fd`` all
-    zero) skips reading and writing ``fd``. ``geo`` (P, 4) or (0, 4): when it has a
+    zero) skips reading and writing ``fd``. ``pairs.geo`` (P, 4) or (0, 4): when it has a
     row per pair, it receives the unit normal and the centre distance of every pair
-    (the rolling-resistance loop reads them). ``cover`` (P,) or (0,): when it has a row
+    (the rolling-resistance loop reads them). ``pairs.cover`` (P,) or (0,): when it has a row
     per pair, the largest overlap [L] the last certified time step covered each pair at
-    (0: not covered; see :meth:`demstep.engine.Simulation._still_certified`): the
+    (0: not covered; see :meth:`demstep.engine.auto_step.AutoStep.accept`): the
     touching pairs whose overlap exceeds it are counted (``uncovered``), and the
     smallest headroom cover - delta [L] over all pairs is returned last (+inf without a
     cover): a pair whose gap or overlap changes by less than it in the next step stays
@@ -700,12 +628,10 @@ def _pair_loop(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params, dt,
         raise ValueError("pair loop: compiled for another kind of box")
     if _PAIR_DASHPOT >= 0 and store_dashpot != (_PAIR_DASHPOT == 1):
         raise ValueError("pair loop: compiled for another kind of law")
-    n_chunks = chunks.shape[0] - 1
+    n_chunks = pairs.chunks.shape[0] - 1
     sums = np.zeros((max(n_chunks, 1), PAIR_SUMS))
     for c in prange(n_chunks):
-        got = pair_chunk(c, x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params,
-                         dt, ft, fd, etan, store_dashpot, chunks, spans, force, torque,
-                         force_band, torque_band, geo, cover)
+        got = pair_chunk(c, sph, pairs, periodic_len, box_rate, params, dt, store_dashpot)
         for q in range(PAIR_SUMS):
             sums[c, q] = got[q]
     # the chunks' sums added in chunk order: the same whatever the threads did
@@ -770,17 +696,22 @@ def _particle_boundary(wp, q):
     return q
 
 
-def _wall_loop(x, v, w, r, m, wp, ww, wall_point, wall_normal, wall_vel, wall_mu,
-               params, dt, wft, wfd, wetan, force, torque, wall_force, wall_contacts, wall_k,
-               n_chunks, cover):
-    """Particle-wall contacts (compiled twice: parallel and serial), in ``n_chunks`` runs
+def _wall_loop(sph, walls, params, dt, n_chunks):
+    """Particle-wall contacts (compiled twice: parallel and serial) of the Spheres ``sph``
+    with the Walls ``walls`` (their particle-wall list ``p``, ``wall`` and its history),
+    at the slip step ``dt`` [T] with the law's ``params``, in ``n_chunks`` runs
     of wall pairs cut between particles, so that each run adds to the ``force``/
-    ``torque`` rows of its own particles only. ``wall_force`` (W, 3) receives the force
-    the particles exert on each wall, ``wall_contacts`` and ``wall_k`` the number of
-    touching particles and the sum of their k_n (per run first, then summed). ``cover``
+    ``torque`` rows of its own particles only. ``walls.force`` (W, 3) receives the force
+    the particles exert on each wall, ``walls.contacts`` and ``walls.k_sum`` the number of
+    touching particles and the sum of their k_n (per run first, then summed). ``walls.cover``
     as in :func:`_pair_loop` (per wall pair). Returns (strain_n, strain_t, friction,
     dashpot, uncovered, headroom). Arrays of particles and wall pairs are read
     through flat views with unsigned indices (as in :func:`_pair_loop`)."""
+    x, v, w, r, m, force, torque = sph.x, sph.v, sph.w, sph.r, sph.m, sph.force, sph.torque
+    wp, ww, cover = walls.p, walls.wall, walls.cover
+    wall_point, wall_normal, wall_vel, wall_mu = walls.point, walls.normal, walls.vel, walls.mu
+    wft, wfd, wetan = walls.shear, walls.dashpot, walls.shear_energy
+    wall_force, wall_contacts, wall_k = walls.force, walls.contacts, walls.k_sum
     e_n = 0.0
     e_t = 0.0
     d_fric = 0.0
@@ -941,10 +872,12 @@ def servo_speed(stress, target, gain, factor, area, n_contacts, k_sum, dt, max_s
 _ANY_STEP = True
 
 
-def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt,
-                    dt_prev, local_damping, global_damping, fd_prev, td_prev, x_ref, first,
-                    store_damping, acc_out, sphere_body):
-    """Central-difference update of all particles with damping and the particle terms
+def _integrate_loop(sph, ctl, dt, dt_prev, first, acc_out, sphere_body):
+    """Central-difference update of all particles of the Spheres ``sph`` (positions,
+    half-step velocities, forces, applied forces ``applied``, the last step's damping
+    forces ``damp_force``/``damp_torque``) under the Controls ``ctl`` (gravity, local and
+    global damping, ``store_damping``), over the step ``dt`` after ``dt_prev`` [T]
+    (``first``: initialise the half step), with damping and the particle terms
     of the ledger (a change of step from ``dt_prev`` to ``dt`` kicks by their mean,
     :func:`~demstep.kernels.integration.step_weights`). ``acc_out`` (8,): work of
     gravity, of applied forces, local and global damping dissipation, kinetic energy
@@ -961,6 +894,12 @@ def _integrate_loop(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, 
     on ``first``, the damping coefficients and ``store_damping`` are then dead code
     (measured on 1e5 spheres, one thread: 0.67 against 1.02 ms per call, the same
     results to the bit)."""
+    x, v, w, m, r = sph.x, sph.v, sph.w, sph.m, sph.r
+    inertia, inv_m, inv_I = sph.inertia, sph.inv_m, sph.inv_I
+    force, torque, f_app, x_ref = sph.force, sph.torque, sph.applied, sph.x_ref
+    fd_prev, td_prev = sph.damp_force, sph.damp_torque
+    gravity, store_damping = ctl.gravity, ctl.store_damping
+    local_damping, global_damping = ctl.local_damping, ctl.viscous_damping
     w_body = 0.0
     w_app = 0.0
     d_local = 0.0
@@ -1108,7 +1047,7 @@ def closing_beyond_cover(x, v, r, pi, pj, periodic_len, cover, wp, ww, wall_poin
     overlap taken (|v_i| + |v_j|) dt + ``boundary`` ahead, ``boundary`` the walls' and
     the box's last move [L]): a pass of the geometry alone, which :func:`_advance`
     makes only after a step whose headrooms left room for such a contact. The engine
-    covers them before the next step (:meth:`demstep.engine.Simulation._uncovered`
+    covers them before the next step (:meth:`demstep.engine.auto_step.AutoStep.uncovered`
     looks further ahead): a contact closed beyond its cover must not act in a step,
     and a contact about to close had better close at a step certified for it (a light
     particle that closes at a step certified for heavy ones only penetrates deep in
@@ -1172,12 +1111,12 @@ def drift_used(counters):
     return used
 
 
-def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params):
+def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger, params):
     """Run up to ``n_steps`` steps of the documented order
     (:meth:`demstep.engine.Simulation.run`) on the bundles of :mod:`demstep.state`
     (``ctl`` Controls, ``sph`` Spheres, ``bodies`` Bodies, ``pairs`` Pairs, ``bonds`` Bonds,
-    ``walls`` Walls, ``box`` Box, ``ledger`` Ledger) with the law ``law`` (its id) and ``params``
-    (:class:`~demstep.contact.laws.LawParams`). Compiled twice, with the threaded loops
+    ``walls`` Walls, ``meshes`` Meshes, ``box`` Box, ``ledger`` Ledger) with the law's
+    parameters ``params`` (its Params tuple, :mod:`demstep.contact.laws`). Compiled twice, with the threaded loops
     (:func:`advance_parallel`) and with the serial ones (:func:`advance_serial`), so that
     a run compiles only the version it uses; :func:`advance` picks by ``ctl.parallel``.
     Returns (steps done, stop reason).
@@ -1200,7 +1139,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
     keep the largest displacement since the lists were built and the boundaries' move,
     and the chunk ends (STOP_CHECK) once the smaller of the two bounds of
     :func:`drift_used` exceeds the budget: the engine then checks the drift of the
-    certified step (:meth:`demstep.engine.Simulation._still_certified`)."""
+    certified step (:meth:`demstep.engine.auto_step.AutoStep.accept`)."""
     x, v, w, r, m = sph.x, sph.v, sph.w, sph.r, sph.m
     inv_m, force, torque = sph.inv_m, sph.force, sph.torque
     acc, energy, counters = ledger.acc, ledger.energy, ledger.counters
@@ -1230,10 +1169,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
         for k in range(3):
             box_rate[k] = 0.0 if first else box_state[5, k] / dt_prev
         e_n, e_t, d_fric, d_dash, n_pp, pp_uncovered, pp_headroom = pair_forces(
-            x, v, w, r, m, inv_m, pairs.i, pairs.j, periodic_len, box_rate, params,
-            dt_slip, pairs.shear, pairs.dashpot, pairs.shear_energy, ctl.store_dashpot,
-            pairs.chunks, pairs.spans, force, torque, force_band, torque_band, box_sums,
-            pairs.geo, pairs.cover)
+            sph, pairs, periodic_len, box_rate, params, dt_slip, ctl.store_dashpot, box_sums)
         # 1b. rolling and twisting resistance of the pairs (a law with it only)
         er_s, er_p, er_v = 0.0, 0.0, 0.0
         if pairs.roll.shape[0] > 0:
@@ -1244,9 +1180,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
             reduce_forces(force_band, torque_band, pairs.spans, force, torque)
         # 2. particle-wall contact forces
         we_n, we_t, wd_fric, wd_dash, pw_uncovered, pw_headroom = wall_forces(
-            x, v, w, r, m, walls.p, walls.wall, wall_point, wall_normal, wall_vel, walls.mu,
-            params, dt_slip, walls.shear, walls.dashpot, walls.shear_energy, force,
-            torque, wall_force, walls.contacts, walls.k_sum, wall_chunks, walls.cover)
+            sph, walls, params, dt_slip, wall_chunks)
         if walls.roll.shape[0] > 0:
             wr_s, wr_p, wr_v = wall_rolling(
                 x, w, r, m, sph.inertia, walls.p, walls.wall, wall_point, wall_normal,
@@ -1254,6 +1188,10 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
             er_s += wr_s
             er_p += wr_p
             er_v += wr_v
+        # 2c. triangle-mesh walls (serial: a sphere's contacts with a mesh are one list)
+        me_n, me_t, md_fric, md_dash = 0.0, 0.0, 0.0, 0.0
+        if meshes.tri.shape[0] > 0:
+            me_n, me_t, md_fric, md_dash = mesh_forces(sph, meshes, params, dt_slip)
         # 2b. parallel bonds (serial: bonds share particles)
         eb_s, eb_r = 0.0, 0.0
         if bonds.i.shape[0] > 0:
@@ -1271,6 +1209,11 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
                                        + (walls.force_prev[wi, 2] + wall_force[wi, 2]) * walls.disp_prev[wi, 2])
             for k in range(3):
                 acc[A_BOX] += 0.5 * (box_state[4, k] + box_sums[1, k]) * box_state[5, k]
+            # moving meshes: the power they put into the particles, over the last step
+            for mk in range(meshes.power.shape[0]):
+                acc[A_WALLS] += 0.5 * (meshes.power_prev[mk] + meshes.power[mk]) * dt_prev
+        for mk in range(meshes.power.shape[0]):
+            meshes.power_prev[mk] = meshes.power[mk]
         # 4. servo-controlled walls: velocity along the normal from the stress error
         wall_areas(wall_point, wall_normal, servo, walls.box_lo, walls.box_hi, periodic_len,
                    ctl.dim, walls.areas)
@@ -1300,22 +1243,12 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
                                                 box.servo[k, S_MAXSPEED])
         # 5. central-difference update with damping; particle ledger terms
         if first or ctl.store_damping or ctl.local_damping > 0.0 or ctl.viscous_damping > 0.0:
-            integrate(x, v, w, m, sph.inertia, inv_m, sph.inv_I, r, force, torque, sph.applied,
-                      ctl.gravity, dt, dt_prev, ctl.local_damping, ctl.viscous_damping,
-                      sph.damp_force, sph.damp_torque, sph.x_ref, first, ctl.store_damping,
-                      out, bodies.sphere_body)
-        else:
-            integrate_plain(x, v, w, m, sph.inertia, inv_m, sph.inv_I, r, force, torque,
-                            sph.applied, ctl.gravity, dt, dt_prev, 0.0, 0.0, sph.damp_force,
-                            sph.damp_torque, sph.x_ref, False, False, out, bodies.sphere_body)
+            integrate(sph, ctl, dt, dt_prev, first, out, bodies.sphere_body)
+        else:  # (no damping, not the first step: the copy without those branches)
+            integrate_plain(sph, ctl, dt, dt_prev, False, out, bodies.sphere_body)
         if bodies.m.shape[0] > 0:
             # rigid bodies: forces summed from their members, leapfrog, members follow
-            body_step(bodies.x, bodies.q, bodies.v, bodies.L, bodies.m, bodies.inertia,
-                      bodies.inv_m, bodies.inv_I, bodies.force, bodies.torque, bodies.applied,
-                      bodies.start, bodies.member, bodies.offset, bodies.damp_force,
-                      bodies.damp_torque, x, v, w, r, force, torque, sph.x_ref, ctl.gravity,
-                      dt, dt_prev, ctl.local_damping, ctl.viscous_damping, first,
-                      ctl.store_damping, out_bodies)
+            body_step(bodies, sph, ctl, dt, dt_prev, first, out_bodies)
             for k in range(6):
                 out[k] += out_bodies[k]
             out[6] = max(out[6], out_bodies[6])
@@ -1342,17 +1275,24 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
             periodic_len[k] += dt * box_speed[k]
             boundary_move += abs(periodic_len[k] - box.ref[k])
             boundary_step += abs(dt * box_speed[k])
+        if meshes.tri.shape[0] > 0:  # moving meshes: their corners' moves
+            mesh_step = move_meshes(meshes.tri, meshes.tri0, meshes.tri_mesh, meshes.motion,
+                                    meshes.vel, meshes.omega, meshes.center, meshes.shift,
+                                    meshes.turn, dt)
+            meshes.moved[0] += mesh_step
+            boundary_move += meshes.moved[0]
+            boundary_step += mesh_step
         # 7. ledger
         acc[A_BODY] += out[0]
         acc[A_APPLIED] += out[1]
         acc[A_LOCAL] += out[2]
         acc[A_GLOBAL] += out[3]
-        acc[A_FRICTION] += d_fric + wd_fric
-        acc[A_DASHPOT] += d_dash + wd_dash
+        acc[A_FRICTION] += d_fric + wd_fric + md_fric
+        acc[A_DASHPOT] += d_dash + wd_dash + md_dash
         energy[E_KIN_T] = out[4]
         energy[E_KIN_R] = out[5]
-        energy[E_STRAIN_N] = e_n + we_n
-        energy[E_STRAIN_T] = e_t + we_t
+        energy[E_STRAIN_N] = e_n + we_n + me_n
+        energy[E_STRAIN_T] = e_t + we_t + me_t
         energy[E_STRAIN_R] = er_s
         energy[E_STRAIN_BOND] = eb_s
         acc[A_BOND_BROKEN] += eb_r
@@ -1362,6 +1302,8 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
         wc = 0
         for wi in range(nw):
             wc += walls.contacts[wi]
+        for mk in range(meshes.contacts.shape[0]):
+            wc += meshes.contacts[mk]
         counters[COUNT_WALL_CONTACTS] = wc
         counters[COUNT_JUMP] = out[7]
         counters[COUNT_UNCOVERED] += pp_uncovered + pw_uncovered
@@ -1371,7 +1313,8 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params
             counters[DRIFT_SUM] += 2.0 * r_max * out[7] + boundary_step
         if first:
             # the energy held at t = 0 is the ledger's initial input
-            acc[A_INITIAL] = out[4] + out[5] + e_n + we_n + e_t + we_t + er_s + eb_s
+            acc[A_INITIAL] = (out[4] + out[5] + e_n + we_n + me_n + e_t + we_t + me_t + er_s
+                              + eb_s)
         update_peaks(acc, energy)
         dt_prev = dt
         first = False
@@ -1432,19 +1375,31 @@ def _no_bodies(*args):
     return None
 
 
+@njit
+def _no_mesh_forces(*args):
+    """Stands in for the mesh contacts in a step compiled without meshes."""
+    return 0.0, 0.0, 0.0, 0.0
+
+
+@njit
+def _no_mesh_moves(*args):
+    """Stands in for the meshes' motion in a step compiled without meshes."""
+    return 0.0
+
+
 #: the compiled versions of the step made so far, by (parallel, rolling, bonds, bodies)
 _STEPS = {}
 
 
 def step_kernel(parallel: bool, rolling: bool, bonds: bool, bodies: bool,
-                dashpot: bool = True, periodic: bool = True):
+                dashpot: bool = True, periodic: bool = True, meshes: bool = False):
     """The compiled step (:func:`_advance`) with the threaded or the serial loops and
     only the features a run uses: a law without rolling resistance, a run without
     bonds or clumps does not compile (or load) their loops; the pair loop is the one
     compiled for the law's dashpot history and the box (:func:`pair_loop_for`). Each
     version has its own name, so its own on-disk cache entry."""
     key = (bool(parallel), bool(rolling), bool(bonds), bool(bodies), bool(dashpot),
-           bool(periodic))
+           bool(periodic), bool(meshes))
     kernel = _STEPS.get(key)
     if kernel is None:
         overrides = {} if parallel else dict(_SERIAL_LOOPS)
@@ -1455,17 +1410,19 @@ def step_kernel(parallel: bool, rolling: bool, bonds: bool, bodies: bool,
             overrides["bond_forces"] = _no_bonds
         if not bodies:
             overrides["body_step"] = _no_bodies
-        name = "advance_{}_{}{}{}{}{}".format("parallel" if parallel else "serial",
-                                              *(int(f) for f in key[1:]))
+        if not meshes:
+            overrides.update(mesh_forces=_no_mesh_forces, move_meshes=_no_mesh_moves)
+        name = "advance_{}_{}{}{}{}{}{}".format("parallel" if parallel else "serial",
+                                                *(int(f) for f in key[1:]))
         kernel = _STEPS[key] = njit(_with_globals(_advance, name, overrides))
     return kernel
 
 
-def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params):
+def advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger, params):
     """:func:`_advance` compiled for this call's loops (threaded when ``ctl.parallel``)
-    and features (rolling history, bonds, rigid bodies present), with the pair loop for
-    its law's dashpot history and its box (periodic axes or none)."""
+    and features (rolling history, bonds, rigid bodies, meshes present), with the pair
+    loop for its law's dashpot history and its box (periodic axes or none)."""
     run = step_kernel(ctl.parallel, pairs.roll.shape[0] > 0 or walls.roll.shape[0] > 0,
                       bonds.i.shape[0] > 0, bodies.m.shape[0] > 0, ctl.store_dashpot,
-                      bool(any_periodic(box.length)))
-    return run(n_steps, ctl, sph, bodies, pairs, bonds, walls, box, ledger, params)
+                      bool(any_periodic(box.length)), meshes.tri.shape[0] > 0)
+    return run(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger, params)

@@ -1416,7 +1416,7 @@ def rolling_coefficient_arrays(params, k_n, k_t, r_star, i_star):
     c_r, c_w [M L^2/T] (C,) each of contacts with tangent stiffnesses ``k_n``, ``k_t``
     [M/T^2], effective radii ``r_star`` [L] and equivalent rotational inertias
     ``i_star`` [M L^2], by the law's formula
-    (:func:`demstep.contact.laws.rolling_coefficients`, ``params`` a LawParams)."""
+    (:func:`demstep.contact.laws.rolling_coefficients`, ``params`` a law's Params tuple)."""
     arrays = [np.ascontiguousarray(v, dtype=np.float64) for v in (k_n, k_t, r_star, i_star)]
     out = [np.zeros(arrays[0].shape[0]) for _ in range(4)]
     _rolling_coefficient_arrays(params, *arrays, *out)

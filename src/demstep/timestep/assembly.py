@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from demstep.contact.sets import ContactSet
+from demstep.timestep.contacts import ContactSet
 from demstep.kernels.timestep_kernels import stiffness_diagonal_kernel
 from demstep.particles import Particles
 from demstep.timestep.elements import coupled_element_blocks, dofs_per_particle

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-from demstep.contact.sets import DEFAULT_CONTACT_TOL, ContactSet
+from demstep.timestep.contacts import DEFAULT_CONTACT_TOL, ContactSet
 from demstep.packings import Lattice
 from demstep.particles import particle_inertia, particle_mass
 from demstep.timestep.damping import GlobalDamping

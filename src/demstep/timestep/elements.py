@@ -11,7 +11,7 @@ Two formulations, both vectorised over contacts (leading axis C):
   du_s = P (u_j - u_i) - (a_i theta_i + a_j theta_j) x n (P = I - n n^T, a_i and a_j
   the arms from the centres to the contact point; docs/time-step-elements.md), i.e. the
   linearised equations the engine integrates, and the rolling and twisting springs
-  (:class:`~demstep.contact.sets.ContactSet` ``k_r``, ``k_w``) on the relative rotation
+  (:class:`~demstep.timestep.contacts.ContactSet` ``k_r``, ``k_w``) on the relative rotation
   phi = theta_j - theta_i: a rotational element [[B, -B], [-B, B]] with
   B = k_r (I - n n^T) + k_w n n^T (2D: B = k_r). Its element eigenvalues bound the
   assembly's (Rayleigh, eq. 4) for any polydisperse assembly.

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from demstep.contact.sets import ContactSet, find_contacts
+from demstep.timestep.contacts import ContactSet, find_contacts
 from demstep.errors import InputError
 from demstep.kernels.timestep_kernels import damping_diagonal_kernel
 from demstep.packings import lattice

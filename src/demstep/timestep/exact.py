@@ -41,7 +41,7 @@ from typing import NamedTuple
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from demstep.contact.sets import ContactSet
+from demstep.timestep.contacts import ContactSet
 from demstep.errors import InputError
 from demstep.kernels.timestep_kernels import (chunked_scaled_contact_matvec, combine_rows,
                                               contact_chunks, contact_energies, contact_gram,
@@ -128,7 +128,7 @@ class ScaledContactOperator:
     infinite mass (their DOFs are scaled by zero). K and C_d hold every contact's
     springs and dashpots: normal and tangential on the slip at the contact point, and
     with rotation the rolling and twisting ones on the relative rotation
-    (:class:`~demstep.contact.sets.ContactSet`). ``pencil(sigma)`` is the operator
+    (:class:`~demstep.timestep.contacts.ContactSet`). ``pencil(sigma)`` is the operator
     (1 + sigma a2) K^ + sigma C^_d; the mass-proportional part sigma a1 I of
     A(sigma) = sigma C^ + K^ is a shift added by the caller. Its buffers (its scaling
     M^-1/2 too) and the eigensolver's basis live in ``workspace``

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from demstep.contact.sets import ContactSet
+from demstep.timestep.contacts import ContactSet
 from demstep.errors import InputError
 from demstep.particles import Particles
 

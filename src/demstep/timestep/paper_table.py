@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from demstep.contact.sets import find_contacts
+from demstep.timestep.contacts import find_contacts
 from demstep.packings import LATTICE_NAMES, lattice
 from demstep.particles import Particles
 from demstep.timestep.bloch import bloch_lambda_max

@@ -50,6 +50,7 @@ import pkgutil
 
 import numpy as np
 from numba.extending import overload
+from numba.np.unsafe.ndarray import to_fixed_tuple
 
 from demstep._numba import njit
 from demstep.contact.laws.base import (COMMON_FIELDS, LAWS, ROLL_BETA, ROLL_CONVENTIONS,
@@ -130,6 +131,20 @@ def _secant_factor(params):
 def _needs_r_star(params):
     value = bool(_kernels(params).needs_r_star)
     return lambda params: value
+
+
+def params_from_row(params, row):
+    """The Params tuple of the law of ``params`` whose fields are the values ``row``
+    (a float array in the tuple's field order): a wall's own parameters, kept as an
+    array row (:meth:`~demstep.contact.laws.base.ContactLaw.wall_params`)."""
+    return type(params)(*row)
+
+
+@overload(params_from_row, inline="always")
+def _params_from_row(params, row):
+    cls = params.instance_class
+    n = len(params)
+    return lambda params, row: cls(*to_fixed_tuple(row, n))
 
 
 @njit(inline="always")

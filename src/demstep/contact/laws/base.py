@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections import namedtuple
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Callable, ClassVar, NamedTuple
 
 import numpy as np
@@ -302,6 +302,37 @@ class ContactLaw(RollingResistance):
         contact between materials ``a`` and ``b`` (objects with ``youngs`` [M/(L T^2)]
         and ``poisson``)."""
         raise NotImplementedError(f"the {cls.name} law has no materials")
+
+    def wall_params(self, material: dict | None = None, mu: float | None = None):
+        """The Params tuple of contacts with a wall of its own ``material`` (a dict of
+        the law's own parameters, None: the particles' law unchanged) and friction
+        ``mu`` (None: ``mu_wall``). A linear law's stiffnesses are the contact's: the
+        wall's values replace the particles'. A law with materials pairs the wall's
+        material with the particles' (:meth:`wall_material_params`)."""
+        own = {f.name for f in self.own_fields()}
+        material = dict(material or {})
+        for key, value in material.items():
+            if key not in own:
+                raise InputError(f"material.{key}: not a parameter of the {self.name} law "
+                                 f"(it has {', '.join(sorted(own)) or 'none'})")
+        if material and self.uses_materials:
+            missing = sorted(own - set(material))
+            if missing:
+                raise InputError(f"material.{missing[0]}: the {self.name} law pairs the "
+                                 f"wall's material with the particles': give it")
+            replace(self, **material).validate()
+            values = self.wall_material_params(material)
+        else:
+            values = replace(self, **material).own_params()
+        params = self.params()._replace(**values)
+        if mu is not None:
+            params = params._replace(mu_wall=check_number("mu", mu))
+        return params
+
+    def wall_material_params(self, material: dict) -> dict:
+        """A law with materials: its own Params fields for contacts of its particles
+        with a wall of ``material`` (the law's own parameters)."""
+        raise NotImplementedError(f"the {self.name} law has no materials")
 
     def describe(self) -> str:
         """The law's own parameters in one line."""

@@ -3,20 +3,27 @@
 F_n = 4/3 E* sqrt(R*) delta^(3/2) with tangent stiffness k_n = 2 E* sqrt(R* delta) and
 stored energy 8/15 E* sqrt(R*) delta^(5/2); tangential stiffness k_t = 8 G* sqrt(R*
 delta) (Mindlin & Deresiewicz without micro-slip); 1/E* = 2 (1 - nu^2)/E and
-1/G* = 2 (2 - nu)/G for one material; walls are rigid-flat of the same material
-(R* = r_i). Dashpots c = 2 sqrt(5/6) beta sqrt(m* k) (Tsuji et al. 1992, as LIGGGHTS).
+1/G* = 2 (2 - nu)/G for one material; walls are flat (R* = r_i), of the particles'
+material unless a wall has its own (mesh walls: then E*, G* pair the two materials). Dashpots c = 2 sqrt(5/6) beta sqrt(m* k) (Tsuji et al. 1992, as LIGGGHTS).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
+
 from demstep._numba import njit
 from demstep.contact.laws.base import (ContactLaw, LawKernels, check_number, law_field,
                                        params_class, register)
 from demstep.errors import InputError
 
 Params = params_class("HertzParams", ("e_star", "g_star"))
+
+
+class _Material(NamedTuple):
+    youngs: float
+    poisson: float
 
 
 @njit(inline="always")
@@ -89,6 +96,13 @@ class HertzMindlin(ContactLaw):
         g_star = 1.0 / (2 * (2 - a.poisson) * (1 + a.poisson) / a.youngs
                         + 2 * (2 - b.poisson) * (1 + b.poisson) / b.youngs)
         return dict(e_star=float(e_star), g_star=float(g_star))
+
+    def wall_material_params(self, material: dict) -> dict:
+        """E*, G* of contacts with a wall of Young's modulus and Poisson's ratio
+        ``material`` (:meth:`pair_params` of the particles' material and the wall's)."""
+        return self.pair_params(_Material(self.youngs_modulus, self.poisson_ratio),
+                                _Material(material["youngs_modulus"],
+                                          material["poisson_ratio"]))
 
     def stiffness_bound(self, r_max: float, overlap: float) -> float:
         """Largest tangent stiffness at relative overlap ``overlap`` (delta / r) of a

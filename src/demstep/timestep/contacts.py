@@ -307,7 +307,7 @@ def contact_rolling_inertia(contacts: ContactSet, r, m, inertia, moving) -> np.n
 def with_rolling(contacts: ContactSet, r, m, inertia, moving, params) -> ContactSet:
     """The contacts with their rolling and twisting springs k_r, k_w and viscous parts
     c_r, c_w from their k_n, k_s (tangent stiffnesses), by the law ``params`` (a
-    LawParams; :func:`demstep.contact.laws.rolling_coefficients`): R* from the radii
+    law's Params tuple; :func:`demstep.contact.laws.rolling_coefficients`): R* from the radii
     ``r``, the equivalent rotational inertia from the masses ``m`` and ``inertia`` of
     the particles that move (``moving``: a fixed particle, like a wall, adds nothing;
     the engine's kernels use the same rule). Unchanged without rolling resistance."""

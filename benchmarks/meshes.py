@@ -1,0 +1,117 @@
+"""What a triangle-mesh floor costs against a plane wall.
+
+Spheres (radius 1, linear springs, friction, gravity) settle from a jittered grid onto
+a floor that is, in turn: a plane wall; a mesh of 2 triangles; a mesh of ``--fine``
+squares a side (2 x fine^2 triangles, about 1e5 by default) with squares about a
+particle diameter wide, most of it far from the particles (a large CAD floor); and
+the same number of triangles packed under the particles only (squares about a third
+of a diameter: each sphere within reach of some 15 triangles). Each run is its own process; the
+cases are interleaved, ``--repeat`` times; medians of particle-steps per second, the
+ratio to the plane wall, and the time of one candidate search (the k-d tree query
+that finds the triangles near each sphere at a neighbour-list rebuild) on the final
+state.
+
+    python benchmarks/meshes.py [--n 20000] [--steps 2000] [--fine 224] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+CASE = r"""
+import json, sys, time
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from demstep.contact.laws import LinearSpring
+from demstep.engine import Simulation, TimeStep
+from demstep.engine.meshes import MeshWall, build_candidates
+from demstep.mesh import mesh_from_arrays
+from demstep.mesh.shapes import plane
+from demstep.particles import Particles
+from demstep.walls import Wall
+
+floor, n, steps, fine = sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
+side = int(round((n / 4) ** 0.5))
+rng = np.random.default_rng(1)
+g = np.stack(np.meshgrid(np.arange(side), np.arange(side), np.arange(4), indexing="ij"),
+             -1).reshape(-1, 3) * 2.2
+x = g + [1.1 - 1.1 * side, 1.1 - 1.1 * side, 1.2] + rng.normal(0, 0.05, g.shape)
+p = Particles.from_density(x, np.full(len(x), 1.0), 1.0)
+law = LinearSpring(k_n=1e5, mu=0.3, mu_wall=0.3, restitution=0.5)
+kw = dict(gravity=[0, 0, -10.0], timestep=TimeStep.fixed(1e-3))
+extent = 2.2 * side + 10.0
+
+def mesh(nsq, size):
+    m = plane(nsq, size=size)
+    return mesh_from_arrays(np.asarray(m.vertices), np.asarray(m.triangles), name="floor")
+
+if floor == "plane":
+    sim = Simulation(p, law, walls=[Wall([0, 0, 0], [0, 0, 1], name="floor")], **kw)
+elif floor == "mesh-2":
+    sim = Simulation(p, law, meshes=[MeshWall(mesh(1, extent))], **kw)
+elif floor == "mesh-large":
+    sim = Simulation(p, law, meshes=[MeshWall(mesh(fine, 2.0 * fine))], **kw)
+else:  # mesh-fine: the same triangle count under the particles
+    sim = Simulation(p, law, meshes=[MeshWall(mesh(fine, extent))], **kw)
+sim.run(steps=20)
+t = time.perf_counter()
+sim.run(steps=steps)
+elapsed = time.perf_counter() - t
+search = float("nan")
+if floor != "plane":
+    t0 = time.perf_counter()
+    for _ in range(3):
+        build_candidates(sim.meshes, sim.x, sim.r, sim.skin, lambda k: k)
+    search = (time.perf_counter() - t0) / 3
+print(json.dumps({"rate": len(x) * steps / elapsed, "n": len(x), "triangles": len(sim.meshes.tri),
+                  "search_s": search, "contacts": sim.n_contacts}))
+"""
+
+FLOORS = ("plane", "mesh-2", "mesh-large", "mesh-fine")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=20_000)
+    ap.add_argument("--steps", type=int, default=2000)
+    ap.add_argument("--fine", type=int, default=224, help="squares a side of the fine meshes")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    src = str(HERE.parent / "src")
+    for floor in FLOORS:  # compile or load the caches, untimed
+        subprocess.run([sys.executable, "-c", CASE, src, floor, "400", "20", "8"], check=True,
+                       capture_output=True)
+    runs = {f: [] for f in FLOORS}
+    info = {}
+    for _ in range(args.repeat):
+        for floor in FLOORS:
+            out = subprocess.run([sys.executable, "-c", CASE, src, floor, str(args.n),
+                                  str(args.steps), str(args.fine)], check=True,
+                                 capture_output=True, text=True)
+            row = json.loads(out.stdout.strip().splitlines()[-1])
+            runs[floor].append(row["rate"])
+            info[floor] = row
+    med = {f: statistics.median(v) for f, v in runs.items()}
+    result = {"n": args.n, "steps": args.steps, "runs": runs, "median_psps": med,
+              "ratio_to_plane": {f: med[f] / med["plane"] for f in FLOORS}, "last": info}
+    if args.json:
+        print(json.dumps(result))
+        return
+    print(f"{info['plane']['n']} spheres settling, {args.steps} steps, medians of {args.repeat}")
+    print(f"{'floor':<12}{'triangles':>10}{'M p-s/s':>10}{'/ plane':>9}{'search ms':>11}{'contacts':>10}")
+    for f in FLOORS:
+        print(f"{f:<12}{info[f]['triangles']:>10}{med[f] / 1e6:>10.2f}"
+              f"{med[f] / med['plane']:>9.3f}{1e3 * info[f]['search_s']:>11.1f}"
+              f"{info[f]['contacts']:>10}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,231 @@
+"""Triangle-mesh walls of a Simulation: the meshes' state, their candidate lists and the
+outputs (force, torque, work) of each mesh.
+
+A :class:`MeshWall` is a :class:`~demstep.mesh.TriangleMesh` with its friction and its
+motion (a velocity, an angular velocity about a centre: a conveyor, a drum, a mixer
+blade). The Simulation keeps them in one :class:`~demstep.state.Meshes` bundle (the
+triangles of every mesh, their vertex ids, the motion, the outputs, and the candidate
+(particle, triangle) rows with their contact slots: :mod:`demstep.kernels.meshes`).
+:func:`build_candidates` finds, at every rebuild of the neighbour lists, the triangles
+within the skin of each sphere (a k-d tree of the centres, queried around each triangle),
+and :func:`carry_slots` carries each sphere's contacts over to its new rows.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from demstep.errors import InputError
+from demstep.kernels.meshes import MAX_CANDIDATES, mesh_contact_geometry, triangle_distances
+from demstep.mesh import TriangleMesh
+from demstep.state import Meshes
+
+MESH_FIXED, MESH_MOVING = 0, 1
+
+
+@dataclass
+class MeshWall:
+    """A triangle mesh as a wall of the simulation: ``mesh`` (its triangles, normals
+    towards the particles or not: contacts take the closest point, whichever side),
+    ``name``, friction ``mu`` (None: the law's wall friction), ``material`` (the contact
+    law's own parameters for the mesh, None: the particles'; a Hertz mesh gives its
+    Young's modulus and Poisson's ratio, paired with the particles' as a pair of two
+    materials; a linear one the contact's stiffnesses), and its motion: a
+    translation at ``velocity`` (3,) [L/T] and a rotation at ``omega`` (3,) [1/T] (the
+    rotation vector: axis and rate, right-hand rule) about ``center`` (3,) [L], which
+    moves with the translation."""
+
+    mesh: TriangleMesh
+    name: str = "mesh"
+    mu: float | None = None
+    material: dict | None = None
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    center: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self):
+        for name in ("velocity", "omega", "center"):
+            value = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
+            if value.shape != (3,) or not np.isfinite(value).all():
+                raise InputError(f"mesh {self.name!r}: {name} must have 3 finite components, "
+                                 f"got {getattr(self, name)!r}")
+            setattr(self, name, value.copy())
+        if self.mu is not None and not (math.isfinite(self.mu) and self.mu >= 0):
+            raise InputError(f"mesh {self.name!r}: mu must be finite and >= 0, got {self.mu!r}")
+
+    @property
+    def moving(self) -> bool:
+        return bool(np.any(self.velocity != 0.0) or np.any(self.omega != 0.0))
+
+
+def mesh_law_rows(walls: list[MeshWall], law) -> np.ndarray:
+    """The parameters of the contacts with each of ``walls`` (M, F): the contact law
+    ``law``'s Params tuple for the wall's material and friction
+    (:meth:`~demstep.contact.laws.base.ContactLaw.wall_params`), as float rows."""
+    rows = []
+    for wall in walls:
+        try:
+            rows.append(tuple(law.wall_params(wall.material, wall.mu)))
+        except InputError as err:
+            raise InputError(f"mesh {wall.name!r}: {err}") from None
+    return np.array(rows, dtype=np.float64).reshape(len(walls), len(law.Params._fields))
+
+
+def meshes_bundle(walls: list[MeshWall], law) -> Meshes:
+    """The Meshes bundle of ``walls`` (their triangles numbered mesh after mesh; the
+    vertex ids of each mesh offset so that no two meshes share one) with the contact
+    law ``law`` (:func:`mesh_law_rows`; None: no parameters, a bundle for the geometry
+    only). No candidates yet (:func:`build_candidates`)."""
+    tri, vid, owner = [], [], []
+    offset = 0
+    for k, wall in enumerate(walls):
+        m = wall.mesh
+        tri.append(m.vertices[m.triangles].reshape(-1, 9))
+        vid.append(m.triangles.astype(np.int64) + offset)
+        owner.append(np.full(len(m.triangles), k, dtype=np.int64))
+        offset += len(m.vertices)
+    n = len(walls)
+    tri = np.ascontiguousarray(np.concatenate(tri)) if n else np.zeros((0, 9))
+    z3 = np.zeros((n, 3))
+    return Meshes(
+        tri=tri, tri0=tri.copy(), vid=np.concatenate(vid) if n else np.zeros((0, 3), np.int64),
+        tri_mesh=np.concatenate(owner) if n else np.zeros(0, np.int64),
+        motion=np.array([MESH_MOVING if w.moving else MESH_FIXED for w in walls], np.int64),
+        vel=np.array([w.velocity for w in walls]).reshape(n, 3),
+        omega=np.array([w.omega for w in walls]).reshape(n, 3),
+        center=np.array([w.center for w in walls]).reshape(n, 3),
+        shift=z3.copy(), turn=np.zeros(n),
+        law=mesh_law_rows(walls, law) if law is not None else np.zeros((n, 0)),
+        force=z3.copy(), torque=z3.copy(), power=np.zeros(n), power_prev=np.zeros(n),
+        contacts=np.zeros(n, np.int64), moved=np.zeros(1),
+        cand_p=np.zeros(0, np.int64), cand_t=np.zeros(0, np.int64),
+        active=np.zeros(0, np.int64), slot_mesh=np.zeros(0, np.int64),
+        slot_tri=np.zeros(0, np.int64), normal=np.zeros((0, 3)), shear=np.zeros((0, 3)),
+        dashpot=np.zeros((0, 3)), etan=np.zeros(0), fslot=np.zeros((0, 3)))
+
+
+def build_candidates(meshes: Meshes, x, r, skin: float, particle_id) -> tuple:
+    """The (particle, triangle) pairs whose distance is below r + ``skin`` [L], sorted by
+    particle then triangle: (cand_p, cand_t). A k-d tree of the centres is queried
+    around each triangle (its centroid, within its circumradius + r_max + skin), then
+    the exact distances filter. More than :data:`MAX_CANDIDATES` triangles near one
+    sphere is refused (a mesh far finer than the particles), naming the particle."""
+    n_tri = len(meshes.tri)
+    if n_tri == 0 or len(r) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    corners = meshes.tri.reshape(-1, 3, 3)
+    centroid = corners.mean(axis=1)
+    radius = np.sqrt(((corners - centroid[:, None, :]) ** 2).sum(axis=2)).max(axis=1)
+    reach = radius + float(r.max()) + skin
+    tree = cKDTree(x)
+    near = tree.query_ball_point(centroid, reach)
+    counts = np.fromiter((len(a) for a in near), dtype=np.int64, count=n_tri)
+    if counts.sum() == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    cand_t = np.repeat(np.arange(n_tri, dtype=np.int64), counts)
+    cand_p = np.fromiter((p for a in near for p in a), dtype=np.int64, count=int(counts.sum()))
+    dist = triangle_distances(x, cand_p, meshes.tri, cand_t)
+    keep = dist < r[cand_p] + skin
+    cand_p, cand_t = cand_p[keep], cand_t[keep]
+    order = np.lexsort((cand_t, cand_p))
+    cand_p, cand_t = cand_p[order], cand_t[order]
+    if len(cand_p):
+        per = np.bincount(cand_p)
+        if per.max() > MAX_CANDIDATES:
+            p = int(np.argmax(per))
+            raise InputError(f"meshes: {int(per.max())} triangles lie within the skin of "
+                             f"particle {particle_id(p)} (at most {MAX_CANDIDATES}): the mesh "
+                             f"is far finer than the particles; coarsen it")
+    return cand_p, cand_t
+
+
+def carry_slots(meshes: Meshes, cand_p, cand_t) -> Meshes:
+    """The bundle with the new candidate rows and each sphere's active contact slots
+    carried over to the first of its new rows (the rest empty)."""
+    k = len(cand_p)
+    slots = {f: np.zeros((k,) + getattr(meshes, f).shape[1:], getattr(meshes, f).dtype)
+             for f in Meshes.SLOTS}
+    old = np.flatnonzero(meshes.active == 1)
+    if len(old) and k:
+        old_p = meshes.cand_p[old]
+        starts = np.searchsorted(cand_p, old_p, side="left")
+        ends = np.searchsorted(cand_p, old_p, side="right")
+        # the rank of each old slot among its sphere's (the slots are sorted by sphere)
+        first = np.searchsorted(old_p, old_p, side="left")
+        rank = np.arange(len(old)) - first
+        room = starts + rank < ends  # (a sphere with fewer candidates now: its extra
+        dest = (starts + rank)[room]  # slots end; their stored energy is negligible)
+        src = old[room]
+        for f in Meshes.SLOTS:
+            slots[f][dest] = getattr(meshes, f)[src]
+    return meshes._replace(cand_p=cand_p, cand_t=cand_t, **slots)
+
+
+def touching_meshes(meshes: list[TriangleMesh], x, r, contact_tol: float = 0.0):
+    """The contacts of spheres (centres ``x`` (N, 3) [L], radii ``r``) with
+    ``meshes`` (TriangleMesh) at their positions, touching within ``contact_tol``
+    (the centre within r (1 + tol) of the surface, as plane walls), by the engine's
+    rule (one per surface): particle (C,), mesh (C,), unit normal from the particle
+    to the mesh (C, 3) and distance from the centre to the closest point [L]."""
+    bundle = meshes_bundle([MeshWall(m, name=m.name) for m in meshes], None)
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    reach = np.ascontiguousarray(np.asarray(r, dtype=np.float64) * (1.0 + contact_tol))
+    cand_p, cand_t = build_candidates(bundle, x, reach, 0.0, lambda p: p)
+    bundle = bundle._replace(cand_p=cand_p, cand_t=cand_t)
+    p, mk, normal, dist, _ = mesh_contacts(bundle, x, reach)
+    return p, mk, normal, dist
+
+
+def mesh_contacts(meshes: Meshes, x, r):
+    """The particle-mesh contacts at the positions ``x`` [L] by the engine's rule (one
+    per surface, :mod:`demstep.kernels.meshes`), among the candidate rows of
+    ``meshes``: particle (C,), mesh (C,), unit normal from the particle to the mesh
+    (C, 3), distance from the centre to the triangle's closest point [L] and overlap
+    r - distance [L] (> 0)."""
+    rows, delta, normal, dist = mesh_contact_geometry(
+        np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(r, dtype=np.float64),
+        meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid, meshes.tri_mesh)
+    return (meshes.cand_p[rows], meshes.tri_mesh[meshes.cand_t[rows]], normal, dist,
+            delta)
+
+
+def set_mesh_motion(sim, index: int, velocity=None, omega=None, friction=None) -> None:
+    """Change how mesh ``index`` of ``sim`` moves between stages: its translation
+    ``velocity`` (3,) [L/T], its rotation ``omega`` (3,) [1/T] about its centre, its
+    friction ``friction`` (takes effect at the next run). A mesh that has turned keeps
+    its axis (its corners are recomputed from the total turn about it): a new rate
+    about the same axis, or no rotation, is allowed; another axis is refused."""
+    wall = sim.mesh_walls[index]
+    meshes = sim.meshes
+    if velocity is not None:
+        wall.velocity = _vector3(velocity, f"mesh {wall.name!r}: velocity")
+        meshes.vel[index] = wall.velocity
+    if omega is not None:
+        new = _vector3(omega, f"mesh {wall.name!r}: omega")
+        old = meshes.omega[index]
+        if meshes.turn[index] != 0.0 and np.any(new != 0.0):
+            cross = np.linalg.norm(np.cross(new, old))
+            same = np.dot(new, old) > 0 and cross <= 1e-12 * np.linalg.norm(new) * np.linalg.norm(old)
+            if not same:
+                raise InputError(f"mesh {wall.name!r}: omega: a mesh that has turned keeps its "
+                                 f"axis {old.tolist()} (a new rate about it, or 0), got "
+                                 f"{new.tolist()}")
+        wall.omega = new
+        meshes.omega[index] = new
+    if friction is not None:
+        if not (math.isfinite(friction) and friction >= 0):
+            raise InputError(f"mesh {wall.name!r}: friction must be finite and >= 0, got "
+                             f"{friction!r}")
+        wall.mu = float(friction)
+    meshes.motion[index] = MESH_MOVING if wall.moving else MESH_FIXED
+
+
+def _vector3(value, what: str) -> np.ndarray:
+    out = np.asarray(value, dtype=np.float64).reshape(-1)
+    if out.shape != (3,) or not np.isfinite(out).all():
+        raise InputError(f"{what} must have 3 finite components, got {value!r}")
+    return out.copy()

@@ -1,0 +1,412 @@
+"""Triangle-mesh walls: the contacts of spheres with the triangles of meshes.
+
+A sphere touches a mesh where the closest point of one of its triangles lies within its
+radius (:func:`demstep.contact.triangles.triangle_contact`). On a tessellated surface a
+sphere finds several triangles at once; the rule that makes it one contact:
+
+* an edge or vertex contact is dropped when another contact of the same sphere with a
+  triangle of the same mesh that holds the same edge or vertex lies closer to the
+  centre (the closest point of that triangle is nearer; on a flat or convex surface the
+  face contact of the triangle the centre lies over), or as close and on a lower-numbered
+  triangle (a centre right over a shared edge or vertex: one contact, the edge's or
+  vertex's owner decided once by the triangle numbers);
+* a genuine corner (a concave groove: two faces each nearest on their own) keeps a
+  contact per face, and a convex edge or vertex a centre lies beyond keeps one contact.
+
+The contacts of a sphere with a mesh live in the rows of the candidate list that
+belong to that sphere (the list is sorted by particle, and a sphere cannot have more
+contacts than candidate triangles): each row is a *slot* with the contact's normal and
+history (tangential spring and dashpot forces, stored tangential energy). At every
+step the new contacts of a sphere are matched to its slots on the same mesh by their
+normals (the closest normal, within :data:`MATCH_COS`): the tangential history is
+carried from triangle to triangle as the sphere rolls or slides across the edges of a
+tessellated surface (rotated into the new tangent plane, as a pair's), and a slot no
+contact takes has ended (its stored energy is dissipated, as a pair's that opens).
+
+Moving meshes: every triangle of a mesh moves rigidly with it; the mesh's velocity at a
+point q is v + omega x (q - c), c its rotation centre (carried with v). The force and
+torque (about c) the particles exert on each mesh are summed, and the power the mesh
+puts into the particles, whose trapezoid over each step is the mesh's work in the
+energy ledger.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from demstep._numba import njit
+from demstep.contact.laws import params_from_row
+from demstep.contact.triangles import FACE, closest_point_on_triangle, triangle_contact
+from demstep.kernels.response import contact_response
+
+#: two contacts of a sphere with a mesh at consecutive steps are the same contact when
+#: their normals are within this angle (cosine: 45 degrees): a sphere rolling over a
+#: convex edge turns its normal continuously; two faces of a groove stay apart
+MATCH_COS = math.cos(math.pi / 4)
+#: contacts of a sphere with a mesh whose distances to the centre differ by less than
+#: this fraction of its radius are as close (a centre over a shared edge or vertex)
+SAME_DISTANCE = 1e-9
+#: the most candidate triangles one sphere may have (more: the mesh is far finer than
+#: the particles; refused when the lists are built)
+MAX_CANDIDATES = 256
+
+
+@njit(inline="always")
+def _holds(vid, t, va, vb):
+    """Whether triangle t has vertex va (and vb, when vb >= 0)."""
+    ha = vid[t, 0] == va or vid[t, 1] == va or vid[t, 2] == va
+    if vb < 0:
+        return ha
+    hb = vid[t, 0] == vb or vid[t, 1] == vb or vid[t, 2] == vb
+    return ha and hb
+
+
+@njit(inline="always")
+def _feature_vertices(vid, t, feature):
+    """The vertices (va, vb) of feature ``feature`` of triangle t (vb = -1 for a vertex,
+    both -1 for the face)."""
+    if feature == 1:
+        return vid[t, 0], vid[t, 1]
+    if feature == 2:
+        return vid[t, 1], vid[t, 2]
+    if feature == 3:
+        return vid[t, 2], vid[t, 0]
+    if feature >= 4:
+        return vid[t, feature - 4], -1
+    return -1, -1
+
+
+@njit(inline="always")
+def _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep):
+    """The contacts of sphere ``p`` with its ``n`` candidate triangles (rows s ... s + n
+    - 1 of ``cand_t``): per row k, ``g[k]`` = (delta, unit normal from the triangle to
+    the centre (3), distance to the closest point, the closest point (3)), the feature
+    touched ``feat[k]`` and ``keep[k]``: whether the row is one of the sphere's contacts
+    after the one-contact-per-surface rule (module docstring)."""
+    px, py, pz, rp = x[p, 0], x[p, 1], x[p, 2], r[p]
+    for k in range(n):
+        t = cand_t[s + k]
+        (delta, nx, ny, nz, dist, qx, qy, qz, feature) = triangle_contact(
+            px, py, pz, rp, tri[t, 0], tri[t, 1], tri[t, 2], tri[t, 3], tri[t, 4],
+            tri[t, 5], tri[t, 6], tri[t, 7], tri[t, 8])
+        g[k, 0], g[k, 1], g[k, 2], g[k, 3], g[k, 4] = delta, nx, ny, nz, dist
+        g[k, 5], g[k, 6], g[k, 7] = qx, qy, qz
+        feat[k] = feature
+        keep[k] = delta > 0.0
+    # an edge or vertex contact that a closer contact of a triangle holding the same
+    # edge or vertex covers is dropped
+    tol = SAME_DISTANCE * rp
+    for k in range(n):
+        if not keep[k] or feat[k] == FACE:
+            continue
+        tk = cand_t[s + k]
+        va, vb = _feature_vertices(vid, tk, feat[k])
+        for j in range(n):
+            if j == k or not keep[j]:
+                continue
+            tj = cand_t[s + j]
+            if tri_mesh[tj] != tri_mesh[tk] or not _holds(vid, tj, va, vb):
+                continue
+            if g[j, 4] < g[k, 4] - tol or (g[j, 4] <= g[k, 4] + tol and (
+                    feat[j] == FACE or tj < tk)):
+                keep[k] = False
+                break
+
+
+@njit
+def mesh_contact_geometry(x, r, cand_p, cand_t, tri, vid, tri_mesh):
+    """The contacts of the spheres with the meshes now, by the engine's rule (one per
+    surface; no history): for each, its candidate row (C,), overlap delta [L], unit
+    normal from the sphere to the mesh (C, 3) and distance from the centre to the
+    closest point [L]. ``cand_p``, ``cand_t``: candidate rows sorted by particle."""
+    n_cand = cand_p.shape[0]
+    rows = np.empty(n_cand, dtype=np.int64)
+    delta = np.empty(n_cand)
+    normal = np.empty((n_cand, 3))
+    dist = np.empty(n_cand)
+    g = np.empty((MAX_CANDIDATES, 9))
+    feat = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    keep = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+    c = 0
+    s = 0
+    while s < n_cand:
+        p = cand_p[s]
+        e = s
+        while e < n_cand and cand_p[e] == p:
+            e += 1
+        _sphere_contacts(x, r, p, s, e - s, cand_t, tri, vid, tri_mesh, g, feat, keep)
+        for k in range(e - s):
+            if keep[k]:
+                rows[c] = s + k
+                delta[c] = g[k, 0]
+                normal[c, 0] = -g[k, 1]
+                normal[c, 1] = -g[k, 2]
+                normal[c, 2] = -g[k, 3]
+                dist[c] = g[k, 4]
+                c += 1
+        s = e
+    return rows[:c], delta[:c], normal[:c], dist[:c]
+
+
+@njit
+def mesh_forces(sph, meshes, params, dt):
+    """Contact forces of the Spheres ``sph`` on the triangles of the Meshes ``meshes``
+    (:mod:`demstep.state`; module docstring). The fields it reads, by their names here:
+
+    ``cand_p``, ``cand_t`` (K,): the candidate (particle, triangle) rows, sorted by
+    particle; ``tri`` (T, 9) the triangles' corners now [L], ``vid`` (T, 3) their vertex
+    ids (shared by the triangles of a mesh), ``tri_mesh`` (T,) their mesh; per mesh M:
+    velocity ``mesh_vel`` [L/T], angular velocity ``mesh_omega`` [1/T] about the centre
+    ``mesh_center`` [L], its law's parameters ``mesh_law`` (M, F) (the rows of
+    :func:`~demstep.contact.laws.params_from_row`: its material, its friction mu_wall);
+    ``params`` the particles' law's parameters (the type);
+    ``dt`` the step that produced x (slip increments). The slots (one per row, module
+    docstring): ``active`` (K,) 1 when the row holds a contact, its ``slot_mesh`` and
+    ``slot_tri`` (the triangle it is on), contact normal ``slot_normal`` (K, 3) (from the sphere to the mesh), tangential
+    spring and dashpot forces on the mesh ``shear``, ``dashpot`` (K, 3), stored
+    tangential energy ``etan`` (K,), the contact's force on the mesh ``fslot`` (K, 3)
+    [M L/T^2]; updated in place. Adds the contact forces and
+    torques to ``force``, ``torque`` (N, 3); writes per mesh the force the particles
+    exert ``mesh_force``, its torque about the centre ``mesh_torque``, the power the
+    mesh puts into the particles ``mesh_power`` [M L^2/T^3] and the touching spheres
+    ``mesh_contacts``. Returns (strain_n, strain_t, friction, dashpot)."""
+    x, v, w, r, m, force, torque = sph.x, sph.v, sph.w, sph.r, sph.m, sph.force, sph.torque
+    cand_p, cand_t, tri, vid, tri_mesh = (meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid,
+                                          meshes.tri_mesh)
+    mesh_vel, mesh_omega, mesh_center, mesh_law = meshes.vel, meshes.omega, meshes.center, meshes.law
+    active, slot_mesh, slot_tri, slot_normal = (meshes.active, meshes.slot_mesh, meshes.slot_tri,
+                                                meshes.normal)
+    shear, dashpot, etan, fslot = meshes.shear, meshes.dashpot, meshes.etan, meshes.fslot
+    mesh_force, mesh_torque = meshes.force, meshes.torque
+    mesh_power, mesh_contacts = meshes.power, meshes.contacts
+    n_cand = cand_p.shape[0]
+    n_mesh = mesh_force.shape[0]
+    mesh_force[:] = 0.0
+    mesh_torque[:] = 0.0
+    mesh_power[:] = 0.0
+    mesh_contacts[:] = 0
+    e_n = 0.0
+    e_t = 0.0
+    d_fric = 0.0
+    d_dash = 0.0
+    # one sphere's candidates: geometry, kept flags, and its old slots
+    g = np.empty((MAX_CANDIDATES, 9))
+    feat = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    keep = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+    old = np.empty((MAX_CANDIDATES, 11))
+    old_mesh = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    taken = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+    new_of = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    s = 0
+    while s < n_cand:
+        p = cand_p[s]
+        e = s
+        while e < n_cand and cand_p[e] == p:
+            e += 1
+        n = e - s
+        px, py, pz, rp = x[p, 0], x[p, 1], x[p, 2], r[p]
+        # 1-2. each candidate triangle's contact, one per surface
+        _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep)
+        # 3. the old slots of this sphere
+        n_old = 0
+        for k in range(n):
+            row = s + k
+            if active[row] == 1:
+                old[n_old, 0] = slot_normal[row, 0]
+                old[n_old, 1] = slot_normal[row, 1]
+                old[n_old, 2] = slot_normal[row, 2]
+                old[n_old, 3] = shear[row, 0]
+                old[n_old, 4] = shear[row, 1]
+                old[n_old, 5] = shear[row, 2]
+                old[n_old, 6] = dashpot[row, 0]
+                old[n_old, 7] = dashpot[row, 1]
+                old[n_old, 8] = dashpot[row, 2]
+                old[n_old, 9] = etan[row]
+                old_mesh[n_old] = slot_mesh[row]
+                taken[n_old] = False
+                n_old += 1
+        # 4. each kept contact takes the old slot of its mesh with the closest normal
+        for k in range(n):
+            new_of[k] = -1
+            if not keep[k]:
+                continue
+            mk = tri_mesh[cand_t[s + k]]
+            best = MATCH_COS
+            for o in range(n_old):
+                if taken[o] or old_mesh[o] != mk:
+                    continue
+                cos = -(g[k, 1] * old[o, 0] + g[k, 2] * old[o, 1] + g[k, 3] * old[o, 2])
+                if cos > best:
+                    best = cos
+                    new_of[k] = o
+            if new_of[k] >= 0:
+                taken[new_of[k]] = True
+        # 5. slots no contact took have ended: their stored energy is released, and the
+        # last half step of their spring and dashpot work (as a pair that opens: the
+        # relative velocity at the contact point, at the arm r along the old normal)
+        for o in range(n_old):
+            if taken[o]:
+                continue
+            mk = old_mesh[o]
+            nx, ny, nz = old[o, 0], old[o, 1], old[o, 2]
+            vix = v[p, 0] + rp * (w[p, 1] * nz - w[p, 2] * ny)
+            viy = v[p, 1] + rp * (w[p, 2] * nx - w[p, 0] * nz)
+            viz = v[p, 2] + rp * (w[p, 0] * ny - w[p, 1] * nx)
+            cx = px + rp * nx - mesh_center[mk, 0]
+            cy = py + rp * ny - mesh_center[mk, 1]
+            cz = pz + rp * nz - mesh_center[mk, 2]
+            ux = mesh_vel[mk, 0] + mesh_omega[mk, 1] * cz - mesh_omega[mk, 2] * cy
+            uy = mesh_vel[mk, 1] + mesh_omega[mk, 2] * cx - mesh_omega[mk, 0] * cz
+            uz = mesh_vel[mk, 2] + mesh_omega[mk, 0] * cy - mesh_omega[mk, 1] * cx
+            pm = params_from_row(params, mesh_law[mk])
+            (_, _, _, _, _, c_fric, c_dash, _, _, _, _, _, _, _, _, _) = contact_response(
+                pm, pm.mu_wall, nx, ny, nz, -1.0, rp, m[p], ux - vix, uy - viy,
+                uz - viz, dt, old[o, 3], old[o, 4], old[o, 5], old[o, 6], old[o, 7],
+                old[o, 8], old[o, 9])
+            d_fric += c_fric
+            d_dash += c_dash
+        # 6. the forces, written into this sphere's rows from its first one
+        row = s
+        for k in range(n):
+            if not keep[k]:
+                continue
+            t = cand_t[s + k]
+            mk = tri_mesh[t]
+            delta, dist = g[k, 0], g[k, 4]
+            # the contact normal points from the sphere to the mesh
+            nx, ny, nz = -g[k, 1], -g[k, 2], -g[k, 3]
+            qx, qy, qz = g[k, 5], g[k, 6], g[k, 7]
+            pm = params_from_row(params, mesh_law[mk])
+            o = new_of[k]
+            if o >= 0:
+                ox, oy, oz = old[o, 3], old[o, 4], old[o, 5]
+                fdx, fdy, fdz = old[o, 6], old[o, 7], old[o, 8]
+                e_old = old[o, 9]
+            else:
+                ox, oy, oz, fdx, fdy, fdz, e_old = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+            a = dist  # the arm: from the centre to the contact point on the triangle
+            vix = v[p, 0] + a * (w[p, 1] * nz - w[p, 2] * ny)
+            viy = v[p, 1] + a * (w[p, 2] * nx - w[p, 0] * nz)
+            viz = v[p, 2] + a * (w[p, 0] * ny - w[p, 1] * nx)
+            # the mesh's velocity at the contact point
+            cx = qx - mesh_center[mk, 0]
+            cy = qy - mesh_center[mk, 1]
+            cz = qz - mesh_center[mk, 2]
+            ux = mesh_vel[mk, 0] + mesh_omega[mk, 1] * cz - mesh_omega[mk, 2] * cy
+            uy = mesh_vel[mk, 1] + mesh_omega[mk, 2] * cx - mesh_omega[mk, 0] * cz
+            uz = mesh_vel[mk, 2] + mesh_omega[mk, 0] * cy - mesh_omega[mk, 1] * cx
+            (fx, fy, fz, c_en, c_et, c_fric, c_dash, _, _, tx, ty, tz, ndx, ndy, ndz,
+             e_new) = contact_response(
+                pm, pm.mu_wall, nx, ny, nz, delta, rp, m[p], ux - vix, uy - viy,
+                uz - viz, dt, ox, oy, oz, fdx, fdy, fdz, e_old)
+            active[row] = 1
+            slot_mesh[row] = mk
+            slot_tri[row] = t
+            slot_normal[row, 0] = nx
+            slot_normal[row, 1] = ny
+            slot_normal[row, 2] = nz
+            shear[row, 0] = tx
+            shear[row, 1] = ty
+            shear[row, 2] = tz
+            dashpot[row, 0] = ndx
+            dashpot[row, 1] = ndy
+            dashpot[row, 2] = ndz
+            etan[row] = e_new
+            fslot[row, 0] = fx
+            fslot[row, 1] = fy
+            fslot[row, 2] = fz
+            row += 1
+            force[p, 0] -= fx
+            force[p, 1] -= fy
+            force[p, 2] -= fz
+            torque[p, 0] -= a * (ny * fz - nz * fy)
+            torque[p, 1] -= a * (nz * fx - nx * fz)
+            torque[p, 2] -= a * (nx * fy - ny * fx)
+            mesh_force[mk, 0] += fx
+            mesh_force[mk, 1] += fy
+            mesh_force[mk, 2] += fz
+            mesh_torque[mk, 0] += cy * fz - cz * fy
+            mesh_torque[mk, 1] += cz * fx - cx * fz
+            mesh_torque[mk, 2] += cx * fy - cy * fx
+            mesh_power[mk] -= fx * ux + fy * uy + fz * uz
+            mesh_contacts[mk] += 1
+            e_n += c_en
+            e_t += c_et
+            d_fric += c_fric
+            d_dash += c_dash
+        for q in range(row, e):
+            active[q] = 0
+            fslot[q, 0] = 0.0
+            fslot[q, 1] = 0.0
+            fslot[q, 2] = 0.0
+        s = e
+    return e_n, e_t, d_fric, d_dash
+
+
+@njit
+def move_meshes(tri, tri0, tri_mesh, motion, mesh_vel, mesh_omega, mesh_center, mesh_shift,
+                mesh_turn, dt):
+    """Move the meshes over a step of ``dt`` [T]: a mesh that moves (``motion`` 1)
+    translates by v dt (its centre with it) and turns by |omega| dt about the axis of
+    omega through its centre; its triangles' corners ``tri`` are recomputed from their
+    positions as read ``tri0`` with the total shift and turn (no drift of round-off).
+    Returns the largest distance [L] a corner moved."""
+    n_mesh = motion.shape[0]
+    for mk in range(n_mesh):
+        if motion[mk] == 0:
+            continue
+        for k in range(3):
+            mesh_shift[mk, k] += dt * mesh_vel[mk, k]
+            mesh_center[mk, k] += dt * mesh_vel[mk, k]
+        om = math.sqrt(mesh_omega[mk, 0] ** 2 + mesh_omega[mk, 1] ** 2 + mesh_omega[mk, 2] ** 2)
+        mesh_turn[mk] += om * dt
+    moved = 0.0
+    for t in range(tri.shape[0]):
+        mk = tri_mesh[t]
+        if motion[mk] == 0:
+            continue
+        om = math.sqrt(mesh_omega[mk, 0] ** 2 + mesh_omega[mk, 1] ** 2 + mesh_omega[mk, 2] ** 2)
+        ang = mesh_turn[mk]
+        if om > 0.0:
+            kx, ky, kz = mesh_omega[mk, 0] / om, mesh_omega[mk, 1] / om, mesh_omega[mk, 2] / om
+        else:
+            kx, ky, kz = 0.0, 0.0, 1.0
+        c, sn = math.cos(ang), math.sin(ang)
+        # the centre as read: the centre now minus the shift
+        ox = mesh_center[mk, 0] - mesh_shift[mk, 0]
+        oy = mesh_center[mk, 1] - mesh_shift[mk, 1]
+        oz = mesh_center[mk, 2] - mesh_shift[mk, 2]
+        for corner in range(3):
+            b = 3 * corner
+            px, py, pz = tri0[t, b] - ox, tri0[t, b + 1] - oy, tri0[t, b + 2] - oz
+            # Rodrigues: p cos + (k x p) sin + k (k . p)(1 - cos)
+            kp = kx * px + ky * py + kz * pz
+            rx = px * c + (ky * pz - kz * py) * sn + kx * kp * (1.0 - c)
+            ry = py * c + (kz * px - kx * pz) * sn + ky * kp * (1.0 - c)
+            rz = pz * c + (kx * py - ky * px) * sn + kz * kp * (1.0 - c)
+            nxp = rx + mesh_center[mk, 0]
+            nyp = ry + mesh_center[mk, 1]
+            nzp = rz + mesh_center[mk, 2]
+            d = math.sqrt((nxp - tri[t, b]) ** 2 + (nyp - tri[t, b + 1]) ** 2
+                          + (nzp - tri[t, b + 2]) ** 2)
+            moved = max(moved, d)
+            tri[t, b] = nxp
+            tri[t, b + 1] = nyp
+            tri[t, b + 2] = nzp
+    return moved
+
+
+@njit
+def triangle_distances(x, p, tri, t):
+    """|x_p - q| [L], q the closest point of triangle t (corners ``tri[t]`` (9,)) to the
+    centre of particle p, for the pairs (p, t) (C,)."""
+    out = np.empty(p.shape[0])
+    for k in range(p.shape[0]):
+        a, b = p[k], t[k]
+        qx, qy, qz, _ = closest_point_on_triangle(
+            x[a, 0], x[a, 1], x[a, 2], tri[b, 0], tri[b, 1], tri[b, 2], tri[b, 3],
+            tri[b, 4], tri[b, 5], tri[b, 6], tri[b, 7], tri[b, 8])
+        out[k] = math.sqrt((x[a, 0] - qx) ** 2 + (x[a, 1] - qy) ** 2 + (x[a, 2] - qz) ** 2)
+    return out

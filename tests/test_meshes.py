@@ -1,0 +1,280 @@
+"""Triangle-mesh walls in the engine: one contact per surface, history carried from
+triangle to triangle, the same physics as a plane wall on a flat tessellated plane,
+genuine corners kept, moving meshes' work in the ledger, and the contacts in the
+time-step analysis."""
+
+import math
+
+import numpy as np
+import pytest
+
+from demstep.contact.laws import HertzMindlin, LinearSpring
+from demstep.engine import Simulation, TimeStep
+from demstep.engine.meshes import MeshWall
+from demstep.mesh import mesh_from_arrays
+from demstep.mesh.shapes import plane
+from demstep.particles import Particles
+from demstep.walls import Wall
+
+R, DENSITY = 0.05, 2500.0
+
+
+def flat_mesh(n=8, size=2.0, z=0.0, name="floor"):
+    """A square of side ``size`` centred on the origin at height z, n x n squares cut in
+    two triangles each (2 n^2), normals up."""
+    m = plane(n, size=size, name=name)
+    v = np.asarray(m.vertices, dtype=float).copy()
+    v[:, :2] -= v[:, :2].mean(axis=0)
+    v[:, 2] = z
+    return mesh_from_arrays(v, np.asarray(m.triangles), name=name)
+
+
+def sphere_on(floor, law, x0=(-0.31, 0.17), v0=(1.1, 0.45, 0.0), w0=(3.0, -7.0, 2.0),
+              overlap=2e-5, gravity=-9.81, dt=2e-5):
+    """One sphere resting on ``floor`` ('plane': a plane wall at z = 0, else a MeshWall)
+    with a sliding, spinning start."""
+    x = np.array([[x0[0], x0[1], R - overlap]])
+    p = Particles.from_density(x, np.array([R]), DENSITY)
+    kw = dict(velocities=[list(v0)], angular_velocities=[list(w0)], gravity=[0, 0, gravity],
+              timestep=TimeStep.fixed(dt))
+    if floor == "plane":
+        return Simulation(p, law, walls=[Wall([0, 0, 0], [0, 0, 1], name="floor")], **kw)
+    return Simulation(p, law, meshes=[MeshWall(floor, name="floor")], **kw)
+
+
+LAWS = {"linear": LinearSpring(k_n=2e5, mu=0.3, restitution=0.6),
+        "hertz": HertzMindlin(youngs_modulus=5e7, poisson_ratio=0.3, mu=0.3, restitution=0.6)}
+
+
+@pytest.mark.parametrize("law", ["linear", "hertz"])
+def test_a_sphere_across_a_tessellated_plane_feels_the_plane(law):
+    """A sphere sliding, spinning and rolling across the edges and vertices of a flat
+    plane of 128 triangles moves as on a plane wall: forces, position, velocity,
+    spin, the tangential spring (history carried from triangle to triangle) and every
+    term of the energy ledger agree to round-off at every sampled step, and it crossed
+    many triangles (no double force at an edge or vertex: that would push it up)."""
+    mesh = sphere_on(flat_mesh(), LAWS[law])
+    wall = sphere_on("plane", LAWS[law])
+    crossed = set()
+    touching = 0
+    for _ in range(60):
+        for sim in (mesh, wall):
+            sim.run(steps=500)
+        rows = np.flatnonzero(mesh.meshes.active == 1)
+        assert len(rows) == len(wall.wp) == 1 or len(rows) == wall.counters[1] == 0
+        if not len(rows):
+            continue
+        touching += 1
+        crossed.add(int(mesh.meshes.slot_tri[rows[0]]))
+        for name in ("x", "v", "w", "force", "torque"):
+            np.testing.assert_allclose(getattr(mesh, name), getattr(wall, name), rtol=1e-9,
+                                       atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(mesh.meshes.shear[rows[0]], wall.wft[0], rtol=1e-9,
+                                   atol=1e-14)
+        np.testing.assert_allclose(mesh.ledger.acc, wall.ledger.acc, rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(mesh.ledger.energy, wall.ledger.energy, rtol=1e-9,
+                                   atol=1e-15)
+    assert len(crossed) >= 4 and touching >= 50
+    assert np.linalg.norm(mesh.x[0, :2] - np.array([-0.31, 0.17])) > 1.5 * 0.25  # squares
+    # the force on the mesh is the weight's reaction and the spheres' friction
+    np.testing.assert_allclose(mesh.mesh_force[0], wall.wall_force[0], rtol=1e-9, atol=1e-12)
+
+
+def test_a_centre_over_a_shared_vertex_or_edge_makes_one_contact():
+    """A sphere pressed onto a plane right above a vertex shared by six triangles, or
+    above an edge shared by two: every triangle finds it; one contact acts, with the
+    plane's force."""
+    law = LinearSpring(k_n=2e5)
+    floor = flat_mesh(n=4, size=2.0)
+    vertex = floor.vertices[np.argmin(np.linalg.norm(floor.vertices[:, :2], axis=1))]
+    edge_mid = 0.5 * (floor.vertices[floor.triangles[0, 0]] + floor.vertices[floor.triangles[0, 1]])
+    for spot in (vertex, edge_mid):
+        mesh = sphere_on(floor, law, x0=spot[:2], v0=(0, 0, 0), w0=(0, 0, 0), gravity=0.0)
+        wall = sphere_on("plane", law, x0=spot[:2], v0=(0, 0, 0), w0=(0, 0, 0), gravity=0.0)
+        for sim in (mesh, wall):
+            sim.run(steps=1)
+        assert int(mesh.meshes.active.sum()) == 1
+        np.testing.assert_allclose(mesh.force, wall.force, rtol=1e-12)
+
+
+def test_a_sphere_in_a_groove_touches_both_faces():
+    """Two faces meeting at a concave edge (a V groove of 90 degrees): a sphere pressed
+    into it has two contacts, one per face, each as with a plane wall of that face."""
+    law = LinearSpring(k_n=2e5)
+    s = math.sqrt(0.5)
+    v = np.array([[-1, -1, 1], [1, -1, 1], [-1, 0, 0], [1, 0, 0], [-1, 1, 1], [1, 1, 1]],
+                 dtype=float)
+    t = np.array([[0, 2, 1], [1, 2, 3], [2, 4, 3], [3, 4, 5]])
+    groove = mesh_from_arrays(v, t, name="groove")
+    depth = R / s - 0.003  # the centre's height: both faces overlapped by 0.003 s
+    x = np.array([[0.0, 0.0, depth]])
+    p = Particles.from_density(x, np.array([R]), DENSITY)
+    mesh = Simulation(p, law, meshes=[MeshWall(groove)], timestep=TimeStep.fixed(1e-5))
+    walls = [Wall([0, 0, 0], [0, s, s], name="a"), Wall([0, 0, 0], [0, -s, s], name="b")]
+    plane_sim = Simulation(p, law, walls=walls, timestep=TimeStep.fixed(1e-5))
+    for sim in (mesh, plane_sim):
+        sim.run(steps=1)
+    assert int(mesh.meshes.active.sum()) == 2
+    np.testing.assert_allclose(mesh.force, plane_sim.force, rtol=1e-10,
+                               atol=1e-12 * np.abs(plane_sim.force).max())
+    assert mesh.force[0, 2] > 0 and abs(mesh.force[0, 1]) < 1e-9 * mesh.force[0, 2]
+
+
+def test_a_moving_plate_does_work_the_ledger_counts():
+    """A plate (a mesh moving up at constant speed) lifts a sphere resting on it against
+    gravity: the mesh's work in the ledger is the energy the sphere gains (potential,
+    kinetic, elastic, dissipated), the balance closes, and the sphere rides at the
+    plate's speed."""
+    law = LinearSpring(k_n=2e5, restitution=0.5)
+    x = np.array([[0.0, 0.0, R - 1e-3]])
+    p = Particles.from_density(x, np.array([R]), DENSITY)
+    plate = MeshWall(flat_mesh(n=2, size=1.0), velocity=[0, 0, 0.2])
+    sim = Simulation(p, law, meshes=[plate], gravity=[0, 0, -9.81],
+                     timestep=TimeStep.fixed(2e-5))
+    sim.run(steps=20000)
+    assert sim.v[0, 2] == pytest.approx(0.2, rel=1e-3)
+    assert sim.ledger.external > 0.0
+    assert sim.ledger.balance_error() < 1e-4
+    assert sim.meshes.shift[0, 2] == pytest.approx(0.2 * sim.time, rel=1e-12)
+    # the plate's force is the sphere's weight (at rest relative to it)
+    assert -sim.mesh_force[0, 2] == pytest.approx(sim.m[0] * 9.81, rel=1e-3)
+
+
+def test_a_sphere_on_a_rotating_drum_turns_with_it():
+    """A cylinder (48 facets) turning about its axis at 1 rad/s carries a sphere that
+    cannot roll (rotation locked) and sticks by friction (mu 0.8: up to 38.7 degrees)
+    up its wall: the sphere moves with the drum's surface at the contact point (its
+    centre, nearer the axis, so turns faster than the drum), and the energy balance
+    closes with the drum's work."""
+    from demstep.mesh.shapes import cylinder
+
+    drum = cylinder(48, radius=0.5, height=0.4, name="drum")
+    v = np.asarray(drum.vertices, dtype=float).copy()
+    # axis along y through the origin (the shape's axis is z)
+    v = v[:, [0, 2, 1]]
+    v[:, 1] -= 0.2
+    drum = mesh_from_arrays(v, np.asarray(drum.triangles), name="drum")
+    law = LinearSpring(k_n=2e5, mu=0.8, restitution=0.3)
+    x = np.array([[0.0, 0.0, -0.5 + R - 1e-3]])
+    p = Particles.from_density(x, np.array([R]), DENSITY)
+    omega = np.array([0, -1.0, 0])  # the bottom moves towards +x
+    sim = Simulation(p, law, meshes=[MeshWall(drum, omega=omega)],
+                     gravity=[0, 0, -9.81], timestep=TimeStep.fixed(2e-5), rotation=False)
+    sim.run(steps=5000)  # settled on the wall
+    ratios = []
+    for _ in range(20):
+        sim.run(steps=1000)
+        row = np.flatnonzero(sim.meshes.active == 1)
+        assert len(row) == 1
+        q = sim.x[0] + R * sim.meshes.normal[row[0]]  # the contact point
+        surface = np.cross(omega, q)  # the drum's velocity there
+        ratios.append(float(sim.v[0] @ surface) / float(surface @ surface))
+    assert np.mean(ratios) == pytest.approx(1.0, abs=0.01)
+    angle = math.atan2(sim.x[0, 0], -sim.x[0, 2])
+    assert 0.3 < angle < 38.7 * math.pi / 180
+    assert sim.meshes.turn[0] == pytest.approx(sim.time, rel=1e-12)
+    assert sim.ledger.external > 0 and sim.ledger.balance_error() < 1e-3
+
+
+def test_mesh_contacts_enter_the_critical_step_as_walls():
+    """A sphere resting on a tessellated plane has the critical step of the same sphere
+    on a plane wall (exact and element bounds)."""
+    law = LinearSpring(k_n=2e5)
+    mesh = sphere_on(flat_mesh(), law, v0=(0, 0, 0), w0=(0, 0, 0), gravity=0.0)
+    wall = sphere_on("plane", law, v0=(0, 0, 0), w0=(0, 0, 0), gravity=0.0)
+    for sim in (mesh, wall):
+        sim.run(steps=1)
+    for method in ("exact", "element-coupled"):
+        assert mesh.critical_dt(method) == pytest.approx(wall.critical_dt(method), rel=1e-10)
+    # the fastest mode: the tangential spring at the arm a (the centre's height) turning
+    # the sphere, omega^2 = k_s (1/m + a^2/I) (I = 0.4 m r^2, k_s = k_n)
+    arm = mesh.x[0, 2]  # (the geometry of the state analysed: the positions now)
+    omega2 = 2e5 * (1 / mesh.m[0] + arm**2 / mesh.inertia[0])
+    assert mesh.critical_dt("exact") == pytest.approx(2 / math.sqrt(omega2), rel=1e-9)
+
+
+def test_a_run_with_a_mesh_restarts_bit_for_bit(tmp_path):
+    from demstep.io.checkpoint import load_checkpoint, save_checkpoint
+
+    def make():
+        return sphere_on(flat_mesh(), LAWS["hertz"])
+
+    a = make()
+    a.run(steps=3000)
+    save_checkpoint(a, tmp_path / "c.npz")
+    a.run(steps=3000)
+    b = make()
+    load_checkpoint(b, tmp_path / "c.npz")
+    b.run(steps=3000)
+    for name in ("x", "v", "w"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert np.array_equal(a.meshes.shear, b.meshes.shear)
+    assert np.array_equal(a.ledger.acc, b.ledger.acc)
+
+
+def test_auto_mode_with_meshes_is_refused_in_one_line():
+    from demstep.errors import InputError
+
+    x = np.array([[0.0, 0.0, R]])
+    p = Particles.from_density(x, np.array([R]), DENSITY)
+    sim = Simulation(p, LinearSpring(k_n=2e5), meshes=[MeshWall(flat_mesh())],
+                     timestep=TimeStep.auto())
+    with pytest.raises(InputError, match="mesh walls are not covered"):
+        sim.run(steps=1)
+
+
+def _resting(law, material, overlap=1e-4):
+    """A sphere pressed ``overlap`` into a mesh of ``material`` (gravity off), after
+    one step: the force the mesh exerts and the critical step."""
+    x = np.array([[-0.31, 0.17, R - overlap]])
+    sim = Simulation(Particles.from_density(x, np.array([R]), DENSITY), law,
+                     meshes=[MeshWall(flat_mesh(), name="floor", material=material)],
+                     timestep=TimeStep.fixed(1e-9))
+    sim.run(steps=1)
+    return sim
+
+
+def test_a_stiff_hertz_mesh_pairs_its_material_with_the_particles():
+    """A steel mesh under glass spheres: the contact's E* pairs the two materials,
+    1/E* = (1 - nu_p^2)/E_p + (1 - nu_w^2)/E_w, in the force (4/3 E* sqrt(r) delta^1.5)
+    and in the critical step (k_n = 2 E* sqrt(r delta), 2/sqrt(k_n/m), the normal mode
+    being the fastest here: mu = 0, no tangential spring stiffer)."""
+    law = HertzMindlin(youngs_modulus=5e7, poisson_ratio=0.3)
+    steel = {"youngs_modulus": 2e11, "poisson_ratio": 0.29}
+    sim = _resting(law, steel)
+    delta = R - sim.x[0, 2]
+    e_star = 1 / ((1 - 0.3**2) / 5e7 + (1 - 0.29**2) / 2e11)
+    assert sim.mesh_force[0, 2] == pytest.approx(-4 / 3 * e_star * math.sqrt(R) * delta**1.5,
+                                                 rel=1e-9)
+    same = _resting(law, None)
+    assert same.mesh_force[0, 2] == pytest.approx(
+        -4 / 3 * (5e7 / (2 * (1 - 0.3**2))) * math.sqrt(R) * delta**1.5, rel=1e-9)
+    contacts = sim.contact_set()
+    kn = 2 * e_star * math.sqrt(R * delta)
+    assert contacts.k_n[0] == pytest.approx(kn, rel=1e-9)
+    g_star = 1 / (2 * (2 - 0.3) * (1 + 0.3) / 5e7 + 2 * (2 - 0.29) * (1 + 0.29) / 2e11)
+    assert contacts.k_s[0] == pytest.approx(8 * g_star * math.sqrt(R * delta), rel=1e-9)
+
+
+def test_a_linear_mesh_material_sets_the_contact_stiffness():
+    """A linear mesh's material is the contact's spring: k_n = 4e6 instead of the
+    particles' 2e5 in the force and the critical step."""
+    law = LinearSpring(k_n=2e5)
+    sim = _resting(law, {"k_n": 4e6})
+    delta = R - sim.x[0, 2]
+    assert sim.mesh_force[0, 2] == pytest.approx(-4e6 * delta, rel=1e-9)
+    assert sim.contact_set().k_n[0] == pytest.approx(4e6)
+    assert sim.contact_set().k_s[0] == pytest.approx(4e6)  # (k_s: k_n by default)
+
+
+def test_a_mesh_material_the_law_does_not_have_is_refused():
+    from demstep.errors import InputError
+
+    with pytest.raises(InputError, match=r"mesh 'floor': material\.youngs_modulus: not a "
+                                         r"parameter of the linear law"):
+        _resting(LinearSpring(k_n=2e5), {"youngs_modulus": 1e9})
+    with pytest.raises(InputError, match=r"material\.poisson_ratio: the hertz law pairs"):
+        _resting(HertzMindlin(youngs_modulus=5e7), {"youngs_modulus": 1e9})
+    with pytest.raises(InputError, match="youngs_modulus"):
+        _resting(HertzMindlin(youngs_modulus=5e7), {"youngs_modulus": -1.0,
+                                                    "poisson_ratio": 0.3})
