@@ -3,6 +3,7 @@
 import os
 import subprocess
 import sys
+from collections import namedtuple
 
 import numpy as np
 import pytest
@@ -12,6 +13,45 @@ from demstep.kernels import dem
 from demstep.kernels.neighbors import build_pair_list, transfer_history
 
 import reference
+
+# The loops read the state bundles by field (demstep.state); these tests build the
+# arrays one by one, so they call the loops through bundles of just those fields.
+_Spheres = namedtuple("_Spheres", "x v w r m inv_m inv_I inertia force torque applied "
+                                  "damp_force damp_torque x_ref")
+_Pairs = namedtuple("_Pairs", "i j shear dashpot shear_energy chunks spans force_band "
+                              "torque_band geo cover")
+_Controls = namedtuple("_Controls", "gravity local_damping viscous_damping store_damping")
+
+
+def pair_call(loop):
+    """The pair loop ``loop`` taking its arrays in the order of its bundles' fields."""
+    def call(x, v, w, r, m, inv_m, pi, pj, periodic_len, box_rate, params, dt, ft, fd, etan,
+             store_dashpot, chunks, spans, force, torque, force_band, torque_band, box_sums,
+             geo, cover):
+        none = np.zeros((0, 3))
+        sph = _Spheres(x, v, w, r, m, inv_m, inv_m, r, force, torque, none, none, none, none)
+        pairs = _Pairs(pi, pj, ft, fd, etan, chunks, spans, force_band, torque_band, geo, cover)
+        return loop(sph, pairs, periodic_len, box_rate, params, dt, store_dashpot, box_sums)
+    return call
+
+
+def integrate_call(loop):
+    """The integrator ``loop`` taking its arrays one by one."""
+    def call(x, v, w, m, inertia, inv_m, inv_I, r, force, torque, f_app, gravity, dt, dt_prev,
+             local_damping, global_damping, fd_prev, td_prev, x_ref, first, store_damping,
+             acc_out, sphere_body):
+        sph = _Spheres(x, v, w, r, m, inv_m, inv_I, inertia, force, torque, f_app, fd_prev,
+                       td_prev, x_ref)
+        ctl = _Controls(gravity, local_damping, global_damping, store_damping)
+        return loop(sph, ctl, dt, dt_prev, first, acc_out, sphere_body)
+    return call
+
+
+PAIR_FORCES, PAIR_FORCES_SERIAL = pair_call(dem.pair_forces), pair_call(dem.pair_forces_serial)
+
+
+def pair_loop_for(*kind):
+    return pair_call(dem.pair_loop_for(*kind))
 
 
 def random_cloud(seed, n=200, dim=3, box=8.0):
@@ -172,7 +212,7 @@ def test_pair_forces_equal_numpy_reference(kernel):
     n_chunks = 1 if kernel == "serial" else 3
     chunks, spans, f, t, fbuf, tbuf = chunk_buffers(pi, pj, len(r), n_chunks)
     sums = np.zeros((4, 3))
-    fn = dem.pair_forces_serial if kernel == "serial" else dem.pair_forces
+    fn = PAIR_FORCES_SERIAL if kernel == "serial" else PAIR_FORCES
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
     # the cover of each pair (0: none, inf: any overlap, else an overlap limit)
     delta = r[pi] + r[pj] - np.linalg.norm(x[pj] - x[pi], axis=1)
@@ -227,7 +267,7 @@ def test_hertz_pair_forces_equal_numpy_reference(kernel):
     n_chunks = 1 if kernel == "serial" else 3
     chunks, spans, f, t, fbuf, tbuf = chunk_buffers(pi, pj, len(r), n_chunks)
     sums = np.zeros((4, 3))
-    fn = dem.pair_forces_serial if kernel == "serial" else dem.pair_forces
+    fn = PAIR_FORCES_SERIAL if kernel == "serial" else PAIR_FORCES
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
     e_n, e_t, fric, dash, nc, _, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
                                   params, dt, ft2, fd2, et2, True, chunks, spans,
@@ -258,7 +298,7 @@ def test_pair_forces_without_dashpot_skip_its_history():
     for store in (True, False):
         ft2, fd2, et2 = ft.copy(), np.zeros((P, 3)), etan.copy()
         f, t = np.zeros((len(r), 3)), np.zeros((len(r), 3))
-        out = dem.pair_forces_serial(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
+        out = PAIR_FORCES_SERIAL(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
                                      params, 1e-3, ft2, fd2, et2, store, np.array([0, P]),
                                      np.array([[0, len(r)]]), f, t, np.zeros((1, 0, 3)),
                                      np.zeros((1, 0, 3)), np.zeros((4, 3)), np.empty((P, 4)),
@@ -271,8 +311,10 @@ def test_pair_forces_without_dashpot_skip_its_history():
     assert o1[4] > 0 and np.abs(a1[2]).max() > 0  # contacts did push
 
 
-INTEGRATORS = {"serial": dem.integrate_serial, "parallel": dem.integrate,
-               "plain_serial": dem.integrate_plain_serial, "plain": dem.integrate_plain}
+INTEGRATORS = {"serial": integrate_call(dem.integrate_serial),
+               "parallel": integrate_call(dem.integrate),
+               "plain_serial": integrate_call(dem.integrate_plain_serial),
+               "plain": integrate_call(dem.integrate_plain)}
 
 
 @pytest.mark.parametrize("kernel, store_damping",
@@ -436,7 +478,7 @@ def test_pair_blocks_any_chunking_equal_numpy_reference(n_chunks):
     force, new_t, new_fd, new_et, ref_en, ref_fric, ref_dash, arm_i, arm_j, n = ref
     chunks, spans, f, t, fbuf, tbuf = chunk_buffers(pi, pj, len(r), n_chunks)
     ft2, fd2, et2 = ft.copy(), fd.copy(), etan.copy()
-    fn = dem.pair_forces_serial if n_chunks == 1 else dem.pair_forces
+    fn = PAIR_FORCES_SERIAL if n_chunks == 1 else PAIR_FORCES
     e_n, e_t, fric, dash, nc, _, _ = fn(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3),
                                   law.params(), dt, ft2, fd2, et2, True, chunks, spans, f, t,
                                   fbuf, tbuf, np.zeros((4, 3)), np.empty((0, 4)), np.zeros(0))
@@ -486,7 +528,7 @@ def test_rolling_loop_in_chunks_equals_one_chunk():
     params = law.params()
     inertia = 0.4 * m * r**2
     geo = np.empty((P, 4))
-    dem.pair_forces_serial(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), params,
+    PAIR_FORCES_SERIAL(x, v, w, r, m, 1.0 / m, pi, pj, np.zeros(3), np.zeros(3), params,
                            1e-3, ft.copy(), fd.copy(), etan.copy(), True, np.array([0, P]),
                            np.array([[0, len(r)]]), np.zeros((len(r), 3)),
                            np.zeros((len(r), 3)), np.zeros((1, 0, 3)), np.zeros((1, 0, 3)),
@@ -544,8 +586,8 @@ def test_pair_loop_for_a_law_and_box_equals_the_general_one(parallel, dashpot, p
         f, t = reduced("parallel" if parallel else "serial", fbuf, tbuf, spans, f, t)
         return out, [ft, fd, et, sums, f, t]
 
-    general, g_arrays = call(dem.pair_forces if parallel else dem.pair_forces_serial)
-    special_loop = dem.pair_loop_for(parallel, dashpot, periodic)
+    general, g_arrays = call(PAIR_FORCES if parallel else PAIR_FORCES_SERIAL)
+    special_loop = pair_loop_for(parallel, dashpot, periodic)
     special, s_arrays = call(special_loop)
     assert special == general and general[4] > 0 and general[5] > 0
     assert all(np.array_equal(a, b) for a, b in zip(g_arrays, s_arrays))
@@ -554,7 +596,7 @@ def test_pair_loop_for_a_law_and_box_equals_the_general_one(parallel, dashpot, p
     with pytest.raises(ValueError, match="another kind of law"):
         call(special_loop, store_dashpot=not dashpot)
     with pytest.raises(ValueError, match="another kind of box"):
-        call(dem.pair_loop_for(parallel, dashpot, not periodic))
+        call(pair_loop_for(parallel, dashpot, not periodic))
 
 
 def test_a_pair_across_a_moving_periodic_boundary_is_its_unwrapped_image():
@@ -577,7 +619,7 @@ def test_a_pair_across_a_moving_periodic_boundary_is_its_unwrapped_image():
     def forces(x, vel, box, box_rate):
         f, t = np.zeros((2, 3)), np.zeros((2, 3))
         ft, fd, et = np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1)
-        dem.pair_forces_serial(x, vel, w, r, m, 1.0 / m, np.array([0]), np.array([1]), box,
+        PAIR_FORCES_SERIAL(x, vel, w, r, m, 1.0 / m, np.array([0]), np.array([1]), box,
                                box_rate, law.params(), 1e-3, ft, fd, et, True,
                                np.array([0, 1]), np.array([[0, 2]]), f, t,
                                np.zeros((1, 0, 3)), np.zeros((1, 0, 3)), np.zeros((4, 3)),
