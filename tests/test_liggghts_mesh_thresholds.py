@@ -15,8 +15,9 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "validation"))
 RESULTS = ROOT / "validation" / "results"
-CASES = [rec for name in ("liggghts_mesh_thresholds.json", "liggghts_plane_box_thresholds.json")
-         for rec in json.loads((RESULTS / name).read_text())["cases"]]
+# the stiff mesh container (the plane-wall box of liggghts_plane_box_thresholds.json is
+# the script's contrast; its numbers are in docs/validation-meshes.md)
+CASES = json.loads((RESULTS / "liggghts_mesh_thresholds.json").read_text())["cases"]
 
 
 def cli(command: str, capsys) -> dict:
