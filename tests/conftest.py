@@ -153,14 +153,3 @@ def snapshot(folder):
     return {str(p.relative_to(folder)): p.read_bytes()
             for p in sorted(folder.rglob("*")) if p.is_file()}
 
-
-#: the tests that take minutes (measured in CI): started first, so that the two workers
-#: do not end with one of them running a long test alone
-LONG_TESTS = ("test_paper_quick_end_to_end", "test_fault_campaign_fast",
-              "test_sweep_local_cluster_diverged_and_resume", "test_two_signals_to_a_real_process",
-              "test_examples_in_auto_mode_stay_below_the_exact_step",
-              "test_angle_of_repose_rises_with_rolling_resistance")
-
-
-def pytest_collection_modifyitems(config, items):
-    items.sort(key=lambda item: item.originalname not in LONG_TESTS)  # (a stable sort)
