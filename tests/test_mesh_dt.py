@@ -11,19 +11,13 @@ import meshio
 import numpy as np
 import pytest
 
-from demstep.cli import main
+from conftest import cli
 from demstep.mesh.shapes import plane
 
 R, RHO = 0.01, 2500.0
 
 
-def run(argv, capsys):
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
+run = cli  # (the command line in this process: exit status, stdout, stderr)
 
 
 def exact_dt(out) -> float:
