@@ -10,6 +10,7 @@ global viscous damping. The energy the
 system holds when the ledger starts (or is reset) counts as external input.
 
     W_kin + W_int = W_ext,  W_int = W_strain + W_friction + W_damping,
+    W_ext = boundary and body work + initial energy + inserted - removed energy,
     normalized difference = |W_kin + W_int - W_ext| / S(t)
 
 The paper's eq. 22 divides by max(W_ext, W_int, W_kin) at time t. That scale can
@@ -68,7 +69,10 @@ from demstep.errors import InputError
 #: running maxima kept in the same array, updated every step (:func:`update_peaks`):
 #: the energy supplied (the divergence check's reference) and the balance's scale S(t)
 A_PEAK_SUPPLIED, A_PEAK_SCALE = 12, 13
-N_ACC = 14
+#: the energy inserted particles brought in and removed particles took out
+#: (:mod:`demstep.engine.population`): added to and taken from the energy supplied
+A_INSERTED, A_REMOVED = 14, 15
+N_ACC = 16
 #: state terms (array ``EnergyLedger.energy``): kinetic translation / rotation, strain
 #: normal / tangential / rolling and twisting springs / parallel bonds
 E_KIN_T, E_KIN_R, E_STRAIN_N, E_STRAIN_T, E_STRAIN_R, E_STRAIN_BOND = range(6)
@@ -85,8 +89,10 @@ DEFAULT_EPS = 1e-2
 @njit(inline="always")
 def energy_supplied(acc):
     """W_ext [M L^2/T^2]: work of body forces, applied forces, walls and the periodic
-    box, and the energy held when the ledger started."""
-    return acc[A_BODY] + acc[A_APPLIED] + acc[A_WALLS] + acc[A_BOX] + acc[A_INITIAL]
+    box, the energy held when the ledger started, and the net energy particles
+    carried across the boundary (inserted less removed)."""
+    return (acc[A_BODY] + acc[A_APPLIED] + acc[A_WALLS] + acc[A_BOX] + acc[A_INITIAL]
+            + acc[A_INSERTED] - acc[A_REMOVED])
 
 
 @njit(inline="always")
@@ -183,6 +189,16 @@ class EnergyLedger:
     def bond_broken(self) -> float:
         """Strain energy released by bonds as they broke."""
         return float(self.acc[A_BOND_BROKEN])
+
+    @property
+    def inserted(self) -> float:
+        """Brought in by inserted particles (their kinetic energy)."""
+        return float(self.acc[A_INSERTED])
+
+    @property
+    def removed(self) -> float:
+        """Taken out by removed particles (kinetic and contact energy)."""
+        return float(self.acc[A_REMOVED])
 
     @property
     def internal(self) -> float:

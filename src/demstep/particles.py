@@ -66,6 +66,15 @@ class Particles:
         return particles
 
     @classmethod
+    def empty(cls, dim: int = 3) -> "Particles":
+        """No particles, in ``dim`` dimensions: a run that fills by insertion
+        (:mod:`demstep.feed`)."""
+        if dim not in (2, 3):
+            raise InputError(f"dim must be 2 or 3, got {dim!r}")
+        return cls.checked_already(np.zeros((0, dim)), np.zeros(0), np.zeros(0), np.zeros(0),
+                                   np.zeros(0, dtype=bool))
+
+    @classmethod
     def from_density(cls, x, r, density: float, fixed=None) -> "Particles":
         """Particles of uniform ``density`` [M/L^3 in 3D, M/L^2 in 2D]."""
         x = np.asarray(x, dtype=np.float64)

@@ -9,7 +9,7 @@ import numpy as np
 
 from demstep.case.schema import (AXES, MAX_COORDINATE_RADII, MAX_INITIAL_OVERLAP, MAX_MAGNITUDE,
                                  MIN_MAGNITUDE, Case, TimestepSection, WallMotion, clump_templates,
-                                 read_body_file)
+                                 feed_items, read_body_file)
 from demstep.clumps import clumps_from_members, expand, place, random_quaternions
 from demstep.contact.geometry import minimum_image_arrays
 from demstep.contact.laws import RollingResistance, law_class
@@ -37,6 +37,9 @@ def generate_particles(case: Case, with_body: bool = False):
     if p.generator == "clumps":
         x, r, body_of = expand(_clump_set(case))[:3]
         return (x, r, None, body_of) if with_body else (x, r, None)
+    if p.generator == "none":  # (filled by insertion)
+        out = np.zeros((0, dim)), np.zeros(0), None
+        return out + (None,) if with_body else out
     if p.generator == "lattice":
         lat = make_lattice(p.lattice, p.radius)
         sizes = p.size if isinstance(p.size, list) else [p.size] * dim
@@ -245,7 +248,10 @@ def _build_simulation(case: Case, checkpoint_dir):
         x, r, m = x[free], r[free], (None if m is None else m[free])
         clump_fixed = np.zeros(clumps.n, dtype=bool)
     source_index = None
-    if x is not None and len(x) == 0:
+    if p.generator == "none":
+        particles = Particles.checked_already(x, r, np.zeros(0), np.zeros(0),
+                                              np.zeros(0, dtype=bool))
+    elif x is not None and len(x) == 0:
         particles = None
     elif x is not None:
         particles = _particles(case, x, r, m)
@@ -277,7 +283,8 @@ def _build_simulation(case: Case, checkpoint_dir):
         jump_limit=case.numerics.jump_limit, runaway_factor=case.numerics.runaway_factor,
         checkpoint_dir=checkpoint_dir, rotation=case.rotation, clumps=clumps,
         clump_fixed=clump_fixed, source_index=source_index,
-        sort_every=case.numerics.sort_every or None)
+        sort_every=case.numerics.sort_every or None,
+        feed=[item for _, item in feed_items(case)])
     if case.mass_scaling != 1.0:
         sim.scale_mass(case.mass_scaling)
     check_initial_state(sim, case.numerics.max_initial_overlap)
@@ -296,6 +303,9 @@ def check_initial_state(sim, max_overlap: float = MAX_INITIAL_OVERLAP) -> None:
     * masses, moments of inertia, stiffness, the time step or the energy scale that
       are not finite and positive (e.g. a density whose masses overflow).
     """
+    if len(sim.r) == 0:  # (a run filled by insertion: the scales of what it inserts)
+        _check_scales(sim)
+        return
     r_min = float(sim.r.min())
     far = np.abs(sim.x).max(axis=1)
     k = int(np.argmax(far))
@@ -349,14 +359,14 @@ def _check_scales(sim) -> None:
         k_max = sim.stiffness_max()
         m_min = sim.m_min
         dt_scale = math.sqrt(m_min / k_max) if k_max > 0 else math.inf
-        energy = float(k_max * np.float64(sim.r.max()) ** 2 * len(sim.r))
+        energy = float(k_max * np.float64(sim.radius_max()) ** 2 * max(len(sim.r), 1))
     if not (math.isfinite(k_max) and k_max > 0):
         raise InputError(f"contact: the largest contact stiffness is {k_max:.3g}: not a finite "
                          f"positive number")
     low, high = MIN_MAGNITUDE ** 2, MAX_MAGNITUDE ** 2
     if not (low <= dt_scale <= high and low <= energy <= high):
         raise InputError(f"contact: stiffness {k_max:.3g} with the smallest mass "
-                         f"{m_min:.3g} and the largest radius {float(sim.r.max()):.3g} "
+                         f"{m_min:.3g} and the largest radius {sim.radius_max():.3g} "
                          f"gives a time scale sqrt(m/K) = {dt_scale:.3g} and energies of "
                          f"{energy:.3g}, outside [{low:g}, {high:g}]: "
                          f"choose consistent units")

@@ -310,7 +310,15 @@ class ClumpParticles(_ParticlesBase):
     origin: Vector | None = None
 
 
-ParticlesSection = Annotated[Union[LatticeParticles, GridParticles, FileParticles, ClumpParticles],
+class NoParticles(_ParticlesBase):
+    """No particles at the start: the run fills by ``[[insert]]`` (in ``dim`` dimensions)."""
+
+    generator: Literal["none"]
+    dim: Literal[2, 3] = 3
+
+
+ParticlesSection = Annotated[Union[LatticeParticles, GridParticles, FileParticles, ClumpParticles,
+                                   NoParticles],
                              Field(discriminator="generator")]
 
 
@@ -421,6 +429,78 @@ class MeshSpec(MeshMotion):
     center: Vector | None = None
 
 
+# --------------------------------------------------------- insertion, outflow
+class BoxShape(_Section):
+    shape: Literal["box"]
+    lower: Vector
+    upper: Vector
+
+
+class CylinderShape(_Section):
+    shape: Literal["cylinder"]
+    axis: Literal["x", "y", "z"]
+    center: Annotated[list[Real], Field(min_length=2, max_length=2)]
+    radius: Positive
+    lower: Real
+    upper: Real
+
+
+class SphereShape(_Section):
+    shape: Literal["sphere"]
+    center: Vector
+    radius: Positive
+
+
+class FaceShape(_Section):
+    shape: Literal["face"]
+    file: Annotated[str, Field(min_length=1)]
+    transforms: Annotated[str, Field(max_length=4096)] = ""
+
+
+RegionShape = Annotated[Union[BoxShape, CylinderShape, SphereShape, FaceShape],
+                        Field(discriminator="shape")]
+
+
+class RadiusSpec(_Section):
+    """A radius distribution (:mod:`demstep.feed.distributions`)."""
+
+    distribution: Literal["uniform", "discrete", "lognormal"]
+    min: Positive | None = None
+    max: Positive | None = None
+    radii: list[Positive] = []
+    fractions: list[NonNegative] = []
+    median: Positive | None = None
+    sigma: Positive | None = None
+    by: Literal["number", "mass"] = "number"
+
+
+class InsertSpec(_Section):
+    """Particles inserted at a rate (:mod:`demstep.feed.feed`)."""
+
+    name: Name
+    region: RegionShape
+    radius: Positive | RadiusSpec
+    density: Positive
+    rate: Positive | None = None
+    mass_rate: Positive | None = None
+    total: NonNegativeInt | None = None
+    total_mass: Positive | None = None
+    start: NonNegative = 0.0
+    stop: NonNegative | None = None
+    velocity: Vector | None = None
+    every: PositiveInt = 1000
+    seed: NonNegativeInt = 0
+    attempts: PositiveInt = 50
+
+
+class OutletSpec(_Section):
+    """Particles removed where their centre lies in ``region``, every ``every`` steps."""
+
+    name: Name
+    region: Union[BoxShape, CylinderShape, SphereShape] = Field(discriminator="shape")
+    every: PositiveInt = 100
+
+
 class PeriodicSection(_Section):
     """Box length [L] of each periodic axis."""
 
@@ -524,6 +604,8 @@ class Case(_Section):
     bonds: BondsSection | None = None
     walls: list[WallSpec] = []
     meshes: list[MeshSpec] = []
+    insert: list[InsertSpec] = []
+    outlet: list[OutletSpec] = []
     box: BoxSection | None = None
     damping: DampingSection = Field(default_factory=DampingSection)
     timestep: TimestepSection = Field(default_factory=TimestepSection)
@@ -597,6 +679,12 @@ class Case(_Section):
             data["bonds"]["file"] = str(self.bond_file())
         for k, spec in enumerate(self.meshes):
             data["meshes"][k]["file"] = str(self.mesh_file(k))
+        for k, spec in enumerate(self.insert):
+            if spec.region.shape == "face":
+                data["insert"][k]["region"]["file"] = str(_relative(self, spec.region.file).resolve())
+        for key in ("insert", "outlet"):  # (a case without them resolves as before)
+            if not data.get(key):
+                data.pop(key, None)
         # a case without meshes resolves as it did before meshes existed (its hash, which
         # a restart compares with the checkpoint's case, stays the same)
         if not data.get("meshes"):
@@ -757,6 +845,8 @@ def _need_len(key: str, vec, dim: int):
 
 def _particle_dim(case: Case) -> int:
     p = case.particles
+    if p.generator == "none":
+        return p.dim
     if p.generator == "lattice":
         return LATTICE_DIM[p.lattice]
     if p.generator == "grid" or (p.generator == "clumps" and p.file is None):
@@ -879,6 +969,38 @@ def clump_templates(case: Case) -> dict:
     return out
 
 
+def feed_items(case: Case) -> list:
+    """The case's inserters and outlets (:mod:`demstep.feed`) as (key, item), built and
+    checked; an error names the key (``insert[0].region.lower: ...``)."""
+    from demstep.feed import Inserter, Outlet, distribution_from_spec, region_from_spec
+
+    dim = case.dim
+    items = []
+    for k, spec in enumerate(case.insert):
+        key = f"insert[{k}]"
+        try:
+            region = region_from_spec(spec.region.model_dump(), dim, f"{key}.region",
+                                      base_dir=case.base_dir)
+            radius = spec.radius if isinstance(spec.radius, float) else \
+                spec.radius.model_dump(exclude_none=True)
+            dist = distribution_from_spec(radius, dim, f"{key}.radius")
+            item = Inserter(spec.name, region, dist, spec.density, rate=spec.rate,
+                            mass_rate=spec.mass_rate, total=spec.total,
+                            total_mass=spec.total_mass, start=spec.start,
+                            stop=math.inf if spec.stop is None else spec.stop,
+                            velocity=spec.velocity, every=spec.every, seed=spec.seed,
+                            attempts=spec.attempts)
+        except InputError as err:
+            text = str(err).replace(f"insert {spec.name!r}", key, 1)
+            raise InputError(text if text.startswith(key) else f"{key}.{text}") from None
+        items.append((key, item))
+    for k, spec in enumerate(case.outlet):
+        key = f"outlet[{k}]"
+        region = region_from_spec(spec.region.model_dump(), dim, f"{key}.region")
+        items.append((key, Outlet(spec.name, region, every=spec.every)))
+    return items
+
+
 def check_case(case: Case) -> None:
     """Cross-field checks the schema cannot express; raises InputError naming the key."""
     p = case.particles
@@ -932,7 +1054,7 @@ def check_case(case: Case) -> None:
             raise InputError(f"particles.spacing: particles could overlap; need spacing x "
                              f"(1 - 2 jitter) >= 2 radius_max = {2 * p.radius_max:g}, "
                              f"got {p.spacing!r}")
-    elif p.density is None:
+    elif p.generator == "file" and p.density is None:
         if read_particle_file(case.particle_file(), p.format, p.snapshot).m is None:
             raise InputError("particles.density: required (the file has no masses), got nothing")
     if p.fixed is not None:
@@ -1002,6 +1124,21 @@ def check_case(case: Case) -> None:
             parse_transforms(spec.transforms)
         except InputError as err:
             raise InputError(f"{key}.{err}") from None
+    # insertion and outflow (each built once: its own checks, errors named by key)
+    if p.generator == "none" and not case.insert:
+        raise InputError("particles.generator: 'none' starts without particles; add an "
+                         "[[insert]] to fill the run")
+    if (case.insert or case.outlet) and (p.generator == "clumps" or case.bonds is not None):
+        what = "clumps" if p.generator == "clumps" else "bonds"
+        key = "insert[0]" if case.insert else "outlet[0]"
+        raise InputError(f"{key}: insertion and outlets are not supported with {what}")
+    if p.generator == "none" and case.box is not None and case.box.lower is None:
+        raise InputError("box: give lower and upper (no particles to take the extents of)")
+    feed_names: list[str] = []
+    for key, item in feed_items(case):
+        if item.name in feed_names:
+            raise InputError(f"{key}.name: duplicate insert/outlet name, got {item.name!r}")
+        feed_names.append(item.name)
     # stages: replay the wall changes so every stage's resulting state is checked
     state: dict[str, WallMotion] = {}
     for w in case.walls:

@@ -164,6 +164,22 @@ class AutoStep:
             self.mode = (None if sim.bodies.n or mode.size % n
                              else mode.reshape(n, -1)[order].reshape(-1))
 
+    def resized(self):
+        """The particle set changed (:mod:`demstep.engine.population`): the certificate,
+        the critical mode and the records of covered contacts name particles by index
+        and are dropped; in 'auto' mode a new estimate at once (before the next step)
+        covers every contact the new set can close within its horizon. It may only
+        lower the certified step (an estimate at least as large leaves the step
+        certified for the old set, which the new one does not need more than)."""
+        sim = self.sim
+        self.certificate = None
+        self.mode = None
+        self.added = {}
+        if self._cover is not None:
+            self.cover = {}
+        if sim.timestep.mode == "auto" and sim.dt is not None and sim.lists.built:
+            self.propose_dt(force=True, scheduled=False)
+
     def record_certificate(self, sigma, lam_c, contacts, bodies):
         sim = self.sim
         inv_I = sim.inv_I if sim.rotation else np.zeros_like(sim.inv_I)
@@ -217,7 +233,7 @@ class AutoStep:
         its dashpots: the step before any contact can form."""
         sim = self.sim
         params = sim.law.params()
-        r = float(sim.r.max())
+        r = sim.radius_max()
         m = sim.m_min
         b = sim.bodies
         if b.n:  # a body's contact point is at most its extent from its centre

@@ -36,6 +36,11 @@ between its calls)::
        budget allows; with clumps at every step;
        :mod:`demstep.timestep.certificate`)
 
+   12. (Python) insertion and outflow on their schedules (:mod:`demstep.feed`): the
+       particles leaving are removed with their contacts, the new ones placed where
+       they touch nothing, the lists rebuilt and, in 'auto' mode, the step certified
+       for the new set before its first step (:mod:`demstep.engine.population`)
+
 The half-step velocity is initialised at the first step by a half backward kick,
 v(-dt/2) = v(0) - dt/2 F(0)/m, so the given initial velocities are those at t = 0.
 Disks (2D) are integrated in the plane z = 0 with rotation about z.
@@ -66,9 +71,11 @@ from demstep.engine.boundaries import walls_bundle
 from demstep.engine.lists import NeighbourLists
 from demstep.engine.meshes import mesh_law_rows, meshes_bundle, set_mesh_motion
 from demstep.engine.ordering import SpatialOrder, order_as, reorder
+from demstep.engine.population import adopt_particle_set
 from demstep.engine.restore import SCALARS, checked_state, scalar_arrays
 from demstep.engine.settings import Damping, TimeStep
 from demstep.errors import InputError, SimulationDiverged
+from demstep.feed.feed import Feed
 from demstep.io.checkpoint import save_checkpoint
 from demstep.kernels import dem
 from demstep.kernels.clumps import member_velocities
@@ -147,7 +154,7 @@ class Simulation:
                  checkpoint_dir: str | os.PathLike | None = None, rotation: bool = True,
                  parallel: bool | None = None, backend: str = "cpu", clumps=None,
                  clump_velocities=None, clump_angular_velocities=None, clump_fixed=None,
-                 source_index=None, sort_every: int | None = None, meshes=()):
+                 source_index=None, sort_every: int | None = None, meshes=(), feed=()):
         bodies = None
         self.n_free = particles.n if particles is not None else 0
         if clumps is not None:
@@ -226,7 +233,12 @@ class Simulation:
         box_servo[:, dem.S_MAXSPEED] = np.inf
         self.box = Box(length, np.zeros(3, dtype=np.int64), box_servo, length.copy(),
                        np.zeros((6, 3)))
-        self.skin = 0.15 * float(self.r.mean()) if skin is None else float(skin)
+        feed = list(feed)
+        if skin is None:  # (no particles yet: the inserted ones' mean size)
+            sizes = self.r if len(self.r) else np.array(
+                [0.5 * (f.radius.min + f.radius.max) for f in feed if hasattr(f, "radius")] or [0.0])
+            skin = 0.15 * float(sizes.mean())
+        self.skin = float(skin)
         if not (math.isfinite(self.skin) and self.skin > 0):
             raise InputError(f"skin: must be finite and > 0, got {skin!r}")
         self.walls = list(walls)
@@ -235,7 +247,7 @@ class Simulation:
         self.meshes = meshes_bundle(self.mesh_walls, self.law)
         self.wall_state = walls_bundle(self.walls, self.dim, self.box.length, self.x, self.r,
                                        self.particle_id)
-        self._update_masses()
+        self.update_masses()
         self.backend = get_backend(backend)
         self.ledger = EnergyLedger()
         #: the compiled step's counters (names: :mod:`demstep.kernels.dem`, COUNT_*)
@@ -261,6 +273,10 @@ class Simulation:
         self.lists = NeighbourLists(self)
         self.ordering = SpatialOrder(self, sort_every)
         self.auto = AutoStep(self)
+        #: particles inserted and removed during the run (:mod:`demstep.feed`)
+        self.feed = Feed(self)
+        for item in feed:
+            self.feed.add(item)
 
 
     # ------------------------------------------------------------------ setup
@@ -269,7 +285,13 @@ class Simulation:
         particles were reordered (``source_index``), else k itself."""
         return int(k if self.source_index is None else self.source_index[k])
 
-    def _update_masses(self):
+    def particle_ids(self) -> np.ndarray:
+        """Every particle's name (:meth:`particle_id`) as an array (N,)."""
+        if self.source_index is None:
+            return np.arange(len(self.r), dtype=np.int64)
+        return self.source_index
+
+    def update_masses(self):
         self.inv_m[:] = np.where(self.fixed, 0.0, 1.0 / self.m)
         self.inv_I[:] = np.where(self.fixed | (not self.rotation), 0.0, 1.0 / self.inertia)
         b = self.bodies
@@ -287,7 +309,7 @@ class Simulation:
         self.bodies.m[:] *= factor
         self.bodies.inertia[:] *= factor
         self.bodies.L[:] *= factor
-        self._update_masses()
+        self.update_masses()
         self.dt = None
         self.auto.certificate = None  # certified for the old masses
 
@@ -319,14 +341,18 @@ class Simulation:
         masses = [self.m[free]]
         if self.bodies.n:
             masses.append(self.bodies.m[self.bodies.inv_m > 0])
-        masses = np.concatenate(masses)
-        return float(masses.min()) if len(masses) else float(self.m.min())
+        masses = np.concatenate(masses + [[self.feed.min_mass()]])
+        return float(masses.min()) if np.isfinite(masses.min()) else float(self.m.min())
+
+    def radius_max(self) -> float:
+        """The largest radius [L] of the particles now and of those the feed can insert."""
+        return max(float(self.r.max(initial=0.0)), self.feed.max_radius())
 
     def stiffness_max(self) -> float:
         """K_max for alpha: the law's largest stiffness (Hertz: at the TimeStep overlap),
         plus an intact bond's normal or shear stiffness k^b A (its springs add to the
         contact's: counted as their sum)."""
-        k = float(self.law.stiffness_bound(float(self.r.max()), self.timestep.overlap))
+        k = float(self.law.stiffness_bound(self.radius_max(), self.timestep.overlap))
         return k + bond_stiffness_max(self)
 
     def contact_set(self, horizon: float | None = None, cover: dict | None = None) -> ContactSet:
@@ -445,6 +471,8 @@ class Simulation:
         if self.source_index is not None:  # the order of the arrays (sorted in a run)
             out["source_index"] = self.source_index
         out.update(self.ordering.state_dict())
+        if self.feed:
+            out.update(self.feed.state_dict())
         return out
 
     def load_state_dict(self, data: dict, source: str = "state"):
@@ -467,6 +495,8 @@ class Simulation:
         missing = [k for k in needed if k not in data]
         if missing:
             raise InputError(f"{source}: a damaged checkpoint (array {missing[0]!r} missing)")
+        if self.feed:  # (particles came and went: the checkpoint's set)
+            adopt_particle_set(self, data, source)
         data = checked_state(self, data, source)
         order_as(self, data.get("source_index"), source)
         if not np.array_equal(data["r"], self.r):
@@ -496,6 +526,7 @@ class Simulation:
         self.monitor.max_error = float(max_err)
         self._time_ref = (int(t_step), float(t_time), None if np.isnan(t_dt) else float(t_dt))
         self.ordering.load_state_dict(data, self.step)
+        self.feed.load_state_dict(data, source)
         self.auto.load_state_dict({k: data[k] for k in data if k.startswith("ts_")}, source)
         self.auto.next_update = int(next_dt)
         self.auto.estimate = None if np.isnan(dt_est) else float(dt_est)
@@ -503,7 +534,7 @@ class Simulation:
             self.auto.sync_cover(reset=False)
         self.damping_history = True  # restored damping forces of the last step
         self.dashpot_history = True  # and pair dashpot forces
-        self._update_masses()
+        self.update_masses()
         self.lists.changed()
         self.lists.built = True
         self.energy_floor = None
@@ -522,7 +553,8 @@ class Simulation:
         if self.monitor.floor is not None:
             return float(self.monitor.floor)
         # strain energy of every particle at an overlap of 1e-4 radius, springs at K_max
-        scale = len(self.r) * self.stiffness_max() * float(np.mean(self.r)) ** 2
+        r_mean = float(np.mean(self.r)) if len(self.r) else self.radius_max()
+        scale = max(len(self.r), 1) * self.stiffness_max() * r_mean ** 2
         return 1e-8 * 0.5 * scale
 
     def prepare_lists(self):
@@ -557,6 +589,8 @@ class Simulation:
         if sum(a is not None for a in (steps, until, duration)) != 1:
             raise InputError("run: give exactly one of steps, duration or until")
         self.prepare()
+        if self.feed:  # (events due at the first step: a run that starts empty)
+            self.feed.act()
         if duration is not None:
             if not (math.isfinite(duration) and duration >= 0):
                 raise InputError(f"run: duration must be finite and >= 0, got {duration!r}")
@@ -589,6 +623,8 @@ class Simulation:
             chunk = min(chunk, self.monitor.every - self.step % self.monitor.every)
             if until is not None:
                 chunk = min(chunk, next_check - self.step)
+            if self.feed:
+                chunk = min(chunk, self.feed.steps_to_next(self.step))
             if self.timestep.mode == "auto":
                 chunk = min(chunk, max(1, self.auto.next_update - self.step))
                 cert = self.auto.certificate
@@ -642,6 +678,8 @@ class Simulation:
                     t.next_step = self.step + t.every
             if self.timestep.mode == "auto":
                 self.auto.update()
+            if self.feed:
+                self.feed.act()
             if until is not None and self.step >= next_check:
                 next_check = self.step + check_every
                 if until(self):

@@ -21,6 +21,11 @@ Columns, in order:
   the mesh [M L/T^2], ``NAME.tx``, ``NAME.ty``, ``NAME.tz`` its torque about the mesh's
   centre [M L^2/T^2] (the torque a drum's motor must supply, negated) and
   ``NAME.contacts`` the particles touching it;
+* with insertion or outlets (:mod:`demstep.feed`): ``particles`` (the count now),
+  ``energy_inserted`` and ``energy_removed`` [M L^2/T^2] (the ledger's terms for what
+  particles brought in and took out), per inserter ``NAME.inserted`` (count),
+  ``NAME.inserted_mass`` [M] and ``NAME.pending`` (drawn, waiting for room), per outlet
+  ``NAME.removed`` and ``NAME.removed_mass`` [M] (cumulative);
 * with periodic axes: ``box.Lx`` ... the current periodic lengths [L] and ``love.xx``,
   ``love.yy``(, ``love.zz``) the Love-Weber stress of the contacts [M/(L T^2)]
   (:meth:`Simulation.love_stress`; NaN along an axis of unknown extent);
@@ -63,14 +68,23 @@ def history_columns(sim, extra: dict | None = None) -> list[str]:
     return columns_for(sim.dim, [wall.name for wall in sim.walls],
                        "".join(_periodic_axes(sim)), extra,
                        love=hasattr(sim, "love_stress"),
-                       mesh_names=[m.name for m in getattr(sim, "mesh_walls", ())])
+                       mesh_names=[m.name for m in getattr(sim, "mesh_walls", ())],
+                       feed_names=_feed_names(sim))
+
+
+def _feed_names(sim) -> tuple:
+    feed = getattr(sim, "feed", None)
+    if not feed:
+        return (), ()
+    return [i.name for i in feed.inserters], [o.name for o in feed.outlets]
 
 
 def columns_for(dim: int, wall_names, periodic_axes: str, extra=None,
-                love: bool = True, mesh_names=()) -> list[str]:
+                love: bool = True, mesh_names=(), feed_names=((), ())) -> list[str]:
     """Column names of the history of a ``dim``-dimensional run with the walls
     ``wall_names`` (in the simulation's order) and the periodic axes ``periodic_axes``
-    (e.g. "xz"), the mesh walls ``mesh_names``, plus ``extra`` (names, or a dict of them): known before the run is
+    (e.g. "xz"), the mesh walls ``mesh_names``, the inserters' and outlets' names
+    ``feed_names`` (two lists), plus ``extra`` (names, or a dict of them): known before the run is
     built (``demstep sweep`` checks its ``--peak`` against them)."""
     cols = ["step", "time", "dt", "dt_estimate"]
     cols += list(EnergyLedger().as_dict())
@@ -84,6 +98,13 @@ def columns_for(dim: int, wall_names, periodic_axes: str, extra=None,
         cols += [f"{name}.f{a}" for a in AXES]
         cols += [f"{name}.t{a}" for a in AXES]
         cols.append(f"{name}.contacts")
+    inserters, outlets = feed_names
+    if len(inserters) or len(outlets):
+        cols += ["particles", "energy_inserted", "energy_removed"]
+        for name in inserters:
+            cols += [f"{name}.inserted", f"{name}.inserted_mass", f"{name}.pending"]
+        for name in outlets:
+            cols += [f"{name}.removed", f"{name}.removed_mass"]
     cols += [f"box.L{a}" for a in periodic_axes]
     if periodic_axes and love:
         cols += [f"love.{a}{a}" for a in AXES[:dim]]
@@ -115,6 +136,13 @@ def history_row(sim, extra: dict | None = None) -> list:
         row += [float(v) for v in sim.mesh_force[k]]
         row += [float(v) for v in sim.mesh_torque[k]]
         row.append(int(sim.meshes.contacts[k]))
+    feed = getattr(sim, "feed", None)
+    if feed:
+        row += [len(sim.r), sim.ledger.inserted, sim.ledger.removed]
+        for item in feed.inserters:
+            row += [item.inserted, item.inserted_mass, len(item.pending)]
+        for item in feed.outlets:
+            row += [item.removed, item.removed_mass]
     periodic = _periodic_axes(sim)
     row += [float(sim.periodic_len[AXES.index(a)]) for a in periodic]
     if periodic and hasattr(sim, "love_stress"):

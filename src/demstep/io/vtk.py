@@ -57,6 +57,8 @@ def particle_ids(sim) -> np.ndarray:
     """Each sphere's id (N,): its input row when the particles were reordered
     (``sim.source_index``: ``demstep run`` puts a file's particles in spatial order),
     else its index."""
+    if hasattr(sim, "particle_ids"):
+        return sim.particle_ids()
     source = getattr(sim, "source_index", None)
     if source is not None and len(source) == len(sim.r):
         return np.asarray(source, dtype=np.int64)

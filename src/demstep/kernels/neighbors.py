@@ -235,6 +235,8 @@ def build_pair_list(x, r, skin: float, periodic_len, expected_pairs: int | None 
     (3,) box lengths, 0 for non-periodic axes (periodic boxes start at 0);
     ``expected_pairs`` (e.g. the previous list's length) sizes the work buffers;
     ``work`` (:class:`~demstep.scratch.Workspace`) keeps the scratch from one build to the next."""
+    if len(r) < 2:  # (no pair: a run that starts empty and fills by insertion)
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     # cells a hair wider than the longest reach: rounding cannot split a pair in reach
     # over two cells that are not neighbours
     reach = (2.0 * float(r.max()) + skin) * (1.0 + 1e-9)
@@ -349,7 +351,7 @@ def build_wall_list(x, r, wall_point, wall_normal, skin: float, expected_pairs: 
     """Particle-wall candidate pairs (particle, wall) sorted by (particle, wall);
     ``work`` (:class:`~demstep.scratch.Workspace`) keeps the search's buffers between builds."""
     n_walls = len(wall_point)
-    if n_walls == 0:
+    if n_walls == 0 or len(r) == 0:
         return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     n_chunks = numba.get_num_threads()
     expected = len(r) if expected_pairs is None else int(expected_pairs)

@@ -355,7 +355,8 @@ def check_peak_column(peak: str, case, where: str) -> None:
         raise InputError(f"peak: {where}: the case writes no history (output.history_every "
                          f"= 0), so there is no column {peak!r}")
     columns = columns_for(case.dim, case.wall_names(), case.periodic_axes(), ["stage"],
-                          mesh_names=[m.name for m in case.meshes])
+                          mesh_names=[m.name for m in case.meshes],
+                          feed_names=([i.name for i in case.insert], [o.name for o in case.outlet]))
     if peak not in columns:
         walls = [c for c in columns if "." in c]
         hint = f"; its wall and box columns: {', '.join(walls)}" if walls else \
