@@ -225,7 +225,10 @@ def test_examples_run(tmp_path, example):
     assert result.status == "completed", result.message
     h = read_history(tmp_path / "out" / "history.csv")
     assert h["step"][-1] == result.step
-    assert np.isfinite(h["energy_error"]).all() and h["energy_error"].max() < 1e-2
+    # (a run that starts empty has no energy to balance until its first insertion)
+    empty = h["particles"] == 0 if "particles" in h else np.zeros(len(h["step"]), dtype=bool)
+    assert np.isfinite(h["energy_error"][~empty]).all() and (~empty).sum() >= 1
+    assert np.nanmax(h["energy_error"]) < 1e-2
     assert len(plot_run(tmp_path / "out")) == 4
 
 

@@ -81,7 +81,6 @@ def test_stage1_isotropic_and_at_rest(stage1):
     assert sim.ledger.kinetic < cfg.ke_tol * sim.ledger.strain
 
 
-@pytest.mark.slow
 def test_alpha_005_reaches_thornton_peak(stage1, tmp_path):
     res = _stage2(stage1, tmp_path, alpha=0.05)
     assert res.status == "stable"
@@ -89,7 +88,6 @@ def test_alpha_005_reaches_thornton_peak(stage1, tmp_path):
     assert res.peak_ratio == pytest.approx(thornton_peak_ratio(0.3), rel=0.03)
 
 
-@pytest.mark.slow
 def test_alpha_045_flagged_by_energy_balance(stage1, tmp_path):
     res = _stage2(stage1, tmp_path, alpha=0.45)
     assert res.status in ("energy-warning", "unstable")
@@ -98,7 +96,6 @@ def test_alpha_045_flagged_by_energy_balance(stage1, tmp_path):
     assert res.alpha_exact_rotation < 0.45 < res.alpha_exact_translation
 
 
-@pytest.mark.slow
 def test_alpha_075_detected_unstable_and_stopped(stage1, tmp_path):
     res = _stage2(stage1, tmp_path, alpha=0.75)
     assert res.status == "unstable"
@@ -107,7 +104,6 @@ def test_alpha_075_detected_unstable_and_stopped(stage1, tmp_path):
     assert res.steps < full_steps  # stopped early
 
 
-@pytest.mark.slow
 def test_alpha_035_above_exact_step_with_rotation(stage1, tmp_path):
     """The paper's 'correct' alpha = 0.35 exceeds the exact critical step once rotation
     couples to the tangential springs; blocked rotation makes it stable again."""
@@ -128,7 +124,6 @@ def test_measured_threshold_matches_exact(name):
     assert res.estimates["itasca"] > res.alpha_empirical  # unconservative
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name", [n for n in STUDY_NAMES if n not in ("square", "fcc")])
 def test_measured_threshold_matches_exact_all(name):
     res = stability_threshold(name, rtol=5e-3, steps=2000)

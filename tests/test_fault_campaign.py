@@ -30,6 +30,7 @@ def run_campaign(*args, timeout):
     assert proc.returncode == 0, report
 
 
+@pytest.mark.slow
 def test_fault_campaign_fast():
     """The CI subset: 2 kill/restart cycles, one of each damage, the malformed inputs
     (40-65 s on 2 shared cores once the kernels are compiled)."""

@@ -30,7 +30,6 @@ def cli(command: str, capsys) -> dict:
     return {e["method"]: e["dt"] for e in data["estimates"]} | {"n_contacts": data["n_contacts"]}
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("rec", CASES, ids=[c["case"] for c in CASES])
 def test_wall_contacts_bring_the_step_to_liggghts_threshold(rec, capsys, monkeypatch):
     """With the walls (LIGGGHTS' conventions, its wall arm r - delta/2 included: a dump

@@ -686,9 +686,10 @@ def test_signals_after_a_run_stopped_by_one(exit_now):
     assert {sig: signal.getsignal(sig) for sig in before} == before
 
 
-@pytest.mark.parametrize("first,second,gap", [(signal.SIGTERM, signal.SIGINT, 0.0),
-                                              (signal.SIGTERM, signal.SIGTERM, 0.02),
-                                              (signal.SIGINT, signal.SIGINT, 0.02)])
+@pytest.mark.parametrize("first,second,gap", [
+    (signal.SIGTERM, signal.SIGINT, 0.0),
+    pytest.param(signal.SIGTERM, signal.SIGTERM, 0.02, marks=pytest.mark.slow),
+    pytest.param(signal.SIGINT, signal.SIGINT, 0.02, marks=pytest.mark.slow)])
 def test_two_signals_to_a_real_process(tmp_path, first, second, gap):
     """Before: 'SystemError: CPUDispatcher(...) returned a result with an exception
     set' one time in ten, or 143 where 130 was due, and run.json left at 'running'.

@@ -48,6 +48,9 @@ scaling for quasi-static runs; the critical step grows by its square root).
 * a ``file`` with a ``body`` column (CSV ``body``, dump ``body`` or ``mol``) makes the
   spheres that share an id >= 0 one clump (its members as they lie).
 
+* ``generator = "none"``: no particles at the start (``dim`` 2 or 3, default 3); the
+  run fills by ``[[insert]]`` (required then). ``[box]`` needs ``lower`` and ``upper``.
+
 ``[[clumps]]``: clump shapes: ``name``, ``members`` = [[x, y, (z,) r], ...] [L] in the
 template's frame (or ``file``, a CSV x,y[,z],r relative to the case file). The members
 must touch or overlap one another (one rigid body), radii > 0.
@@ -98,6 +101,26 @@ its motion ``velocity`` [L/T] (a translation) and ``omega`` [1/T] (a rotation ve
 axis times rate) about ``center`` [L] (which moves with the translation).
 ``[stages.meshes."name"]`` changes ``velocity``, ``omega`` or ``friction`` from a
 stage on.
+
+``[[insert]]``: particles inserted during the run (:mod:`demstep.feed`,
+``docs/insertion.md``): ``name``, ``region`` (a table: ``shape = "box"`` with ``lower``,
+``upper`` [L]; ``"cylinder"`` with ``axis`` (x, y, z), ``center`` (the two other
+coordinates) [L], ``radius`` [L], ``lower``, ``upper`` along the axis [L]; ``"sphere"``
+with ``center``, ``radius`` [L]; ``"face"`` with ``file`` (a mesh file, relative to the
+case file: an inlet, not a wall) and ``transforms``), ``radius`` (a number [L], or a
+table ``distribution = "uniform"`` (``min``, ``max``), ``"discrete"`` (``radii``,
+``fractions``), ``"lognormal"`` (``median``, ``sigma``, optional ``min``/``max``
+truncation; default median exp(-+3 sigma)), each with ``by`` = "number" (default) or
+"mass"), ``density`` [M/L^3] (2D: M/L^2), exactly one of ``rate`` [1/T] and
+``mass_rate`` [M/T], optional ``total`` (count) and ``total_mass`` [M], ``start`` and
+``stop`` [T], ``velocity`` [L/T], ``every`` (steps between insertions, default 1000),
+``seed``, ``attempts`` (random positions tried per particle and insertion, default 50).
+A particle is placed only where it overlaps no particle, wall or mesh; one that finds
+no room waits for the next insertion (a warning says so). Not with clumps or bonds.
+
+``[[outlet]]``: ``name``, ``region`` (box, cylinder or sphere, as above), ``every``
+(steps, default 100): the particles whose centre lies in the region are removed, their
+count and mass recorded in ``history.csv`` and the energy they take out in the ledger.
 
 ``[box]``: the 2 x dim axis-aligned walls named x-, x+, y-, y+(, z-, z+), none across a
 periodic axis (with ``[periodic] x``, no x- and x+): corners

@@ -240,5 +240,8 @@ def region_from_spec(spec: dict, dim: int, what: str, base_dir=None) -> Region:
     if shape == "sphere":
         return SphereRegion(dim, what, spec["center"], spec["radius"])
     path = Path(base_dir or ".") / str(spec["file"])
-    mesh = read_mesh(path, spec.get("transforms", ()))
+    try:
+        mesh = read_mesh(path, spec.get("transforms", ()))
+    except InputError as err:
+        raise InputError(f"{what}.file: {err}") from None
     return FaceRegion(dim, what, mesh.corners.reshape(-1, 9), str(spec["file"]))
