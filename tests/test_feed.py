@@ -16,8 +16,9 @@ from demstep.engine import Simulation, TimeStep
 from demstep.engine.meshes import MeshWall
 from demstep.engine.population import remove_particles
 from demstep.errors import InputError
-from demstep.feed import (BoxRegion, CylinderRegion, FaceRegion, Inserter, Outlet,
-                          RadiusDistribution, SphereRegion, distribution_from_spec)
+from demstep.engine.feed import Inserter, Outlet
+from demstep.feed import (BoxRegion, CylinderRegion, FaceRegion, RadiusDistribution,
+                          SphereRegion, distribution_from_spec)
 from demstep.mesh.shapes import plane
 from demstep.particles import Particles
 from demstep.walls import Wall, box_walls
@@ -343,3 +344,27 @@ def test_insertion_with_clumps_is_refused():
     clumps = clumps_from_members(x, np.full(2, R), np.zeros(2, dtype=np.int64), DENSITY)
     with pytest.raises(InputError, match="not supported with clumps"):
         Simulation(None, LINEAR, clumps=clumps, feed=[_inserter()])
+
+
+def test_disks_and_a_periodic_axis():
+    """2D: disks inserted in a box get their mass per unit thickness and no overlap; 3D
+    with x periodic: no overlap through the boundary (minimum image)."""
+    ins = Inserter("disks", BoxRegion(2, "r", [0.0, 0.0], [0.03, 0.03]),
+                   RadiusDistribution("fixed", radius=R, dim=2), density=DENSITY,
+                   rate=2e4, every=50, seed=9)
+    sim = Simulation(Particles.empty(2), LINEAR, timestep=TimeStep.fixed(1e-5), feed=[ins])
+    sim.run(steps=100)
+    assert len(sim.r) == 20 and np.allclose(sim.m, DENSITY * math.pi * R ** 2)
+    assert np.all(sim.x[:, 2] == 0.0) and _min_gap(sim) >= 0.0
+    # (the region reaches across the periodic boundary: positions are wrapped into the box)
+    ins = _inserter(region=BoxRegion(3, "r", [-0.01, 0.0, 0.0], [0.03, 0.05, 0.05]), rate=2e5,
+                    radius=RadiusDistribution("fixed", radius=R))
+    sim = _sim([ins], periodic=[0.02, None, None])
+    sim.run(steps=50)
+    x = sim.x
+    d = x[:, None] - x[None]
+    d[..., 0] -= 0.02 * np.round(d[..., 0] / 0.02)
+    gap = np.linalg.norm(d, axis=2) - 2 * R
+    np.fill_diagonal(gap, np.inf)
+    assert len(sim.r) == 100 and gap.min() >= 0.0
+    assert np.all((x[:, 0] >= 0.0) & (x[:, 0] < 0.02))

@@ -207,6 +207,7 @@ from demstep.errors import MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_p
 from demstep.io.formats import _number, detect_format, read_csv, read_particle_file
 from demstep.io.textfile import (csv_rows, not_a_file_message, not_a_file_reason, open_text,
                                  read_small_text)
+from demstep.feed import distribution_from_spec, region_from_spec
 from demstep.mesh import parse_transforms
 from demstep.packings import LATTICE_DIM, lattice as make_lattice
 
@@ -498,7 +499,7 @@ class RadiusSpec(_Section):
 
 
 class InsertSpec(_Section):
-    """Particles inserted at a rate (:mod:`demstep.feed.feed`)."""
+    """Particles inserted at a rate (:mod:`demstep.engine.feed`)."""
 
     name: Name
     region: RegionShape
@@ -995,7 +996,8 @@ def clump_templates(case: Case) -> dict:
 def feed_items(case: Case) -> list:
     """The case's inserters and outlets (:mod:`demstep.feed`) as (key, item), built and
     checked; an error names the key (``insert[0].region.lower: ...``)."""
-    from demstep.feed import Inserter, Outlet, distribution_from_spec, region_from_spec
+    # (deferred: the engine's kernels are a heavy import, loaded only when used)
+    from demstep.engine.feed import Inserter, Outlet
 
     dim = case.dim
     items = []

@@ -6,10 +6,12 @@ state: ``lists.py`` (neighbour lists), ``auto_step.py`` (the certified 'auto' ti
 step), ``ordering.py`` (the particles' order in memory), ``boundaries.py`` (walls and
 the periodic box), ``bonding.py`` (parallel bonds); ``analysis.py`` hands the state to
 the time-step analysis, ``restore.py`` checks a checkpoint before it is restored, and
-``settings.py`` holds the TimeStep and Damping settings.
+``settings.py`` holds the TimeStep and Damping settings; ``feed.py`` (inserters and
+outlets) and ``population.py`` (particles added and removed) let particles come and go.
 """
 
+from demstep.engine.feed import Feed, Inserter, Outlet
 from demstep.engine.settings import Damping, TimeStep
 from demstep.engine.simulation import STATE_NAMES, Simulation
 
-__all__ = ["Damping", "STATE_NAMES", "Simulation", "TimeStep"]
+__all__ = ["Damping", "Feed", "Inserter", "Outlet", "STATE_NAMES", "Simulation", "TimeStep"]

@@ -26,7 +26,7 @@ it acts (an inserted particle's contacts included; the densest-packing fallback
 takes the new lightest particle and largest radius).
 
 Clumps and bonds are not supported with a changing population (refused in one
-line by the feed, :mod:`demstep.feed`).
+line by the feed, :mod:`demstep.engine.feed`).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def add_particles(sim, x, r, m, inertia, v=None, w=None, next_id: int | None = N
     [M], moments of inertia ``inertia`` [M L^2], velocities ``v`` [L/T] and angular
     velocities ``w`` [1/T] at the current time (default 0); ids from ``next_id`` on
     (default: one past the largest id). Returns their indices. The caller checks that
-    they do not overlap anything (:mod:`demstep.feed`)."""
+    they do not overlap anything (:mod:`demstep.engine.feed`)."""
     _refuse_structures(sim, "insertion")
     k = len(r)
     n0 = len(sim.r)
@@ -88,13 +88,15 @@ def add_particles(sim, x, r, m, inertia, v=None, w=None, next_id: int | None = N
     # has it), moving at v - dt g. The next step counts gravity's work over
     # [t, t + dt] on it and its kinetic energy at t + dt (1/2 m v^2): with the kinetic
     # energy at t counted as inserted the ledger balances exactly.
-    v_then = v3 if sim.first_step_pending else v3 - sim.dt_prev * sim.gravity
-    kin_t = float(0.5 * np.sum(m * np.einsum("ij,ij->i", v_then, v_then)))
-    kin_r = float(0.5 * np.sum(inertia * np.einsum("ij,ij->i", w3, w3)))
-    sim.ledger.energy[E_KIN_T] += kin_t
-    sim.ledger.energy[E_KIN_R] += kin_r
-    sim.ledger.acc[A_INSERTED] += kin_t + kin_r
+    # (Before the first step the ledger has not started: the first step counts what
+    # is there then, these particles too, as the initial energy.)
     if not sim.first_step_pending:
+        v_then = v3 - sim.dt_prev * sim.gravity
+        kin_t = float(0.5 * np.sum(m * np.einsum("ij,ij->i", v_then, v_then)))
+        kin_r = float(0.5 * np.sum(inertia * np.einsum("ij,ij->i", w3, w3)))
+        sim.ledger.energy[E_KIN_T] += kin_t
+        sim.ledger.energy[E_KIN_R] += kin_r
+        sim.ledger.acc[A_INSERTED] += kin_t + kin_r
         v3 = v3 - 0.5 * sim.dt_prev * sim.gravity
     ids = sim.particle_ids()
     start = int(ids.max(initial=-1)) + 1 if next_id is None else int(next_id)

@@ -36,7 +36,7 @@ between its calls)::
        budget allows; with clumps at every step;
        :mod:`demstep.timestep.certificate`)
 
-   12. (Python) insertion and outflow on their schedules (:mod:`demstep.feed`): the
+   12. (Python) insertion and outflow on their schedules (:mod:`demstep.engine.feed`): the
        particles leaving are removed with their contacts, the new ones placed where
        they touch nothing, the lists rebuilt and, in 'auto' mode, the step certified
        for the new set before its first step (:mod:`demstep.engine.population`)
@@ -75,7 +75,7 @@ from demstep.engine.population import adopt_particle_set
 from demstep.engine.restore import SCALARS, checked_state, scalar_arrays
 from demstep.engine.settings import Damping, TimeStep
 from demstep.errors import InputError, SimulationDiverged
-from demstep.feed.feed import Feed
+from demstep.engine.feed import Feed
 from demstep.io.checkpoint import save_checkpoint
 from demstep.kernels import dem
 from demstep.kernels.clumps import member_velocities
@@ -273,7 +273,7 @@ class Simulation:
         self.lists = NeighbourLists(self)
         self.ordering = SpatialOrder(self, sort_every)
         self.auto = AutoStep(self)
-        #: particles inserted and removed during the run (:mod:`demstep.feed`)
+        #: particles inserted and removed during the run (:mod:`demstep.engine.feed`)
         self.feed = Feed(self)
         for item in feed:
             self.feed.add(item)

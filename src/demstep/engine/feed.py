@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from demstep.contact.geometry import minimum_image_arrays
 from demstep.engine.meshes import build_candidates
 from demstep.engine.population import add_particles, remove_particles
 from demstep.errors import InputError
@@ -379,10 +380,7 @@ def place(sim, region: Region, radii: np.ndarray, rng, attempts: int, extrude=No
                 who = np.repeat(np.arange(len(rows)), counts)
                 other = np.fromiter((p for a in near for p in a), dtype=np.int64,
                                     count=int(counts.sum()))
-                d = sim.x[other, :dim] - cand[rows[who], :dim]
-                for axis in range(dim):
-                    if length[axis] > 0:
-                        d[:, axis] -= length[axis] * np.round(d[:, axis] / length[axis])
+                d = minimum_image_arrays(sim.x[other, :dim] - cand[rows[who], :dim], length)
                 gap = np.sqrt(np.einsum("ij,ij->i", d, d)) - sim.r[other] - r[rows[who]]
                 ok[rows[np.unique(who[gap < 0])]] = False
         if len(ws.point) and ok.any():
@@ -401,11 +399,15 @@ def place(sim, region: Region, radii: np.ndarray, rng, attempts: int, extrude=No
         done = np.flatnonzero(placed)
         pts = np.concatenate([x[done], cand[rows]])
         rr = np.concatenate([radii[done], r[rows]])
-        tree_new = cKDTree(pts[:, :dim])
+        tree_new = _periodic_tree(pts[:, :dim], length, dim)[0]
         accepted = np.ones(len(pts), dtype=bool)
-        for a, b in sorted(tree_new.query_pairs(2.0 * float(rr.max()))):
-            if accepted[a] and accepted[b] and np.linalg.norm(pts[a, :dim] - pts[b, :dim]) < rr[a] + rr[b]:
-                accepted[b] = False  # (b > a: the earlier one stays; placed ones come first)
+        close = np.array(sorted(tree_new.query_pairs(2.0 * float(rr.max()))), dtype=np.int64)
+        if len(close):
+            d = minimum_image_arrays(pts[close[:, 0], :dim] - pts[close[:, 1], :dim], length)
+            overlap = np.sqrt(np.einsum("ij,ij->i", d, d)) < rr[close[:, 0]] + rr[close[:, 1]]
+            for a, b in close[overlap]:
+                if accepted[a]:  # (b > a: the earlier one stays; placed ones come first)
+                    accepted[b] = False
         keep = accepted[len(done):]
         x[todo[rows[keep]]] = cand[rows[keep]]
         placed[todo[rows[keep]]] = True
