@@ -278,3 +278,32 @@ def test_a_mesh_material_the_law_does_not_have_is_refused():
     with pytest.raises(InputError, match="youngs_modulus"):
         _resting(HertzMindlin(youngs_modulus=5e7), {"youngs_modulus": -1.0,
                                                     "poisson_ratio": 0.3})
+
+
+def test_the_candidate_search_finds_every_triangle_a_brute_force_search_finds():
+    """The grid search (cells over the particles, each triangle visiting the cells of
+    its grown bounding box) against every (particle, triangle) distance computed:
+    triangles large and small, slanted, beyond the particles' extent, spheres of
+    several radii."""
+    from demstep.engine.meshes import build_candidates, meshes_bundle
+    from demstep.kernels.meshes import triangle_distances
+    from demstep.mesh.shapes import cube
+
+    rng = np.random.default_rng(12)
+    small = flat_mesh(n=12, size=1.0, z=0.2)                  # 288 small triangles
+    big = cube(2.0, name="big")                                # 12 triangles, 2 m sides
+    walls = [MeshWall(small, name="small"), MeshWall(big, name="big")]
+    bundle = meshes_bundle(walls, LinearSpring(k_n=1.0))
+    x = rng.uniform(-1.1, 1.1, (3000, 3))
+    r = rng.uniform(0.01, 0.05, 3000)
+    skin = 0.02
+    cand_p, cand_t = build_candidates(bundle, x, r, skin, lambda p: p)
+    n_tri = len(bundle.tri)
+    p_all = np.repeat(np.arange(len(x)), n_tri)
+    t_all = np.tile(np.arange(n_tri), len(x))
+    near = triangle_distances(x, p_all, bundle.tri, t_all) < r[p_all] + skin
+    expected = set(zip(p_all[near].tolist(), t_all[near].tolist()))
+    assert len(expected) > 500
+    assert set(zip(cand_p.tolist(), cand_t.tolist())) == expected
+    assert len(cand_p) == len(expected)  # (each pair once)
+    assert np.all(np.diff(cand_p) >= 0)  # sorted by particle

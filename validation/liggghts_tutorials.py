@@ -55,8 +55,9 @@ def liggghts_thermo(log_text: str) -> dict[int, tuple]:
         except ValueError:
             header = None
             continue
-        rows[int(values[0])] = (int(values[1]), values[header.index("KinEng")],
-                                values[header.index("c_1")])
+        # (the compute's column is headed "1" in this LIGGGHTS version, "c_1" in others)
+        rot = header.index("c_1") if "c_1" in header else header.index("1")
+        rows[int(values[0])] = (int(values[1]), values[header.index("KinEng")], values[rot])
     return rows
 
 

@@ -17,10 +17,9 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from demstep.errors import InputError
-from demstep.kernels.meshes import MAX_CANDIDATES, mesh_contact_geometry, triangle_distances
+from demstep.kernels.meshes import MAX_CANDIDATES, candidate_pairs, mesh_contact_geometry
 from demstep.mesh import TriangleMesh
 from demstep.state import Meshes
 
@@ -110,27 +109,27 @@ def meshes_bundle(walls: list[MeshWall], law) -> Meshes:
 
 def build_candidates(meshes: Meshes, x, r, skin: float, particle_id) -> tuple:
     """The (particle, triangle) pairs whose distance is below r + ``skin`` [L], sorted by
-    particle then triangle: (cand_p, cand_t). A k-d tree of the centres is queried
-    around each triangle (its centroid, within its circumradius + r_max + skin), then
-    the exact distances filter. More than :data:`MAX_CANDIDATES` triangles near one
-    sphere is refused (a mesh far finer than the particles), naming the particle."""
+    particle then triangle: (cand_p, cand_t). The particles are binned in a grid of
+    cells (side 2 r_max + skin, at most about 8 N + 1000 cells, as the pair search's),
+    and each triangle looks at the cells its bounding box, grown by r_max + skin,
+    covers, computing the exact distance to the particles in them
+    (:func:`demstep.kernels.meshes.candidate_pairs`): a mesh of many small triangles
+    costs a few cells per triangle, a large triangle the cells along it. More than
+    :data:`MAX_CANDIDATES` triangles near one sphere is refused (a mesh far finer than
+    the particles), naming the particle."""
     n_tri = len(meshes.tri)
     if n_tri == 0 or len(r) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    corners = meshes.tri.reshape(-1, 3, 3)
-    centroid = corners.mean(axis=1)
-    radius = np.sqrt(((corners - centroid[:, None, :]) ** 2).sum(axis=2)).max(axis=1)
-    reach = radius + float(r.max()) + skin
-    tree = cKDTree(x)
-    near = tree.query_ball_point(centroid, reach)
-    counts = np.fromiter((len(a) for a in near), dtype=np.int64, count=n_tri)
-    if counts.sum() == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    cand_t = np.repeat(np.arange(n_tri, dtype=np.int64), counts)
-    cand_p = np.fromiter((p for a in near for p in a), dtype=np.int64, count=int(counts.sum()))
-    dist = triangle_distances(x, cand_p, meshes.tri, cand_t)
-    keep = dist < r[cand_p] + skin
-    cand_p, cand_t = cand_p[keep], cand_t[keep]
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    r = np.ascontiguousarray(r, dtype=np.float64)
+    lo = x.min(axis=0)
+    extent = np.maximum(x.max(axis=0) - lo, 0.0)
+    cell = 2.0 * float(r.max()) + float(skin)
+    max_cells = 8 * len(r) + 1000
+    while np.prod(np.floor(extent / cell) + 1.0) > max_cells:
+        cell *= 1.5
+    ncell = (np.floor(extent / cell) + 1).astype(np.int64)
+    cand_p, cand_t = candidate_pairs(x, r, float(skin), meshes.tri, lo, cell, ncell)
     order = np.lexsort((cand_t, cand_p))
     cand_p, cand_t = cand_p[order], cand_t[order]
     if len(cand_p):

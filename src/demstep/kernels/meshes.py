@@ -410,3 +410,94 @@ def triangle_distances(x, p, tri, t):
             tri[b, 4], tri[b, 5], tri[b, 6], tri[b, 7], tri[b, 8])
         out[k] = math.sqrt((x[a, 0] - qx) ** 2 + (x[a, 1] - qy) ** 2 + (x[a, 2] - qz) ** 2)
     return out
+
+
+@njit
+def _grid_cells(x, lo, cell, ncell):
+    """The cell of every centre (N,) in a grid of ``ncell`` (3,) cells of side ``cell``
+    from ``lo``, and the particles sorted by cell: (start (C + 1,), order (N,))."""
+    n = x.shape[0]
+    n_cells = ncell[0] * ncell[1] * ncell[2]
+    of = np.empty(n, dtype=np.int64)
+    count = np.zeros(n_cells + 1, dtype=np.int64)
+    for p in range(n):
+        c = 0
+        for k in range(3):
+            i = int((x[p, k] - lo[k]) / cell)
+            i = min(max(i, 0), ncell[k] - 1)
+            c = c * ncell[k] + i
+        of[p] = c
+        count[c + 1] += 1
+    for c in range(n_cells):
+        count[c + 1] += count[c]
+    fill = count[:-1].copy()
+    order = np.empty(n, dtype=np.int64)
+    for p in range(n):
+        order[fill[of[p]]] = p
+        fill[of[p]] += 1
+    return count, order
+
+
+@njit
+def _triangle_cell_range(tri, t, lo, cell, ncell, reach):
+    """The cells (per axis: first, last) that the box of triangle t grown by ``reach``
+    [L] covers, clipped to the grid; empty (first > last) when it misses the grid."""
+    first = np.empty(3, dtype=np.int64)
+    last = np.empty(3, dtype=np.int64)
+    for k in range(3):
+        a = min(tri[t, k], tri[t, 3 + k], tri[t, 6 + k]) - reach
+        b = max(tri[t, k], tri[t, 3 + k], tri[t, 6 + k]) + reach
+        first[k] = max(int(math.floor((a - lo[k]) / cell)), 0)
+        last[k] = min(int(math.floor((b - lo[k]) / cell)), ncell[k] - 1)
+    return first, last
+
+
+@njit
+def _near_triangle(x, r, skin, tri, t, lo, cell, ncell, start, order, reach, out, count_only):
+    """The particles within r + ``skin`` of triangle t, found in the cells its grown box
+    covers: their number, written to ``out`` unless ``count_only``."""
+    first, last = _triangle_cell_range(tri, t, lo, cell, ncell, reach)
+    found = 0
+    for i in range(first[0], last[0] + 1):
+        for j in range(first[1], last[1] + 1):
+            for k in range(first[2], last[2] + 1):
+                c = (i * ncell[1] + j) * ncell[2] + k
+                for q in range(start[c], start[c + 1]):
+                    p = order[q]
+                    qx, qy, qz, _ = closest_point_on_triangle(
+                        x[p, 0], x[p, 1], x[p, 2], tri[t, 0], tri[t, 1], tri[t, 2],
+                        tri[t, 3], tri[t, 4], tri[t, 5], tri[t, 6], tri[t, 7], tri[t, 8])
+                    d2 = (x[p, 0] - qx) ** 2 + (x[p, 1] - qy) ** 2 + (x[p, 2] - qz) ** 2
+                    limit = r[p] + skin
+                    if d2 < limit * limit:
+                        if not count_only:
+                            out[found] = p
+                        found += 1
+    return found
+
+
+@njit
+def candidate_pairs(x, r, skin, tri, lo, cell, ncell):
+    """Every (particle, triangle) pair whose distance (centre to the triangle's closest
+    point) is below r + ``skin`` [L], through a grid of cells of side ``cell`` over the
+    particles (``lo``, ``ncell``): each triangle visits the cells its bounding box,
+    grown by r_max + skin, covers. Returns (cand_p, cand_t) in triangle order."""
+    start, order = _grid_cells(x, lo, cell, ncell)
+    reach = skin
+    if r.shape[0]:
+        reach += r.max()
+    n_tri = tri.shape[0]
+    counts = np.zeros(n_tri + 1, dtype=np.int64)
+    scratch = np.empty(0, dtype=np.int64)
+    for t in range(n_tri):
+        counts[t + 1] = _near_triangle(x, r, skin, tri, t, lo, cell, ncell, start, order,
+                                       reach, scratch, True)
+    for t in range(n_tri):
+        counts[t + 1] += counts[t]
+    cand_p = np.empty(counts[n_tri], dtype=np.int64)
+    cand_t = np.empty(counts[n_tri], dtype=np.int64)
+    for t in range(n_tri):
+        _near_triangle(x, r, skin, tri, t, lo, cell, ncell, start, order, reach,
+                       cand_p[counts[t]:counts[t + 1]], False)
+        cand_t[counts[t]:counts[t + 1]] = t
+    return cand_p, cand_t
