@@ -7,7 +7,7 @@ particle diameter wide, most of it far from the particles (a large CAD floor); a
 the same number of triangles packed under the particles only (squares about a third
 of a diameter: each sphere within reach of some 15 triangles). Each run is its own process; the
 cases are interleaved, ``--repeat`` times; medians of particle-steps per second, the
-ratio to the plane wall, and the time of one candidate search (the k-d tree query
+ratio to the plane wall, and the time of one candidate search (the cell-grid search
 that finds the triangles near each sphere at a neighbour-list rebuild) on the final
 state.
 
