@@ -368,3 +368,22 @@ def test_disks_and_a_periodic_axis():
     np.fill_diagonal(gap, np.inf)
     assert len(sim.r) == 100 and gap.min() >= 0.0
     assert np.all((x[:, 0] >= 0.0) & (x[:, 0] < 0.02))
+
+
+def test_fill_to_tops_the_region_up_at_each_insertion():
+    """fill_to = 30: the region holds 30 particles after each insertion, whatever an
+    outlet took from it in between (here all of it, every 150 steps)."""
+    region = BoxRegion(3, "r", [0, 0, 0], [0.05, 0.05, 0.05])
+    ins = _inserter(region=region, rate=None, fill_to=30, every=100)
+    out = Outlet("drain", BoxRegion(3, "o", [0, 0, 0], [0.05, 0.05, 0.05]), every=150)
+    sim = _sim([ins, out])
+    counts = []
+    for _ in range(6):
+        sim.run(steps=100)
+        counts.append(int(region.contains(sim.x).sum()))
+    assert counts == [30] * 6
+    # filled at 0; drained at 150, 300, 450, 600 (the outlet first) and refilled at
+    # 200, 300, 500, 600: 30 each
+    assert out.removed == 120 and ins.inserted == 150
+    with pytest.raises(InputError, match="give exactly one of rate"):
+        _inserter(fill_to=5)  # (with the default rate)

@@ -111,8 +111,9 @@ case file: an inlet, not a wall) and ``transforms``), ``radius`` (a number [L], 
 table ``distribution = "uniform"`` (``min``, ``max``), ``"discrete"`` (``radii``,
 ``fractions``), ``"lognormal"`` (``median``, ``sigma``, optional ``min``/``max``
 truncation; default median exp(-+3 sigma)), each with ``by`` = "number" (default) or
-"mass"), ``density`` [M/L^3] (2D: M/L^2), exactly one of ``rate`` [1/T] and
-``mass_rate`` [M/T], optional ``total`` (count) and ``total_mass`` [M], ``start`` and
+"mass"), ``density`` [M/L^3] (2D: M/L^2), exactly one of ``rate`` [1/T],
+``mass_rate`` [M/T] and ``fill_to`` (a count: the region topped up to it at each
+insertion; not with a face), optional ``total`` (count) and ``total_mass`` [M], ``start`` and
 ``stop`` [T], ``velocity`` [L/T], ``every`` (steps between insertions, default 1000),
 ``seed``, ``attempts`` (random positions tried per particle and insertion, default 50).
 A particle is placed only where it overlaps no particle, wall or mesh; one that finds
@@ -507,6 +508,7 @@ class InsertSpec(_Section):
     density: Positive
     rate: Positive | None = None
     mass_rate: Positive | None = None
+    fill_to: PositiveInt | None = None
     total: NonNegativeInt | None = None
     total_mass: Positive | None = None
     start: NonNegative = 0.0
@@ -1010,7 +1012,7 @@ def feed_items(case: Case) -> list:
                 spec.radius.model_dump(exclude_none=True)
             dist = distribution_from_spec(radius, dim, f"{key}.radius")
             item = Inserter(spec.name, region, dist, spec.density, rate=spec.rate,
-                            mass_rate=spec.mass_rate, total=spec.total,
+                            mass_rate=spec.mass_rate, fill_to=spec.fill_to, total=spec.total,
                             total_mass=spec.total_mass, start=spec.start,
                             stop=math.inf if spec.stop is None else spec.stop,
                             velocity=spec.velocity, every=spec.every, seed=spec.seed,

@@ -3,7 +3,9 @@ owner :class:`Feed` (``sim.feed``).
 
 An inserter adds particles every ``every`` steps so that the count (``rate``
 [1/T]) or the mass (``mass_rate`` [M/T]) inserted since ``start`` [T] follows the
-rate, up to ``total`` particles or ``total_mass`` [M] and until ``stop`` [T]. The
+rate, up to ``total`` particles or ``total_mass`` [M] and until ``stop`` [T]; or
+(``fill_to``) so that its region holds that many particles again at each insertion
+(as LIGGGHTS' ``insert/pack ... particles_in_region``). The
 radii come from a :class:`~demstep.feed.distributions.RadiusDistribution` and are
 drawn before they are placed; a particle is placed at a random point of the region
 (wholly inside it) where it overlaps no particle, plane wall or mesh wall and no
@@ -69,6 +71,7 @@ class Inserter:
     density: float
     rate: float | None = None
     mass_rate: float | None = None
+    fill_to: int | None = None
     total: int | None = None
     total_mass: float | None = None
     start: float = 0.0
@@ -88,9 +91,17 @@ class Inserter:
 
     def __post_init__(self):
         what = f"insert {self.name!r}"
-        if (self.rate is None) == (self.mass_rate is None):
-            raise InputError(f"{what}: give exactly one of rate (particles per unit time) "
-                             f"and mass_rate")
+        if sum(v is not None for v in (self.rate, self.mass_rate, self.fill_to)) != 1:
+            raise InputError(f"{what}: give exactly one of rate (particles per unit time), "
+                             f"mass_rate and fill_to")
+        if self.fill_to is not None:
+            if isinstance(self.fill_to, bool) or int(self.fill_to) != self.fill_to \
+                    or self.fill_to < 1:
+                raise InputError(f"{what}.fill_to: expected a count >= 1, got {self.fill_to!r}")
+            if isinstance(self.region, FaceRegion):
+                raise InputError(f"{what}.fill_to: a face has no inside to fill; use rate or "
+                                 f"mass_rate")
+            self.fill_to = int(self.fill_to)
         if self.rate is not None:
             self.rate = _nonnegative(self.rate, f"{what}.rate")
         if self.mass_rate is not None:
@@ -143,13 +154,21 @@ class Inserter:
             mass = min(mass, self.total_mass)
         return count, mass
 
-    def draw(self, time: float):
+    def draw(self, time: float, inside: int = 0):
         """Draw the radii that bring the count (``rate``) or the mass (``mass_rate``)
-        drawn up to the target at ``time``, appended to :attr:`pending`; by mass the
-        drawn mass leads the target by less than one particle."""
+        drawn up to the target at ``time``, or the particles ``inside`` the region
+        (``fill_to``) with those waiting up to ``fill_to``, appended to :attr:`pending`;
+        by mass the drawn mass leads the target by less than one particle."""
         count, mass = self.target(time)
         have_m = self.inserted_mass + float(self.masses(self.pending).sum())
-        if self.rate is not None:
+        if self.fill_to is not None:
+            n_new = 0
+            if self.start <= time <= self.stop:
+                n_new = self.fill_to - inside - len(self.pending)
+                if self.total is not None:
+                    n_new = min(n_new, self.total - self.inserted - len(self.pending))
+            new = self.radius.sample(self.rng, n_new) if n_new > 0 else np.zeros(0)
+        elif self.rate is not None:
             n_new = int(count) - self.inserted - len(self.pending)
             new = self.radius.sample(self.rng, n_new) if n_new > 0 else np.zeros(0)
         else:
@@ -162,14 +181,15 @@ class Inserter:
                 parts.append(batch[:k])
                 room -= float(cum[k - 1])
             new = np.concatenate(parts) if parts else np.zeros(0)
-        if self.total_mass is not None and self.rate is not None and len(new):
+        if self.total_mass is not None and self.mass_rate is None and len(new):
             new = new[have_m + np.cumsum(self.masses(new)) <= self.total_mass * (1 + 1e-12)]
         if len(new):
             self.pending = np.concatenate([self.pending, new])
 
     def insert(self, sim) -> int:
         """One insertion event in ``sim``: draw, place, add. Returns how many were added."""
-        self.draw(sim.time)
+        inside = int(self.region.contains(sim.x).sum()) if self.fill_to is not None else 0
+        self.draw(sim.time, inside)
         if len(self.pending) == 0:
             return 0
         extrude = None
