@@ -307,3 +307,32 @@ def test_the_candidate_search_finds_every_triangle_a_brute_force_search_finds():
     assert set(zip(cand_p.tolist(), cand_t.tolist())) == expected
     assert len(cand_p) == len(expected)  # (each pair once)
     assert np.all(np.diff(cand_p) >= 0)  # sorted by particle
+
+
+def test_a_sphere_dropped_on_a_conveyor_belt_rolls_off_at_two_sevenths_of_its_speed():
+    """A fixed mesh with a surface velocity V (a belt): a sphere at rest on it is dragged
+    by friction until its contact point moves with the belt; with the friction force
+    the only horizontal force, m v = -F t and I w = r F t give v + r w = V at the end,
+    so v = V / (1 + m r^2 / I) = 2/7 V (a solid sphere). The triangles stay in place,
+    and the ledger counts the belt's work (the balance holds)."""
+    belt = 0.5
+    floor = flat_mesh()
+    x = np.array([[-0.31, 0.17, R - 2e-5]])
+    p = Particles.from_density(x, np.array([R]), DENSITY)
+    mesh = MeshWall(floor, name="belt", surface_velocity=[belt, 0.0, 0.0])
+    sim = Simulation(p, LAWS["linear"], meshes=[mesh], gravity=[0, 0, -9.81],
+                     timestep=TimeStep.fixed(2e-5))
+    tri0 = sim.meshes.tri.copy()
+    sim.run(steps=10000)  # (sticking from t = 5/7 V / (mu g) = 0.12 s on)
+    # then the tangential spring rings (period 2 pi sqrt(2/7 m / k_s), 430 steps):
+    # the velocities averaged over five periods
+    seen = []
+    sim.every(1, lambda s: seen.append((s.v[0, 0], s.v[0, 0] - R * s.w[0, 1])))
+    sim.run(steps=2150)
+    v, contact = np.mean(seen, axis=0)
+    assert np.array_equal(sim.meshes.tri, tri0)
+    assert v == pytest.approx(2.0 / 7.0 * belt, rel=3e-3)
+    # its contact point (v - R w_y, below the centre) moves with the belt
+    assert contact == pytest.approx(belt, rel=3e-3)
+    assert abs(sim.ledger.imbalance()) < 1e-3 * sim.ledger.scale()
+    assert sim.ledger.acc[2] > 0.0  # (A_WALLS: the belt did work)

@@ -246,6 +246,8 @@ class Meshes(NamedTuple):
     (T, 3) (shared by the triangles of a mesh), the mesh of each ``tri_mesh`` (T,).
     Meshes: ``motion`` (M,) (0 fixed, 1 moving), velocity ``vel`` (M, 3) [L/T], angular
     velocity ``omega`` (M, 3) [1/T] about ``center`` (M, 3) [L] (moving with the mesh),
+    a surface velocity ``surface`` (M, 3) [L/T] (a conveyor belt: the contacts see the
+    surface move, the triangles stay),
     the translation ``shift`` (M, 3) [L] and the turn ``turn`` (M,) [rad] since the
     start, the parameters of each mesh's contacts ``law`` (M, F) (a row of the law's
     Params tuple: the mesh's material and friction); outputs: the force the particles exert ``force`` (M, 3), its
@@ -265,6 +267,7 @@ class Meshes(NamedTuple):
     motion: np.ndarray
     vel: np.ndarray
     omega: np.ndarray
+    surface: np.ndarray
     center: np.ndarray
     shift: np.ndarray
     turn: np.ndarray
@@ -288,7 +291,7 @@ class Meshes(NamedTuple):
 
     #: the fields of a contact slot: one row per candidate, carried with it
     SLOTS = ("active", "slot_mesh", "slot_tri", "normal", "shear", "dashpot", "etan", "fslot")
-    STATE = ("tri", "vel", "omega", "center", "shift", "turn", "law", "force", "torque",
+    STATE = ("tri", "vel", "omega", "surface", "center", "shift", "turn", "law", "force", "torque",
              "power", "power_prev", "moved", "cand_p", "cand_t") + SLOTS
 
     @property

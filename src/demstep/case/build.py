@@ -210,6 +210,7 @@ def build_meshes(case: Case, law) -> list[MeshWall]:
         walls.append(MeshWall(mesh, name=spec.name, mu=spec.friction,
                               material=dict(spec.material) or None,
                               velocity=spec.velocity or zero, omega=spec.omega or zero,
+                              surface_velocity=spec.surface_velocity or zero,
                               center=spec.center or zero))
     return walls
 

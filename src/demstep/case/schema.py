@@ -98,8 +98,10 @@ default the law's ``mu_wall``), ``material`` (a table of the contact law's own
 parameters for the mesh: Hertz ``youngs_modulus`` and ``poisson_ratio``, paired with the
 particles'; linear ``stiffness_normal``, ... for its contacts; omitted: the particles'),
 its motion ``velocity`` [L/T] (a translation) and ``omega`` [1/T] (a rotation vector:
-axis times rate) about ``center`` [L] (which moves with the translation).
-``[stages.meshes."name"]`` changes ``velocity``, ``omega`` or ``friction`` from a
+axis times rate) about ``center`` [L] (which moves with the translation), and
+``surface_velocity`` [L/T] (a conveyor belt: its contacts see the surface move while
+its triangles stay; LIGGGHTS' ``surface_vel``).
+``[stages.meshes."name"]`` changes ``velocity``, ``omega``, ``surface_velocity`` or ``friction`` from a
 stage on.
 
 ``[[insert]]``: particles inserted during the run (:mod:`demstep.feed`,
@@ -439,6 +441,7 @@ class MeshMotion(_Section):
 
     velocity: Vector | None = None
     omega: Vector | None = None
+    surface_velocity: Vector | None = None
     friction: NonNegative | None = None
 
 
@@ -1145,7 +1148,7 @@ def check_case(case: Case) -> None:
             raise InputError(f"{key}.name: duplicate wall name, got {spec.name!r}")
         names.append(spec.name)
         _case_file(f"{key}.file", spec.file, case.mesh_file(k))
-        for vec in ("velocity", "omega", "center"):
+        for vec in ("velocity", "omega", "center", "surface_velocity"):
             _need_len(f"{key}.{vec}", getattr(spec, vec), 3)
         try:
             parse_transforms(spec.transforms)
@@ -1207,7 +1210,7 @@ def check_case(case: Case) -> None:
             if mname not in axis_of:
                 raise InputError(f"{mkey}: no such mesh (have "
                                  f"{', '.join(axis_of) or 'none'})")
-            for vec in ("velocity", "omega"):
+            for vec in ("velocity", "omega", "surface_velocity"):
                 _need_len(f"{mkey}.{vec}", getattr(change, vec), 3)
             if change.omega is not None and any(change.omega):
                 axis = np.asarray(change.omega) / np.linalg.norm(change.omega)

@@ -46,6 +46,7 @@ def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
     mesh_index = {m.name: i for i, m in enumerate(sim.mesh_walls)}
     for name, change in stage.meshes.items():
         sim.set_mesh_motion(mesh_index[name], velocity=change.velocity, omega=change.omega,
+                            surface_velocity=change.surface_velocity,
                             friction=change.friction)
     for axis, change in stage.periodic.items():
         sim.set_box(AXES.index(axis), change.motion,

@@ -36,7 +36,9 @@ class MeshWall:
     materials; a linear one the contact's stiffnesses), and its motion: a
     translation at ``velocity`` (3,) [L/T] and a rotation at ``omega`` (3,) [1/T] (the
     rotation vector: axis and rate, right-hand rule) about ``center`` (3,) [L], which
-    moves with the translation."""
+    moves with the translation; and a surface velocity ``surface_velocity`` (3,) [L/T]:
+    its contacts see the surface move at it while its triangles stay in place (a
+    conveyor belt, LIGGGHTS' ``surface_vel``; meant along the surface)."""
 
     mesh: TriangleMesh
     name: str = "mesh"
@@ -45,9 +47,10 @@ class MeshWall:
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    surface_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self):
-        for name in ("velocity", "omega", "center"):
+        for name in ("velocity", "omega", "center", "surface_velocity"):
             value = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
             if value.shape != (3,) or not np.isfinite(value).all():
                 raise InputError(f"mesh {self.name!r}: {name} must have 3 finite components, "
@@ -96,6 +99,7 @@ def meshes_bundle(walls: list[MeshWall], law) -> Meshes:
         motion=np.array([MESH_MOVING if w.moving else MESH_FIXED for w in walls], np.int64),
         vel=np.array([w.velocity for w in walls]).reshape(n, 3),
         omega=np.array([w.omega for w in walls]).reshape(n, 3),
+        surface=np.array([w.surface_velocity for w in walls]).reshape(n, 3),
         center=np.array([w.center for w in walls]).reshape(n, 3),
         shift=z3.copy(), turn=np.zeros(n),
         law=mesh_law_rows(walls, law) if law is not None else np.zeros((n, 0)),
@@ -192,10 +196,11 @@ def mesh_contacts(meshes: Meshes, x, r):
             delta)
 
 
-def set_mesh_motion(sim, index: int, velocity=None, omega=None, friction=None) -> None:
+def set_mesh_motion(sim, index: int, velocity=None, omega=None, friction=None,
+                    surface_velocity=None) -> None:
     """Change how mesh ``index`` of ``sim`` moves between stages: its translation
     ``velocity`` (3,) [L/T], its rotation ``omega`` (3,) [1/T] about its centre, its
-    friction ``friction`` (takes effect at the next run). A mesh that has turned keeps
+    surface velocity ``surface_velocity`` (3,) [L/T], its friction ``friction`` (takes effect at the next run). A mesh that has turned keeps
     its axis (its corners are recomputed from the total turn about it): a new rate
     about the same axis, or no rotation, is allowed; another axis is refused."""
     wall = sim.mesh_walls[index]
@@ -215,6 +220,9 @@ def set_mesh_motion(sim, index: int, velocity=None, omega=None, friction=None) -
                                  f"{new.tolist()}")
         wall.omega = new
         meshes.omega[index] = new
+    if surface_velocity is not None:
+        wall.surface_velocity = _vector3(surface_velocity, f"mesh {wall.name!r}: surface_velocity")
+        meshes.surface[index] = wall.surface_velocity
     if friction is not None:
         if not (math.isfinite(friction) and friction >= 0):
             raise InputError(f"mesh {wall.name!r}: friction must be finite and >= 0, got "

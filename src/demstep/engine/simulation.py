@@ -492,6 +492,8 @@ class Simulation:
         if not self.mesh_walls:  # and from before meshes (a case without meshes)
             for f in self.meshes.STATE:
                 data.setdefault(f"meshes.{f}", getattr(self.meshes, f))
+        data.setdefault("meshes.surface", np.zeros_like(self.meshes.surface))  # (and from
+        # before surface velocities: none)
         missing = [k for k in needed if k not in data]
         if missing:
             raise InputError(f"{source}: a damaged checkpoint (array {missing[0]!r} missing)")

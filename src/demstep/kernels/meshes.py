@@ -159,7 +159,8 @@ def mesh_forces(sph, meshes, params, dt):
     particle; ``tri`` (T, 9) the triangles' corners now [L], ``vid`` (T, 3) their vertex
     ids (shared by the triangles of a mesh), ``tri_mesh`` (T,) their mesh; per mesh M:
     velocity ``mesh_vel`` [L/T], angular velocity ``mesh_omega`` [1/T] about the centre
-    ``mesh_center`` [L], its law's parameters ``mesh_law`` (M, F) (the rows of
+    ``mesh_center`` [L], surface velocity ``mesh_surface`` [L/T] (added to the velocity
+    of the contact point, the triangles staying where they are), its law's parameters ``mesh_law`` (M, F) (the rows of
     :func:`~demstep.contact.laws.params_from_row`: its material, its friction mu_wall);
     ``params`` the particles' law's parameters (the type);
     ``dt`` the step that produced x (slip increments). The slots (one per row, module
@@ -176,6 +177,7 @@ def mesh_forces(sph, meshes, params, dt):
     cand_p, cand_t, tri, vid, tri_mesh = (meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid,
                                           meshes.tri_mesh)
     mesh_vel, mesh_omega, mesh_center, mesh_law = meshes.vel, meshes.omega, meshes.center, meshes.law
+    mesh_surface = meshes.surface
     active, slot_mesh, slot_tri, slot_normal = (meshes.active, meshes.slot_mesh, meshes.slot_tri,
                                                 meshes.normal)
     shear, dashpot, etan, fslot = meshes.shear, meshes.dashpot, meshes.etan, meshes.fslot
@@ -257,9 +259,9 @@ def mesh_forces(sph, meshes, params, dt):
             cx = px + rp * nx - mesh_center[mk, 0]
             cy = py + rp * ny - mesh_center[mk, 1]
             cz = pz + rp * nz - mesh_center[mk, 2]
-            ux = mesh_vel[mk, 0] + mesh_omega[mk, 1] * cz - mesh_omega[mk, 2] * cy
-            uy = mesh_vel[mk, 1] + mesh_omega[mk, 2] * cx - mesh_omega[mk, 0] * cz
-            uz = mesh_vel[mk, 2] + mesh_omega[mk, 0] * cy - mesh_omega[mk, 1] * cx
+            ux = mesh_vel[mk, 0] + mesh_surface[mk, 0] + mesh_omega[mk, 1] * cz - mesh_omega[mk, 2] * cy
+            uy = mesh_vel[mk, 1] + mesh_surface[mk, 1] + mesh_omega[mk, 2] * cx - mesh_omega[mk, 0] * cz
+            uz = mesh_vel[mk, 2] + mesh_surface[mk, 2] + mesh_omega[mk, 0] * cy - mesh_omega[mk, 1] * cx
             pm = params_from_row(params, mesh_law[mk])
             (_, _, _, _, _, c_fric, c_dash, _, _, _, _, _, _, _, _, _) = contact_response(
                 pm, pm.mu_wall, nx, ny, nz, -1.0, rp, m[p], ux - vix, uy - viy,
@@ -294,9 +296,9 @@ def mesh_forces(sph, meshes, params, dt):
             cx = qx - mesh_center[mk, 0]
             cy = qy - mesh_center[mk, 1]
             cz = qz - mesh_center[mk, 2]
-            ux = mesh_vel[mk, 0] + mesh_omega[mk, 1] * cz - mesh_omega[mk, 2] * cy
-            uy = mesh_vel[mk, 1] + mesh_omega[mk, 2] * cx - mesh_omega[mk, 0] * cz
-            uz = mesh_vel[mk, 2] + mesh_omega[mk, 0] * cy - mesh_omega[mk, 1] * cx
+            ux = mesh_vel[mk, 0] + mesh_surface[mk, 0] + mesh_omega[mk, 1] * cz - mesh_omega[mk, 2] * cy
+            uy = mesh_vel[mk, 1] + mesh_surface[mk, 1] + mesh_omega[mk, 2] * cx - mesh_omega[mk, 0] * cz
+            uz = mesh_vel[mk, 2] + mesh_surface[mk, 2] + mesh_omega[mk, 0] * cy - mesh_omega[mk, 1] * cx
             (fx, fy, fz, c_en, c_et, c_fric, c_dash, _, _, tx, ty, tz, ndx, ndy, ndz,
              e_new) = contact_response(
                 pm, pm.mu_wall, nx, ny, nz, delta, rp, m[p], ux - vix, uy - viy,
