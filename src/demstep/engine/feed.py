@@ -35,6 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from demstep.contact.geometry import minimum_image_arrays
+from demstep.contact.laws.base import check_number
 from demstep.engine.meshes import build_candidates
 from demstep.engine.population import add_particles, remove_particles
 from demstep.errors import InputError
@@ -49,16 +50,6 @@ def _steps(value, what: str) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
         raise InputError(f"{what}: expected a number of steps >= 1, got {value!r}")
     return int(value)
-
-
-def _nonnegative(value, what: str, allow_inf: bool = False) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = math.nan
-    if not (v >= 0 and (allow_inf or math.isfinite(v))):
-        raise InputError(f"{what}: must be finite and >= 0, got {value!r}")
-    return v
 
 
 @dataclass
@@ -103,19 +94,20 @@ class Inserter:
                                  f"mass_rate")
             self.fill_to = int(self.fill_to)
         if self.rate is not None:
-            self.rate = _nonnegative(self.rate, f"{what}.rate")
+            self.rate = check_number(f"{what}.rate", self.rate)
         if self.mass_rate is not None:
-            self.mass_rate = _nonnegative(self.mass_rate, f"{what}.mass_rate")
+            self.mass_rate = check_number(f"{what}.mass_rate", self.mass_rate)
         if self.total is not None and (isinstance(self.total, bool) or int(self.total) != self.total
                                        or self.total < 0):
             raise InputError(f"{what}.total: expected a count >= 0, got {self.total!r}")
         if self.total_mass is not None:
-            self.total_mass = _nonnegative(self.total_mass, f"{what}.total_mass")
-        self.density = _nonnegative(self.density, f"{what}.density")
+            self.total_mass = check_number(f"{what}.total_mass", self.total_mass)
+        self.density = check_number(f"{what}.density", self.density)
         if self.density <= 0:
             raise InputError(f"{what}.density: must be > 0, got {self.density!r}")
-        self.start = _nonnegative(self.start, f"{what}.start")
-        self.stop = _nonnegative(self.stop, f"{what}.stop", allow_inf=True)
+        self.start = check_number(f"{what}.start", self.start)
+        if self.stop != math.inf:  # (inf: no end)
+            self.stop = check_number(f"{what}.stop", self.stop)
         if self.stop < self.start:
             raise InputError(f"{what}.stop: must be >= start = {self.start:g}, got {self.stop!r}")
         self.every = _steps(self.every, f"{what}.every")

@@ -109,8 +109,7 @@ def add_particles(sim, x, r, m, inertia, v=None, w=None, next_id: int | None = N
                                                 np.zeros((k,) + getattr(sp, f).shape[1:])]))
         for f in Spheres._fields})
     sim.fixed = np.concatenate([sim.fixed, np.zeros(k, dtype=bool)])
-    sim.particles = Particles.checked_already(sim.spheres.x[:, :sim.dim].copy(), sim.spheres.r,
-                                              sim.spheres.m, sim.spheres.inertia, sim.fixed)
+    _sync_particles(sim)
     sim.source_index = np.concatenate([ids, new_ids])
     sim.bodies = sim.bodies._replace(sphere_body=np.full(n0 + k, -1, dtype=np.int64))
     sim.update_masses()
@@ -138,8 +137,7 @@ def remove_particles(sim, remove) -> tuple[int, float]:
     sp = sim.spheres
     sim.spheres = Spheres(**{f: np.ascontiguousarray(getattr(sp, f)[keep]) for f in Spheres._fields})
     sim.fixed = sim.fixed[keep]
-    sim.particles = Particles.checked_already(sim.spheres.x[:, :sim.dim].copy(), sim.spheres.r,
-                                              sim.spheres.m, sim.spheres.inertia, sim.fixed)
+    _sync_particles(sim)
     sim.source_index = ids[keep]
     sim.bodies = sim.bodies._replace(sphere_body=sim.bodies.sphere_body[keep])
     # the lists of what remains, in their order (renaming keeps i < j and the sorting)
@@ -160,6 +158,13 @@ def remove_particles(sim, remove) -> tuple[int, float]:
             f: getattr(me, f)[rows] for f in ("cand_t",) + Meshes.SLOTS})
     _resized(sim, rebuild=False)
     return count, mass
+
+
+def _sync_particles(sim):
+    """``sim.particles`` from the Spheres and ``fixed`` (the particles now)."""
+    sp = sim.spheres
+    sim.particles = Particles.checked_already(sp.x[:, :sim.dim].copy(), sp.r, sp.m, sp.inertia,
+                                              sim.fixed)
 
 
 def _resized(sim, rebuild: bool):
@@ -267,8 +272,7 @@ def adopt_particle_set(sim, data: dict, source: str):
     sim.spheres = Spheres.make(x.copy(), np.zeros((n, 3)), np.zeros((n, 3)), r.copy(), m.copy(),
                                inertia.copy())
     sim.fixed = fixed.copy()
-    sim.particles = Particles.checked_already(sim.spheres.x[:, :sim.dim].copy(), sim.spheres.r,
-                                              sim.spheres.m, sim.spheres.inertia, sim.fixed)
+    _sync_particles(sim)
     sim.source_index = ids
     sim.bodies = sim.bodies._replace(sphere_body=np.full(n, -1, dtype=np.int64))
     sim.pairs = sim.pairs._replace(i=np.zeros(0, dtype=np.int64), j=np.zeros(0, dtype=np.int64))
