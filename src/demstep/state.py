@@ -258,7 +258,19 @@ class Meshes(NamedTuple):
     (K,), their mesh ``slot_mesh`` and triangle ``slot_tri`` (K,), contact normal
     ``normal`` (K, 3), tangential spring and dashpot forces ``shear``, ``dashpot``
     (K, 3), stored tangential energy ``etan`` (K,) and the contact's force on the mesh
-    ``fslot`` (K, 3) [M L/T^2] (for the per-triangle output)."""
+    ``fslot`` (K, 3) [M L/T^2] (for the per-triangle output).
+
+    The 'auto' step's cover of the mesh contacts (:mod:`demstep.kernels.meshes`; set by
+    :meth:`demstep.engine.auto_step.AutoStep.sync_mesh_cover`, empty when not followed):
+    per particle the rows ``cover_start`` (N + 1,) of its covered contacts, each with
+    its mesh ``cover_mesh`` (Q,) and ``cover_ref`` (Q, 11): the reference normal (3),
+    arm [L], k_n, k_t [M/T^2], c_n, c_t [M/T], the overlap covered [L], the particle's
+    inverse mass and moment of inertia; per particle ``cover_extra`` (N, 2): how many
+    contacts the certificate's added group holds for it and at what overlap;
+    ``cover_ctl`` (4,): the certified root sigma [1/T], the mesh drift at which the
+    steps stop for a check [1/T^2], the meshes' largest move in the last step [L], and
+    the step [T]; ``cover_out`` (3,): after each step, the largest drift of a particle's
+    mesh contacts [1/T^2], and the contacts found beyond the cover."""
 
     tri: np.ndarray
     tri0: np.ndarray
@@ -288,11 +300,17 @@ class Meshes(NamedTuple):
     dashpot: np.ndarray
     etan: np.ndarray
     fslot: np.ndarray
+    cover_start: np.ndarray
+    cover_mesh: np.ndarray
+    cover_ref: np.ndarray
+    cover_extra: np.ndarray
+    cover_ctl: np.ndarray
+    cover_out: np.ndarray
 
     #: the fields of a contact slot: one row per candidate, carried with it
     SLOTS = ("active", "slot_mesh", "slot_tri", "normal", "shear", "dashpot", "etan", "fslot")
     STATE = ("tri", "vel", "omega", "surface", "center", "shift", "turn", "law", "force", "torque",
-             "power", "power_prev", "moved", "cand_p", "cand_t") + SLOTS
+             "power", "power_prev", "moved", "cand_p", "cand_t", "cover_ctl") + SLOTS
 
     @property
     def n(self) -> int:

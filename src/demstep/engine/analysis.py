@@ -107,10 +107,53 @@ def contact_set(sim, horizon: float | None = None, cover: dict | None = None) ->
         parts.append(_walls_part(sim, p, wi, arm, delta_eval, params))
         if cover is not None:
             cover["walls"] = sorted_keys(wall_keys(walls_per_key(sim), p, wi), delta_eval)
-    if len(sim.meshes.cand_p):  # the 'auto' step does not cover meshes yet
-        parts.append(meshes_part(sim.meshes, sim.x, sim.r, sim.m, sim.dim, len(sim.walls),
-                                 params))
-    return with_rolling_and_bonds(sim, parts, params)
+    mesh_parts = []
+    if len(sim.meshes.cand_p):
+        if horizon is None:
+            mesh_parts.append(meshes_part(sim.meshes, sim.x, sim.r, sim.m, sim.dim,
+                                          len(sim.walls), params))
+        else:
+            part, caps = meshes_within(sim, horizon, speed, params)
+            mesh_parts.append(part)
+            if cover is not None:
+                cover["meshes"] = caps
+    return with_rolling_and_bonds(sim, parts, params, mesh_parts)
+
+
+def meshes_within(sim, horizon: float, speed, params) -> tuple[ContactSet, np.ndarray]:
+    """The particle-mesh contacts that can close within ``horizon`` [T] (the particles'
+    reach speeds ``speed`` [L/T]) as wall elements (:func:`meshes_part`): those of each
+    sphere grown by its reach h (s + the meshes' largest speed) (twice, at most the
+    skin; the engine's one-per-surface rule), the normals and distances of the
+    geometry now (the arm: the distance when touching, the radius when apart), each
+    mesh's law at the overlap it can reach (:func:`reachable_overlap`); and those
+    overlaps [L] (C,), the overlap each covered contact is covered at."""
+    meshes = sim.meshes
+    reach = horizon * (speed + mesh_speed(meshes))
+    grown = sim.r + np.minimum(2.0 * reach, sim.skin)
+    p, mk, normal, dist, _ = mesh_contacts(meshes, sim.x, grown)
+    delta = sim.r[p] - dist
+    overlaps = reachable_overlap(sim, delta, reach[p], sim.r[p])
+    arm = np.where(delta > 0.0, dist, sim.r[p])
+    # (a linear law's contacts are covered at any overlap, as the pairs')
+    caps = overlaps if sim.law.nonlinear else np.full(len(p), np.inf)
+    return _mesh_elements(meshes, p, mk, normal, arm, overlaps, sim.r, sim.m, sim.dim,
+                          len(sim.walls), params), caps
+
+
+def mesh_speed(meshes) -> float:
+    """The largest speed [L/T] of a point of a moving mesh: |v| + |omega| times the
+    largest distance of its corners from its centre (0 without moving meshes)."""
+    out = 0.0
+    corners = meshes.tri.reshape(-1, 3, 3)
+    for k in range(meshes.n):
+        spin = float(np.linalg.norm(meshes.omega[k]))
+        far = 0.0
+        if spin > 0.0:
+            own = corners[meshes.tri_mesh == k].reshape(-1, 3)
+            far = float(np.linalg.norm(own - meshes.center[k], axis=1).max(initial=0.0))
+        out = max(out, float(np.linalg.norm(meshes.vel[k])) + spin * far)
+    return out
 
 
 def contact_elements(sim, i, j, pair_overlaps, p, w, wall_overlaps) -> ContactSet:
@@ -156,13 +199,22 @@ def meshes_part(meshes, x, r, m, dim: int, first_wall: int, params) -> ContactSe
     centre to the closest point, R* = r, m* = m, and each mesh's own law parameters
     (its material; the rows ``meshes.law``, of the law of ``params``)."""
     p, mk, normal, dist, delta = mesh_contacts(meshes, x, r)
+    return _mesh_elements(meshes, p, mk, normal, dist, delta, r, m, dim, first_wall, params)
+
+
+def _mesh_elements(meshes, p, mk, normal, arm, overlaps, r, m, dim, first_wall,
+                   params) -> ContactSet:
+    """Particle-mesh contacts (particle ``p``, mesh ``mk``, ``normal`` from the particle
+    to the mesh, ``arm`` [L]) as wall elements numbered ``first_wall`` + mesh, with each
+    mesh's law (the rows ``meshes.law`` of the law of ``params``) at ``overlaps`` [L],
+    R* = r, m* = m."""
     c = len(p)
     kn, kt, cn, ct = (np.empty(c) for _ in range(4))
     for k in np.unique(mk):
         on = mk == k
         kn[on], kt[on], cn[on], ct[on] = coefficients(params_from_row(params, meshes.law[k]),
-                                                      delta[on], r[p[on]], m[p[on]])
-    return ContactSet(p, np.full(c, -1), normal[:, :dim], dist, np.zeros(c), kn, kt,
+                                                      overlaps[on], r[p[on]], m[p[on]])
+    return ContactSet(p, np.full(c, -1), normal[:, :dim], arm, np.zeros(c), kn, kt,
                       first_wall + mk, c_n=cn, c_t=ct)
 
 
@@ -194,14 +246,15 @@ def reachable_overlap(sim, delta, reach, r_star) -> np.ndarray:
     return out
 
 
-def with_rolling_and_bonds(sim, parts, params) -> ContactSet:
+def with_rolling_and_bonds(sim, parts, params, mesh_parts=()) -> ContactSet:
     """The contact parts as one ContactSet with the law's rolling and twisting
     springs (:func:`demstep.timestep.contacts.with_rolling`, the kernels' rule for fixed
-    particles), then the intact bonds as elements of their own."""
+    particles), then the ``mesh_parts`` (the kernels give mesh contacts no rolling
+    resistance), then the intact bonds as elements of their own."""
     contacts = with_rolling(_joined(sim, parts), sim.r, sim.m, sim.inertia, sim.inv_m > 0,
                             params)
-    bonds = bond_elements(sim)
-    return ContactSet.concatenate([contacts] + bonds) if bonds else contacts
+    rest = list(mesh_parts) + bond_elements(sim)
+    return ContactSet.concatenate([contacts] + rest) if rest else contacts
 
 
 def bond_elements(sim) -> list:

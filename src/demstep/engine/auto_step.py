@@ -31,22 +31,28 @@ from dataclasses import replace
 import numpy as np
 
 from demstep.contact.geometry import pair_geometry_arrays, wall_geometry_arrays
-from demstep.contact.laws import LAWS
+from demstep.contact.laws import LAWS, params_from_row
 from demstep.timestep.contacts import ContactSet
 from demstep.engine.analysis import (NO_COVER, coefficients, contact_elements, global_damping,
                                      pair_keys, sorted_keys, wall_keys, walls_per_key)
 from demstep.errors import InputError
 from demstep.kernels import dem
+from demstep.kernels.meshes import REF_CAP, mesh_cover_check
 from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
 from demstep.particles import INERTIA_FACTOR
 from demstep.scratch import Workspace
 from demstep.timestep.certificate import (BodyPose, StepCertificate, added_contacts_bound,
-                                          cover_limits, merge_cover, uncovered_pairs,
-                                          uncovered_walls)
+                                          cover_limits, merge_cover, mesh_added_bound,
+                                          uncovered_pairs, uncovered_walls)
 from demstep.timestep.clumps import body_element_dt, likely_stiffest_elements
 from demstep.timestep.estimates import densest_packing_dt, element_coupled_dt
 from demstep.timestep.exact import ScaledContactOperator, exact_critical_step
 from demstep.timestep.stability import damped_sigma
+
+
+def any_uncovered(masks) -> bool:
+    """Whether :meth:`AutoStep.uncovered` found a contact beyond the cover."""
+    return bool(masks[0].any() or masks[1].any() or masks[2] is not None)
 
 
 class AutoStep:
@@ -72,6 +78,9 @@ class AutoStep:
         #: the contacts added to the certificate since its estimate, as one record
         #: (:meth:`certify_added`; {} none yet, None not known: an older checkpoint)
         self.added: dict | None = None
+        #: per particle, how many mesh contacts the certificate's added group holds for
+        #: it and at what overlap [L] (N, 2) (:meth:`certify_added`; None: no certificate)
+        self.mesh_added: np.ndarray | None = None
         #: how far [L] the pairs' ends may move relative to each other before the next
         #: check of the drift (:meth:`renew_drift_budget`)
         self.check_budget = math.inf
@@ -159,6 +168,9 @@ class AutoStep:
         cert = self.certificate
         if cert is not None:
             cert.renumber(order, inv)
+        if self.mesh_added is not None and len(self.mesh_added) == n:
+            self.mesh_added = np.ascontiguousarray(self.mesh_added[order])
+        self.sync_mesh_cover()
         mode = self.mode
         if mode is not None:
             self.mode = (None if sim.bodies.n or mode.size % n
@@ -175,29 +187,127 @@ class AutoStep:
         self.certificate = None
         self.mode = None
         self.added = {}
+        self.mesh_added = None
         if self._cover is not None:
             self.cover = {}
         if sim.timestep.mode == "auto" and sim.dt is not None and sim.lists.built:
             self.propose_dt(force=True, scheduled=False)
 
-    def record_certificate(self, sigma, lam_c, contacts, bodies):
+    def record_certificate(self, sigma, lam_c, contacts, bodies, mesh_caps=None):
+        """The certificate of an estimate (root ``sigma``, Lambda_C ``lam_c``) of the
+        ``contacts`` (:func:`demstep.engine.analysis.contact_set`), the mesh contacts
+        among them covered at the overlaps ``mesh_caps`` [L] (in their order)."""
         sim = self.sim
         inv_I = sim.inv_I if sim.rotation else np.zeros_like(sim.inv_I)
         # (contact_set puts the intact bonds last)
         bond = np.arange(contacts.n) >= contacts.n - int(np.count_nonzero(sim.bonds.intact == 1))
+        mesh = contacts.wall >= len(sim.walls)
         b = sim.bodies
         self.added = {}  # (contacts added to this certificate: none yet)
-        self.certificate = StepCertificate.from_estimate(
-            sigma, lam_c, contacts, sim.inv_m, inv_I, inputs=self.inputs(),
-            radius=sim.r, bond=bond, sphere_body=b.sphere_body if b.n else None,
-            body_q=b.q.copy() if b.n else None)
+        self.certificate = cert = StepCertificate.from_estimate(
+            sigma, lam_c, contacts.subset(~mesh) if mesh.any() else contacts, sim.inv_m,
+            inv_I, inputs=self.inputs(), radius=sim.r, bond=bond[~mesh],
+            sphere_body=b.sphere_body if b.n else None, body_q=b.q.copy() if b.n else None)
+        if mesh.any():
+            near = contacts.subset(mesh)
+            p = near.i
+            cert.mesh_p = np.ascontiguousarray(p, dtype=np.int64)
+            cert.mesh_k = np.ascontiguousarray(near.wall - len(sim.walls), dtype=np.int64)
+            cert.mesh_ref = np.ascontiguousarray(np.column_stack([
+                near.normal, near.arm_i, near.k_n, near.k_s, near.c_n, near.c_t,
+                np.asarray(mesh_caps, dtype=np.float64), sim.inv_m[p], inv_I[p]]))
+        self.mesh_added = np.zeros((len(sim.r), 2)) if sim.mesh_walls else None
+        self.sync_mesh_cover()
+
+    def sync_mesh_cover(self, limit: float | None = None):
+        """The Meshes bundle's cover rows (:class:`demstep.state.Meshes`: what the kernels
+        compare each sphere's mesh contacts with, :mod:`demstep.kernels.meshes`) from the
+        certificate's covered mesh contacts and the added group, followed while there is
+        a cover (an estimate) and mesh walls; ``limit`` [1/T^2]: the mesh drift at which
+        the steps stop for a check (None: kept)."""
+        sim = self.sim
+        if not sim.mesh_walls:
+            return
+        me = sim.meshes
+        ctl = me.cover_ctl
+        if self._cover is None or self.mesh_added is None \
+                or len(self.mesh_added) != len(sim.r):
+            from demstep.engine.meshes import no_mesh_cover
+            fresh = no_mesh_cover()
+            fresh["cover_ctl"][2:] = ctl[2:]  # (the meshes' last move)
+            sim.meshes = me._replace(**fresh)
+            return
+        cert = self.certificate
+        n = len(sim.r)
+        if cert is None:  # (a cover without a certificate: any mesh contact is beyond it)
+            self.mesh_added = np.zeros((n, 2))
+        if cert is not None and len(cert.mesh_p):
+            order = np.argsort(cert.mesh_p, kind="stable")
+            start = np.zeros(n + 1, dtype=np.int64)
+            np.cumsum(np.bincount(cert.mesh_p, minlength=n), out=start[1:])
+            rows = dict(cover_mesh=np.ascontiguousarray(cert.mesh_k[order]),
+                        cover_ref=np.ascontiguousarray(cert.mesh_ref[order]))
+        else:
+            start = np.zeros(n + 1, dtype=np.int64)
+            rows = dict(cover_mesh=np.zeros(0, np.int64), cover_ref=np.zeros((0, 11)))
+        ctl = ctl.copy()
+        ctl[0] = self.certified_sigma() if sim.dt is not None else 0.0
+        if limit is not None:
+            ctl[1] = limit
+        sim.meshes = me._replace(cover_start=start, cover_extra=np.ascontiguousarray(
+            self.mesh_added), cover_ctl=ctl, **rows)
+
+    @property
+    def meshes_followed(self) -> bool:
+        """Whether the kernels follow the mesh contacts' cover (an estimate, mesh walls)."""
+        sim = self.sim
+        return bool(sim.mesh_walls) and len(sim.meshes.cover_start) == len(sim.r) + 1
+
+    def mesh_check(self, steps: float = 0.0):
+        """((D_K [1/T^2], D_C [1/T]), short, need): the mesh contacts' drift now, how
+        many spheres have contacts beyond the cover and the added group now or within
+        ``steps`` steps at the velocities now, and per sphere (N, 2) how many of its
+        contacts the cover does not hold and at what overlap [L]
+        (:func:`demstep.kernels.meshes.mesh_cover_check`)."""
+        sim = self.sim
+        need = np.zeros((len(sim.r), 2))
+        if not self.meshes_followed:
+            return (0.0, 0.0), 0, need
+        dt = float(sim.dt) if sim.dt is not None else 0.0
+        _, boundary = self.step_moves(np.zeros(0, dtype=np.int64))
+        d_k, d_c, short = mesh_cover_check(sim.x, sim.v, sim.r, sim.meshes, float(steps),
+                                           float(steps) * boundary, dt, need)
+        return (float(d_k), float(d_c)), int(short), need
+
+    def mesh_added_bound(self, added: np.ndarray) -> tuple[float, float]:
+        """Bounds on lambda_max(K^), lambda_max(C^) of the mesh contacts of the added
+        group ``added`` (N, 2): per particle so many contacts at most at that overlap,
+        each with the stiffest mesh's law there (:func:`mesh_added_bound
+        <demstep.timestep.certificate.mesh_added_bound>`)."""
+        sim = self.sim
+        on = added[:, 0] > 0
+        if not on.any():
+            return 0.0, 0.0
+        p = np.flatnonzero(on)
+        params = sim.law.params()
+        top = np.zeros((4, len(p)))
+        at = added[p, 1] if sim.law.nonlinear else sim.r[p]  # (linear: any overlap)
+        for k in range(sim.meshes.n):
+            top = np.maximum(top, np.stack(coefficients(
+                params_from_row(params, sim.meshes.law[k]), at, sim.r[p], sim.m[p])))
+        inv_I = sim.inv_I if sim.rotation else np.zeros_like(sim.inv_I)
+        return mesh_added_bound(added[p, 0], *top, sim.r[p], sim.inv_m[p], inv_I[p])
 
     def drift(self, cert) -> tuple[float, float]:
         """The drift (D_K, D_C) of the certificate ``cert`` at the state now
         (:meth:`demstep.timestep.certificate.StepCertificate.drift`)."""
         sim = self.sim
-        return cert.drift(sim.x, sim.periodic_len, (sim.wall_point, sim.wall_normal),
-                          self.body_pose() if cert.has_bodies else None)
+        d_k, d_c = cert.drift(sim.x, sim.periodic_len, (sim.wall_point, sim.wall_normal),
+                              self.body_pose() if cert.has_bodies else None)
+        if self.meshes_followed:
+            m_k, m_c = self.mesh_check()[0]
+            d_k, d_c = d_k + m_k, d_c + m_c
+        return d_k, d_c
 
     def body_pose(self):
         """The clumps now as the certificate's drift takes them
@@ -342,19 +452,21 @@ class AutoStep:
             cover = {}
             prepared = (sim.contact_set(horizon, cover), cover)
         contacts, cover = prepared
-        self.cover = cover
+        mesh_caps = cover.pop("meshes", None)
         self.certificate = None
+        self.cover = cover
         if contacts.n == 0:
             return None
         if method == "element-coupled":
-            return self.element_coupled_dt(contacts, sim.rotation, keep=lambda dt: True)[0]
+            return self.element_coupled_dt(contacts, sim.rotation, keep=lambda dt: True,
+                                           mesh_caps=mesh_caps)[0]
         bodies = sim.rigid_bodies()
         result = exact_critical_step(sim.particles_now(check=False), contacts, sim.rotation,
                                      global_damping(sim), v0=self.mode, bodies=bodies,
                                      workspace=self.workspace, tol=float(tol))
         self.mode = result.mode
         self.record_certificate(2.0 / result.dt, result.operator.damping_bound(), contacts,
-                                bodies)
+                                bodies, mesh_caps)
         return result.dt
 
     #: 'auto': the step held by the motion limit sits this far below it (so that it is
@@ -406,7 +518,7 @@ class AutoStep:
         dt = self.motion_limited_dt()
         if dt == sim.dt:
             return
-        raised = dt > sim.dt
+        raised = dt > sim.dt or self.meshes_followed  # (the kernels' mesh drift is at sigma)
         sim.dt = dt
         if raised and not self.renew_drift_budget():
             self.propose_dt(force=True, scheduled=False)
@@ -457,7 +569,7 @@ class AutoStep:
         if cert is None or not cert.bounded or not sim.lists.built:
             return None, None
         masks = self.uncovered()
-        if masks is None or masks[0].any() or masks[1].any():
+        if masks is None or any_uncovered(masks):
             return None, None
         sigma_up = cert.smallest_sigma(self.drift(cert))
         if self.estimate_cannot_change_dt(2.0 / sigma_up, scheduled=True):
@@ -529,9 +641,11 @@ class AutoStep:
         keep = lambda dt: self.estimate_cannot_change_dt(dt, scheduled)  # noqa: E731
         if self.element_bound_falls_short(contacts, keep):
             return None, prepared
-        dt, kept = self.element_coupled_dt(contacts, sim.rotation, keep=keep)
+        dt, kept = self.element_coupled_dt(contacts, sim.rotation, keep=keep,
+                                           mesh_caps=cover.get("meshes"))
         if not kept:
             return None, prepared
+        cover.pop("meshes", None)
         self.cover = cover
         self.n_element += 1
         return dt, None
@@ -561,11 +675,13 @@ class AutoStep:
             dt = min(dt, 2.0 / d.mass)  # (as element_coupled_dt)
         return not keep(dt)
 
-    def element_coupled_dt(self, contacts, rotation: bool, keep) -> tuple[float, bool]:
+    def element_coupled_dt(self, contacts, rotation: bool, keep,
+                           mesh_caps=None) -> tuple[float, bool]:
         """(dt, kept): the coupled element bound dt [T] of ``contacts`` now (a rigorous
         lower bound on their exact step, :func:`demstep.timestep.estimates.element_coupled_dt`),
         with the global damping and the clumps; recorded as the 'auto' control's
-        certificate when ``kept = keep(dt)`` is true."""
+        certificate when ``kept = keep(dt)`` is true (its mesh contacts covered at the
+        overlaps ``mesh_caps``)."""
         sim = self.sim
         p = sim.particles_now(check=False)
         damping = global_damping(sim)
@@ -575,7 +691,7 @@ class AutoStep:
         if kept:
             op = ScaledContactOperator(p, contacts, rotation, damping, bodies,
                                        workspace=self.workspace)
-            self.record_certificate(2.0 / dt, op.damping_bound(), contacts, bodies)
+            self.record_certificate(2.0 / dt, op.damping_bound(), contacts, bodies, mesh_caps)
         return dt, kept
 
     def state_dict(self) -> dict:
@@ -599,6 +715,8 @@ class AutoStep:
             for name, (keys, assumed) in added.items():
                 out[f"ts_added_{name}_keys"] = keys
                 out[f"ts_added_{name}_overlap"] = assumed
+        if cert is not None and self.mesh_added is not None:
+            out["ts_mesh_added"] = self.mesh_added
         if out:
             out["ts_check_budget"] = np.array([self.check_budget])
         if self.certified is not None:  # (the motion limit may hold dt below it)
@@ -657,6 +775,17 @@ class AutoStep:
         # (the pair loops' cover arrays are part of the saved state: not synced here)
         self._cover = cover if cover or "ts_mode" in data else None
         self.added = self.restored_added_record(data)
+        mesh_added = data.get("ts_mesh_added")
+        self.mesh_added = None
+        if mesh_added is not None:
+            mesh_added = np.asarray(mesh_added, dtype=np.float64)
+            if mesh_added.shape != (len(sim.r), 2) or not np.isfinite(mesh_added).all() \
+                    or (mesh_added < 0).any():
+                raise InputError(f"{source}: ts_mesh_added: expected ({len(sim.r)}, 2) finite "
+                                 f"numbers >= 0, got shape {mesh_added.shape}")
+            self.mesh_added = mesh_added
+        elif self.certificate is not None and sim.mesh_walls:
+            self.mesh_added = np.zeros((len(sim.r), 2))
         budget = np.asarray(data.get("ts_check_budget", [0.0]), dtype=np.float64).reshape(-1)
         if budget.size != 1 or not budget[0] >= 0.0:  # (older checkpoints: checked at once)
             raise InputError(f"ts_check_budget: expected one number >= 0, got {budget}")
@@ -680,6 +809,7 @@ class AutoStep:
         if self.certified is not None and not (sim.dt is not None and sim.dt <= self.certified):
             raise InputError(f"{source}: the step dt = {sim.dt!r} is above the certified "
                              f"one ts_dt_certified = {self.certified!r}")
+        self.sync_mesh_cover()  # (the kernels' rows; the drift limit is part of the state)
 
     @staticmethod
     def check_certificate_state(data, numbers, in_range, finite, fail, n, n_walls, n_bodies):
@@ -707,6 +837,17 @@ class AutoStep:
         in_range("ts_cert_pairs", n, "particle", pairs[:2])
         in_range("ts_cert_walls", n, "particle", walls[0])
         in_range("ts_cert_walls", n_walls, "wall", walls[1])
+        if "ts_cert_meshes" in data:
+            meshes = numbers("ts_cert_meshes")
+            if meshes.size % 2:
+                raise fail("ts_cert_meshes", f"has shape {meshes.shape}, expected (2, contacts)")
+            meshes = meshes.reshape(2, -1)
+            in_range("ts_cert_meshes", n, "particle", meshes[0])
+            ref = numbers("ts_cert_mesh_ref")
+            if ref.size != 11 * meshes.shape[1]:
+                raise fail("ts_cert_mesh_ref", f"has shape {ref.shape}, expected "
+                                               f"({meshes.shape[1]}, 11)")
+            finite("ts_cert_mesh_ref", nan_only=True)  # (inf: covered at any overlap)
         for key, size, shape in (("ts_cert_normal", None, None),
                                  ("ts_cert_coefficients", 8 * k, f"({k}, 8)"),
                                  ("ts_cert_wall_factors", 3 * kw, f"({kw}, 3)"),
@@ -755,9 +896,10 @@ class AutoStep:
     def uncovered(self, steps: float = 0.0):
         """Masks over the pair and wall lists of the closed contacts the last 'auto'
         estimate did not cover (or covered at a smaller overlap than they have now,
-        for a non-linear law); None when there was no estimate. ``steps`` > 0: those
-        closing so within that many steps at the velocities now too
-        (:meth:`_step_moves`)."""
+        for a non-linear law), and the mesh contacts' need of the added group (N, 2)
+        (:meth:`mesh_check`; None when no sphere needs more than it holds); None when
+        there was no estimate. ``steps`` > 0: those closing so within that many steps
+        at the velocities now too (:meth:`_step_moves`)."""
         sim = self.sim
         cover = self.cover
         if cover is None:
@@ -776,7 +918,11 @@ class AutoStep:
                                     np.asarray(known, dtype=np.int64),
                                     np.asarray(assumed, dtype=np.float64), nonlinear,
                                     move, boundary)
-        return pair_mask, wall_mask
+        mesh_need = None
+        if self.meshes_followed:
+            _, short, need = self.mesh_check(steps)
+            mesh_need = need if short else None
+        return pair_mask, wall_mask, mesh_need
 
     def step_moves(self, particles=None) -> tuple[np.ndarray, float]:
         """(move, boundary) [L]: how far each particle (or each of the indices
@@ -787,7 +933,7 @@ class AutoStep:
         dt = float(sim.dt) if sim.dt is not None else 0.0
         move = dt * np.linalg.norm(sim.v if particles is None else sim.v[particles], axis=-1)
         boundary = (float(np.sqrt((sim.wall_state.disp_prev ** 2).sum(axis=1)).max(initial=0.0))
-                    + float(np.abs(sim.box.sums[5]).sum()))
+                    + float(np.abs(sim.box.sums[5]).sum()) + float(sim.meshes.cover_ctl[2]))
         return move, boundary
 
     @property
@@ -822,6 +968,7 @@ class AutoStep:
             sim.wall_state = ws._replace(cover=cover_limits(
                 self.wall_keys(ws.p, ws.wall), *cover.get("walls", NO_COVER),
                 nonlinear))
+        self.sync_mesh_cover()
         if reset:
             sim.counters[dem.COUNT_UNCOVERED] = 0.0
 
@@ -835,10 +982,11 @@ class AutoStep:
         if self.cover is None:
             return None
         tracked = (len(sim.pairs.cover) == len(sim.pairs.i)
-                   and len(sim.wall_state.cover) == len(sim.wall_state.p))
+                   and len(sim.wall_state.cover) == len(sim.wall_state.p)
+                   and (not sim.mesh_walls or self.meshes_followed))
         if tracked and sim.counters[dem.COUNT_UNCOVERED] == 0:
-            return np.zeros(len(sim.pairs.i), dtype=bool), np.zeros(len(sim.wall_state.p),
-                                                                      dtype=bool)
+            return (np.zeros(len(sim.pairs.i), dtype=bool),
+                    np.zeros(len(sim.wall_state.p), dtype=bool), None)
         return self.uncovered(self.LOOKAHEAD_STEPS)
 
     #: 'auto': a check finds the contacts closing beyond their cover within this many
@@ -863,7 +1011,7 @@ class AutoStep:
         masks = self.uncovered_now()
         if masks is None:
             return False
-        if masks[0].any() or masks[1].any():
+        if any_uncovered(masks):
             covered = self.certify_added(*masks)
             if covered:
                 self.sync_cover()
@@ -923,6 +1071,7 @@ class AutoStep:
             sim.lists.moved_since_build()
         if cert is None or sim.dt is None or not cert.bounded:
             self.check_budget = math.inf
+            self.sync_mesh_cover(limit=math.inf)
             return True
         sigma = self.certified_sigma()
         if cert.has_bodies:  # the bodies' turn budgeted too (looked at after every step)
@@ -934,34 +1083,69 @@ class AutoStep:
             if self.check_budget > 0.0 or self.turn_budget > 0.0:
                 return True  # (room left at the look-ahead's bound, above the drift now)
             return cert.certifies(sigma, self.drift(cert))
-        if not cert.certifies(sigma, self.drift(cert)):
+        drift = self.drift(cert)
+        if not cert.certifies(sigma, drift):
             self.check_budget = 0.0
             return False
         cap = (self.DRIFT_BUDGET_CAP * float(sim.r.min(initial=math.inf))
                if cert.pair_bond.any() else math.inf)
+        reserved = 0.0
+        if self.meshes_followed:
+            # the mesh contacts' drift is measured at every step (the kernels' k + sigma
+            # c); a quarter of the room left is reserved for its growth, and the steps
+            # stop for a check once it has used half of that
+            (m_k, m_c), _, _ = self.mesh_check()
+            room = sigma * sigma - cert.bound(sigma, drift)
+            now = m_k + sigma * m_c
+            reserved = now + self.MESH_DRIFT_SHARE * room
+            self.sync_mesh_cover(limit=now + 0.5 * self.MESH_DRIFT_SHARE * room)
         self.check_budget = cert.drift_budget(
-            sigma, sim.x, sim.periodic_len, (sim.wall_point, sim.wall_normal), cap)
+            sigma, sim.x, sim.periodic_len, (sim.wall_point, sim.wall_normal), cap,
+            reserved=reserved)
         return True
+
+    #: 'auto' with mesh walls: the share of the room a check leaves (sigma^2 minus the
+    #: certificate's bound now) that the mesh contacts' drift may take before the next
+    MESH_DRIFT_SHARE = 0.25
 
     def contacts_covered(self) -> bool:
         """Whether every contact closed now was part of the last 'auto' estimate, at no
         larger overlap than it assumed (False also when there was no estimate)."""
         masks = self.uncovered()
-        return masks is not None and not (masks[0].any() or masks[1].any())
+        return masks is not None and not any_uncovered(masks)
 
-    def certify_added(self, pair_mask, wall_mask) -> bool:
+    def certify_added(self, pair_mask, wall_mask, mesh_need=None) -> bool:
         """Whether dt stays certified with the uncovered contacts added, without a new
         estimate (:mod:`demstep.timestep.certificate`): the added contacts count by the
         largest of their elements with each particle's whole mass, k + sigma c
         (Rayleigh's theorem on them alone, Weyl's inequality for the sum), on top of the
         last estimate's certificate and the drift of its normals. If dt stays certified
         the cover and the certificate are extended to them (True). Else False: a full
-        estimate is due."""
+        estimate is due. Mesh contacts beyond the cover (``mesh_need``: per particle how
+        many, at what overlap; None: none) enlarge the added group of mesh contacts
+        (:meth:`mesh_added_bound`), by the same rule."""
         sim = self.sim
         cert = self.certificate
         if cert is None or sim.dt is None:
             return False
         sigma = self.certified_sigma()
+        if mesh_need is not None:
+            if self.mesh_added is None:
+                return False
+            if not sim.law.nonlinear:  # (a linear law's: covered at any overlap)
+                mesh_need = mesh_need.copy()
+                mesh_need[:, 1] = np.where(mesh_need[:, 0] > 0.0, np.inf, 0.0)
+            mesh_added = np.maximum(self.mesh_added, mesh_need)
+            m_k, m_c = self.mesh_added_bound(mesh_added)
+            if sigma * sigma < cert.bound(sigma, self.drift(cert), added=(
+                    cert.add_k + m_k - cert.mesh_add_k, cert.add_c + m_c - cert.mesh_add_c)):
+                return False
+            cert.mesh_add_k, cert.mesh_add_c = m_k, m_c
+            self.mesh_added = mesh_added
+            self.sync_mesh_cover()
+            if not (pair_mask.any() or wall_mask.any()):
+                self.n_extensions += 1
+                return self.renew_drift_budget()
         added, overlaps = self.contacts_of(pair_mask, wall_mask)
         if added.n == 0:
             return True

@@ -108,7 +108,16 @@ def meshes_bundle(walls: list[MeshWall], law) -> Meshes:
         cand_p=np.zeros(0, np.int64), cand_t=np.zeros(0, np.int64),
         active=np.zeros(0, np.int64), slot_mesh=np.zeros(0, np.int64),
         slot_tri=np.zeros(0, np.int64), normal=np.zeros((0, 3)), shear=np.zeros((0, 3)),
-        dashpot=np.zeros((0, 3)), etan=np.zeros(0), fslot=np.zeros((0, 3)))
+        dashpot=np.zeros((0, 3)), etan=np.zeros(0), fslot=np.zeros((0, 3)),
+        **no_mesh_cover())
+
+
+def no_mesh_cover() -> dict:
+    """The Meshes fields of the 'auto' step's cover when it is not followed (no
+    certificate): empty rows, no drift limit (:class:`demstep.state.Meshes`)."""
+    return dict(cover_start=np.zeros(0, np.int64), cover_mesh=np.zeros(0, np.int64),
+                cover_ref=np.zeros((0, 11)), cover_extra=np.zeros((0, 2)),
+                cover_ctl=np.array([0.0, np.inf, 0.0, 0.0]), cover_out=np.zeros(3))
 
 
 def build_candidates(meshes: Meshes, x, r, skin: float, particle_id) -> tuple:

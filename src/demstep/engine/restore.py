@@ -125,7 +125,7 @@ def checked_state(sim, data: dict, source: str) -> dict:
                 shaped(key, like.shape, counts[name])
             # (inf is a value of: unused servo limits, the cover of a contact covered
             # at any overlap, a bond without a strength limit)
-            finite(key, nan_only=f in ("servo", "cover", "sigma_c", "tau_c"))
+            finite(key, nan_only=f in ("servo", "cover", "sigma_c", "tau_c", "cover_ctl"))
     for key in ("pairs.i", "pairs.j", "wall_state.p", "bonds.i", "bonds.j", "meshes.cand_p"):
         in_range(key, n, "particle")
     for key in ("meshes.cand_t", "meshes.slot_tri"):

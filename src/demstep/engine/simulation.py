@@ -493,7 +493,8 @@ class Simulation:
             for f in self.meshes.STATE:
                 data.setdefault(f"meshes.{f}", getattr(self.meshes, f))
         data.setdefault("meshes.surface", np.zeros_like(self.meshes.surface))  # (and from
-        # before surface velocities: none)
+        # before surface velocities: none; before the 'auto' step covered meshes: none)
+        data.setdefault("meshes.cover_ctl", np.array([0.0, np.inf, 0.0, 0.0]))
         missing = [k for k in needed if k not in data]
         if missing:
             raise InputError(f"{source}: a damaged checkpoint (array {missing[0]!r} missing)")
@@ -572,10 +573,10 @@ class Simulation:
         if self.timestep.mode == "auto":
             self.auto.prepare()
         self._check_motion_limit()
-        if self.mesh_walls and self.timestep.mode == "auto":
-            raise InputError("timestep mode 'auto': mesh walls are not covered by the certified "
-                             "step yet (use mode 'fixed' with a step from demstep dt --mesh, "
-                             "or 'alpha')")
+        if self.mesh_walls and self.bodies.n and self.timestep.mode == "auto":
+            raise InputError("timestep mode 'auto': clumps with mesh walls are not covered by "
+                             "the certified step yet (use mode 'fixed' with a step from "
+                             "demstep dt --mesh, or 'alpha')")
         if self.dt is None or self.timestep.mode != "auto" or self.dt_certified is None:
             self._choose_dt()
 

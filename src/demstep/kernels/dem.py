@@ -1191,6 +1191,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
         # 2c. triangle-mesh walls (serial: a sphere's contacts with a mesh are one list)
         me_n, me_t, md_fric, md_dash = 0.0, 0.0, 0.0, 0.0
         if meshes.tri.shape[0] > 0:
+            meshes.cover_ctl[3] = dt  # (the look-ahead of the 'auto' step's mesh cover)
             me_n, me_t, md_fric, md_dash = mesh_forces(sph, meshes, params, dt_slip)
         # 2b. parallel bonds (serial: bonds share particles)
         eb_s, eb_r = 0.0, 0.0
@@ -1280,6 +1281,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
                                     meshes.vel, meshes.omega, meshes.center, meshes.shift,
                                     meshes.turn, dt)
             meshes.moved[0] += mesh_step
+            meshes.cover_ctl[2] = mesh_step
             boundary_move += meshes.moved[0]
             boundary_step += mesh_step
         # 7. ledger
@@ -1306,7 +1308,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
             wc += meshes.contacts[mk]
         counters[COUNT_WALL_CONTACTS] = wc
         counters[COUNT_JUMP] = out[7]
-        counters[COUNT_UNCOVERED] += pp_uncovered + pw_uncovered
+        counters[COUNT_UNCOVERED] += pp_uncovered + pw_uncovered + meshes.cover_out[2]
         counters[DRIFT_NOW] = math.sqrt(out[6])
         counters[DRIFT_WALL_NOW] = boundary_move
         if budget < np.inf:  # how far any pair's ends can have moved relative to each other
@@ -1342,8 +1344,9 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
             return step + 1, STOP_REBUILD
         if counters[COUNT_UNCOVERED] > 0:
             return step + 1, STOP_UNCOVERED
-        # the drift of the certified step is due for a check
-        if drift_used(counters) > budget:
+        # the drift of the certified step is due for a check (the mesh contacts' drift
+        # is measured at every step: :func:`demstep.kernels.meshes.mesh_forces`)
+        if drift_used(counters) > budget or meshes.cover_out[0] > meshes.cover_ctl[1]:
             return step + 1, STOP_CHECK
     return n_steps, STOP_DONE
 

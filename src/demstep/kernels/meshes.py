@@ -40,6 +40,7 @@ from demstep._numba import njit
 from demstep.contact.laws import params_from_row
 from demstep.contact.triangles import FACE, closest_point_on_triangle, triangle_contact
 from demstep.kernels.response import contact_response
+from demstep.kernels.turn_factor import turn_factor
 
 #: two contacts of a sphere with a mesh at consecutive steps are the same contact when
 #: their normals are within this angle (cosine: 45 degrees): a sphere rolling over a
@@ -94,7 +95,17 @@ def _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep):
         g[k, 0], g[k, 1], g[k, 2], g[k, 3], g[k, 4] = delta, nx, ny, nz, dist
         g[k, 5], g[k, 6], g[k, 7] = qx, qy, qz
         feat[k] = feature
-        keep[k] = delta > 0.0
+    _one_per_surface(s, n, cand_t, vid, tri_mesh, g, feat, keep, rp, 0.0)
+
+
+@njit(inline="always")
+def _one_per_surface(s, n, cand_t, vid, tri_mesh, g, feat, keep, rp, reach):
+    """``keep[k]``: whether candidate row k of a sphere of radius ``rp`` (its geometry
+    ``g``, ``feat`` from :func:`_sphere_contacts`) is one of its contacts after the
+    one-contact-per-surface rule, for the sphere grown by ``reach`` [L] (0: the
+    contacts now; the rule looks at the distances only, which growing leaves alone)."""
+    for k in range(n):
+        keep[k] = g[k, 0] + reach > 0.0
     # an edge or vertex contact that a closer contact of a triangle holding the same
     # edge or vertex covers is dropped
     tol = SAME_DISTANCE * rp
@@ -113,6 +124,139 @@ def _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep):
                     feat[j] == FACE or tj < tk)):
                 keep[k] = False
                 break
+
+
+#: the columns of ``Meshes.cover_ref`` (:class:`demstep.state.Meshes`): the reference
+#: normal (3), arm, springs k_n, k_t, dashpots c_n, c_t, the overlap covered, the
+#: particle's inverse mass and inverse moment of inertia
+REF_ARM, REF_KN, REF_KT, REF_CN, REF_CT, REF_CAP, REF_INV_M, REF_INV_I = 3, 4, 5, 6, 7, 8, 9, 10
+
+
+@njit(inline="always")
+def _matched_drift(g, k, ref, row, w_k, w_c):
+    """The drift bound of a touching contact (row k of ``g``) against the covered
+    contact ``ref[row]`` it stands for: the turn |n - n_ref| times the turn factor at the
+    arm now, plus the arm term (:mod:`demstep.timestep.certificate`, a wall element: one
+    particle), of the coefficients ``w_k`` x the springs + ``w_c`` x the dashpots (1, 0:
+    the springs' [1/T^2]; 0, 1: the dashpots' [1/T]; 1, sigma: both at the root sigma;
+    the bound is linear in them)."""
+    t0 = -g[k, 1] - ref[row, 0]
+    t1 = -g[k, 2] - ref[row, 1]
+    t2 = -g[k, 3] - ref[row, 2]
+    turn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+    a, a_ref = g[k, 4], ref[row, REF_ARM]
+    inv_m, inv_i = ref[row, REF_INV_M], ref[row, REF_INV_I]
+    arm_term = abs(a - a_ref) * math.sqrt(inv_i) * (math.sqrt(inv_m + a * a * inv_i)
+                                                    + math.sqrt(inv_m + a_ref * a_ref * inv_i))
+    b_n = w_k * ref[row, REF_KN] + w_c * ref[row, REF_CN]
+    b_t = w_k * ref[row, REF_KT] + w_c * ref[row, REF_CT]
+    out = arm_term * b_t
+    if turn > 0.0:
+        out += turn * turn_factor(inv_m, a * a * inv_i, b_n, b_t, False)
+    return out
+
+
+@njit(inline="always")
+def _sphere_cover(p, s, n, cand_t, vid, tri_mesh, g, feat, keep, near, rp, reach,
+                  cover_start, cover_mesh, cover_ref, cover_extra, sigma, split, taken, out):
+    """The 'auto' step's cover of sphere ``p``'s mesh contacts (its ``n`` candidate rows
+    from row ``s``, their geometry ``g``, ``feat``; ``keep`` its contacts now): each
+    contact now, then each the sphere grown by ``reach`` [L] finds (those closing within
+    the look-ahead), is matched to a covered contact of the same mesh (the closest
+    reference normal, not taken yet) whose overlap covered is at least its overlap +
+    ``reach``; the others count on the certificate's added group (``cover_extra[p]``:
+    how many, at what overlap). ``out`` receives the drift of the matched contacts now
+    (:func:`_matched_drift` at the root ``sigma`` [1/T^2]), how many found no covered
+    contact and the largest overlap + reach among those [L], and with ``split`` the
+    drift of the springs [1/T^2] and of the dashpots [1/T] apart. Returns whether the
+    added group is too small for them (the contacts are not covered)."""
+    _one_per_surface(s, n, cand_t, vid, tri_mesh, g, feat, near, rp, reach)
+    q0 = cover_start[p]
+    nq = min(cover_start[p + 1] - q0, taken.shape[0])
+    for q in range(nq):
+        taken[q] = False
+    drift = 0.0
+    drift_k = 0.0
+    drift_c = 0.0
+    extra = 0
+    extra_cap = 0.0
+    for phase in range(2):  # touching first (their drift counts), then those near
+        for k in range(n):
+            if (phase == 0 and not keep[k]) or (phase == 1 and (keep[k] or not near[k])):
+                continue
+            mk = tri_mesh[cand_t[s + k]]
+            best = -1
+            best_cos = -2.0
+            for q in range(nq):
+                row = q0 + q
+                if taken[q] or cover_mesh[row] != mk:
+                    continue
+                cos = -(g[k, 1] * cover_ref[row, 0] + g[k, 2] * cover_ref[row, 1]
+                        + g[k, 3] * cover_ref[row, 2])
+                if cos > best_cos:
+                    best_cos = cos
+                    best = q
+            need = max(g[k, 0], 0.0) + reach
+            if best >= 0 and need <= cover_ref[q0 + best, REF_CAP]:
+                taken[best] = True
+                if phase == 0:
+                    drift += _matched_drift(g, k, cover_ref, q0 + best, 1.0, sigma)
+                    if split:
+                        drift_k += _matched_drift(g, k, cover_ref, q0 + best, 1.0, 0.0)
+                        drift_c += _matched_drift(g, k, cover_ref, q0 + best, 0.0, 1.0)
+            else:
+                extra += 1
+                extra_cap = max(extra_cap, need)
+    out[0] = drift
+    out[1] = extra
+    out[2] = extra_cap
+    out[3] = drift_k
+    out[4] = drift_c
+    return extra > cover_extra[p, 0] or (extra > 0 and extra_cap > cover_extra[p, 1])
+
+
+@njit
+def mesh_cover_check(x, v, r, meshes, steps, boundary, dt, need):
+    """The 'auto' step's cover of every sphere's mesh contacts at the positions ``x``
+    (:func:`_sphere_cover`), looking ``steps`` steps of ``dt`` [T] ahead at the
+    velocities ``v`` plus the boundaries' move ``boundary`` [L]: the largest drift of a
+    sphere's contacts, of the springs [1/T^2] and of the dashpots [1/T] (each a bound
+    at any root, :func:`_matched_drift`), and how many spheres need more of the added
+    group than it holds; ``need`` (N, 2) receives per sphere how many of its contacts
+    need it and at what overlap [L] (zeros: none)."""
+    cand_p, cand_t = meshes.cand_p, meshes.cand_t
+    n_cand = cand_p.shape[0]
+    g = np.empty((MAX_CANDIDATES, 9))
+    feat = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    keep = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+    near = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+    taken = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+    out = np.empty(5)
+    need[:] = 0.0
+    drift_k = 0.0
+    drift_c = 0.0
+    short = 0
+    sigma = meshes.cover_ctl[0]
+    s = 0
+    while s < n_cand:
+        p = cand_p[s]
+        e = s
+        while e < n_cand and cand_p[e] == p:
+            e += 1
+        _sphere_contacts(x, r, p, s, e - s, cand_t, meshes.tri, meshes.vid, meshes.tri_mesh,
+                         g, feat, keep)
+        speed = math.sqrt(v[p, 0] ** 2 + v[p, 1] ** 2 + v[p, 2] ** 2)
+        reach = steps * speed * dt + boundary
+        if _sphere_cover(p, s, e - s, cand_t, meshes.vid, meshes.tri_mesh, g, feat, keep, near,
+                         r[p], reach, meshes.cover_start, meshes.cover_mesh, meshes.cover_ref,
+                         meshes.cover_extra, sigma, True, taken, out):
+            short += 1
+        drift_k = max(drift_k, out[3])
+        drift_c = max(drift_c, out[4])
+        need[p, 0] = out[1]
+        need[p, 1] = out[2]
+        s = e
+    return drift_k, drift_c, short
 
 
 @njit
@@ -185,6 +329,15 @@ def mesh_forces(sph, meshes, params, dt):
     mesh_power, mesh_contacts = meshes.power, meshes.contacts
     n_cand = cand_p.shape[0]
     n_mesh = mesh_force.shape[0]
+    # the 'auto' step's cover, followed when set for these spheres
+    cover_start, cover_ctl, cover_out = meshes.cover_start, meshes.cover_ctl, meshes.cover_out
+    track = cover_start.shape[0] == x.shape[0] + 1
+    near = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+    taken_ref = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+    cover_row = np.empty(5)
+    drift_max = 0.0
+    n_short = 0
+    lookahead = 2.0 * cover_ctl[3]  # (twice a step's move: the look-ahead of the pairs')
     mesh_force[:] = 0.0
     mesh_torque[:] = 0.0
     mesh_power[:] = 0.0
@@ -211,6 +364,14 @@ def mesh_forces(sph, meshes, params, dt):
         px, py, pz, rp = x[p, 0], x[p, 1], x[p, 2], r[p]
         # 1-2. each candidate triangle's contact, one per surface
         _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep)
+        if track:  # the contacts now and those closing in the next step, covered?
+            speed = math.sqrt(v[p, 0] ** 2 + v[p, 1] ** 2 + v[p, 2] ** 2)
+            reach = lookahead * speed + 2.0 * cover_ctl[2]
+            if _sphere_cover(p, s, n, cand_t, vid, tri_mesh, g, feat, keep, near, rp, reach,
+                             cover_start, meshes.cover_mesh, meshes.cover_ref,
+                             meshes.cover_extra, cover_ctl[0], False, taken_ref, cover_row):
+                n_short += 1
+            drift_max = max(drift_max, cover_row[0])
         # 3. the old slots of this sphere
         n_old = 0
         for k in range(n):
@@ -344,6 +505,9 @@ def mesh_forces(sph, meshes, params, dt):
             fslot[q, 1] = 0.0
             fslot[q, 2] = 0.0
         s = e
+    cover_out[0] = drift_max
+    cover_out[1] = 0.0
+    cover_out[2] = n_short
     return e_n, e_t, d_fric, d_dash
 
 

@@ -124,44 +124,11 @@ import numpy as np
 from demstep._numba import njit
 from demstep.contact.geometry import (any_periodic, contact_arms, minimum_image, pair_geometry,
                                       wall_geometry)
+from demstep.kernels.turn_factor import (TURN_FACTOR_ITERATIONS, TURN_FACTOR_MARGIN,  # noqa: F401
+                                         turn_factor as _turn_factor)
 from demstep.timestep.clumps import cross_matrix, owner_mass_shares
 from demstep.timestep.elements import coupled_element_lambda
 from demstep.timestep.mass_split import element_mass
-
-#: relative margin added to the root :func:`_turn_factor` finds (its Newton iterates
-#: approach the root from above in exact arithmetic; this covers their rounding), and
-#: the most iterations it takes (an early stop leaves a larger, still valid, bound)
-TURN_FACTOR_MARGIN = 1e-12
-TURN_FACTOR_ITERATIONS = 30
-
-
-@njit(inline="always")
-def _turn_factor(trans, rot, b_n, b_t, planar):
-    """lambda_max(M) of the module doc, an upper bound on |E(n') - E(n)| / |n' - n| for
-    a turn at the arms now: ``trans`` = tau^2 = 1/m_i + 1/m_j, ``rot`` = rho^2, the
-    normal and tangential coefficients ``b_n``, ``b_t`` (springs or dashpots); for
-    disks (``planar``) the 2 x 2 block's, in closed form. In 3D the largest root of
-    det(M - x) = -(x^3 - A x^2 - (B^2 + C^2) x + A C^2), which is convex and increasing
-    from A (<= the root) on: Newton's iterates from the upper bound b_t rho l + A
-    decrease to it and stay above it, until a step is below 1e-14 of it, plus
-    :data:`TURN_FACTOR_MARGIN`."""
-    big_a = abs(b_n - b_t) * trans
-    b2 = b_t * b_t * trans * rot
-    if planar:
-        return (0.5 * big_a + math.sqrt(0.25 * big_a * big_a + b2)) * (1.0 + TURN_FACTOR_MARGIN)
-    c2 = b_t * b_t * rot * rot
-    x = b_t * math.sqrt(rot * (trans + rot)) + big_a
-    for _ in range(TURN_FACTOR_ITERATIONS):
-        slope = x * (3.0 * x - 2.0 * big_a) - (b2 + c2)
-        value = x * (x * (x - big_a) - (b2 + c2)) + big_a * c2
-        if slope <= 0.0 or value <= 0.0:
-            break
-        step = value / slope
-        x -= step
-        if step <= 1e-14 * x:
-            break
-    return x * (1.0 + TURN_FACTOR_MARGIN)
-
 
 @njit(inline="always")
 def _branch(x, a, b, periodic_len):
@@ -768,6 +735,26 @@ def _rolling_turn_factor(l_phi2, b_r, b_w):
     return l_phi2 * np.abs(b_w - b_r)
 
 
+def mesh_added_bound(count, k_n, k_t, c_n, c_t, radius, inv_m, inv_I) -> tuple[float, float]:
+    """Bounds on lambda_max(K^) [1/T^2] and lambda_max(C^) [1/T] of a group of
+    particle-mesh contacts, whatever their normals: per particle (arrays over the
+    particles concerned) ``count`` contacts, each with springs at most ``k_n``, ``k_t``
+    [M/T^2] and dashpots at most ``c_n``, ``c_t`` [M/T], its arm at most the ``radius``
+    [L], the particle's inverse mass ``inv_m`` and moment of inertia ``inv_I`` (zero:
+    fixed, or rotation off). A wall element's mass-scaled matrix gives
+    x.E x = k_n (n.u)^2 / m + k_t |P (u / sqrt(m) + a n x w / sqrt(I))|^2 (P the
+    tangent projector), at most max(k_n / m, k_t (1/m + a^2 / I)) |x|^2 (Cauchy-Schwarz
+    on the tangential part), a bound that does not depend on n; a particle's contacts
+    act on it alone, so the group's largest eigenvalue is at most the largest sum over
+    one particle's contacts: ``count`` times that."""
+    count = np.asarray(count, dtype=np.float64)
+    inv_m = np.asarray(inv_m, dtype=np.float64)
+    reach = inv_m + np.asarray(radius, dtype=np.float64) ** 2 * np.asarray(inv_I, float)
+    lam_k = count * np.maximum(np.asarray(k_n) * inv_m, np.asarray(k_t) * reach)
+    lam_c = count * np.maximum(np.asarray(c_n) * inv_m, np.asarray(c_t) * reach)
+    return float(lam_k.max(initial=0.0)), float(lam_c.max(initial=0.0))
+
+
 def added_contacts_bound(particles, added, rotation: bool, bodies=None) -> tuple[float, float]:
     """(A_K [1/T^2], A_C [1/T]): bounds on lambda_max(K^) and lambda_max(C^) of a group
     of ``added`` contacts alone (a ContactSet; with their longest possible arms), the
@@ -858,6 +845,18 @@ class StepCertificate:
     body_coef: np.ndarray = field(default_factory=lambda: np.zeros((0, 8)))
     #: the dimension of the contacts with a member (disks: their rolling does not turn)
     body_dim: int = 3
+    #: the covered particle-mesh contacts: particle ``mesh_p`` (Q,), mesh ``mesh_k``
+    #: (Q,) and ``mesh_ref`` (Q, 11), the rows of ``Meshes.cover_ref`` (reference
+    #: normal, arm, springs, dashpots, overlap covered, the particle's inverse mass and
+    #: moment of inertia); their drift is measured at every step by the kernels
+    #: (:mod:`demstep.kernels.meshes`), not bounded ahead
+    mesh_p: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    mesh_k: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    mesh_ref: np.ndarray = field(default_factory=lambda: np.zeros((0, 11)))
+    #: bounds on lambda_max(K^) [1/T^2] and lambda_max(C^) [1/T] of the mesh contacts
+    #: added since the estimate (:func:`mesh_added_bound`; Weyl's inequality adds them)
+    mesh_add_k: float = 0.0
+    mesh_add_c: float = 0.0
 
     @property
     def has_bodies(self) -> bool:
@@ -1042,16 +1041,18 @@ class StepCertificate:
                 float(min(angle_cap, share / rate_a)) if rate_a > 0.0 else float(angle_cap))
 
     def drift_budget(self, sigma: float, x, periodic_len, walls=None,
-                     e_cap: float = math.inf) -> float:
+                     e_cap: float = math.inf, reserved: float = 0.0) -> float:
         """How far [L] the pairs' ends (and the walls) may move relative to each other
         from the positions ``x`` now, at most ``e_cap``, with the step 2 / ``sigma``
         still certified at every position reached (:func:`_lookahead_sums`): the
-        largest E with sigma^2 >= :meth:`bound` at the drift D_up + E G. 0 when even
-        D_up does not leave room; +inf with nothing covered."""
+        largest E with sigma^2 >= :meth:`bound` at the drift D_up + ``reserved`` + E G
+        (``reserved`` [1/T^2]: the part of the drift left to the mesh contacts, which
+        the kernels measure). 0 when even D_up does not leave room; +inf with nothing
+        covered."""
         if not self.bounded or self.has_bodies:  # (clumps: a check at every step)
             return 0.0
         if len(self.pair_i) == 0 and len(self.wall_p) == 0:
-            return math.inf if self.certifies(sigma) else 0.0
+            return math.inf if self.certifies(sigma, (reserved, 0.0)) else 0.0
         x = np.ascontiguousarray(x, dtype=np.float64)
         up_k, up_c, rate_k, rate_c = (np.zeros(x.shape[0]) for _ in range(4))
         _lookahead_sums(x, self.pair_i, self.pair_j, self.pair_bond, self.normal, self.factors,
@@ -1061,10 +1062,11 @@ class StepCertificate:
             point, normal = (np.ascontiguousarray(a, dtype=np.float64) for a in walls)
             _wall_lookahead_sums(x, self.wall_p, self.wall_w, point, normal, self.wall_factors,
                                  self.particles, up_k, up_c, rate_k, rate_c)
-        slack = sigma * sigma - self.bound(sigma, (float(up_k.max()), float(up_c.max())))
+        slack = sigma * sigma - self.bound(sigma, (float(up_k.max(initial=0.0)) + reserved,
+                                                   float(up_c.max(initial=0.0))))
         if not slack > 0.0:
             return 0.0
-        rate = float(rate_k.max()) + sigma * float(rate_c.max())
+        rate = float(rate_k.max(initial=0.0)) + sigma * float(rate_c.max(initial=0.0))
         # (a relative margin for the rounding of the sums)
         return float(min(e_cap, (1.0 - 1e-9) * slack / rate)) if rate > 0.0 else float(e_cap)
 
@@ -1082,6 +1084,7 @@ class StepCertificate:
         with these bounds of the added contacts in place of the certificate's."""
         d_k, d_c = drift
         add_k, add_c = (self.add_k, self.add_c) if added is None else added
+        add_k, add_c = add_k + self.mesh_add_k, add_c + self.mesh_add_c
         return (self.sigma ** 2 + max(sigma - self.sigma, 0.0) * self.slope
                 + sigma * (add_c + d_c) + add_k + d_k)
 
@@ -1094,8 +1097,9 @@ class StepCertificate:
         sigma^2 = :meth:`bound` (at least sigma_c, below which the bound exceeds
         sigma^2), nudged up past rounding."""
         d_k, d_c = drift
-        slope = self.slope + self.add_c + d_c
-        const = self.sigma ** 2 - self.sigma * self.slope + self.add_k + d_k
+        slope = self.slope + self.add_c + self.mesh_add_c + d_c
+        const = (self.sigma ** 2 - self.sigma * self.slope + self.add_k + self.mesh_add_k
+                 + d_k)
         s = max(0.5 * (slope + math.sqrt(max(slope * slope + 4.0 * const, 0.0))), self.sigma)
         while not self.certifies(s, drift):
             s = math.nextafter(s, math.inf)
@@ -1117,6 +1121,8 @@ class StepCertificate:
             self.body_pairs = moved
         if len(self.particles):
             self.particles = np.ascontiguousarray(self.particles[order])
+        if len(self.mesh_p):
+            self.mesh_p = inv[self.mesh_p]
 
     def set_added(self, k: float, c: float):
         """All the contacts added since the estimate: bounds on lambda_max(K^) [1/T^2]
@@ -1128,7 +1134,9 @@ class StepCertificate:
     # ---------------------------------------------------------------- checkpoints
     def state(self) -> dict:
         return {"ts_cert": np.array([self.sigma, self.lam_c, self.add_k, self.add_c,
-                                     float(self.bounded)]),
+                                     float(self.bounded), self.mesh_add_k, self.mesh_add_c]),
+                "ts_cert_meshes": np.stack([self.mesh_p, self.mesh_k]),
+                "ts_cert_mesh_ref": self.mesh_ref,
                 "ts_cert_pairs": np.stack([self.pair_i, self.pair_j, self.pair_bond]),
                 "ts_cert_normal": self.normal,
                 "ts_cert_coefficients": self.factors,
@@ -1179,4 +1187,11 @@ class StepCertificate:
             cert.body_ref = rows("ts_cert_body_ref", 5)
             cert.body_coef = rows("ts_cert_body_coef", 8)
             cert.body_dim = int(np.asarray(data["ts_cert_body_dim"]).reshape(-1)[0])
+        if "ts_cert_meshes" in data:  # (older checkpoints: no mesh contacts covered)
+            meshes = np.asarray(data["ts_cert_meshes"], dtype=np.int64).reshape(2, -1)
+            cert.mesh_p = np.ascontiguousarray(meshes[0])
+            cert.mesh_k = np.ascontiguousarray(meshes[1])
+            cert.mesh_ref = rows("ts_cert_mesh_ref", 11)
+        if len(values) >= 7:
+            cert.mesh_add_k, cert.mesh_add_c = values[5], values[6]
         return cert
