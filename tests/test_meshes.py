@@ -212,17 +212,6 @@ def test_a_run_with_a_mesh_restarts_bit_for_bit(tmp_path):
     assert np.array_equal(a.ledger.acc, b.ledger.acc)
 
 
-def test_auto_mode_with_meshes_is_refused_in_one_line():
-    from demstep.errors import InputError
-
-    x = np.array([[0.0, 0.0, R]])
-    p = Particles.from_density(x, np.array([R]), DENSITY)
-    sim = Simulation(p, LinearSpring(k_n=2e5), meshes=[MeshWall(flat_mesh())],
-                     timestep=TimeStep.auto())
-    with pytest.raises(InputError, match="mesh walls are not covered"):
-        sim.run(steps=1)
-
-
 def _resting(law, material, overlap=1e-4):
     """A sphere pressed ``overlap`` into a mesh of ``material`` (gravity off), after
     one step: the force the mesh exerts and the critical step."""
