@@ -691,11 +691,11 @@ def watch_additions(sim, on_added):
     it, ``keys`` a key per contact: (i, j) or (p, -1 - wall))."""
     original = sim.auto.certify_added
 
-    def certify(pair_mask, wall_mask):
+    def certify(pair_mask, wall_mask, mesh_need=None):
         group = sim.auto.contacts_of(pair_mask, wall_mask)[0]
         keys = [(int(a), int(b) if b >= 0 else -1 - int(w))
                 for a, b, w in zip(group.i, group.j, group.wall)]
-        ok = original(pair_mask, wall_mask)
+        ok = original(pair_mask, wall_mask, mesh_need)
         if ok:
             on_added(sim, group, keys)
         return ok

@@ -35,9 +35,10 @@ from demstep.contact.laws import LAWS, params_from_row
 from demstep.timestep.contacts import ContactSet
 from demstep.engine.analysis import (NO_COVER, coefficients, contact_elements, global_damping,
                                      pair_keys, sorted_keys, wall_keys, walls_per_key)
+from demstep.engine.meshes import no_mesh_cover
 from demstep.errors import InputError
 from demstep.kernels import dem
-from demstep.kernels.meshes import REF_CAP, mesh_cover_check
+from demstep.kernels.meshes import mesh_cover_check
 from demstep.kernels.timestep_kernels import rolling_coefficient_arrays
 from demstep.particles import INERTIA_FACTOR
 from demstep.scratch import Workspace
@@ -232,7 +233,6 @@ class AutoStep:
         ctl = me.cover_ctl
         if self._cover is None or self.mesh_added is None \
                 or len(self.mesh_added) != len(sim.r):
-            from demstep.engine.meshes import no_mesh_cover
             fresh = no_mesh_cover()
             fresh["cover_ctl"][2:] = ctl[2:]  # (the meshes' last move)
             sim.meshes = me._replace(**fresh)

@@ -63,14 +63,20 @@ class _ParamsMixin:
         return self.c_n > 0 or self.c_t > 0 or self.beta_n > 0 or self.beta_t > 0
 
 
-def params_class(name: str, own: tuple) -> type:
+def params_class(name: str, own: tuple, module: str) -> type:
     """The parameter tuple of a law: :data:`COMMON_FIELDS` and the law's ``own`` fields
     (float64 each, 0 by default). A tuple of scalars: loop invariants the compiler
     hoists (an array might alias the arrays the loops write; measured 10x slower). Each
-    law's tuple is a type of its own, so numba compiles a step for each law."""
+    law's tuple is a type of its own, so numba compiles a step for each law.
+
+    The class must be bound to ``name`` in ``module`` (the law's module): numba's cache
+    of compiled steps keys them by their argument types, which name this class by its
+    module and name; a class found there matches in the next process, so a run loads the
+    compiled steps instead of compiling them again (about 15 s per step kernel)."""
     names = COMMON_FIELDS + tuple(own)
     base = namedtuple(f"_{name}", names, defaults=(0.0,) * len(names))
-    return type(name, (_ParamsMixin, base), {"__slots__": ()})
+    base.__module__ = module
+    return type(name, (_ParamsMixin, base), {"__slots__": (), "__module__": module})
 
 
 class LawKernels(NamedTuple):

@@ -21,7 +21,7 @@ from demstep._numba import njit
 from demstep.contact.laws.base import (ContactLaw, LawKernels, check_number, law_field,
                                        params_class, register)
 
-Params = params_class("CohesiveParams", ("k_n", "k_s", "cohesion"))
+Params = CohesiveParams = params_class("CohesiveParams", ("k_n", "k_s", "cohesion"), __name__)
 
 
 @njit(inline="always")

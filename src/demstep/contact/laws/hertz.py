@@ -18,7 +18,7 @@ from demstep.contact.laws.base import (ContactLaw, LawKernels, check_number, law
                                        params_class, register)
 from demstep.errors import InputError
 
-Params = params_class("HertzParams", ("e_star", "g_star"))
+Params = HertzParams = params_class("HertzParams", ("e_star", "g_star"), __name__)
 
 
 class _Material(NamedTuple):

@@ -13,7 +13,7 @@ from demstep._numba import njit
 from demstep.contact.laws.base import (ContactLaw, LawKernels, check_number, law_field,
                                        params_class, register)
 
-Params = params_class("LinearParams", ("k_n", "k_s"))
+Params = LinearParams = params_class("LinearParams", ("k_n", "k_s"), __name__)
 
 
 @njit(inline="always")
