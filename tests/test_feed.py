@@ -290,10 +290,18 @@ def test_a_run_with_insertion_and_an_outlet_restarts_bit_for_bit(tmp_path):
 
 
 # ------------------------------------------------------------------ 'auto'
-def test_auto_certifies_the_step_of_particles_inserted_lighter_than_any_there():
+@pytest.mark.parametrize("sort_every", [None, 1])
+def test_auto_certifies_the_step_of_particles_inserted_lighter_than_any_there(sort_every,
+                                                                               monkeypatch):
     """Large spheres rest on the floor; small ones (1/27 of their mass) are inserted
     over them. The certified step must stay below the exact critical step of the
-    contacts at every check, including the first contacts of the small ones."""
+    contacts at every check, including the first contacts of the small ones. With the
+    particles sorted at every rebuild (sort_every = 1), the rebuild an insertion makes
+    renumbers them before the new estimate (sorted whatever the gain)."""
+    from demstep.engine.ordering import SpatialOrder
+
+    if sort_every:
+        monkeypatch.setattr(SpatialOrder, "SORT_GAIN", -math.inf)
     law = LinearSpring(k_n=2e3, restitution=0.5)
     x = np.array([[0.01 * i + 0.005, 0.005, 0.006] for i in range(4)])
     p = Particles.from_density(x, np.full(4, 0.006), DENSITY)
@@ -301,7 +309,8 @@ def test_auto_certifies_the_step_of_particles_inserted_lighter_than_any_there():
                     radius=RadiusDistribution("fixed", radius=0.002), rate=2000.0, every=200,
                     total=12)
     sim = Simulation(p, law, walls=box_walls([0, 0, 0], [0.04, 0.01, 0.1]),
-                     gravity=[0, 0, -9.81], timestep=TimeStep.auto(every=200), feed=[ins])
+                     gravity=[0, 0, -9.81], timestep=TimeStep.auto(every=200), feed=[ins],
+                     sort_every=sort_every)
     worst = []
 
     def check(s):

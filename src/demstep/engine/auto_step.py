@@ -177,6 +177,17 @@ class AutoStep:
             self.mode = (None if sim.bodies.n or mode.size % n
                              else mode.reshape(n, -1)[order].reshape(-1))
 
+    def forget(self):
+        """Drop what names particles by index (the certificate, the critical mode, the
+        records of covered contacts): before the lists of a changed particle set are
+        built (their rebuild may renumber the particles)."""
+        self.certificate = None
+        self.mode = None
+        self.added = {}
+        self.mesh_added = None
+        if self._cover is not None:
+            self.cover = {}
+
     def resized(self):
         """The particle set changed (:mod:`demstep.engine.population`): the certificate,
         the critical mode and the records of covered contacts name particles by index
@@ -185,12 +196,7 @@ class AutoStep:
         lower the certified step (an estimate at least as large leaves the step
         certified for the old set, which the new one does not need more than)."""
         sim = self.sim
-        self.certificate = None
-        self.mode = None
-        self.added = {}
-        self.mesh_added = None
-        if self._cover is not None:
-            self.cover = {}
+        self.forget()
         if sim.timestep.mode == "auto" and sim.dt is not None and sim.lists.built:
             self.propose_dt(force=True, scheduled=False)
 

@@ -171,6 +171,7 @@ def _resized(sim, rebuild: bool):
     """After the particle set changed: the pair loop's work space, the lists (rebuilt
     after an insertion), the 'auto' certificate."""
     sim.pairs_changed()
+    sim.auto.forget()  # (the rebuild may renumber the particles: nothing may name the old)
     if rebuild and sim.lists.built:
         sim.lists.rebuild()
     sim.auto.resized()
