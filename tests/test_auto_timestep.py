@@ -28,7 +28,6 @@ def auto_case(name, safety, every=200, checkpoint_every=400):
     return case_from_dict(data, base_dir=EXAMPLES, source=name)
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("safety", [1.0, 0.9])
 @pytest.mark.parametrize("name,max_steps", [("hex_biaxial_2d.toml", 1600),
                                             ("polydisperse_settling_3d.toml", 2400)])

@@ -174,7 +174,6 @@ def test_experiment_bad_options(capsys, argv, needle):
     assert code == 2 and needle in err and "Traceback" not in err
 
 
-@pytest.mark.slow
 def test_paper_quick_end_to_end(tmp_path, capsys):
     out = tmp_path / "paper"
     code, stdout, err = run_cli(["paper", "--quick", "--out", str(out), "--quiet"], capsys)

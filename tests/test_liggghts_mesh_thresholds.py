@@ -52,7 +52,6 @@ def test_wall_contacts_bring_the_step_to_liggghts_threshold(rec, capsys, monkeyp
     assert without["exact"] > hi
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("rec", [c for c in CASES if c["rotation"]],
                          ids=[c["case"] for c in CASES if c["rotation"]])
 def test_the_contact_point_arm_gives_a_longer_step(rec, monkeypatch):

@@ -691,8 +691,8 @@ def test_signals_after_a_run_stopped_by_one(exit_now):
 
 @pytest.mark.parametrize("first,second,gap", [
     (signal.SIGTERM, signal.SIGINT, 0.0),
-    pytest.param(signal.SIGTERM, signal.SIGTERM, 0.02, marks=pytest.mark.slow),
-    pytest.param(signal.SIGINT, signal.SIGINT, 0.02, marks=pytest.mark.slow)])
+    (signal.SIGTERM, signal.SIGTERM, 0.02),
+    (signal.SIGINT, signal.SIGINT, 0.02)])
 def test_two_signals_to_a_real_process(tmp_path, first, second, gap):
     """Before: 'SystemError: CPUDispatcher(...) returned a result with an exception
     set' one time in ten, or 143 where 130 was due, and run.json left at 'running'.
@@ -715,7 +715,6 @@ def test_two_signals_to_a_real_process(tmp_path, first, second, gap):
         assert f"demstep run: {info['status']}: " in err
 
 
-@pytest.mark.slow
 def test_ctrl_c_during_the_first_compilation(tmp_path):
     """With a cold numba cache the first chunk compiles for a minute or more; Ctrl-C
     used to act only after it. Now the run stops at once, run.json says it stopped

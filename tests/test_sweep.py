@@ -239,7 +239,6 @@ def test_sweep_refuses_a_run_its_build_refuses_before_writing(tiny, tmp_path, ca
     assert not out.exists()
 
 
-@pytest.mark.slow
 def test_sweep_local_cluster_diverged_and_resume(tiny, tmp_path, capsys):
     """Runs on a local cluster of two workers: completed and diverged runs in the
     summary and their run.json; a second call skips every finished run."""
