@@ -331,6 +331,34 @@ def test_auto_certifies_the_step_of_particles_inserted_lighter_than_any_there(so
     assert len(worst) > 200 and max(worst) < 1.0
 
 
+def test_particles_taken_out_leave_the_certificate_in_place():
+    """A settled pile in 'auto' mode: taking spheres out keeps the certificate (what
+    remains is a principal submatrix of what it bounded) with the contacts between those
+    left, renamed; no new estimate, and the step stays below the exact critical step."""
+    law = LinearSpring(k_n=2e3, restitution=0.5)
+    x = np.array([[0.01 * i + 0.005, 0.005, 0.006 + 0.011 * k] for k in range(2)
+                  for i in range(4)])
+    sim = Simulation(Particles.from_density(x, np.full(8, 0.0055), DENSITY), law,
+                     walls=box_walls([0, 0, 0], [0.04, 0.01, 0.1]), gravity=[0, 0, -9.81],
+                     timestep=TimeStep.auto(every=100_000))
+    sim.run(steps=3000)
+    cert, estimates = sim.auto.certificate, sim.auto.n_estimates
+    covered = {(int(a), int(b)) for a, b in zip(cert.pair_i, cert.pair_j)}
+    ids = sim.particle_ids()
+    remove_particles(sim, np.isin(np.arange(8), [1, 6]))
+    assert sim.auto.certificate is cert and sim.auto.n_estimates == estimates
+    new_ids = list(sim.particle_ids())
+    # the covered pairs among those left, under their new numbers
+    left = {(new_ids.index(ids[a]), new_ids.index(ids[b])) for a, b in covered
+            if ids[a] in new_ids and ids[b] in new_ids}
+    assert {(int(a), int(b)) for a, b in zip(cert.pair_i, cert.pair_j)} == left
+    assert len(cert.particles) == 6
+    worst = []
+    sim.every(20, lambda s: worst.append(s.dt / (s.critical_dt("exact") or np.inf)))
+    sim.run(steps=2000)
+    assert max(worst) < 1.0 and sim.n_contacts > 4
+
+
 # ------------------------------------------------------------------- inputs
 @pytest.mark.parametrize("kw, message", [
     (dict(rate=None), "give exactly one of rate"),

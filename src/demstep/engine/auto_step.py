@@ -177,6 +177,47 @@ class AutoStep:
             self.mode = (None if sim.bodies.n or mode.size % n
                              else mode.reshape(n, -1)[order].reshape(-1))
 
+    def removed(self, keep: np.ndarray, inv: np.ndarray):
+        """Particles were taken out (:func:`demstep.engine.population.remove_particles`:
+        ``keep`` the old rows kept, in order, ``inv`` each old row's new one or -1): the
+        certificate keeps the contacts between what remains, renamed, and holds without
+        a new estimate (:meth:`demstep.timestep.certificate.StepCertificate.remove`:
+        removing particles only lowers the largest eigenvalue); the records of covered
+        and added contacts and the critical mode are renamed alike. The drift is checked
+        at once (a new estimate if it fails)."""
+        sim = self.sim
+        n_old, n = len(inv), len(keep)
+        base = self.walls_per_key
+        for attr in ("_cover", "added"):
+            record = getattr(self, attr)
+            if not record:
+                continue
+            renamed = {}
+            for name, (keys, assumed) in record.items():
+                keys, assumed = np.asarray(keys, np.int64), np.asarray(assumed)
+                if name == "pairs":
+                    a, b = inv[keys // n_old], inv[keys % n_old]
+                    ok = (a >= 0) & (b >= 0)
+                    keys = pair_keys(n, a[ok], b[ok])  # (the order kept: a < b still)
+                else:
+                    p = inv[keys // base]
+                    ok = p >= 0
+                    keys = wall_keys(base, p[ok], (keys % base)[ok])
+                renamed[name] = sorted_keys(keys, assumed[ok])
+            setattr(self, attr, renamed)
+        if self.certificate is not None:
+            self.certificate.remove(keep, inv)
+        if self.mesh_added is not None:
+            self.mesh_added = np.ascontiguousarray(self.mesh_added[keep])
+        mode = self.mode
+        if mode is not None:
+            self.mode = (None if mode.size % n_old or n == 0
+                         else mode.reshape(n_old, -1)[keep].reshape(-1))
+        self.sync_cover()
+        if sim.timestep.mode == "auto" and sim.dt is not None and sim.lists.built \
+                and not self.renew_drift_budget():
+            self.propose_dt(force=True, scheduled=False)
+
     def forget(self):
         """Drop what names particles by index (the certificate, the critical mode, the
         records of covered contacts): before the lists of a changed particle set are

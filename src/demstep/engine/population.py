@@ -156,7 +156,8 @@ def remove_particles(sim, remove) -> tuple[int, float]:
         rows = inv[me.cand_p] >= 0
         sim.meshes = me._replace(cand_p=inv[me.cand_p[rows]], **{
             f: getattr(me, f)[rows] for f in ("cand_t",) + Meshes.SLOTS})
-    _resized(sim, rebuild=False)
+    sim.pairs_changed()
+    sim.auto.removed(keep, inv)  # (what is left keeps its certificate)
     return count, mass
 
 

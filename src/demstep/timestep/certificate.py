@@ -1124,6 +1124,37 @@ class StepCertificate:
         if len(self.mesh_p):
             self.mesh_p = inv[self.mesh_p]
 
+    def remove(self, keep, inv):
+        """Particles taken out (``keep`` the rows kept, in order; ``inv`` each old row's
+        new one, -1 when removed): the covered contacts with a removed particle are
+        dropped, the others renamed. The certificate still holds: what remains is a
+        principal submatrix of the scaled matrices it bounded (one element fewer for
+        each dropped contact, each positive semi-definite), and by Cauchy's interlacing
+        lambda_max(sigma C^ + K^) of a principal submatrix is at most the whole's."""
+        def rows(name, ok):
+            setattr(self, name, np.ascontiguousarray(getattr(self, name)[ok]))
+
+        if len(self.pair_i):
+            ok = (inv[self.pair_i] >= 0) & (inv[self.pair_j] >= 0)
+            self.pair_i = np.ascontiguousarray(inv[self.pair_i[ok]])
+            self.pair_j = np.ascontiguousarray(inv[self.pair_j[ok]])
+            for name in ("pair_bond", "normal", "factors"):
+                rows(name, ok)
+        if len(self.wall_p):
+            ok = inv[self.wall_p] >= 0
+            self.wall_p = np.ascontiguousarray(inv[self.wall_p[ok]])
+            rows("wall_w", ok)
+            rows("wall_factors", ok)
+        if len(self.mesh_p):
+            ok = inv[self.mesh_p] >= 0
+            self.mesh_p = np.ascontiguousarray(inv[self.mesh_p[ok]])
+            rows("mesh_k", ok)
+            rows("mesh_ref", ok)
+        if len(self.body_pairs):  # (clumps are not removed: their drift is not followed here)
+            self.bounded = False
+        if len(self.particles):
+            self.particles = np.ascontiguousarray(self.particles[keep])
+
     def set_added(self, k: float, c: float):
         """All the contacts added since the estimate: bounds on lambda_max(K^) [1/T^2]
         and lambda_max(C^) [1/T] of them together (Weyl's inequality adds them to the
