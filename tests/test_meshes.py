@@ -4,6 +4,7 @@ genuine corners kept, moving meshes' work in the ledger, and the contacts in the
 time-step analysis."""
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -325,3 +326,22 @@ def test_a_sphere_dropped_on_a_conveyor_belt_rolls_off_at_two_sevenths_of_its_sp
     assert contact == pytest.approx(belt, rel=3e-3)
     assert abs(sim.ledger.imbalance()) < 1e-3 * sim.ledger.scale()
     assert sim.ledger.acc[2] > 0.0  # (A_WALLS: the belt did work)
+
+
+def test_a_law_with_rolling_resistance_on_meshes_is_told_once():
+    """Mesh contacts carry no rolling resistance yet: a run whose law has it says so,
+    once, rather than rolling the spheres on the meshes without a word."""
+    law = LinearSpring(k_n=2e5, mu=0.3, rolling_convention="beta", rolling_stiffness=0.5,
+                       rolling_friction=0.1)
+    sim = sphere_on(flat_mesh(), law)
+    with pytest.warns(RuntimeWarning, match="mesh contacts do not carry yet"):
+        sim.run(steps=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sim.run(steps=2)
+    assert sim.law.params().has_rolling
+    plain = sphere_on(flat_mesh(), LAWS["linear"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        plain.run(steps=2)
+
