@@ -345,15 +345,17 @@ class AutoStep:
         inv_I = sim.inv_I if sim.rotation else np.zeros_like(sim.inv_I)
         return mesh_added_bound(added[p, 0], *top, sim.r[p], sim.inv_m[p], inv_I[p])
 
-    def drift(self, cert) -> tuple[float, float]:
+    def drift(self, cert, mesh_drift=None) -> tuple[float, float]:
         """The drift (D_K, D_C) of the certificate ``cert`` at the state now
-        (:meth:`demstep.timestep.certificate.StepCertificate.drift`)."""
+        (:meth:`demstep.timestep.certificate.StepCertificate.drift`), the mesh contacts'
+        included (``mesh_drift``: theirs, if :meth:`mesh_check` gave it already)."""
         sim = self.sim
         d_k, d_c = cert.drift(sim.x, sim.periodic_len, (sim.wall_point, sim.wall_normal),
                               self.body_pose() if cert.has_bodies else None)
-        if self.meshes_followed:
-            m_k, m_c = self.mesh_check()[0]
-            d_k, d_c = d_k + m_k, d_c + m_c
+        if mesh_drift is None and self.meshes_followed:
+            mesh_drift = self.mesh_check()[0]
+        if mesh_drift is not None:
+            d_k, d_c = d_k + mesh_drift[0], d_c + mesh_drift[1]
         return d_k, d_c
 
     def body_pose(self):
@@ -1130,7 +1132,8 @@ class AutoStep:
             if self.check_budget > 0.0 or self.turn_budget > 0.0:
                 return True  # (room left at the look-ahead's bound, above the drift now)
             return cert.certifies(sigma, self.drift(cert))
-        drift = self.drift(cert)
+        mesh_drift = self.mesh_check()[0] if self.meshes_followed else None
+        drift = self.drift(cert, mesh_drift)
         if not cert.certifies(sigma, drift):
             self.check_budget = 0.0
             return False
@@ -1141,7 +1144,7 @@ class AutoStep:
             # the mesh contacts' drift is measured at every step (the kernels' k + sigma
             # c); a quarter of the room left is reserved for its growth, and the steps
             # stop for a check once it has used half of that
-            (m_k, m_c), _, _ = self.mesh_check()
+            m_k, m_c = mesh_drift
             room = sigma * sigma - cert.bound(sigma, drift)
             now = m_k + sigma * m_c
             reserved = now + self.MESH_DRIFT_SHARE * room

@@ -80,6 +80,16 @@ def _feature_vertices(vid, t, feature):
 
 
 @njit(inline="always")
+def _sphere_rows_end(cand_p, s):
+    """The end of the candidate rows of the sphere of row ``s`` (rows sorted by particle)."""
+    p = cand_p[s]
+    e = s
+    while e < cand_p.shape[0] and cand_p[e] == p:
+        e += 1
+    return e
+
+
+@njit(inline="always")
 def _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep):
     """The contacts of sphere ``p`` with its ``n`` candidate triangles (rows s ... s + n
     - 1 of ``cand_t``): per row k, ``g[k]`` = (delta, unit normal from the triangle to
@@ -240,9 +250,7 @@ def mesh_cover_check(x, v, r, meshes, steps, boundary, dt, need):
     s = 0
     while s < n_cand:
         p = cand_p[s]
-        e = s
-        while e < n_cand and cand_p[e] == p:
-            e += 1
+        e = _sphere_rows_end(cand_p, s)
         _sphere_contacts(x, r, p, s, e - s, cand_t, meshes.tri, meshes.vid, meshes.tri_mesh,
                          g, feat, keep)
         speed = math.sqrt(v[p, 0] ** 2 + v[p, 1] ** 2 + v[p, 2] ** 2)
@@ -277,9 +285,7 @@ def mesh_contact_geometry(x, r, cand_p, cand_t, tri, vid, tri_mesh):
     s = 0
     while s < n_cand:
         p = cand_p[s]
-        e = s
-        while e < n_cand and cand_p[e] == p:
-            e += 1
+        e = _sphere_rows_end(cand_p, s)
         _sphere_contacts(x, r, p, s, e - s, cand_t, tri, vid, tri_mesh, g, feat, keep)
         for k in range(e - s):
             if keep[k]:
@@ -357,9 +363,7 @@ def mesh_forces(sph, meshes, params, dt):
     s = 0
     while s < n_cand:
         p = cand_p[s]
-        e = s
-        while e < n_cand and cand_p[e] == p:
-            e += 1
+        e = _sphere_rows_end(cand_p, s)
         n = e - s
         px, py, pz, rp = x[p, 0], x[p, 1], x[p, 2], r[p]
         # 1-2. each candidate triangle's contact, one per surface
