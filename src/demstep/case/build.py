@@ -211,7 +211,7 @@ def build_meshes(case: Case, law) -> list[MeshWall]:
                               material=dict(spec.material) or None,
                               velocity=spec.velocity or zero, omega=spec.omega or zero,
                               surface_velocity=spec.surface_velocity or zero,
-                              center=spec.center or zero))
+                              center=spec.center or zero, enabled=spec.enabled))
     return walls
 
 

@@ -100,9 +100,13 @@ particles'; linear ``stiffness_normal``, ... for its contacts; omitted: the part
 its motion ``velocity`` [L/T] (a translation) and ``omega`` [1/T] (a rotation vector:
 axis times rate) about ``center`` [L] (which moves with the translation), and
 ``surface_velocity`` [L/T] (a conveyor belt: its contacts see the surface move while
-its triangles stay; LIGGGHTS' ``surface_vel``).
-``[stages.meshes."name"]`` changes ``velocity``, ``omega``, ``surface_velocity`` or ``friction`` from a
-stage on.
+its triangles stay; LIGGGHTS' ``surface_vel``), ``enabled`` (default true; false: the
+mesh is there, moves and is written out, but has no contacts, as a LIGGGHTS
+``fix mesh/surface`` no ``fix wall/gran`` names yet).
+``[stages.meshes."name"]`` changes ``velocity``, ``omega``, ``surface_velocity``,
+``friction`` or ``enabled`` from a stage on, and ``center`` [L] (where the centre of
+rotation is now, in the case's frame; only while the mesh has not turned: LIGGGHTS'
+``move/mesh rotate origin ...`` after a translation).
 
 ``[[insert]]``: particles inserted during the run (:mod:`demstep.feed`,
 ``docs/insertion.md``): ``name``, ``region`` (a table: ``shape = "box"`` with ``lower``,
@@ -437,12 +441,15 @@ class BoxSection(_Section):
 
 
 class MeshMotion(_Section):
-    """How a mesh moves (and its friction); omitted keys keep their value."""
+    """How a mesh moves, whether it has contacts, its friction, the centre it turns
+    about; omitted keys keep their value."""
 
     velocity: Vector | None = None
     omega: Vector | None = None
     surface_velocity: Vector | None = None
     friction: NonNegative | None = None
+    enabled: bool | None = None
+    center: Vector | None = None
 
 
 class MeshSpec(MeshMotion):
@@ -454,7 +461,7 @@ class MeshSpec(MeshMotion):
     format: Annotated[str, Field(min_length=1, max_length=32)] | None = None
     transforms: Annotated[str, Field(max_length=4096)] = ""
     material: dict[Annotated[str, Field(max_length=64)], Real] = {}
-    center: Vector | None = None
+    enabled: bool = True
 
 
 # --------------------------------------------------------- insertion, outflow
@@ -1210,8 +1217,12 @@ def check_case(case: Case) -> None:
             if mname not in axis_of:
                 raise InputError(f"{mkey}: no such mesh (have "
                                  f"{', '.join(axis_of) or 'none'})")
-            for vec in ("velocity", "omega", "surface_velocity"):
+            for vec in ("velocity", "omega", "surface_velocity", "center"):
                 _need_len(f"{mkey}.{vec}", getattr(change, vec), 3)
+            if change.center is not None and axis_of[mname] is not None:
+                raise InputError(f"{mkey}.center: the centre of a mesh that has turned stays "
+                                 f"where it is (it may be set until the mesh first turns), "
+                                 f"got {change.center}")
             if change.omega is not None and any(change.omega):
                 axis = np.asarray(change.omega) / np.linalg.norm(change.omega)
                 if axis_of[mname] is not None and not np.allclose(axis, axis_of[mname],

@@ -47,7 +47,8 @@ def apply_stage(sim, case: Case, k: int, fresh: bool = True) -> None:
     for name, change in stage.meshes.items():
         sim.set_mesh_motion(mesh_index[name], velocity=change.velocity, omega=change.omega,
                             surface_velocity=change.surface_velocity,
-                            friction=change.friction)
+                            friction=change.friction, enabled=change.enabled,
+                            center=change.center)
     for axis, change in stage.periodic.items():
         sim.set_box(AXES.index(axis), change.motion,
                     rate=change.rate if change.rate is not None else 0.0,

@@ -401,7 +401,8 @@ def place(sim, region: Region, radii: np.ndarray, rng, attempts: int, extrude=No
         if sim.meshes.tri.shape[0] and ok.any():
             rows = np.flatnonzero(ok)
             hit, _ = build_candidates(sim.meshes, np.ascontiguousarray(cand[rows]),
-                                      np.ascontiguousarray(r[rows]), 0.0, lambda p: p)
+                                      np.ascontiguousarray(r[rows]), 0.0, lambda p: p,
+                                      sim.mesh_enabled)
             ok[rows[np.unique(hit)]] = False
         # among themselves and those placed before them in this event, in order
         ok &= np.isfinite(cand).all(axis=1)

@@ -137,7 +137,8 @@ class NeighbourLists:
         sim.wall_state = ws._replace(p=wp, wall=ww, shear=wshear, dashpot=wdash,
                                      shear_energy=wenergy, roll=wroll, cover=wcover)
         if sim.meshes.tri.shape[0] > 0:  # the triangles near each sphere, slots carried
-            cand_p, cand_t = build_candidates(sim.meshes, sim.x, sim.r, sim.skin, sim.particle_id)
+            cand_p, cand_t = build_candidates(sim.meshes, sim.x, sim.r, sim.skin, sim.particle_id,
+                                              sim.mesh_enabled)
             sim.meshes = carry_slots(sim.meshes, cand_p, cand_t)
             sim.meshes.moved[0] = 0.0
         if sim.auto.new_pairs_closing(cover, wcover):

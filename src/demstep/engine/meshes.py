@@ -38,7 +38,10 @@ class MeshWall:
     rotation vector: axis and rate, right-hand rule) about ``center`` (3,) [L], which
     moves with the translation; and a surface velocity ``surface_velocity`` (3,) [L/T]:
     its contacts see the surface move at it while its triangles stay in place (a
-    conveyor belt, LIGGGHTS' ``surface_vel``; meant along the surface)."""
+    conveyor belt, LIGGGHTS' ``surface_vel``; meant along the surface); ``enabled``
+    False: the mesh is there (it moves, it is written out) but has no contacts, as a
+    LIGGGHTS ``fix mesh/surface`` that no ``fix wall/gran`` names yet
+    (:meth:`~demstep.engine.Simulation.set_mesh_motion` switches it on or off)."""
 
     mesh: TriangleMesh
     name: str = "mesh"
@@ -48,6 +51,7 @@ class MeshWall:
     omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
     surface_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    enabled: bool = True
 
     def __post_init__(self):
         for name in ("velocity", "omega", "center", "surface_velocity"):
@@ -58,6 +62,10 @@ class MeshWall:
             setattr(self, name, value.copy())
         if self.mu is not None and not (math.isfinite(self.mu) and self.mu >= 0):
             raise InputError(f"mesh {self.name!r}: mu must be finite and >= 0, got {self.mu!r}")
+        if not isinstance(self.enabled, (bool, np.bool_)):
+            raise InputError(f"mesh {self.name!r}: enabled must be true or false, got "
+                             f"{self.enabled!r}")
+        self.enabled = bool(self.enabled)
 
     @property
     def moving(self) -> bool:
@@ -120,9 +128,11 @@ def no_mesh_cover() -> dict:
                 cover_ctl=np.array([0.0, np.inf, 0.0, 0.0]), cover_out=np.zeros(3))
 
 
-def build_candidates(meshes: Meshes, x, r, skin: float, particle_id) -> tuple:
+def build_candidates(meshes: Meshes, x, r, skin: float, particle_id,
+                     enabled=None) -> tuple:
     """The (particle, triangle) pairs whose distance is below r + ``skin`` [L], sorted by
-    particle then triangle: (cand_p, cand_t). The particles are binned in a grid of
+    particle then triangle: (cand_p, cand_t), the triangles of the meshes where
+    ``enabled`` (M,) is true only (None: every mesh). The particles are binned in a grid of
     cells (side 2 r_max + skin, at most about 8 N + 1000 cells, as the pair search's),
     and each triangle looks at the cells its bounding box, grown by r_max + skin,
     covers, computing the exact distance to the particles in them
@@ -131,6 +141,8 @@ def build_candidates(meshes: Meshes, x, r, skin: float, particle_id) -> tuple:
     :data:`MAX_CANDIDATES` triangles near one sphere is refused (a mesh far finer than
     the particles), naming the particle."""
     n_tri = len(meshes.tri)
+    if enabled is not None and not np.any(enabled):
+        n_tri = 0
     if n_tri == 0 or len(r) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     x = np.ascontiguousarray(x, dtype=np.float64)
@@ -143,6 +155,9 @@ def build_candidates(meshes: Meshes, x, r, skin: float, particle_id) -> tuple:
         cell *= 1.5
     ncell = (np.floor(extent / cell) + 1).astype(np.int64)
     cand_p, cand_t = candidate_pairs(x, r, float(skin), meshes.tri, lo, cell, ncell)
+    if enabled is not None and not np.all(enabled):
+        keep = np.asarray(enabled, dtype=bool)[meshes.tri_mesh[cand_t]]
+        cand_p, cand_t = cand_p[keep], cand_t[keep]
     order = np.lexsort((cand_t, cand_p))
     cand_p, cand_t = cand_p[order], cand_t[order]
     if len(cand_p):
@@ -206,14 +221,24 @@ def mesh_contacts(meshes: Meshes, x, r):
 
 
 def set_mesh_motion(sim, index: int, velocity=None, omega=None, friction=None,
-                    surface_velocity=None) -> None:
+                    surface_velocity=None, center=None) -> None:
     """Change how mesh ``index`` of ``sim`` moves between stages: its translation
-    ``velocity`` (3,) [L/T], its rotation ``omega`` (3,) [1/T] about its centre, its
-    surface velocity ``surface_velocity`` (3,) [L/T], its friction ``friction`` (takes effect at the next run). A mesh that has turned keeps
-    its axis (its corners are recomputed from the total turn about it): a new rate
-    about the same axis, or no rotation, is allowed; another axis is refused."""
+    ``velocity`` (3,) [L/T], its rotation ``omega`` (3,) [1/T] about its centre, the
+    centre ``center`` (3,) [L] (where it is now), its surface velocity
+    ``surface_velocity`` (3,) [L/T], its friction ``friction`` (takes effect at the next
+    run). A mesh that has turned keeps its axis and its centre (its corners are
+    recomputed from the total turn about them): a new rate about the same axis, or no
+    rotation, is allowed; another axis, or a new centre, is refused."""
     wall = sim.mesh_walls[index]
     meshes = sim.meshes
+    if center is not None:
+        new = _vector3(center, f"mesh {wall.name!r}: center")
+        if meshes.turn[index] != 0.0:
+            raise InputError(f"mesh {wall.name!r}: center: a mesh that has turned keeps its "
+                             f"centre {meshes.center[index].tolist()}, got {new.tolist()}")
+        # (unturned, the corners are the corners as read plus the shift, whatever the
+        # centre: move_meshes takes the centre as read to be the centre less the shift)
+        meshes.center[index] = new
     if velocity is not None:
         wall.velocity = _vector3(velocity, f"mesh {wall.name!r}: velocity")
         meshes.vel[index] = wall.velocity

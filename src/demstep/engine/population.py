@@ -25,6 +25,12 @@ and a new estimate covers every contact the new set can close before any force o
 it acts (an inserted particle's contacts included; the densest-packing fallback
 takes the new lightest particle and largest radius).
 
+A mesh wall switched on or off between runs (:func:`switch_mesh`) changes what takes
+part too: switched off, its contacts end and the energy they store leaves with them
+(``A_REMOVED``); switched on, the lists are rebuilt at once (its contacts act from
+the next step), the energy of the overlaps it starts with comes in (``A_INSERTED``),
+and the 'auto' certificate is estimated anew.
+
 Clumps and bonds are not supported with a changing population (refused in one
 line by the feed, :mod:`demstep.engine.feed`).
 """
@@ -222,16 +228,71 @@ def energy_taken_out(sim, remove) -> dict:
         out[E_STRAIN_T] += float(ws.shear_energy[rows].sum())
         if len(ws.roll):
             out[E_STRAIN_R] += float(ws.roll[rows, dem.ROLL_ENERGY].sum())
-    me = sim.meshes
-    if len(me.cand_p) and remove[me.cand_p].any():
-        p, mesh, _, _, delta = mesh_contacts(me, x_then, sp.r)
-        on = remove[p]
-        for q, d, k in zip(p[on], delta[on], mesh[on]):
-            out[E_STRAIN_N] += _normal_energy(params_from_row(params, me.law[k]), np.array([d]),
-                                              sp.r[[q]])
-        rows = remove[me.cand_p] & (me.active != 0)
-        out[E_STRAIN_T] += float(me.etan[rows].sum())
+    e_n, e_t = _mesh_contact_energy(sim, x_then, remove, None)
+    out[E_STRAIN_N] += e_n
+    out[E_STRAIN_T] += e_t
     return out
+
+
+def _mesh_contact_energy(sim, x_then, of_particles, of_mesh) -> tuple[float, float]:
+    """The energy [M L^2/T^2] stored in the mesh contacts of the particles where
+    ``of_particles`` (N,) is true (None: all) with mesh ``of_mesh`` (None: every mesh),
+    the particles at ``x_then``: (normal springs at their overlap by each mesh's law,
+    tangential springs from their history)."""
+    me = sim.meshes
+    if not len(me.cand_p):
+        return 0.0, 0.0
+    rows = np.ones(len(me.cand_p), dtype=bool)
+    if of_particles is not None:
+        rows &= of_particles[me.cand_p]
+    if not rows.any():
+        return 0.0, 0.0
+    params = sim.law.params()
+    e_n = 0.0
+    p, mesh, _, _, delta = mesh_contacts(me, x_then, sim.r)
+    on = np.ones(len(p), dtype=bool) if of_particles is None else of_particles[p]
+    if of_mesh is not None:
+        on &= mesh == of_mesh
+    for q, d, k in zip(p[on], delta[on], mesh[on]):
+        e_n += _normal_energy(params_from_row(params, me.law[k]), np.array([d]), sim.r[[q]])
+    rows &= me.active != 0
+    if of_mesh is not None:
+        rows &= me.slot_mesh == of_mesh
+    return e_n, float(me.etan[rows].sum())
+
+
+def switch_mesh(sim, index: int, enabled: bool) -> None:
+    """Switch mesh ``index`` of ``sim`` on (its contacts act from the next step: the
+    lists are rebuilt now; the energy of the overlaps it starts with is brought into
+    the run, ``A_INSERTED``) or off (its contacts end: their stored energy, at the
+    ledger's last evaluation, leaves the ledger's state terms into ``A_REMOVED``, and
+    their history is dropped). The 'auto' certificate is estimated anew either way
+    (on: it did not cover the mesh; off: the contacts' rows changed)."""
+    wall = sim.mesh_walls[index]
+    enabled = bool(enabled)
+    if wall.enabled == enabled:
+        return
+    wall.enabled = enabled
+    if not sim.lists.built:  # (before the first step: the first build sees the flag)
+        return
+    if not enabled:
+        x_then = sim.spheres.x - sim.dt_prev * sim.spheres.v
+        e_n, e_t = _mesh_contact_energy(sim, x_then, None, index)
+        sim.ledger.energy[E_STRAIN_N] -= e_n
+        sim.ledger.energy[E_STRAIN_T] -= e_t
+        sim.ledger.acc[A_REMOVED] += e_n + e_t
+        me = sim.meshes
+        gone = (me.active != 0) & (me.slot_mesh == index)
+        for f in Meshes.SLOTS:
+            getattr(me, f)[gone] = 0
+    sim.auto.forget()
+    sim.lists.rebuild()
+    if enabled:  # (the overlaps it starts with hold energy brought into the run)
+        x_then = sim.spheres.x - sim.dt_prev * sim.spheres.v
+        e_n, _ = _mesh_contact_energy(sim, x_then, None, index)
+        sim.ledger.energy[E_STRAIN_N] += e_n
+        sim.ledger.acc[A_INSERTED] += e_n
+    sim.auto.resized()
 
 
 def _normal_energy(params, delta, r_star) -> float:

@@ -72,7 +72,7 @@ from demstep.engine.boundaries import walls_bundle
 from demstep.engine.lists import NeighbourLists
 from demstep.engine.meshes import mesh_law_rows, meshes_bundle, set_mesh_motion
 from demstep.engine.ordering import SpatialOrder, order_as, reorder
-from demstep.engine.population import adopt_particle_set
+from demstep.engine.population import adopt_particle_set, switch_mesh
 from demstep.engine.restore import SCALARS, checked_state, scalar_arrays
 from demstep.engine.settings import Damping, TimeStep
 from demstep.errors import InputError, SimulationDiverged
@@ -778,9 +778,17 @@ class Simulation:
         """Specimen extents per axis [L] (:func:`~demstep.engine.boundaries.extents`)."""
         return boundaries.extents(self)
 
-    def set_mesh_motion(self, index: int, **settings):
-        """How mesh ``index`` moves (:func:`~demstep.engine.meshes.set_mesh_motion`)."""
+    def set_mesh_motion(self, index: int, enabled: bool | None = None, **settings):
+        """How mesh ``index`` moves (:func:`~demstep.engine.meshes.set_mesh_motion`), and
+        whether it has contacts (``enabled``: :func:`~demstep.engine.population.switch_mesh`)."""
         set_mesh_motion(self, index, **settings)
+        if enabled is not None:
+            switch_mesh(self, index, enabled)
+
+    @property
+    def mesh_enabled(self) -> np.ndarray:
+        """Whether each mesh wall has contacts (M,) bool."""
+        return np.array([w.enabled for w in self.mesh_walls], dtype=bool)
 
     @property
     def mesh_force(self) -> np.ndarray:
