@@ -258,7 +258,9 @@ class Meshes(NamedTuple):
     (K,), their mesh ``slot_mesh`` and triangle ``slot_tri`` (K,), contact normal
     ``normal`` (K, 3), tangential spring and dashpot forces ``shear``, ``dashpot``
     (K, 3), stored tangential energy ``etan`` (K,) and the contact's force on the mesh
-    ``fslot`` (K, 3) [M L/T^2] (for the per-triangle output).
+    ``fslot`` (K, 3) [M L/T^2] (for the per-triangle output). Wear: each mesh's Finnie
+    coefficient ``wear_k`` (M,) [L T^2/M] (0: not tracked) and the wear accumulated on
+    each triangle ``wear`` (T,) [L with k in 1/pressure] (:mod:`demstep.kernels.meshes`).
 
     The 'auto' step's cover of the mesh contacts (:mod:`demstep.kernels.meshes`; set by
     :meth:`demstep.engine.auto_step.AutoStep.sync_mesh_cover`, empty when not followed):
@@ -306,11 +308,13 @@ class Meshes(NamedTuple):
     cover_extra: np.ndarray
     cover_ctl: np.ndarray
     cover_out: np.ndarray
+    wear_k: np.ndarray
+    wear: np.ndarray
 
     #: the fields of a contact slot: one row per candidate, carried with it
     SLOTS = ("active", "slot_mesh", "slot_tri", "normal", "shear", "dashpot", "etan", "fslot")
     STATE = ("tri", "vel", "omega", "surface", "center", "shift", "turn", "law", "force", "torque",
-             "power", "power_prev", "moved", "cand_p", "cand_t", "cover_ctl") + SLOTS
+             "power", "power_prev", "moved", "cand_p", "cand_t", "cover_ctl", "wear") + SLOTS
 
     @property
     def n(self) -> int:

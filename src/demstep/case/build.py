@@ -211,7 +211,8 @@ def build_meshes(case: Case, law) -> list[MeshWall]:
                               material=dict(spec.material) or None,
                               velocity=spec.velocity or zero, omega=spec.omega or zero,
                               surface_velocity=spec.surface_velocity or zero,
-                              center=spec.center or zero, enabled=spec.enabled))
+                              center=spec.center or zero, enabled=spec.enabled,
+                              finnie_k=spec.finnie_k))
     return walls
 
 

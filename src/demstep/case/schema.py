@@ -102,7 +102,10 @@ axis times rate) about ``center`` [L] (which moves with the translation), and
 ``surface_velocity`` [L/T] (a conveyor belt: its contacts see the surface move while
 its triangles stay; LIGGGHTS' ``surface_vel``), ``enabled`` (default true; false: the
 mesh is there, moves and is written out, but has no contacts, as a LIGGGHTS
-``fix mesh/surface`` no ``fix wall/gran`` names yet).
+``fix mesh/surface`` no ``fix wall/gran`` names yet), ``finnie_k`` [L T^2/M] (Finnie's
+wear coefficient, an inverse pressure; > 0: each triangle accumulates its wear,
+written to the VTK output and, times the areas, to history.csv; LIGGGHTS' ``wear
+finnie`` with ``k_finnie``).
 ``[stages.meshes."name"]`` changes ``velocity``, ``omega``, ``surface_velocity``,
 ``friction`` or ``enabled`` from a stage on, and ``center`` [L] (where the centre of
 rotation is now, in the case's frame; only while the mesh has not turned: LIGGGHTS'
@@ -462,6 +465,7 @@ class MeshSpec(MeshMotion):
     transforms: Annotated[str, Field(max_length=4096)] = ""
     material: dict[Annotated[str, Field(max_length=64)], Real] = {}
     enabled: bool = True
+    finnie_k: NonNegative = 0.0
 
 
 # --------------------------------------------------------- insertion, outflow

@@ -41,7 +41,10 @@ class MeshWall:
     conveyor belt, LIGGGHTS' ``surface_vel``; meant along the surface); ``enabled``
     False: the mesh is there (it moves, it is written out) but has no contacts, as a
     LIGGGHTS ``fix mesh/surface`` that no ``fix wall/gran`` names yet
-    (:meth:`~demstep.engine.Simulation.set_mesh_motion` switches it on or off)."""
+    (:meth:`~demstep.engine.Simulation.set_mesh_motion` switches it on or off);
+    ``finnie_k`` [L T^2/M]: Finnie's wear coefficient (an inverse pressure: the wear
+    is then a depth [L]; LIGGGHTS' ``k_finnie``), > 0 to accumulate the wear of each
+    triangle (:mod:`demstep.kernels.meshes`), 0 (default) not to."""
 
     mesh: TriangleMesh
     name: str = "mesh"
@@ -52,6 +55,7 @@ class MeshWall:
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
     surface_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     enabled: bool = True
+    finnie_k: float = 0.0
 
     def __post_init__(self):
         for name in ("velocity", "omega", "center", "surface_velocity"):
@@ -66,6 +70,10 @@ class MeshWall:
             raise InputError(f"mesh {self.name!r}: enabled must be true or false, got "
                              f"{self.enabled!r}")
         self.enabled = bool(self.enabled)
+        if not (math.isfinite(self.finnie_k) and self.finnie_k >= 0):
+            raise InputError(f"mesh {self.name!r}: finnie_k must be finite and >= 0, got "
+                             f"{self.finnie_k!r}")
+        self.finnie_k = float(self.finnie_k)
 
     @property
     def moving(self) -> bool:
@@ -117,7 +125,8 @@ def meshes_bundle(walls: list[MeshWall], law) -> Meshes:
         active=np.zeros(0, np.int64), slot_mesh=np.zeros(0, np.int64),
         slot_tri=np.zeros(0, np.int64), normal=np.zeros((0, 3)), shear=np.zeros((0, 3)),
         dashpot=np.zeros((0, 3)), etan=np.zeros(0), fslot=np.zeros((0, 3)),
-        **no_mesh_cover())
+        wear_k=np.array([w.finnie_k for w in walls], dtype=np.float64),
+        wear=np.zeros(len(tri)), **no_mesh_cover())
 
 
 def no_mesh_cover() -> dict:

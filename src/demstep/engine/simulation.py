@@ -498,6 +498,7 @@ class Simulation:
         data.setdefault("meshes.surface", np.zeros_like(self.meshes.surface))  # (and from
         # before surface velocities: none; before the 'auto' step covered meshes: none)
         data.setdefault("meshes.cover_ctl", np.array([0.0, np.inf, 0.0, 0.0]))
+        data.setdefault("meshes.wear", np.zeros(len(self.meshes.tri)))  # (before wear)
         missing = [k for k in needed if k not in data]
         if missing:
             raise InputError(f"{source}: a damaged checkpoint (array {missing[0]!r} missing)")
@@ -784,6 +785,17 @@ class Simulation:
         set_mesh_motion(self, index, **settings)
         if enabled is not None:
             switch_mesh(self, index, enabled)
+
+    @property
+    def mesh_wear(self) -> np.ndarray:
+        """The wear accumulated on each mesh's triangles, times their areas, summed per
+        mesh (M,) [L^3 with Finnie's coefficient in 1/pressure: a volume worn away];
+        0 for a mesh that does not track wear (:mod:`demstep.kernels.meshes`)."""
+        m = self.meshes
+        corners = m.tri.reshape(-1, 3, 3)
+        area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
+                                             corners[:, 2] - corners[:, 0]), axis=1)
+        return np.bincount(m.tri_mesh, weights=m.wear * area, minlength=m.n)
 
     @property
     def mesh_enabled(self) -> np.ndarray:

@@ -19,8 +19,10 @@ Columns, in order:
   point [L];
 * per mesh wall ``NAME.fx``, ``NAME.fy``, ``NAME.fz`` the force the particles exert on
   the mesh [M L/T^2], ``NAME.tx``, ``NAME.ty``, ``NAME.tz`` its torque about the mesh's
-  centre [M L^2/T^2] (the torque a drum's motor must supply, negated) and
-  ``NAME.contacts`` the particles touching it;
+  centre [M L^2/T^2] (the torque a drum's motor must supply, negated),
+  ``NAME.contacts`` the particles touching it and ``NAME.wear`` the volume worn away
+  (Finnie's wear of each triangle times its area, summed [L^3]; 0 unless the mesh
+  tracks wear: :attr:`Simulation.mesh_wear`);
 * with insertion or outlets (:mod:`demstep.feed`): ``particles`` (the count now),
   ``energy_inserted`` and ``energy_removed`` [M L^2/T^2] (the ledger's terms for what
   particles brought in and took out), per inserter ``NAME.inserted`` (count),
@@ -98,6 +100,7 @@ def columns_for(dim: int, wall_names, periodic_axes: str, extra=None,
         cols += [f"{name}.f{a}" for a in AXES]
         cols += [f"{name}.t{a}" for a in AXES]
         cols.append(f"{name}.contacts")
+        cols.append(f"{name}.wear")
     inserters, outlets = feed_names
     if len(inserters) or len(outlets):
         cols += ["particles", "energy_inserted", "energy_removed"]
@@ -132,10 +135,13 @@ def history_row(sim, extra: dict | None = None) -> list:
             row += [float(v) for v in sim.wall_force[k, : sim.dim]]
             row.append(float(stress[k]))
             row += [float(v) for v in sim.wall_point[k, : sim.dim]]
+    if getattr(sim, "mesh_walls", ()):
+        wear = sim.mesh_wear
     for k in range(len(getattr(sim, "mesh_walls", ()))):
         row += [float(v) for v in sim.mesh_force[k]]
         row += [float(v) for v in sim.mesh_torque[k]]
         row.append(int(sim.meshes.contacts[k]))
+        row.append(float(wear[k]))
     feed = getattr(sim, "feed", None)
     if feed:
         row += [len(sim.r), sim.ledger.inserted, sim.ledger.removed]

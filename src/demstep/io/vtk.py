@@ -212,7 +212,8 @@ def triangle_forces(meshes) -> np.ndarray:
 
 
 def triangle_mesh(sim):
-    """The mesh walls' triangles where they are now, with the force on each."""
+    """The mesh walls' triangles where they are now, with the force on each (and the
+    wear of each when a mesh tracks it)."""
     meshio = _meshio()
     m = sim.meshes
     corners = m.tri.reshape(-1, 3, 3)
@@ -220,10 +221,13 @@ def triangle_mesh(sim):
     normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     area2 = np.linalg.norm(normal, axis=1)  # twice the area
     pressure = 2.0 * np.einsum("ij,ij->i", force, normal) / (area2 * area2)
+    cells = {"force": [force], "pressure": [pressure],
+             "mesh_id": [np.asarray(m.tri_mesh, dtype=np.int64)]}
+    if np.any(m.wear_k > 0.0):  # (Finnie's wear of each triangle [L])
+        cells["wear"] = [np.array(m.wear, dtype=np.float64)]
     return meshio.Mesh(m.tri.reshape(-1, 3),
                        [("triangle", np.arange(3 * len(m.tri), dtype=np.int64).reshape(-1, 3))],
-                       cell_data={"force": [force], "pressure": [pressure],
-                                  "mesh_id": [np.asarray(m.tri_mesh, dtype=np.int64)]})
+                       cell_data=cells)
 
 
 def write_mesh(path, mesh) -> Path:

@@ -28,6 +28,15 @@ point q is v + omega x (q - c), c its rotation centre (carried with v). The forc
 torque (about c) the particles exert on each mesh are summed, and the power the mesh
 puts into the particles, whose trapezoid over each step is the mesh's work in the
 energy ledger.
+
+Wear (Finnie's erosion law, in the form LIGGGHTS' ``mesh/surface/stress ... wear
+finnie`` integrates): a mesh with a coefficient k > 0 accumulates on each triangle, at
+every step and for every contact on it whose particle approaches the surface or moves
+along it (v_rel . n >= 0, n the contact normal towards the mesh, v_rel the particle
+centre's velocity less the mesh's at the contact point),
+2 k |F| |v_rel| f(gamma) dt / A, with |F| the contact force, A the triangle's area and
+gamma the angle between v_rel and the triangle's plane: f = sin(2 gamma) -
+3 sin^2(gamma) while tan(gamma) <= 1/3, cos^2(gamma) / 3 beyond (:func:`finnie_rate`).
 """
 
 from __future__ import annotations
@@ -300,6 +309,41 @@ def mesh_contact_geometry(x, r, cand_p, cand_t, tri, vid, tri_mesh):
     return rows[:c], delta[:c], normal[:c], dist[:c]
 
 
+@njit(inline="always")
+def finnie_shape(sin_g, cos_g):
+    """Finnie's angle function f(gamma) of the impact angle gamma between the
+    particle's velocity and the surface (its sine and cosine): sin(2 gamma) -
+    3 sin^2(gamma) up to tan(gamma) = 1/3 (ductile cutting, largest near 16.8 degrees),
+    cos^2(gamma) / 3 beyond (0 at normal impact)."""
+    if cos_g <= 1e-12 or 3.0 * sin_g > cos_g:
+        return cos_g * cos_g / 3.0
+    return 2.0 * sin_g * cos_g - 3.0 * sin_g * sin_g
+
+
+@njit(inline="always")
+def finnie_rate(tri, t, vx, vy, vz, nx, ny, nz, f_mag, k):
+    """The rate [L/T with k in 1/pressure] at which a contact wears triangle ``t`` of
+    ``tri`` (T, 9): 2 k |F| |v_rel| f(gamma) / A (module docstring), ``v`` the
+    particle's velocity relative to the mesh at the contact point [L/T], ``n`` the
+    contact normal towards the mesh, ``f_mag`` |F| [M L/T^2], ``k`` Finnie's coefficient
+    [L T^2/M]; 0 when the particle moves away from the surface."""
+    if vx * nx + vy * ny + vz * nz < 0.0:
+        return 0.0
+    speed = math.sqrt(vx * vx + vy * vy + vz * vz)
+    if speed <= 1e-300:
+        return 0.0
+    ax, ay, az = tri[t, 3] - tri[t, 0], tri[t, 4] - tri[t, 1], tri[t, 5] - tri[t, 2]
+    bx, by, bz = tri[t, 6] - tri[t, 0], tri[t, 7] - tri[t, 1], tri[t, 8] - tri[t, 2]
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    twice_area = math.sqrt(cx * cx + cy * cy + cz * cz)
+    ux, uy, uz = cx / twice_area, cy / twice_area, cz / twice_area
+    vn = vx * ux + vy * uy + vz * uz
+    sin_g = min(abs(vn) / speed, 1.0)
+    tx, ty, tz = vx - vn * ux, vy - vn * uy, vz - vn * uz
+    cos_g = min(math.sqrt(tx * tx + ty * ty + tz * tz) / speed, 1.0)
+    return 4.0 * k * f_mag * speed * finnie_shape(sin_g, cos_g) / twice_area
+
+
 @njit
 def mesh_forces(sph, meshes, params, dt):
     """Contact forces of the Spheres ``sph`` on the triangles of the Meshes ``meshes``
@@ -318,7 +362,9 @@ def mesh_forces(sph, meshes, params, dt):
     ``slot_tri`` (the triangle it is on), contact normal ``slot_normal`` (K, 3) (from the sphere to the mesh), tangential
     spring and dashpot forces on the mesh ``shear``, ``dashpot`` (K, 3), stored
     tangential energy ``etan`` (K,), the contact's force on the mesh ``fslot`` (K, 3)
-    [M L/T^2]; updated in place. Adds the contact forces and
+    [M L/T^2]; updated in place. Meshes whose Finnie coefficient ``wear_k`` (M,) is
+    positive add each contact's wear over the step to their triangles' ``wear`` (T,)
+    (module docstring). Adds the contact forces and
     torques to ``force``, ``torque`` (N, 3); writes per mesh the force the particles
     exert ``mesh_force``, its torque about the centre ``mesh_torque``, the power the
     mesh puts into the particles ``mesh_power`` [M L^2/T^3] and the touching spheres
@@ -331,6 +377,7 @@ def mesh_forces(sph, meshes, params, dt):
     active, slot_mesh, slot_tri, slot_normal = (meshes.active, meshes.slot_mesh, meshes.slot_tri,
                                                 meshes.normal)
     shear, dashpot, etan, fslot = meshes.shear, meshes.dashpot, meshes.etan, meshes.fslot
+    wear_k, wear = meshes.wear_k, meshes.wear
     mesh_force, mesh_torque = meshes.force, meshes.torque
     mesh_power, mesh_contacts = meshes.power, meshes.contacts
     n_cand = cand_p.shape[0]
@@ -484,6 +531,10 @@ def mesh_forces(sph, meshes, params, dt):
             fslot[row, 0] = fx
             fslot[row, 1] = fy
             fslot[row, 2] = fz
+            if wear_k[mk] > 0.0:
+                wear[t] += dt * finnie_rate(tri, t, v[p, 0] - ux, v[p, 1] - uy, v[p, 2] - uz,
+                                            nx, ny, nz, math.sqrt(fx * fx + fy * fy + fz * fz),
+                                            wear_k[mk])
             row += 1
             force[p, 0] -= fx
             force[p, 1] -= fy
