@@ -1,6 +1,7 @@
 """LIGGGHTS' own tutorials run in LIGGGHTS and in demstep, side by side.
 
-    python validation/liggghts_tutorials.py [--tutorials meshGran conveyor] [--out FILE]
+    python validation/liggghts_tutorials.py [--tutorials meshGran conveyor movingMeshGran]
+                                            [--seeds N] [--out FILE]
 
 Needs Debian's ``liggghts`` and ``liggghts-doc`` (the tutorials and their STL meshes
 under /usr/share/doc/liggghts/examples/LIGGGHTS/Tutorials_public). Each tutorial is
@@ -25,12 +26,38 @@ particles still above the insertion face, which insert/stream moves at constant
 velocity until they cross it. The results are written to
 ``validation/results/liggghts_tutorials.json`` (the entries of the tutorials run are
 replaced, the others kept) and summarised in ``docs/validation-tutorials.md``.
+
+``movingMeshGran`` (a bucket switched on as a wall at step 30,000, driven into the
+settled bed and turned about the y axis to lift it) is run with output added to the
+copied input, its physics untouched: the bucket's ``fix mesh/surface`` becomes
+``mesh/surface/stress`` (the same contacts; the module only sums their forces), its
+force and its torque about the axis (from the module's torque about its reference
+point, which moves with the mesh, plus p_ref x F) are printed with the thermo output,
+instantaneous and averaged by ``fix ave/time 50 20 1000`` (the 20 steps every 50 that
+end at each thermo step), and the particle and mesh dumps are written every 1,000 steps
+instead of 200. demstep runs a copy of its case with ``history_every = 50`` (the same
+20 samples are averaged) and a checkpoint every 1,000 steps, from which the particles
+are read (the VTK writer fails on the first frame of a run that starts empty with
+plane walls). From both: the particles and their kinetic energy; the force on the
+bucket; the particles (and their mass) whose centre lies in the bucket's cavity,
+followed in the bucket's own frame, and those lifted above z = 0. demstep runs twice
+per seed: the case as it is, and with the particles still waiting for room dropped
+after the last insertion (LIGGGHTS' ``unfix ins``: its insert/pack drops what found no
+room; demstep's inserter keeps them waiting and inserts them after ``stop``).
+
+``--seeds N`` runs each tutorial N times in each code: LIGGGHTS with its seeds (the
+particle template's, the distribution's and the insertion's) replaced by other primes
+> 10000 (the first run keeps the tutorial's own), demstep with its inserters' ``seed``
+1, 2, ... N. With N > 1 the JSON entry holds every run and, for movingMeshGran, each
+code's mean, minimum and maximum over the seeds.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import re
 import shutil
 import subprocess
@@ -72,28 +99,154 @@ def liggghts_thermo(log_text: str) -> dict[int, tuple]:
     return rows
 
 
-def run_liggghts(name: str, work: Path) -> tuple[dict, float, Path]:
+def liggghts_thermo_table(log_text: str) -> dict[str, dict]:
+    """Every thermo column of a LIGGGHTS log by its header name (``f_`` and ``c_``
+    prefixes dropped: 'KinEng', 'cad1[1]', ...): {step: {column: value}}, the first row
+    of a step kept (a run's setup prints the last step of the run before again, with
+    the forces of its own first evaluation). Keys are strings (JSON)."""
+    rows = {}
+    header = None
+    for line in log_text.splitlines():
+        words = line.split()
+        if words[:2] == ["Step", "Atoms"]:
+            header = [w[2:] if w[:2] in ("f_", "c_") else w for w in words]
+            continue
+        if words[:2] == ["Loop", "time"]:
+            header = None
+            continue
+        if header is None or len(words) != len(header):
+            continue
+        try:
+            values = [float(w) for w in words]
+        except ValueError:
+            continue
+        rows.setdefault(str(int(values[0])), dict(zip(header, values)))
+    return rows
+
+
+def is_prime(n: int) -> bool:
+    if n < 2 or n % 2 == 0:
+        return n == 2
+    return all(n % d for d in range(3, math.isqrt(n) + 1, 2))
+
+
+def next_prime(n: int) -> int:
+    while not is_prime(n):
+        n += 1
+    return n
+
+
+#: the seeds of a LIGGGHTS input: particle templates, distributions, insertions
+SEED_RE = re.compile(r"(particletemplate/sphere|particledistribution/discrete|\bseed)(\s+)(\d+)")
+
+
+def liggghts_seeds(text: str, k: int) -> tuple[str, list[int]]:
+    """The input ``text`` with its seeds for run ``k`` (0: the tutorial's own; k > 0:
+    each replaced by a different prime > 10000, as LIGGGHTS requires), and the seeds."""
+    if k > 0:
+        used = set()
+
+        def new_seed(m):
+            seed = next_prime(int(m.group(3)) + 100_003 * k)
+            while seed in used:
+                seed = next_prime(seed + 1)
+            used.add(seed)
+            return f"{m.group(1)}{m.group(2)}{seed}"
+
+        text = SEED_RE.sub(new_seed, text)
+    return text, [int(m.group(3)) for m in SEED_RE.finditer(text)]
+
+
+def demstep_seeds(text: str, k: int) -> tuple[str, list[int]]:
+    """The case ``text`` with its inserters' ``seed`` raised by ``k``, and the seeds."""
+    text = re.sub(r"(?m)^(seed\s*=\s*)(\d+)", lambda m: f"{m.group(1)}{int(m.group(2)) + k}", text)
+    return text, [int(v) for v in re.findall(r"(?m)^seed\s*=\s*(\d+)", text)]
+
+
+def replace_once(text: str, old: str, new: str) -> str:
+    if text.count(old) != 1:
+        sys.exit(f"the input has changed: {old!r} found {text.count(old)} times, expected once")
+    return text.replace(old, new)
+
+
+def one_thread() -> dict:
+    """The environment for one thread per code (demstep's package on the path)."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT / "src"), env.get("PYTHONPATH")) if p)
+    return env
+
+
+def run_liggghts(name: str, work: Path, k: int = 0) -> tuple[dict, float, Path]:
+    """The tutorial run in a copy of its folder (seeds of run ``k``; for movingMeshGran
+    the outputs of :func:`moving_mesh_outputs`): (thermo rows, wall seconds, folder);
+    the folder holds ``seeds.json`` and the whole thermo table in ``thermo.json``."""
     src = TUTORIALS / name
-    dest = work / f"liggghts-{name}"
+    dest = work / f"liggghts-{name}-{k}"
     shutil.copytree(src, dest)
     (dest / "post").mkdir(exist_ok=True)
+    script = dest / f"in.{name}"
+    text, seeds = liggghts_seeds(script.read_text(), k)
+    if name == MOVING:
+        text = moving_mesh_outputs(text)
+    script.write_text(text)
+    (dest / "seeds.json").write_text(json.dumps(seeds))
     start = time.perf_counter()
     proc = subprocess.run(["liggghts", "-in", f"in.{name}", "-log", "log.liggghts"], cwd=dest,
-                          capture_output=True, text=True)
+                          capture_output=True, text=True, env=one_thread())
     elapsed = time.perf_counter() - start
     if proc.returncode != 0:
         sys.exit(f"liggghts failed on {name}: {proc.stdout[-2000:]}{proc.stderr[-2000:]}")
-    return liggghts_thermo((dest / "log.liggghts").read_text()), elapsed, dest
+    log = (dest / "log.liggghts").read_text()
+    (dest / "thermo.json").write_text(json.dumps(liggghts_thermo_table(log)))
+    return liggghts_thermo(log), elapsed, dest
 
 
-def run_demstep(name: str, work: Path) -> tuple[dict, float, Path]:
-    out = work / f"demstep-{name}"
+#: runs demstep's case as ``demstep run`` does, but drops the particles still waiting
+#: for room once the step passes ``after`` (argv: case, out, after)
+DROP_WAITING = """
+import sys
+from demstep.case import load_case
+from demstep.runner import run_case
+
+case_file, out, after = sys.argv[1], sys.argv[2], int(sys.argv[3])
+
+
+def drop_waiting(sim):
+    if sim.step > after:
+        for inserter in sim.feed.inserters:
+            inserter.pending = inserter.pending[:0]
+
+
+result = run_case(load_case(case_file), out, quiet=True, on_chunk=drop_waiting)
+print(result.message)
+sys.exit(0 if result.status == "completed" else 1)
+"""
+
+
+def run_demstep(name: str, work: Path, k: int = 0, variant: str = "") -> tuple[dict, float, Path]:
+    """The case run by ``demstep run`` (seeds of run ``k``; for movingMeshGran the
+    outputs of :func:`moving_mesh_case`, and with ``variant = "dropped"`` the waiting
+    particles dropped after the last insertion): (rows, wall seconds, folder)."""
+    out = work / f"demstep-{name}{'-' + variant if variant else ''}-{k}"
+    case_file = CASES / f"{name}.toml"
+    text, seeds = demstep_seeds(case_file.read_text(), k)
+    if name == MOVING:
+        text = moving_mesh_case(text)
+    if text != case_file.read_text():
+        # (the copy is read from the work folder: the cases' mesh files are absolute paths)
+        case_file = work / f"{name}{'-' + variant if variant else ''}-{k}.toml"
+        case_file.write_text(text)
+    if variant == "dropped":
+        command = [sys.executable, "-c", DROP_WAITING, str(case_file), str(out), str(LAST_INSERTION)]
+    else:
+        command = [sys.executable, "-m", "demstep.cli", "run", str(case_file), "--out", str(out),
+                   "--quiet"]
     start = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "demstep.cli", "run", str(CASES / f"{name}.toml"),
-                           "--out", str(out), "--quiet"], capture_output=True, text=True)
+    proc = subprocess.run(command, capture_output=True, text=True, env=one_thread())
     elapsed = time.perf_counter() - start
     if proc.returncode != 0:
-        sys.exit(f"demstep failed on {name}: {proc.stderr[-2000:]}")
+        sys.exit(f"demstep failed on {name}: {proc.stdout[-2000:]}{proc.stderr[-2000:]}")
+    (out / "seeds.json").write_text(json.dumps(seeds))
     from demstep.io.history import read_history
 
     h = read_history(out / "history.csv")
@@ -191,12 +344,240 @@ def conveyor_flow(lig_dir: Path, dem_dir: Path) -> list[dict]:
     return rows
 
 
+# ------------------------------------------------------- movingMeshGran's bucket
+MOVING = "movingMeshGran"
+MM_DT = 5.0e-5                          # [s] the tutorial's step
+MM_ON, MM_TURN, MM_END = 30000, 45000, 70000   # the bucket a wall; it turns; the end
+MM_VELOCITY = np.array([-0.5, 0.0, -0.3])      # [m/s] move/mesh linear, steps 30001-45000
+MM_OMEGA = 2.0 * math.pi / 2.0                 # [rad/s] rotate ... axis 0 1 0 period 2.
+LAST_INSERTION = 6000   # demstep's last insertion step (LIGGGHTS': 6001, unfix ins at 8000)
+#: the bucket's cavity where it starts (after the tutorial's transforms): the section
+#: (x, z) [m] inside its three plates (the top plate's underside z = 0.0791, the back
+#: plate's inner face x = 0.4774, the sloped bottom's upper face from (0.1997, -0.1216)
+#: to (0.4774, -0.0202); open towards -x), counter-clockwise, over y in [0, 0.4]
+CAVITY_XZ = np.array([(0.1997, -0.1216), (0.4774, -0.0202), (0.4774, 0.0791), (0.1997, 0.0791)])
+CAVITY_Y = (0.0, 0.4)
+LIFT_Z = 0.0    # [m] lifted: centre above it (the settled bed's top centres: z ~ -0.18 m)
+BUCKET_STL = TUTORIALS / MOVING / "meshes" / "bucket.stl"
+BUCKET_TRANSFORMS = ("move -50. -250. 0. scale 0.002 rotate axis 0. 1. 0. angle 90. "
+                     "rotate axis 0. 0. 1. angle 90.")
+POSE_STEPS = (MM_ON, MM_TURN, 55000, MM_END)   # the bucket's pose checked at these
+
+
+def moving_mesh_outputs(text: str) -> str:
+    """LIGGGHTS' input with outputs added (nothing else changed): the bucket's force
+    and its torque about the y axis, instantaneous and averaged, with the thermo
+    output; dumps every 1,000 steps (the tutorial's 200 would write 350 frames)."""
+    text = replace_once(text, "cad1 all mesh/surface file", "cad1 all mesh/surface/stress file")
+    text = replace_once(text, "custom/vtk 200", "custom/vtk 1000")
+    text = replace_once(text, "mesh/stl 200", "mesh/stl 1000")
+    # (cad1[4..6]: the torque about the module's reference point p = cad1[7..9], which
+    # moves with the mesh; about the origin T + p x F, whose y component is this)
+    return replace_once(
+        text, "thermo_style\tcustom step atoms ke c_1 vol",
+        "variable\ttyO equal f_cad1[5]+f_cad1[9]*f_cad1[1]-f_cad1[7]*f_cad1[3]\n"
+        "fix\t\tfavg all ave/time 50 20 1000 f_cad1[1] f_cad1[2] f_cad1[3] v_tyO\n"
+        "thermo_style\tcustom step atoms ke c_1 vol f_cad1[1] f_cad1[2] f_cad1[3] "
+        "f_favg[1] f_favg[2] f_favg[3] f_favg[4]")
+
+
+def moving_mesh_case(text: str) -> str:
+    """demstep's case with history rows every 50 steps and a checkpoint every 1,000
+    (kept), the outputs compared; nothing else changed."""
+    text = re.sub(r"(?m)^history_every = \d+", "history_every = 50", text)
+    return re.sub(r"(?m)^checkpoint_every = \d+", "checkpoint_every = 1000\ncheckpoint_keep = 0",
+                  text)
+
+
+def bucket_pose(step: int) -> tuple[np.ndarray, np.ndarray]:
+    """(R, d): the bucket's points at ``step`` are R (x0 + d), x0 where it starts."""
+    d = MM_VELOCITY * MM_DT * min(max(step - MM_ON, 0), MM_TURN - MM_ON)
+    phi = MM_OMEGA * MM_DT * max(step - MM_TURN, 0)
+    c, s = math.cos(phi), math.sin(phi)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]), d   # right-handed about +y
+
+
+def in_cavity(x: np.ndarray, step: int) -> np.ndarray:
+    """Whether each centre x (N, 3) lies in the bucket's cavity at ``step``."""
+    R, d = bucket_pose(step)
+    x0 = x @ R - d                                       # R^T x - d
+    inside = (x0[:, 1] >= CAVITY_Y[0]) & (x0[:, 1] <= CAVITY_Y[1])
+    for a, b in zip(CAVITY_XZ, np.roll(CAVITY_XZ, -1, axis=0)):
+        inside &= (b[0] - a[0]) * (x0[:, 2] - a[1]) - (b[1] - a[1]) * (x0[:, 0] - a[0]) >= 0
+    return inside
+
+
+def bucket_contents(x: np.ndarray, m: np.ndarray, step: int) -> dict:
+    held = in_cavity(x, step) if len(x) else np.zeros(0, bool)
+    lifted = x[:, 2] > LIFT_Z if len(x) else np.zeros(0, bool)
+    return {"mass": float(m.sum()), "held": int(held.sum()), "held_mass": float(m[held].sum()),
+            "lifted": int(lifted.sum()), "lifted_mass": float(m[lifted].sum())}
+
+
+def bucket_corners(step: int) -> np.ndarray:
+    from demstep.mesh import read_mesh
+
+    R, d = bucket_pose(step)
+    return (read_mesh(BUCKET_STL, BUCKET_TRANSFORMS).vertices + d) @ R.T
+
+
+def pose_error(points: np.ndarray, step: int) -> float:
+    """The largest difference [m] of the bounding boxes of ``points`` and of the
+    bucket where :func:`bucket_pose` puts it."""
+    want = bucket_corners(step)
+    return float(max(np.abs(points.min(axis=0) - want.min(axis=0)).max(),
+                     np.abs(points.max(axis=0) - want.max(axis=0)).max()))
+
+
+def window_mean(steps: np.ndarray, values: np.ndarray, step: int) -> float:
+    """The mean of the rows at steps step - 950, ..., step (every 50), as LIGGGHTS'
+    fix ave/time 50 20 1000."""
+    sel = (steps > step - 1000) & (steps <= step) & (steps % 50 == 0)
+    return float(values[sel].mean()) if sel.sum() == 20 else float("nan")
+
+
+def moving_series_liggghts(folder: Path, seconds: float) -> dict:
+    thermo = json.loads((folder / "thermo.json").read_text())
+    rows = []
+    for s in range(1000, MM_END + 1, 1000):
+        t = thermo[str(s)]
+        frame = read_liggghts_vtk(folder / "post" / f"movingMesh_{s}.vtk")
+        rows.append({"step": s, "particles": int(t["Atoms"]), "ke": t["KinEng"], "erot": t["1"],
+                     "fx": t["cad1[1]"], "fy": t["cad1[2]"], "fz": t["cad1[3]"],
+                     "fx_avg": t["favg[1]"], "fy_avg": t["favg[2]"], "fz_avg": t["favg[3]"],
+                     "ty_avg": t["favg[4]"] if s >= MM_TURN + 1000 else float("nan"),
+                     **bucket_contents(frame["x"], frame["m"], s)})
+    from demstep.mesh import read_mesh
+
+    poses = {str(s): pose_error(read_mesh(folder / "post" / f"dump{s}.stl").vertices, s)
+             for s in POSE_STEPS}
+    return {"seeds": json.loads((folder / "seeds.json").read_text()), "seconds": seconds,
+            "rows": rows, "pose_error": poses}
+
+
+def moving_series_demstep(folder: Path, seconds: float) -> dict:
+    from demstep.io.checkpoint import read_checkpoint_arrays
+    from demstep.io.history import read_history
+
+    h = read_history(folder / "history.csv")
+    steps = np.asarray(h["step"]).astype(int)
+    at = {int(s): i for i, s in enumerate(steps)}
+    rows, poses = [], {}
+    for s in range(1000, MM_END + 1, 1000):
+        i = at[s]
+        state = read_checkpoint_arrays(folder / "checkpoints" / f"step{s:010d}.npz")
+        x, m = np.asarray(state["spheres.x"]), np.asarray(state["spheres.m"])
+        if s in POSE_STEPS:
+            poses[str(s)] = pose_error(np.asarray(state["meshes.tri"]).reshape(-1, 3), s)
+        avg = {f"{k}_avg": window_mean(steps, np.asarray(h[f"bucket.{k}"]), s)
+               for k in ("fx", "fy", "fz")}
+        # (ty about the mesh's centre: the origin once the rotation has started)
+        rows.append({"step": s, "particles": int(h["particles"][i]),
+                     "ke": float(h["kinetic_translational"][i]),
+                     "erot": float(h["kinetic_rotational"][i]),
+                     **{k: float(h[f"bucket.{k}"][i]) for k in ("fx", "fy", "fz")}, **avg,
+                     "ty_avg": window_mean(steps, np.asarray(h["bucket.ty"]), s)
+                     if s >= MM_TURN + 1000 else float("nan"),
+                     **bucket_contents(x, m, s)})
+    return {"seeds": json.loads((folder / "seeds.json").read_text()), "seconds": seconds,
+            "stage_seconds": demstep_stage_seconds(folder),
+            "max_energy_error": float(np.nanmax(np.asarray(h["energy_error"]))),
+            "rows": rows, "pose_error": poses}
+
+
+#: the codes of a movingMeshGran comparison: LIGGGHTS, demstep's case as it is, and
+#: demstep with the waiting particles dropped after the last insertion
+MOVING_CODES = ("liggghts", "demstep", "demstep_dropped")
+
+
+def rounded(value, digits: int = 6):
+    """``value`` (nested dicts and lists) with its floats to ``digits`` significant
+    digits (the JSON file stays small)."""
+    if isinstance(value, dict):
+        return {k: rounded(v, digits) for k, v in value.items()}
+    if isinstance(value, list):
+        return [rounded(v, digits) for v in value]
+    if isinstance(value, float) and math.isfinite(value) and value != 0.0:
+        return round(value, digits - 1 - math.floor(math.log10(abs(value))))
+    return value
+
+
+def spread(runs: list[dict]) -> list[dict]:
+    """Each quantity's mean, minimum and maximum over the runs (seeds), at the steps
+    of MOVING_SHOWN (the runs hold every 1,000 steps)."""
+    out = []
+    for rows in zip(*(r["rows"] for r in runs)):
+        if rows[0]["step"] not in MOVING_SHOWN:
+            continue
+        row = {"step": rows[0]["step"]}
+        for key in rows[0]:
+            if key == "step":
+                continue
+            v = np.array([r[key] for r in rows], dtype=float)
+            if np.isnan(v).all():
+                continue
+            row[key] = {"mean": float(v.mean()), "min": float(v.min()), "max": float(v.max())}
+        out.append(row)
+    return out
+
+
+def compare_moving(work: Path, seeds: int, keep: bool) -> dict:
+    runs = {code: [] for code in MOVING_CODES}
+    for k in range(seeds):
+        _, t, folder = run_liggghts(MOVING, work, k)
+        runs["liggghts"].append(moving_series_liggghts(folder, t))
+        print_moving_run("LIGGGHTS", runs["liggghts"][-1])
+        if not keep:
+            shutil.rmtree(folder / "post", ignore_errors=True)
+        for code, variant in (("demstep", ""), ("demstep_dropped", "dropped")):
+            _, t, folder = run_demstep(MOVING, work, k, variant)
+            runs[code].append(moving_series_demstep(folder, t))
+            print_moving_run(code, runs[code][-1])
+            if not keep:
+                shutil.rmtree(folder / "checkpoints", ignore_errors=True)
+    return rounded({"tutorial": MOVING, "seeds": seeds, "runs": runs,
+                    "summary": {code: spread(r) for code, r in runs.items()}})
+
+
+#: the rows shown on the screen (the JSON file has every 1,000 steps)
+MOVING_SHOWN = (2000, 8000, 20000, 29000, 30000, 31000, 35000, 40000, 45000, 46000, 48000,
+                50000, 52000, 55000, 58000, 60000, 65000, 70000)
+
+
+def print_moving_run(code: str, run: dict) -> None:
+    extra = ""
+    if "stage_seconds" in run:
+        extra = (" (stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in run["stage_seconds"].items())
+                 + f"; energy error at most {run['max_energy_error']:.2g})")
+    print(f"\n{MOVING} {code}, seeds {run['seeds']}: {run['seconds']:.1f} s{extra}; bucket pose "
+          f"error {max(run['pose_error'].values()):.2g} m")
+    print(f"{'step':>6} {'N':>5} {'KE [J]':>9} {'Erot':>7} {'Fx avg':>8} {'Fz avg':>8} "
+          f"{'Ty avg':>8} {'held':>5} {'kg':>6} {'lifted':>6}")
+    for r in run["rows"]:
+        if r["step"] in MOVING_SHOWN:
+            print(f"{r['step']:>6} {r['particles']:>5} {r['ke']:>9.4g} {r['erot']:>7.3g} "
+                  f"{r['fx_avg']:>8.1f} {r['fz_avg']:>8.1f} {r['ty_avg']:>8.1f} {r['held']:>5} "
+                  f"{r['held_mass']:>6.1f} {r['lifted']:>6}")
+
+
+def print_moving_summary(result: dict) -> None:
+    print(f"\n{MOVING}: mean [min, max] over {result['seeds']} seed(s)")
+    for key in ("particles", "ke", "fz_avg", "ty_avg", "held", "lifted"):
+        print(f"\n{key}:")
+        print(f"{'step':>6} " + " ".join(f"{c:>30}" for c in MOVING_CODES))
+        for rows in zip(*(result["summary"][c] for c in MOVING_CODES)):
+            if rows[0]["step"] not in MOVING_SHOWN or key not in rows[0]:
+                continue
+            cells = [f"{r[key]['mean']:.4g} [{r[key]['min']:.4g}, {r[key]['max']:.4g}]" for r in rows]
+            print(f"{rows[0]['step']:>6} " + " ".join(f"{c:>30}" for c in cells))
+
+
 EXTRA = {"conveyor": ("belt", conveyor_flow)}
 
 
-def compare(name: str, work: Path) -> dict:
-    lig, t_lig, lig_dir = run_liggghts(name, work)
-    dem, t_dem, dem_dir = run_demstep(name, work)
+def compare(name: str, work: Path, k: int = 0) -> dict:
+    lig, t_lig, lig_dir = run_liggghts(name, work, k)
+    dem, t_dem, dem_dir = run_demstep(name, work, k)
     steps = sorted(s for s in lig if s in dem and s > 0)
     table = []
     for s in steps:
@@ -206,6 +587,9 @@ def compare(name: str, work: Path) -> dict:
                       "erot_liggghts": er_l, "erot_demstep": er_d})
     result = {"tutorial": name, "seconds_liggghts": t_lig, "seconds_demstep": t_dem,
               "stage_seconds_demstep": demstep_stage_seconds(dem_dir), "rows": table}
+    if k > 0:
+        result["seeds_liggghts"] = json.loads((lig_dir / "seeds.json").read_text())
+        result["seeds_demstep"] = json.loads((dem_dir / "seeds.json").read_text())
     if name in EXTRA:
         key, fn = EXTRA[name]
         result[key] = fn(lig_dir, dem_dir)
@@ -238,21 +622,35 @@ def print_table(result: dict) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--tutorials", nargs="*", default=["meshGran", "conveyor"],
-                    choices=["meshGran", "conveyor"],
+    ap.add_argument("--tutorials", nargs="*", default=["meshGran", "conveyor", MOVING],
+                    choices=["meshGran", "conveyor", MOVING],
                     help="the tutorials to run (default: all); the others' entries in the "
                          "JSON file are kept")
     ap.add_argument("--out", default=str(ROOT / "validation" / "results" / "liggghts_tutorials.json"))
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="runs per tutorial and code, each with other seeds (default 1: the "
+                         "tutorials' own seeds, and demstep's cases' own)")
     ap.add_argument("--keep", action="store_true", help="keep the run folders")
     args = ap.parse_args(argv)
+    if args.seeds < 1:
+        ap.error("--seeds: at least 1")
     if shutil.which("liggghts") is None or not TUTORIALS.is_dir():
         sys.exit("needs Debian's liggghts and liggghts-doc: apt-get install liggghts liggghts-doc")
     work = Path(tempfile.mkdtemp(prefix="demstep-tutorials-"))
     results = []
     try:
         for name in args.tutorials:
-            result = compare(name, work)
-            print_table(result)
+            if name == MOVING:
+                result = compare_moving(work, args.seeds, args.keep)
+                print_moving_summary(result)
+            elif args.seeds == 1:
+                result = compare(name, work)
+                print_table(result)
+            else:
+                result = {"tutorial": name, "seeds": args.seeds, "runs": []}
+                for k in range(args.seeds):
+                    result["runs"].append(compare(name, work, k))
+                    print_table(result["runs"][-1])
             results.append(result)
     finally:
         if not args.keep:
