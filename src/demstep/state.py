@@ -30,7 +30,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-#: columns of a rolling-resistance history row (:func:`demstep.kernels.dem.rolling_response`)
+#: columns of a rolling-resistance history row (:func:`demstep.kernels.rolling.rolling_response`)
 ROLL_WIDTH = 8
 
 
@@ -127,7 +127,7 @@ class Pairs(NamedTuple):
     for what a chunk adds to particles past its own (see
     :func:`demstep.kernels.dem._pair_loop`; no rows with one chunk), and ``geo`` (P, 4), the
     unit normals and distances of the first pass of the pair loop. ``roll`` (P, 8): the
-    rolling and twisting resistance history (columns: :data:`demstep.kernels.dem.ROLL_M`
+    rolling and twisting resistance history (columns: :data:`demstep.kernels.rolling.ROLL_M`
     ...), (0, 8) when the law has none. ``cover`` (P,): the largest overlap [L] the last
     certified 'auto' time step covered each pair at (0: not covered; from the record of
     the contacts it covered, carried over by rebuilds), (0,) when not tracked."""
@@ -257,8 +257,9 @@ class Meshes(NamedTuple):
     lists were built [L]. Candidates: ``cand_p``, ``cand_t`` (K,); slots: ``active``
     (K,), their mesh ``slot_mesh`` and triangle ``slot_tri`` (K,), contact normal
     ``normal`` (K, 3), tangential spring and dashpot forces ``shear``, ``dashpot``
-    (K, 3), stored tangential energy ``etan`` (K,) and the contact's force on the mesh
-    ``fslot`` (K, 3) [M L/T^2] (for the per-triangle output). Wear: each mesh's Finnie
+    (K, 3), stored tangential energy ``etan`` (K,), the contact's force on the mesh
+    ``fslot`` (K, 3) [M L/T^2] (for the per-triangle output) and its rolling-resistance
+    history ``roll`` (K, ROLL_WIDTH) (zeros without rolling resistance). Wear: each mesh's Finnie
     coefficient ``wear_k`` (M,) [L T^2/M] (0: not tracked) and the wear accumulated on
     each triangle ``wear`` (T,) [L with k in 1/pressure] (:mod:`demstep.kernels.meshes`).
 
@@ -302,6 +303,7 @@ class Meshes(NamedTuple):
     dashpot: np.ndarray
     etan: np.ndarray
     fslot: np.ndarray
+    roll: np.ndarray
     cover_start: np.ndarray
     cover_mesh: np.ndarray
     cover_ref: np.ndarray
@@ -312,7 +314,8 @@ class Meshes(NamedTuple):
     wear: np.ndarray
 
     #: the fields of a contact slot: one row per candidate, carried with it
-    SLOTS = ("active", "slot_mesh", "slot_tri", "normal", "shear", "dashpot", "etan", "fslot")
+    SLOTS = ("active", "slot_mesh", "slot_tri", "normal", "shear", "dashpot", "etan", "fslot",
+             "roll")
     STATE = ("tri", "vel", "omega", "surface", "center", "shift", "turn", "law", "force", "torque",
              "power", "power_prev", "moved", "cand_p", "cand_t", "cover_ctl", "wear") + SLOTS
 

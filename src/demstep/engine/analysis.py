@@ -111,7 +111,7 @@ def contact_set(sim, horizon: float | None = None, cover: dict | None = None) ->
     if len(sim.meshes.cand_p):
         if horizon is None:
             mesh_parts.append(meshes_part(sim.meshes, sim.x, sim.r, sim.m, sim.dim,
-                                          len(sim.walls), params))
+                                          len(sim.walls), params, sim.inertia, sim.inv_m > 0))
         else:
             part, caps = meshes_within(sim, horizon, speed, params)
             mesh_parts.append(part)
@@ -138,7 +138,7 @@ def meshes_within(sim, horizon: float, speed, params) -> tuple[ContactSet, np.nd
     # (a linear law's contacts are covered at any overlap, as the pairs')
     caps = overlaps if sim.law.nonlinear else np.full(len(p), np.inf)
     return _mesh_elements(meshes, p, mk, normal, arm, overlaps, sim.r, sim.m, sim.dim,
-                          len(sim.walls), params), caps
+                          len(sim.walls), params, sim.inertia, sim.inv_m > 0), caps
 
 
 def mesh_speed(meshes) -> float:
@@ -192,30 +192,47 @@ def _walls_part(sim, p, w, arm, overlaps, params) -> ContactSet:
                       np.zeros(len(p)), kn, kt, w, c_n=cn, c_t=ct)
 
 
-def meshes_part(meshes, x, r, m, dim: int, first_wall: int, params) -> ContactSet:
+def meshes_part(meshes, x, r, m, dim: int, first_wall: int, params, inertia=None,
+                moving=None) -> ContactSet:
     """The particle-mesh contacts touching at positions ``x`` [L] (one per surface,
     :func:`demstep.engine.meshes.mesh_contacts`; radii ``r``, masses ``m``) as wall
     elements, mesh k numbered wall ``first_wall`` + k: the arm the distance from the
     centre to the closest point, R* = r, m* = m, and each mesh's own law parameters
-    (its material; the rows ``meshes.law``, of the law of ``params``)."""
+    (its material; the rows ``meshes.law``, of the law of ``params``); with the
+    particles' moments of ``inertia`` and which are ``moving`` (N,), a law's rolling
+    and twisting springs (:func:`_mesh_elements`)."""
     p, mk, normal, dist, delta = mesh_contacts(meshes, x, r)
-    return _mesh_elements(meshes, p, mk, normal, dist, delta, r, m, dim, first_wall, params)
+    return _mesh_elements(meshes, p, mk, normal, dist, delta, r, m, dim, first_wall, params,
+                          inertia, moving)
 
 
 def _mesh_elements(meshes, p, mk, normal, arm, overlaps, r, m, dim, first_wall,
-                   params) -> ContactSet:
+                   params, inertia=None, moving=None) -> ContactSet:
     """Particle-mesh contacts (particle ``p``, mesh ``mk``, ``normal`` from the particle
     to the mesh, ``arm`` [L]) as wall elements numbered ``first_wall`` + mesh, with each
     mesh's law (the rows ``meshes.law`` of the law of ``params``) at ``overlaps`` [L],
-    R* = r, m* = m."""
+    R* = r, m* = m; and, given ``inertia`` and ``moving`` (N,) and a law with rolling
+    resistance, each contact's rolling and twisting springs by its mesh's law
+    (:func:`demstep.timestep.contacts.with_rolling`: the kernels' mesh contacts carry
+    them, the mesh the body that does not move)."""
     c = len(p)
     kn, kt, cn, ct = (np.empty(c) for _ in range(4))
+    rolling = inertia is not None and params.has_rolling and c > 0
+    roll = np.zeros((4, c)) if rolling else None
+    wall_ids = first_wall + mk
     for k in np.unique(mk):
         on = mk == k
-        kn[on], kt[on], cn[on], ct[on] = coefficients(params_from_row(params, meshes.law[k]),
-                                                      overlaps[on], r[p[on]], m[p[on]])
+        pm = params_from_row(params, meshes.law[k])
+        kn[on], kt[on], cn[on], ct[on] = coefficients(pm, overlaps[on], r[p[on]], m[p[on]])
+        if rolling:
+            part = with_rolling(ContactSet(p[on], np.full(int(on.sum()), -1),
+                                           normal[on, :dim], arm[on], np.zeros(int(on.sum())),
+                                           kn[on], kt[on], wall_ids[on]), r, m, inertia,
+                                moving, pm)
+            roll[:, on] = part.k_r, part.k_w, part.c_r, part.c_w
+    extra = dict(zip(("k_r", "k_w", "c_r", "c_w"), roll)) if rolling else {}
     return ContactSet(p, np.full(c, -1), normal[:, :dim], arm, np.zeros(c), kn, kt,
-                      first_wall + mk, c_n=cn, c_t=ct)
+                      wall_ids, c_n=cn, c_t=ct, **extra)
 
 
 def _joined(sim, parts) -> ContactSet:
@@ -249,8 +266,8 @@ def reachable_overlap(sim, delta, reach, r_star) -> np.ndarray:
 def with_rolling_and_bonds(sim, parts, params, mesh_parts=()) -> ContactSet:
     """The contact parts as one ContactSet with the law's rolling and twisting
     springs (:func:`demstep.timestep.contacts.with_rolling`, the kernels' rule for fixed
-    particles), then the ``mesh_parts`` (the kernels give mesh contacts no rolling
-    resistance), then the intact bonds as elements of their own."""
+    particles), then the ``mesh_parts`` (with their own rolling springs, by each mesh's
+    law: :func:`_mesh_elements`), then the intact bonds as elements of their own."""
     contacts = with_rolling(_joined(sim, parts), sim.r, sim.m, sim.inertia, sim.inv_m > 0,
                             params)
     rest = list(mesh_parts) + bond_elements(sim)

@@ -154,7 +154,8 @@ class NeighbourLists:
     def size_rolling_history(self, rolling: bool):
         """Rolling-resistance history rows for every pair and wall pair while the law
         has rolling resistance (zeros for new ones), none otherwise: switching it off
-        releases the stored energy into the ledger's rolling dissipation. Rebuilds of
+        releases the stored energy (the mesh contacts' too) into the ledger's rolling
+        dissipation. Rebuilds of
         the lists keep a row per pair while it is on (also from an empty list), and the
         pair loop's work space (its rolling geometry) is sized anew after a change."""
         sim = self.sim
@@ -172,6 +173,11 @@ class NeighbourLists:
                 continue
             if name == "pairs":
                 self._chunks_for = None
+        roll = sim.meshes.roll  # (mesh contacts: a row per slot always, zeros without it)
+        if not rolling and len(roll) and roll[:, dem.ROLL_ENERGY].any():
+            sim.ledger.acc[A_ROLLING] += float(roll[:, dem.ROLL_ENERGY].sum())
+            sim.ledger.energy[E_STRAIN_R] = 0.0
+            roll[:] = 0.0
 
     def changed(self):
         """The pair list changed (renumbered, restored): its work space is made anew."""

@@ -21,7 +21,7 @@ import numpy as np
 from demstep.errors import InputError
 from demstep.kernels.meshes import MAX_CANDIDATES, candidate_pairs, mesh_contact_geometry
 from demstep.mesh import TriangleMesh
-from demstep.state import Meshes
+from demstep.state import ROLL_WIDTH, Meshes
 
 MESH_FIXED, MESH_MOVING = 0, 1
 
@@ -125,6 +125,7 @@ def meshes_bundle(walls: list[MeshWall], law) -> Meshes:
         active=np.zeros(0, np.int64), slot_mesh=np.zeros(0, np.int64),
         slot_tri=np.zeros(0, np.int64), normal=np.zeros((0, 3)), shear=np.zeros((0, 3)),
         dashpot=np.zeros((0, 3)), etan=np.zeros(0), fslot=np.zeros((0, 3)),
+        roll=np.zeros((0, ROLL_WIDTH)),
         wear_k=np.array([w.finnie_k for w in walls], dtype=np.float64),
         wear=np.zeros(len(tri)), **no_mesh_cover())
 

@@ -228,25 +228,26 @@ def energy_taken_out(sim, remove) -> dict:
         out[E_STRAIN_T] += float(ws.shear_energy[rows].sum())
         if len(ws.roll):
             out[E_STRAIN_R] += float(ws.roll[rows, dem.ROLL_ENERGY].sum())
-    e_n, e_t = _mesh_contact_energy(sim, x_then, remove, None)
+    e_n, e_t, e_r = _mesh_contact_energy(sim, x_then, remove, None)
     out[E_STRAIN_N] += e_n
     out[E_STRAIN_T] += e_t
+    out[E_STRAIN_R] += e_r
     return out
 
 
-def _mesh_contact_energy(sim, x_then, of_particles, of_mesh) -> tuple[float, float]:
+def _mesh_contact_energy(sim, x_then, of_particles, of_mesh) -> tuple[float, float, float]:
     """The energy [M L^2/T^2] stored in the mesh contacts of the particles where
     ``of_particles`` (N,) is true (None: all) with mesh ``of_mesh`` (None: every mesh),
     the particles at ``x_then``: (normal springs at their overlap by each mesh's law,
-    tangential springs from their history)."""
+    tangential springs, rolling and twisting springs from their history)."""
     me = sim.meshes
     if not len(me.cand_p):
-        return 0.0, 0.0
+        return 0.0, 0.0, 0.0
     rows = np.ones(len(me.cand_p), dtype=bool)
     if of_particles is not None:
         rows &= of_particles[me.cand_p]
     if not rows.any():
-        return 0.0, 0.0
+        return 0.0, 0.0, 0.0
     params = sim.law.params()
     e_n = 0.0
     p, mesh, _, _, delta = mesh_contacts(me, x_then, sim.r)
@@ -258,7 +259,8 @@ def _mesh_contact_energy(sim, x_then, of_particles, of_mesh) -> tuple[float, flo
     rows &= me.active != 0
     if of_mesh is not None:
         rows &= me.slot_mesh == of_mesh
-    return e_n, float(me.etan[rows].sum())
+    e_r = float(me.roll[rows, dem.ROLL_ENERGY].sum()) if len(me.roll) else 0.0
+    return e_n, float(me.etan[rows].sum()), e_r
 
 
 def switch_mesh(sim, index: int, enabled: bool) -> None:
@@ -277,10 +279,11 @@ def switch_mesh(sim, index: int, enabled: bool) -> None:
         return
     if not enabled:
         x_then = sim.spheres.x - sim.dt_prev * sim.spheres.v
-        e_n, e_t = _mesh_contact_energy(sim, x_then, None, index)
+        e_n, e_t, e_r = _mesh_contact_energy(sim, x_then, None, index)
         sim.ledger.energy[E_STRAIN_N] -= e_n
         sim.ledger.energy[E_STRAIN_T] -= e_t
-        sim.ledger.acc[A_REMOVED] += e_n + e_t
+        sim.ledger.energy[E_STRAIN_R] -= e_r
+        sim.ledger.acc[A_REMOVED] += e_n + e_t + e_r
         me = sim.meshes
         gone = (me.active != 0) & (me.slot_mesh == index)
         for f in Meshes.SLOTS:
@@ -289,7 +292,7 @@ def switch_mesh(sim, index: int, enabled: bool) -> None:
     sim.lists.rebuild()
     if enabled:  # (the overlaps it starts with hold energy brought into the run)
         x_then = sim.spheres.x - sim.dt_prev * sim.spheres.v
-        e_n, _ = _mesh_contact_energy(sim, x_then, None, index)
+        e_n, _, _ = _mesh_contact_energy(sim, x_then, None, index)
         sim.ledger.energy[E_STRAIN_N] += e_n
         sim.ledger.acc[A_INSERTED] += e_n
     sim.auto.resized()

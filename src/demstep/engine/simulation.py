@@ -52,7 +52,6 @@ import logging
 import math
 import os
 import tempfile
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -245,8 +244,6 @@ class Simulation:
         self.walls = list(walls)
         #: triangle-mesh walls (:class:`demstep.engine.meshes.MeshWall`), in one bundle
         self.mesh_walls = list(meshes)
-        #: whether the warning that mesh contacts carry no rolling resistance was given
-        self._mesh_rolling_told = False
         self.meshes = meshes_bundle(self.mesh_walls, self.law)
         self.wall_state = walls_bundle(self.walls, self.dim, self.box.length, self.x, self.r,
                                        self.particle_id)
@@ -499,6 +496,8 @@ class Simulation:
         # before surface velocities: none; before the 'auto' step covered meshes: none)
         data.setdefault("meshes.cover_ctl", np.array([0.0, np.inf, 0.0, 0.0]))
         data.setdefault("meshes.wear", np.zeros(len(self.meshes.tri)))  # (before wear)
+        if "meshes.cand_p" in data:  # (before rolling resistance on meshes: none)
+            data.setdefault("meshes.roll", np.zeros((len(data["meshes.cand_p"]), ROLL_WIDTH)))
         missing = [k for k in needed if k not in data]
         if missing:
             raise InputError(f"{source}: a damaged checkpoint (array {missing[0]!r} missing)")
@@ -577,11 +576,11 @@ class Simulation:
         if self.timestep.mode == "auto":
             self.auto.prepare()
         self._check_motion_limit()
-        if self.mesh_walls and self.law.params().has_rolling and not self._mesh_rolling_told:
-            self._mesh_rolling_told = True
-            warnings.warn("demstep: the contact law has rolling resistance, which mesh "
-                          "contacts do not carry yet (pairs and plane walls do): spheres "
-                          "roll on the meshes without it", RuntimeWarning, stacklevel=3)
+        if self.mesh_walls and self.law.params().has_rolling and self.timestep.mode == "auto":
+            raise InputError("timestep mode 'auto': rolling resistance on mesh walls is not "
+                             "followed by the certified step's drift cover yet (use mode "
+                             "'fixed' with a step from demstep dt or sim.critical_dt(), which "
+                             "include the mesh contacts' rolling springs)")
         if self.mesh_walls and self.bodies.n and self.timestep.mode == "auto":
             raise InputError("timestep mode 'auto': clumps with mesh walls are not covered by "
                              "the certified step yet (use mode 'fixed' with a step from "

@@ -47,6 +47,8 @@ import numpy as np
 
 from demstep._numba import njit
 from demstep.contact.laws import params_from_row
+from demstep.contact.laws.base import ROLL_NONE
+from demstep.kernels.rolling import rolling_contact
 from demstep.contact.triangles import FACE, closest_point_on_triangle, triangle_contact
 from demstep.kernels.response import contact_response
 from demstep.kernels.turn_factor import turn_factor
@@ -368,7 +370,11 @@ def mesh_forces(sph, meshes, params, dt):
     torques to ``force``, ``torque`` (N, 3); writes per mesh the force the particles
     exert ``mesh_force``, its torque about the centre ``mesh_torque``, the power the
     mesh puts into the particles ``mesh_power`` [M L^2/T^3] and the touching spheres
-    ``mesh_contacts``. Returns (strain_n, strain_t, friction, dashpot)."""
+    ``mesh_contacts``. A law with rolling resistance (``params.roll_mode``) gives each
+    contact rolling and twisting springs, the mesh the body j turning at its omega, its
+    history in ``roll`` (K, ROLL_WIDTH) carried with the slot (:mod:`demstep.kernels.rolling`).
+    Returns (strain_n, strain_t, friction, dashpot, rolling strain, rolling plastic and
+    viscous dissipation)."""
     x, v, w, r, m, force, torque = sph.x, sph.v, sph.w, sph.r, sph.m, sph.force, sph.torque
     cand_p, cand_t, tri, vid, tri_mesh = (meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid,
                                           meshes.tri_mesh)
@@ -378,6 +384,9 @@ def mesh_forces(sph, meshes, params, dt):
                                                 meshes.normal)
     shear, dashpot, etan, fslot = meshes.shear, meshes.dashpot, meshes.etan, meshes.fslot
     wear_k, wear = meshes.wear_k, meshes.wear
+    roll = meshes.roll
+    rolling = params.roll_mode != ROLL_NONE
+    inertia = sph.inertia
     mesh_force, mesh_torque = meshes.force, meshes.torque
     mesh_power, mesh_contacts = meshes.power, meshes.contacts
     n_cand = cand_p.shape[0]
@@ -399,11 +408,15 @@ def mesh_forces(sph, meshes, params, dt):
     e_t = 0.0
     d_fric = 0.0
     d_dash = 0.0
+    er_s = 0.0
+    dr_p = 0.0
+    dr_v = 0.0
     # one sphere's candidates: geometry, kept flags, and its old slots
     g = np.empty((MAX_CANDIDATES, 9))
     feat = np.empty(MAX_CANDIDATES, dtype=np.int64)
     keep = np.empty(MAX_CANDIDATES, dtype=np.bool_)
     old = np.empty((MAX_CANDIDATES, 11))
+    old_roll = np.empty((MAX_CANDIDATES, roll.shape[1]))
     old_mesh = np.empty(MAX_CANDIDATES, dtype=np.int64)
     taken = np.empty(MAX_CANDIDATES, dtype=np.bool_)
     new_of = np.empty(MAX_CANDIDATES, dtype=np.int64)
@@ -438,6 +451,9 @@ def mesh_forces(sph, meshes, params, dt):
                 old[n_old, 7] = dashpot[row, 1]
                 old[n_old, 8] = dashpot[row, 2]
                 old[n_old, 9] = etan[row]
+                if rolling:
+                    for c in range(roll.shape[1]):
+                        old_roll[n_old, c] = roll[row, c]
                 old_mesh[n_old] = slot_mesh[row]
                 taken[n_old] = False
                 n_old += 1
@@ -481,6 +497,13 @@ def mesh_forces(sph, meshes, params, dt):
                 old[o, 8], old[o, 9])
             d_fric += c_fric
             d_dash += c_dash
+            if rolling:  # (its rolling and twisting springs released, as a pair's)
+                _, _, _, _, _, r_p, r_v = rolling_contact(
+                    pm, old_roll[o], nx, ny, nz, -1.0, rp, inertia[p], m[p], rp, 0.0, 0.0,
+                    0.0, mesh_omega[mk, 0] - w[p, 0], mesh_omega[mk, 1] - w[p, 1],
+                    mesh_omega[mk, 2] - w[p, 2], dt)
+                dr_p += r_p
+                dr_v += r_v
         # 6. the forces, written into this sphere's rows from its first one
         row = s
         for k in range(n):
@@ -531,6 +554,25 @@ def mesh_forces(sph, meshes, params, dt):
             fslot[row, 0] = fx
             fslot[row, 1] = fy
             fslot[row, 2] = fz
+            if rolling:  # rolling and twisting resistance: the mesh is j, it turns at omega
+                for c in range(roll.shape[1]):
+                    roll[row, c] = old_roll[o, c] if o >= 0 else 0.0
+                touched, mx, my, mz, e_r, r_p, r_v = rolling_contact(
+                    pm, roll[row], nx, ny, nz, delta, rp, inertia[p], m[p], rp, 0.0, 0.0, 0.0,
+                    mesh_omega[mk, 0] - w[p, 0], mesh_omega[mk, 1] - w[p, 1],
+                    mesh_omega[mk, 2] - w[p, 2], dt)
+                if touched:
+                    torque[p, 0] -= mx
+                    torque[p, 1] -= my
+                    torque[p, 2] -= mz
+                    mesh_torque[mk, 0] += mx
+                    mesh_torque[mk, 1] += my
+                    mesh_torque[mk, 2] += mz
+                    mesh_power[mk] -= (mx * mesh_omega[mk, 0] + my * mesh_omega[mk, 1]
+                                       + mz * mesh_omega[mk, 2])
+                    er_s += e_r
+                    dr_p += r_p
+                    dr_v += r_v
             if wear_k[mk] > 0.0:
                 wear[t] += dt * finnie_rate(tri, t, v[p, 0] - ux, v[p, 1] - uy, v[p, 2] - uz,
                                             nx, ny, nz, math.sqrt(fx * fx + fy * fy + fz * fz),
@@ -559,11 +601,14 @@ def mesh_forces(sph, meshes, params, dt):
             fslot[q, 0] = 0.0
             fslot[q, 1] = 0.0
             fslot[q, 2] = 0.0
+            if rolling:
+                for c in range(roll.shape[1]):
+                    roll[q, c] = 0.0
         s = e
     cover_out[0] = drift_max
     cover_out[1] = 0.0
     cover_out[2] = n_short
-    return e_n, e_t, d_fric, d_dash
+    return e_n, e_t, d_fric, d_dash, er_s, dr_p, dr_v
 
 
 @njit
