@@ -203,3 +203,32 @@ def test_history_wall_position_columns():
     for k, wall in enumerate(sim.walls):
         assert h[f"{wall.name}.x"][-1] == sim.wall_point[k, 0]
         assert h[f"{wall.name}.y"][-1] == sim.wall_point[k, 1]
+
+
+def test_a_run_that_starts_empty_draws_its_walls_across_the_walls_alone(tmp_path):
+    """No particles at the start (insertion fills the run later): the VTK frame of
+    step 0 is written, its floor drawn as a quad of non-zero area (the extent comes
+    from the walls when there is nothing else; it failed on an empty reduction)."""
+    import meshio
+
+    from demstep.case import case_from_dict
+    from demstep.runner import run_case
+
+    data = {"name": "empty", "gravity": [0.0, 0.0, -9.81],
+            "particles": {"generator": "none"},
+            "box": {"lower": [-0.1, -0.1, -0.1], "upper": [0.1, 0.1, 0.1]},
+            "contact": {"law": "linear", "k_n": 1000.0},
+            "walls": [{"name": "floor", "point": [0.0, 0.0, -0.1], "normal": [0.0, 0.0, 1.0]}],
+            "insert": [{"name": "in", "region": {"shape": "box", "lower": [-0.05, -0.05, 0.0],
+                                                  "upper": [0.05, 0.05, 0.05]},
+                        "radius": 0.005, "density": 2500.0, "rate": 1000.0, "every": 100,
+                        "start": 0.001}],
+            "timestep": {"dt": 1e-5}, "stages": [{"name": "a", "steps": 200}],
+            "output": {"history_every": 100, "vtk_every": 100}}
+    run_case(case_from_dict(data, base_dir=tmp_path), tmp_path / "out", quiet=True)
+    walls = meshio.read(tmp_path / "out" / "vtk" / "walls_0000000000.vtu")
+    quads = walls.points[walls.cells[0].data]  # (the box's six walls and the floor)
+    assert len(quads) == 7
+    areas = np.linalg.norm(np.cross(quads[:, 1] - quads[:, 0], quads[:, 3] - quads[:, 0]), axis=1)
+    assert np.all(areas > 0.0)
+    assert any(np.allclose(q[:, 2], -0.1) for q in quads)

@@ -127,12 +127,24 @@ def contact_mesh(sim):
 
 
 def _extent(sim) -> tuple[np.ndarray, np.ndarray]:
-    lo = (sim.x - sim.r[:, None]).min(axis=0)
-    hi = (sim.x + sim.r[:, None]).max(axis=0)
-    if len(sim.walls):
-        lo = np.minimum(lo, sim.wall_point.min(axis=0))
-        hi = np.maximum(hi, sim.wall_point.max(axis=0))
-    pad = 0.02 * float(np.max(hi - lo)) + 1e-300
+    """The box the walls are drawn across [L]: the particles, the walls' reference
+    points and the meshes' corners, padded by 2 % (a run that starts empty: the
+    walls and meshes alone; nothing with a size at all: a box of 1 about them)."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    if len(sim.r):
+        lo = (sim.x - sim.r[:, None]).min(axis=0)
+        hi = (sim.x + sim.r[:, None]).max(axis=0)
+    parts = [sim.wall_point] if len(sim.walls) else []
+    meshes = getattr(sim, "meshes", None)
+    if meshes is not None and len(meshes.tri):
+        parts.append(meshes.tri.reshape(-1, 3))
+    for points in parts:
+        lo = np.minimum(lo, points.min(axis=0))
+        hi = np.maximum(hi, points.max(axis=0))
+    if not np.all(np.isfinite(lo)):
+        lo, hi = np.zeros(3), np.zeros(3)
+    span = float(np.max(hi - lo))
+    pad = 0.02 * span if span > 0 else 0.5
     lo, hi = lo - pad, hi + pad
     if sim.dim == 2:
         lo[2], hi[2] = 0.0, 0.0
