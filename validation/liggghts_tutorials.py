@@ -36,9 +36,9 @@ point, which moves with the mesh, plus p_ref x F) are printed with the thermo ou
 instantaneous and averaged by ``fix ave/time 50 20 1000`` (the 20 steps every 50 that
 end at each thermo step), and the particle and mesh dumps are written every 1,000 steps
 instead of 200. demstep runs a copy of its case with ``history_every = 50`` (the same
-20 samples are averaged) and a checkpoint every 1,000 steps, from which the particles
-are read (the VTK writer fails on the first frame of a run that starts empty with
-plane walls). From both: the particles and their kinetic energy; the force on the
+20 samples are averaged), no VTK frames and a checkpoint every 1,000 steps, from which
+the particles are read (the results in the JSON file were measured before the VTK
+writer handled a run that starts empty with plane walls, e35a6e8). From both: the particles and their kinetic energy; the force on the
 bucket; the particles (and their mass) whose centre lies in the bucket's cavity,
 followed in the bucket's own frame, and those lifted above z = 0. demstep runs twice
 per seed: the case as it is, and with the particles still waiting for room dropped
@@ -383,8 +383,9 @@ def moving_mesh_outputs(text: str) -> str:
 
 def moving_mesh_case(text: str) -> str:
     """demstep's case with history rows every 50 steps and a checkpoint every 1,000
-    (kept), the outputs compared; nothing else changed."""
+    (kept), the outputs compared, and no VTK frames; nothing else changed."""
     text = re.sub(r"(?m)^history_every = \d+", "history_every = 50", text)
+    text = re.sub(r"(?m)^vtk_every = \d+", "vtk_every = 0", text)
     return re.sub(r"(?m)^checkpoint_every = \d+", "checkpoint_every = 1000\ncheckpoint_keep = 0",
                   text)
 
