@@ -223,6 +223,31 @@ def test_a_full_region_delays_insertion_and_drops_nothing():
     assert out.removed + len(sim.r) == 40
 
 
+def test_nothing_is_inserted_after_stop_and_what_waits_then_is_dropped():
+    """The same full region with a stop: what waits at stop is never inserted (the
+    outlet makes room afterwards, nothing comes), it is counted as dropped, and a
+    checkpoint's state carries the count."""
+    small = BoxRegion(3, "r", [0, 0, 0], [0.012, 0.012, 0.012])
+    ins = _inserter(region=small, rate=1e5, every=100, total=40, stop=2e-3,
+                    radius=RadiusDistribution("discrete", radii=[R, 2 * R]))
+    out = Outlet("drain", BoxRegion(3, "o", [-1, -1, -1], [1, 1, 1]), every=200)
+    sim = _sim([ins, out])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sim.run(steps=200)  # (t = 2e-3: the last insertion at stop)
+    waiting = len(ins.pending)
+    inserted = ins.inserted
+    assert waiting > 0
+    with pytest.warns(RuntimeWarning, match=r"found no room by stop = 0.002 are dropped"):
+        sim.run(steps=6000)
+    assert ins.inserted == inserted and len(ins.pending) == 0 and ins.dropped == waiting
+    assert out.removed + len(sim.r) == inserted
+    again = _inserter(region=small, rate=1e5, every=100, total=40, stop=2e-3,
+                      radius=RadiusDistribution("discrete", radii=[R, 2 * R]))
+    again.restore(ins.state())
+    assert again.dropped == waiting
+
+
 # ------------------------------------------------------------ energy ledger
 def test_the_ledger_balances_exactly_as_particles_come_and_go_in_free_fall():
     ins = _inserter(region=BoxRegion(3, "r", [0, 0, 0], [1, 1, 1]), rate=1000.0, every=20,
@@ -357,6 +382,66 @@ def test_particles_taken_out_leave_the_certificate_in_place():
     sim.every(20, lambda s: worst.append(s.dt / (s.critical_dt("exact") or np.inf)))
     sim.run(steps=2000)
     assert max(worst) < 1.0 and sim.n_contacts > 4
+
+
+@pytest.mark.parametrize("sort_every", [None, 1])
+def test_an_insertion_keeps_the_certificate_and_adds_the_new_contacts(sort_every,
+                                                                      monkeypatch):
+    """A settled pile in 'auto' mode; spheres inserted over it: the certificate is kept
+    at each insertion (its covered pairs the same ones, under the numbers the rebuild
+    gave them; its per-particle rows grown), the new particles' first contacts are
+    added to it, not estimated anew at each insertion,
+    and the step stays below the exact critical step throughout. With the particles
+    sorted at every rebuild the certificate follows the renumbering. (Before, each
+    insertion dropped the certificate and made a new estimate.)"""
+    from demstep.engine.ordering import SpatialOrder
+
+    if sort_every:
+        monkeypatch.setattr(SpatialOrder, "SORT_GAIN", -math.inf)
+    law = LinearSpring(k_n=2e3, restitution=0.5)
+    x = np.array([[0.01 * i + 0.005, 0.005, 0.006 + 0.011 * k] for k in range(2)
+                  for i in range(4)])
+    ins = _inserter(region=BoxRegion(3, "r", [0, 0, 0.03], [0.04, 0.01, 0.05]),
+                    radius=RadiusDistribution("fixed", radius=0.003), rate=20.0, every=200,
+                    total=10, start=0.3)
+    sim = Simulation(Particles.from_density(x, np.full(8, 0.0055), DENSITY), law,
+                     walls=box_walls([0, 0, 0], [0.04, 0.01, 0.1]), gravity=[0, 0, -9.81],
+                     timestep=TimeStep.auto(every=100_000), feed=[ins], sort_every=sort_every)
+    from demstep.engine.auto_step import AutoStep
+
+    seen = []  # (kept, the same certificate after the insertion's rebuild and check)
+    after = AutoStep.after_insertion
+
+    def spy(auto, kept):
+        before = auto.certificate
+        after(auto, kept)
+        seen.append((kept, before is not None and auto.certificate is before))
+
+    monkeypatch.setattr(AutoStep, "after_insertion", spy)
+    sim.run(duration=0.3)  # (settled; the insertions from t = 0.3 on)
+    assert ins.inserted == 0
+    cert, estimates = sim.auto.certificate, sim.auto.n_estimates
+    ids = sim.particle_ids()
+    covered = {(int(ids[a]), int(ids[b])) for a, b in zip(cert.pair_i, cert.pair_j)}
+    assert len(covered) >= 4
+    worst = []
+    sim.every(10, lambda s: worst.append(s.dt / (s.critical_dt("exact") or np.inf)))
+    events = 0
+    for _ in range(14):
+        before = ins.inserted
+        sim.run(duration=0.05)
+        events += ins.inserted > before
+        if sim.auto.certificate is cert:  # (kept: the same pairs by id, the rows grown)
+            now = sim.particle_ids()
+            assert {(int(now[a]), int(now[b])) for a, b in zip(cert.pair_i, cert.pair_j)} \
+                == covered
+            assert len(cert.particles) == len(sim.r)
+    assert ins.inserted == 10 and events >= 5 and len(seen) == events
+    # (measured: every insertion kept its certificate, no estimate made for it; the
+    # estimates made meanwhile come from the spheres' impacts on the pile)
+    assert all(kept and same for kept, same in seen)
+    assert sim.auto.n_extensions > 0
+    assert len(worst) > 200 and max(worst) < 1.0
 
 
 # ------------------------------------------------------------------- inputs

@@ -218,6 +218,57 @@ class AutoStep:
                 and not self.renew_drift_budget():
             self.propose_dt(force=True, scheduled=False)
 
+    def inserted(self, n_old: int) -> bool:
+        """Particles were appended (rows ``n_old`` on; :func:`demstep.engine.population.
+        add_particles`), before the lists are rebuilt: the certificate is kept
+        (:meth:`demstep.timestep.certificate.StepCertificate.extend`: the new particles
+        are in none of its contacts), the records of covered and added pairs re-keyed
+        for the new count, the per-particle records grown with empty rows; the new
+        particles' contacts are then added as any contact the estimate did not cover
+        (:meth:`after_insertion`). Returns whether a certificate was kept (False: none,
+        or one with clumps, which insertion does not support)."""
+        sim = self.sim
+        cert = self.certificate
+        n = len(sim.r)
+        if cert is None or cert.has_bodies or n_old == 0:
+            self.forget()
+            return False
+        for attr in ("_cover", "added"):
+            record = getattr(self, attr)
+            if not record:
+                continue
+            renamed = {}
+            for name, (keys, assumed) in record.items():
+                keys = np.asarray(keys, np.int64)
+                if name == "pairs":  # (the key i n + j depends on n)
+                    keys = pair_keys(n, keys // n_old, keys % n_old)
+                renamed[name] = (keys, np.asarray(assumed))
+            setattr(self, attr, renamed)
+        new = slice(n_old, n)
+        inv_I = sim.inv_I[new] if sim.rotation else np.zeros(n - n_old)
+        cert.extend(sim.r[new], sim.inv_m[new], inv_I)
+        if self.mesh_added is not None:
+            self.mesh_added = np.concatenate([self.mesh_added, np.zeros((n - n_old, 2))])
+        mode = self.mode
+        if mode is not None:
+            self.mode = (None if mode.size % n_old else np.concatenate(
+                [mode.reshape(n_old, -1), np.zeros((n - n_old, mode.size // n_old))]).reshape(-1))
+        return True
+
+    def after_insertion(self, kept: bool):
+        """After an insertion's lists are built: with the certificate kept
+        (:meth:`inserted`), the pair loops' cover synced to the new lists and the
+        contacts closing now that it does not cover added or a new estimate made
+        (:meth:`accept`), before the next step; else (:meth:`resized`) a new estimate."""
+        sim = self.sim
+        if not kept:
+            self.resized()
+            return
+        self.sync_cover(reset=False)
+        if sim.timestep.mode == "auto" and sim.dt is not None and sim.lists.built \
+                and not self.accept():
+            self.propose_dt(force=True, scheduled=False)
+
     def forget(self):
         """Drop what names particles by index (the certificate, the critical mode, the
         records of covered contacts): before the lists of a changed particle set are

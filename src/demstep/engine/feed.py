@@ -79,6 +79,8 @@ class Inserter:
     inserted_mass: float = 0.0
     pending: np.ndarray = field(default_factory=lambda: np.zeros(0))
     warned: bool = False
+    #: particles drawn that found no room before ``stop``, never inserted
+    dropped: int = 0
 
     def __post_init__(self):
         what = f"insert {self.name!r}"
@@ -179,7 +181,18 @@ class Inserter:
             self.pending = np.concatenate([self.pending, new])
 
     def insert(self, sim) -> int:
-        """One insertion event in ``sim``: draw, place, add. Returns how many were added."""
+        """One insertion event in ``sim``: draw, place, add. Returns how many were added.
+        Nothing is inserted after ``stop``: the particles still waiting for room then
+        are dropped (counted in :attr:`dropped`, said once), as LIGGGHTS ends an
+        inserter that is unfixed."""
+        if sim.time > self.stop + 0.5 * float(sim.dt or 0.0):
+            if len(self.pending):
+                self.dropped += len(self.pending)
+                warnings.warn(f"demstep: insert {self.name!r}: {len(self.pending)} particle(s) "
+                              f"that found no room by stop = {self.stop:g} are dropped (step "
+                              f"{sim.step})", RuntimeWarning, stacklevel=2)
+                self.pending = np.zeros(0)
+            return 0
         inside = int(self.region.contains(sim.x).sum()) if self.fill_to is not None else 0
         self.draw(sim.time, inside)
         if len(self.pending) == 0:
@@ -213,13 +226,14 @@ class Inserter:
     def state(self) -> dict:
         return {"inserted": self.inserted, "inserted_mass": self.inserted_mass,
                 "pending": self.pending.tolist(), "warned": self.warned,
-                "rng": self.rng.bit_generator.state}
+                "dropped": self.dropped, "rng": self.rng.bit_generator.state}
 
     def restore(self, state: dict):
         self.inserted = int(state["inserted"])
         self.inserted_mass = float(state["inserted_mass"])
         self.pending = np.asarray(state["pending"], dtype=np.float64)
         self.warned = bool(state["warned"])
+        self.dropped = int(state.get("dropped", 0))  # (before drops were counted: none)
         self.rng.bit_generator.state = state["rng"]
 
 

@@ -19,11 +19,14 @@ so the ledger balances between steps too (a history row written right after an
 insertion). Gravity needs no term: its work on a particle is counted while the
 particle is in the system.
 
-The 'auto' time step (:meth:`demstep.engine.auto_step.AutoStep.resized`): its
-certificate names particles by index and covered the old set, so it is dropped
-and a new estimate covers every contact the new set can close before any force of
-it acts (an inserted particle's contacts included; the densest-packing fallback
-takes the new lightest particle and largest radius).
+The 'auto' time step (:meth:`demstep.engine.auto_step.AutoStep.inserted`,
+:meth:`~demstep.engine.auto_step.AutoStep.removed`): its certificate is kept. After a
+removal what remains is a principal submatrix of what it bounded (Cauchy's
+interlacing); after an insertion the new particles are in none of its contacts (the
+matrices it bounded gain rows and columns of zeros), and their contacts are added
+before the next step as any contact the estimate did not cover: by the bound on the
+added group (Weyl's inequality), or by a new estimate when that bound leaves the
+step uncertified.
 
 A mesh wall switched on or off between runs (:func:`switch_mesh`) changes what takes
 part too: switched off, its contacts end and the energy they store leaves with them
@@ -119,7 +122,7 @@ def add_particles(sim, x, r, m, inertia, v=None, w=None, next_id: int | None = N
     sim.source_index = np.concatenate([ids, new_ids])
     sim.bodies = sim.bodies._replace(sphere_body=np.full(n0 + k, -1, dtype=np.int64))
     sim.update_masses()
-    _resized(sim, rebuild=True)
+    _inserted(sim, n0)
     return np.arange(n0, n0 + k)
 
 
@@ -174,14 +177,17 @@ def _sync_particles(sim):
                                               sim.fixed)
 
 
-def _resized(sim, rebuild: bool):
-    """After the particle set changed: the pair loop's work space, the lists (rebuilt
-    after an insertion), the 'auto' certificate."""
+def _inserted(sim, n_old: int):
+    """After particles were appended to the ``n_old`` there were: the pair loop's work
+    space, the 'auto' certificate kept for the new set (its records re-keyed:
+    :meth:`~demstep.engine.auto_step.AutoStep.inserted`), the lists rebuilt (they
+    may renumber the particles: the certificate follows), then the new particles'
+    contacts added to the certificate or a new estimate, before the next step."""
     sim.pairs_changed()
-    sim.auto.forget()  # (the rebuild may renumber the particles: nothing may name the old)
-    if rebuild and sim.lists.built:
+    kept = sim.auto.inserted(n_old)
+    if sim.lists.built:
         sim.lists.rebuild()
-    sim.auto.resized()
+    sim.auto.after_insertion(kept)
 
 
 def energy_taken_out(sim, remove) -> dict:

@@ -1155,6 +1155,19 @@ class StepCertificate:
         if len(self.particles):
             self.particles = np.ascontiguousarray(self.particles[keep])
 
+    def extend(self, radius, inv_m, inv_I):
+        """Particles appended after the last ones (their radii [L], inverse masses and
+        inverse moments of inertia, as :meth:`from_estimate` takes them): the
+        certificate still holds. The matrices it bounded, with rows and columns of
+        zeros for particles in none of its contacts, have the same eigenvalues and
+        zeros; the new particles' contacts are added as any contact the estimate did
+        not cover (:func:`added_contacts_bound`, or a new estimate)."""
+        if len(self.particles):
+            rows = np.stack([np.asarray(radius, dtype=np.float64),
+                             np.asarray(inv_m, dtype=np.float64),
+                             np.asarray(inv_I, dtype=np.float64)], axis=1)
+            self.particles = np.ascontiguousarray(np.concatenate([self.particles, rows]))
+
     def set_added(self, k: float, c: float):
         """All the contacts added since the estimate: bounds on lambda_max(K^) [1/T^2]
         and lambda_max(C^) [1/T] of them together (Weyl's inequality adds them to the
