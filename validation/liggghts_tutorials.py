@@ -37,19 +37,19 @@ instantaneous and averaged by ``fix ave/time 50 20 1000`` (the 20 steps every 50
 end at each thermo step), and the particle and mesh dumps are written every 1,000 steps
 instead of 200. demstep runs a copy of its case with ``history_every = 50`` (the same
 20 samples are averaged), no VTK frames and a checkpoint every 1,000 steps, from which
-the particles are read (the results in the JSON file were measured before the VTK
-writer handled a run that starts empty with plane walls, e35a6e8). From both: the particles and their kinetic energy; the force on the
-bucket; the particles (and their mass) whose centre lies in the bucket's cavity,
-followed in the bucket's own frame, and those lifted above z = 0. demstep runs twice
-per seed: the case as it is, and with the particles still waiting for room dropped
-after the last insertion (LIGGGHTS' ``unfix ins``: its insert/pack drops what found no
-room; demstep's inserter keeps them waiting and inserts them after ``stop``).
+the particles are read. From both: the particles and their kinetic energy; the force
+on the bucket; the particles (and their mass) whose centre lies in the bucket's cavity,
+followed in the bucket's own frame, and those lifted above z = 0; from demstep also the
+particles its inserter dropped at ``stop`` (those still waiting for room at the first
+insertion step after it: nothing is inserted after ``stop``, as LIGGGHTS' ``unfix ins``
+ends its insert/pack; read from the run's RuntimeWarning).
 
 ``--seeds N`` runs each tutorial N times in each code: LIGGGHTS with its seeds (the
 particle template's, the distribution's and the insertion's) replaced by other primes
 > 10000 (the first run keeps the tutorial's own), demstep with its inserters' ``seed``
 1, 2, ... N. With N > 1 the JSON entry holds every run and, for movingMeshGran, each
-code's mean, minimum and maximum over the seeds.
+code's mean, minimum and maximum over the seeds, and the engine's commit
+(``engine_commit``; '+modified' if ``src/`` differed from it).
 """
 
 from __future__ import annotations
@@ -201,52 +201,28 @@ def run_liggghts(name: str, work: Path, k: int = 0) -> tuple[dict, float, Path]:
     return liggghts_thermo(log), elapsed, dest
 
 
-#: runs demstep's case as ``demstep run`` does, but drops the particles still waiting
-#: for room once the step passes ``after`` (argv: case, out, after)
-DROP_WAITING = """
-import sys
-from demstep.case import load_case
-from demstep.runner import run_case
-
-case_file, out, after = sys.argv[1], sys.argv[2], int(sys.argv[3])
-
-
-def drop_waiting(sim):
-    if sim.step > after:
-        for inserter in sim.feed.inserters:
-            inserter.pending = inserter.pending[:0]
-
-
-result = run_case(load_case(case_file), out, quiet=True, on_chunk=drop_waiting)
-print(result.message)
-sys.exit(0 if result.status == "completed" else 1)
-"""
-
-
-def run_demstep(name: str, work: Path, k: int = 0, variant: str = "") -> tuple[dict, float, Path]:
+def run_demstep(name: str, work: Path, k: int = 0) -> tuple[dict, float, Path]:
     """The case run by ``demstep run`` (seeds of run ``k``; for movingMeshGran the
-    outputs of :func:`moving_mesh_case`, and with ``variant = "dropped"`` the waiting
-    particles dropped after the last insertion): (rows, wall seconds, folder)."""
-    out = work / f"demstep-{name}{'-' + variant if variant else ''}-{k}"
+    outputs of :func:`moving_mesh_case`): (rows, wall seconds, folder); the folder
+    holds ``seeds.json`` and the run's standard error in ``stderr.txt``."""
+    out = work / f"demstep-{name}-{k}"
     case_file = CASES / f"{name}.toml"
     text, seeds = demstep_seeds(case_file.read_text(), k)
     if name == MOVING:
         text = moving_mesh_case(text)
     if text != case_file.read_text():
         # (the copy is read from the work folder: the cases' mesh files are absolute paths)
-        case_file = work / f"{name}{'-' + variant if variant else ''}-{k}.toml"
+        case_file = work / f"{name}-{k}.toml"
         case_file.write_text(text)
-    if variant == "dropped":
-        command = [sys.executable, "-c", DROP_WAITING, str(case_file), str(out), str(LAST_INSERTION)]
-    else:
-        command = [sys.executable, "-m", "demstep.cli", "run", str(case_file), "--out", str(out),
-                   "--quiet"]
+    command = [sys.executable, "-m", "demstep.cli", "run", str(case_file), "--out", str(out),
+               "--quiet"]
     start = time.perf_counter()
     proc = subprocess.run(command, capture_output=True, text=True, env=one_thread())
     elapsed = time.perf_counter() - start
     if proc.returncode != 0:
         sys.exit(f"demstep failed on {name}: {proc.stdout[-2000:]}{proc.stderr[-2000:]}")
     (out / "seeds.json").write_text(json.dumps(seeds))
+    (out / "stderr.txt").write_text(proc.stderr)
     from demstep.io.history import read_history
 
     h = read_history(out / "history.csv")
@@ -350,7 +326,6 @@ MM_DT = 5.0e-5                          # [s] the tutorial's step
 MM_ON, MM_TURN, MM_END = 30000, 45000, 70000   # the bucket a wall; it turns; the end
 MM_VELOCITY = np.array([-0.5, 0.0, -0.3])      # [m/s] move/mesh linear, steps 30001-45000
 MM_OMEGA = 2.0 * math.pi / 2.0                 # [rad/s] rotate ... axis 0 1 0 period 2.
-LAST_INSERTION = 6000   # demstep's last insertion step (LIGGGHTS': 6001, unfix ins at 8000)
 #: the bucket's cavity where it starts (after the tutorial's transforms): the section
 #: (x, z) [m] inside its three plates (the top plate's underside z = 0.0791, the back
 #: plate's inner face x = 0.4774, the sloped bottom's upper face from (0.1997, -0.1216)
@@ -480,15 +455,19 @@ def moving_series_demstep(folder: Path, seconds: float) -> dict:
                      "ty_avg": window_mean(steps, np.asarray(h["bucket.ty"]), s)
                      if s >= MM_TURN + 1000 else float("nan"),
                      **bucket_contents(x, m, s)})
+    # (the inserter's RuntimeWarning: "... N particle(s) that found no room by stop = ...
+    # are dropped (step S)")
+    dropped = [int(n) for n in re.findall(r"(\d+) particle\(s\) that found no room by stop",
+                                          (folder / "stderr.txt").read_text())]
     return {"seeds": json.loads((folder / "seeds.json").read_text()), "seconds": seconds,
+            "dropped_at_stop": sum(dropped),
             "stage_seconds": demstep_stage_seconds(folder),
             "max_energy_error": float(np.nanmax(np.asarray(h["energy_error"]))),
             "rows": rows, "pose_error": poses}
 
 
-#: the codes of a movingMeshGran comparison: LIGGGHTS, demstep's case as it is, and
-#: demstep with the waiting particles dropped after the last insertion
-MOVING_CODES = ("liggghts", "demstep", "demstep_dropped")
+#: the codes of a movingMeshGran comparison
+MOVING_CODES = ("liggghts", "demstep")
 
 
 def rounded(value, digits: int = 6):
@@ -524,20 +503,35 @@ def spread(runs: list[dict]) -> list[dict]:
 
 def compare_moving(work: Path, seeds: int, keep: bool) -> dict:
     runs = {code: [] for code in MOVING_CODES}
+    commit = engine_commit()
     for k in range(seeds):
         _, t, folder = run_liggghts(MOVING, work, k)
         runs["liggghts"].append(moving_series_liggghts(folder, t))
         print_moving_run("LIGGGHTS", runs["liggghts"][-1])
         if not keep:
             shutil.rmtree(folder / "post", ignore_errors=True)
-        for code, variant in (("demstep", ""), ("demstep_dropped", "dropped")):
-            _, t, folder = run_demstep(MOVING, work, k, variant)
-            runs[code].append(moving_series_demstep(folder, t))
-            print_moving_run(code, runs[code][-1])
-            if not keep:
-                shutil.rmtree(folder / "checkpoints", ignore_errors=True)
-    return rounded({"tutorial": MOVING, "seeds": seeds, "runs": runs,
-                    "summary": {code: spread(r) for code, r in runs.items()}})
+        _, t, folder = run_demstep(MOVING, work, k)
+        runs["demstep"].append(moving_series_demstep(folder, t))
+        print_moving_run("demstep", runs["demstep"][-1])
+        if not keep:
+            shutil.rmtree(folder / "checkpoints", ignore_errors=True)
+    if engine_commit() != commit:   # (src/ changed while the runs ran)
+        commit = f"{commit} -> {engine_commit()}"
+    return rounded({"tutorial": MOVING, "seeds": seeds, "engine_commit": commit,
+                    "runs": runs, "summary": {code: spread(r) for code, r in runs.items()}})
+
+
+def engine_commit() -> str:
+    """The repository's commit (with '+modified' if src/ differs from it), or ''; the
+    JSON entry records it as the runs start (and as they end, if it differs)."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, check=True,
+                              capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "src"], cwd=ROOT,
+                               capture_output=True, text=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return ""
+    return head + ("+modified" if dirty else "")
 
 
 #: the rows shown on the screen (the JSON file has every 1,000 steps)
@@ -548,7 +542,7 @@ MOVING_SHOWN = (2000, 8000, 20000, 29000, 30000, 31000, 35000, 40000, 45000, 460
 def print_moving_run(code: str, run: dict) -> None:
     extra = ""
     if "stage_seconds" in run:
-        extra = (" (stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in run["stage_seconds"].items())
+        extra = (f" (dropped at stop: {run['dropped_at_stop']}; stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in run["stage_seconds"].items())
                  + f"; energy error at most {run['max_energy_error']:.2g})")
     print(f"\n{MOVING} {code}, seeds {run['seeds']}: {run['seconds']:.1f} s{extra}; bucket pose "
           f"error {max(run['pose_error'].values()):.2g} m")
