@@ -105,6 +105,7 @@ def test_a_centre_over_a_shared_vertex_or_edge_makes_one_contact():
         for sim in (mesh, wall):
             sim.run(steps=1)
         assert int(mesh.meshes.active.sum()) == 1
+        assert mesh.n_contacts == wall.n_contacts == 1  # (counted once: the step's count)
         np.testing.assert_allclose(mesh.force, wall.force, rtol=1e-12)
 
 
@@ -405,3 +406,38 @@ def test_mesh_contacts_carry_their_rolling_springs_into_the_certificate():
                        timestep=TimeStep.fixed(1e-9))
     stiff.run(steps=1)
     assert stiff.contact_set().k_r[0] == pytest.approx(2.0 * a.k_r[0], rel=1e-9)
+
+
+def test_the_threaded_mesh_loop_gives_the_serial_one():
+    """A bed of spheres settling on a fine floor mesh (several triangles under each
+    sphere), with rolling resistance and wear: the mesh contacts' loop threaded over
+    runs of spheres gives every particle the same force, torque and motion as the
+    serial loop, bit for bit (each sphere's contacts are summed in its own run, in the
+    same order), the same wear (reduced in row order) and the same force on the mesh
+    to round-off (its per-run sums are added after)."""
+    import numba
+
+    if numba.get_num_threads() < 2:
+        pytest.skip("needs two numba threads")
+    law = LAWS["rolling"]
+    rng = np.random.default_rng(4)
+    g = np.stack(np.meshgrid(np.arange(12), np.arange(12), np.arange(3), indexing="ij"),
+                 -1).reshape(-1, 3) * 2.2 * R
+    x = g + [-13 * R, -13 * R, 1.05 * R] + rng.normal(0, 0.02 * R, g.shape)
+
+    def make(parallel):
+        floor = flat_mesh(n=40, size=1.6)
+        return Simulation(Particles.from_density(x, np.full(len(x), R), DENSITY), law,
+                          meshes=[MeshWall(floor, name="floor", finnie_k=1e-6)],
+                          gravity=[0, 0, -9.81], timestep=TimeStep.fixed(2e-5),
+                          parallel=parallel)
+
+    a, b = make(True), make(False)
+    for sim in (a, b):
+        sim.run(steps=3000)
+    assert a.meshes.contacts[0] > 100 and a.meshes.wear.max() > 0.0
+    for name in ("x", "v", "w", "force", "torque"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert np.array_equal(a.meshes.wear, b.meshes.wear)
+    np.testing.assert_allclose(a.mesh_force, b.mesh_force, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(a.ledger.acc, b.ledger.acc, rtol=1e-12, atol=1e-15)

@@ -754,9 +754,9 @@ class Simulation:
     # ---------------------------------------------------------------- output
     @property
     def n_contacts(self) -> int:
-        """Contacts at the last step: particle-particle, particle-wall and particle-mesh."""
-        return int(self.counters[dem.COUNT_PAIR_CONTACTS] + self.counters[dem.COUNT_WALL_CONTACTS]
-                   + self.meshes.contacts.sum())
+        """Contacts at the last step: particle-particle, particle-wall and particle-mesh
+        (the step counts the mesh contacts among the wall contacts)."""
+        return int(self.counters[dem.COUNT_PAIR_CONTACTS] + self.counters[dem.COUNT_WALL_CONTACTS])
 
     def kinetic_energy(self) -> float:
         return self.ledger.kinetic

@@ -26,7 +26,7 @@ from demstep.contact.laws import needs_r_star as law_needs_r_star, normal_force
 from demstep.kernels.clumps import body_step, body_step_serial
 from demstep.kernels.bonds import bond_forces
 from demstep.kernels.integration import moved_since_build, step_weights, store_step_terms
-from demstep.kernels.meshes import mesh_forces, move_meshes
+from demstep.kernels.meshes import mesh_forces, mesh_forces_serial, move_meshes
 from demstep.kernels.response import coulomb_dashpot, contact_response
 from demstep.kernels.rolling import (  # noqa: F401  (ROLL_*: the history's columns, by name)
     ROLL_ENERGY, ROLL_M, ROLL_TWIST, ROLL_VISCOUS, rolling_contact,
@@ -1078,12 +1078,12 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
             er_s += wr_s
             er_p += wr_p
             er_v += wr_v
-        # 2c. triangle-mesh walls (serial: a sphere's contacts with a mesh are one list)
+        # 2c. triangle-mesh walls (threaded over runs of spheres: a sphere's rows its own)
         me_n, me_t, md_fric, md_dash = 0.0, 0.0, 0.0, 0.0
         if meshes.tri.shape[0] > 0:
             meshes.cover_ctl[3] = dt  # (the look-ahead of the 'auto' step's mesh cover)
-            me_n, me_t, md_fric, md_dash, mr_s, mr_p, mr_v = mesh_forces(sph, meshes, params,
-                                                                          dt_slip)
+            me_n, me_t, md_fric, md_dash, mr_s, mr_p, mr_v = mesh_forces(
+                sph, meshes, params, dt_slip, wall_chunks)
             er_s += mr_s
             er_p += mr_p
             er_v += mr_v
@@ -1249,6 +1249,7 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
 #: (its pair loop comes from :func:`pair_loop_for`)
 _SERIAL_LOOPS = {"rolling_forces": rolling_forces_serial,
                  "reduce_forces": reduce_forces_serial, "wall_forces": wall_forces_serial,
+                 "mesh_forces": mesh_forces_serial,
                  "wall_rolling": wall_rolling_serial, "integrate": integrate_serial,
                  "integrate_plain": integrate_plain_serial,
                  "body_step": body_step_serial}

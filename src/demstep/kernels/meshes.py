@@ -45,7 +45,7 @@ import math
 
 import numpy as np
 
-from demstep._numba import njit
+from demstep._numba import compile_parallel_and_serial, njit, prange
 from demstep.contact.laws import params_from_row
 from demstep.contact.laws.base import ROLL_NONE
 from demstep.kernels.rolling import rolling_contact
@@ -346,8 +346,19 @@ def finnie_rate(tri, t, vx, vy, vz, nx, ny, nz, f_mag, k):
     return 4.0 * k * f_mag * speed * finnie_shape(sin_g, cos_g) / twice_area
 
 
-@njit
-def mesh_forces(sph, meshes, params, dt):
+@njit(inline="always")
+def _run_boundary(cand_p, q):
+    """The first row of the sphere whose rows hold row ``q`` (rows sorted by sphere;
+    the row count when ``q`` is past the end): where a run of spheres starts."""
+    n = cand_p.shape[0]
+    if q >= n:
+        return n
+    while q > 0 and cand_p[q - 1] == cand_p[q]:
+        q -= 1
+    return q
+
+
+def _mesh_loop(sph, meshes, params, dt, n_chunks):
     """Contact forces of the Spheres ``sph`` on the triangles of the Meshes ``meshes``
     (:mod:`demstep.state`; module docstring). The fields it reads, by their names here:
 
@@ -373,8 +384,11 @@ def mesh_forces(sph, meshes, params, dt):
     ``mesh_contacts``. A law with rolling resistance (``params.roll_mode``) gives each
     contact rolling and twisting springs, the mesh the body j turning at its omega, its
     history in ``roll`` (K, ROLL_WIDTH) carried with the slot (:mod:`demstep.kernels.rolling`).
-    Returns (strain_n, strain_t, friction, dashpot, rolling strain, rolling plastic and
-    viscous dissipation)."""
+    Compiled twice (:data:`mesh_forces`, threaded over ``n_chunks`` runs of spheres,
+    each run's rows its own spheres'; :data:`mesh_forces_serial`): the per-mesh sums
+    and the wear are reduced after the runs, in row order. Returns (strain_n,
+    strain_t, friction, dashpot, rolling strain, rolling plastic and viscous
+    dissipation)."""
     x, v, w, r, m, force, torque = sph.x, sph.v, sph.w, sph.r, sph.m, sph.force, sph.torque
     cand_p, cand_t, tri, vid, tri_mesh = (meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid,
                                           meshes.tri_mesh)
@@ -394,221 +408,256 @@ def mesh_forces(sph, meshes, params, dt):
     # the 'auto' step's cover, followed when set for these spheres
     cover_start, cover_ctl, cover_out = meshes.cover_start, meshes.cover_ctl, meshes.cover_out
     track = cover_start.shape[0] == x.shape[0] + 1
-    near = np.empty(MAX_CANDIDATES, dtype=np.bool_)
-    taken_ref = np.empty(MAX_CANDIDATES, dtype=np.bool_)
-    cover_row = np.empty(5)
-    drift_max = 0.0
-    n_short = 0
     lookahead = 2.0 * cover_ctl[3]  # (twice a step's move: the look-ahead of the pairs')
+    wear_on = False
+    for mk in range(n_mesh):
+        if wear_k[mk] > 0.0:
+            wear_on = True
+    # per run: the sums returned, the largest drift and the contacts beyond the cover;
+    # per run and mesh: force (3), torque (3), power, touching spheres; per row: wear
+    sums = np.zeros((n_chunks, 9))
+    per_mesh = np.zeros((n_chunks, n_mesh, 8))
+    wear_row = np.zeros(n_cand if wear_on else 0)
+    for ch in prange(n_chunks):
+        near = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+        taken_ref = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+        cover_row = np.empty(5)
+        # one sphere's candidates: geometry, kept flags, and its old slots
+        g = np.empty((MAX_CANDIDATES, 9))
+        feat = np.empty(MAX_CANDIDATES, dtype=np.int64)
+        keep = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+        old = np.empty((MAX_CANDIDATES, 11))
+        old_roll = np.empty((MAX_CANDIDATES, roll.shape[1]))
+        old_mesh = np.empty(MAX_CANDIDATES, dtype=np.int64)
+        taken = np.empty(MAX_CANDIDATES, dtype=np.bool_)
+        new_of = np.empty(MAX_CANDIDATES, dtype=np.int64)
+        run = per_mesh[ch]
+        e_n = 0.0
+        e_t = 0.0
+        d_fric = 0.0
+        d_dash = 0.0
+        er_s = 0.0
+        dr_p = 0.0
+        dr_v = 0.0
+        drift_max = 0.0
+        n_short = 0
+        s = _run_boundary(cand_p, (n_cand * ch) // n_chunks)
+        s_end = _run_boundary(cand_p, (n_cand * (ch + 1)) // n_chunks)
+        while s < s_end:
+            p = cand_p[s]
+            e = _sphere_rows_end(cand_p, s)
+            n = e - s
+            px, py, pz, rp = x[p, 0], x[p, 1], x[p, 2], r[p]
+            # 1-2. each candidate triangle's contact, one per surface
+            _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep)
+            if track:  # the contacts now and those closing in the next step, covered?
+                speed = math.sqrt(v[p, 0] ** 2 + v[p, 1] ** 2 + v[p, 2] ** 2)
+                reach = lookahead * speed + 2.0 * cover_ctl[2]
+                if _sphere_cover(p, s, n, cand_t, vid, tri_mesh, g, feat, keep, near, rp, reach,
+                                 cover_start, meshes.cover_mesh, meshes.cover_ref,
+                                 meshes.cover_extra, cover_ctl[0], False, taken_ref, cover_row):
+                    n_short += 1
+                drift_max = max(drift_max, cover_row[0])
+            # 3. the old slots of this sphere
+            n_old = 0
+            for k in range(n):
+                row = s + k
+                if active[row] == 1:
+                    old[n_old, 0] = slot_normal[row, 0]
+                    old[n_old, 1] = slot_normal[row, 1]
+                    old[n_old, 2] = slot_normal[row, 2]
+                    old[n_old, 3] = shear[row, 0]
+                    old[n_old, 4] = shear[row, 1]
+                    old[n_old, 5] = shear[row, 2]
+                    old[n_old, 6] = dashpot[row, 0]
+                    old[n_old, 7] = dashpot[row, 1]
+                    old[n_old, 8] = dashpot[row, 2]
+                    old[n_old, 9] = etan[row]
+                    if rolling:
+                        for c in range(roll.shape[1]):
+                            old_roll[n_old, c] = roll[row, c]
+                    old_mesh[n_old] = slot_mesh[row]
+                    taken[n_old] = False
+                    n_old += 1
+            # 4. each kept contact takes the old slot of its mesh with the closest normal
+            for k in range(n):
+                new_of[k] = -1
+                if not keep[k]:
+                    continue
+                mk = tri_mesh[cand_t[s + k]]
+                best = MATCH_COS
+                for o in range(n_old):
+                    if taken[o] or old_mesh[o] != mk:
+                        continue
+                    cos = -(g[k, 1] * old[o, 0] + g[k, 2] * old[o, 1] + g[k, 3] * old[o, 2])
+                    if cos > best:
+                        best = cos
+                        new_of[k] = o
+                if new_of[k] >= 0:
+                    taken[new_of[k]] = True
+            # 5. slots no contact took have ended: their stored energy is released, and the
+            # last half step of their spring and dashpot work (as a pair that opens: the
+            # relative velocity at the contact point, at the arm r along the old normal)
+            for o in range(n_old):
+                if taken[o]:
+                    continue
+                mk = old_mesh[o]
+                nx, ny, nz = old[o, 0], old[o, 1], old[o, 2]
+                vix = v[p, 0] + rp * (w[p, 1] * nz - w[p, 2] * ny)
+                viy = v[p, 1] + rp * (w[p, 2] * nx - w[p, 0] * nz)
+                viz = v[p, 2] + rp * (w[p, 0] * ny - w[p, 1] * nx)
+                cx = px + rp * nx - mesh_center[mk, 0]
+                cy = py + rp * ny - mesh_center[mk, 1]
+                cz = pz + rp * nz - mesh_center[mk, 2]
+                ux = mesh_vel[mk, 0] + mesh_surface[mk, 0] + mesh_omega[mk, 1] * cz - mesh_omega[mk, 2] * cy
+                uy = mesh_vel[mk, 1] + mesh_surface[mk, 1] + mesh_omega[mk, 2] * cx - mesh_omega[mk, 0] * cz
+                uz = mesh_vel[mk, 2] + mesh_surface[mk, 2] + mesh_omega[mk, 0] * cy - mesh_omega[mk, 1] * cx
+                pm = params_from_row(params, mesh_law[mk])
+                (_, _, _, _, _, c_fric, c_dash, _, _, _, _, _, _, _, _, _) = contact_response(
+                    pm, pm.mu_wall, nx, ny, nz, -1.0, rp, m[p], ux - vix, uy - viy,
+                    uz - viz, dt, old[o, 3], old[o, 4], old[o, 5], old[o, 6], old[o, 7],
+                    old[o, 8], old[o, 9])
+                d_fric += c_fric
+                d_dash += c_dash
+                if rolling:  # (its rolling and twisting springs released, as a pair's)
+                    _, _, _, _, _, r_p, r_v = rolling_contact(
+                        pm, old_roll[o], nx, ny, nz, -1.0, rp, inertia[p], m[p], rp, 0.0, 0.0,
+                        0.0, mesh_omega[mk, 0] - w[p, 0], mesh_omega[mk, 1] - w[p, 1],
+                        mesh_omega[mk, 2] - w[p, 2], dt)
+                    dr_p += r_p
+                    dr_v += r_v
+            # 6. the forces, written into this sphere's rows from its first one
+            row = s
+            for k in range(n):
+                if not keep[k]:
+                    continue
+                t = cand_t[s + k]
+                mk = tri_mesh[t]
+                delta, dist = g[k, 0], g[k, 4]
+                # the contact normal points from the sphere to the mesh
+                nx, ny, nz = -g[k, 1], -g[k, 2], -g[k, 3]
+                qx, qy, qz = g[k, 5], g[k, 6], g[k, 7]
+                pm = params_from_row(params, mesh_law[mk])
+                o = new_of[k]
+                if o >= 0:
+                    ox, oy, oz = old[o, 3], old[o, 4], old[o, 5]
+                    fdx, fdy, fdz = old[o, 6], old[o, 7], old[o, 8]
+                    e_old = old[o, 9]
+                else:
+                    ox, oy, oz, fdx, fdy, fdz, e_old = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+                a = dist  # the arm: from the centre to the contact point on the triangle
+                vix = v[p, 0] + a * (w[p, 1] * nz - w[p, 2] * ny)
+                viy = v[p, 1] + a * (w[p, 2] * nx - w[p, 0] * nz)
+                viz = v[p, 2] + a * (w[p, 0] * ny - w[p, 1] * nx)
+                # the mesh's velocity at the contact point
+                cx = qx - mesh_center[mk, 0]
+                cy = qy - mesh_center[mk, 1]
+                cz = qz - mesh_center[mk, 2]
+                ux = mesh_vel[mk, 0] + mesh_surface[mk, 0] + mesh_omega[mk, 1] * cz - mesh_omega[mk, 2] * cy
+                uy = mesh_vel[mk, 1] + mesh_surface[mk, 1] + mesh_omega[mk, 2] * cx - mesh_omega[mk, 0] * cz
+                uz = mesh_vel[mk, 2] + mesh_surface[mk, 2] + mesh_omega[mk, 0] * cy - mesh_omega[mk, 1] * cx
+                (fx, fy, fz, c_en, c_et, c_fric, c_dash, _, _, tx, ty, tz, ndx, ndy, ndz,
+                 e_new) = contact_response(
+                    pm, pm.mu_wall, nx, ny, nz, delta, rp, m[p], ux - vix, uy - viy,
+                    uz - viz, dt, ox, oy, oz, fdx, fdy, fdz, e_old)
+                active[row] = 1
+                slot_mesh[row] = mk
+                slot_tri[row] = t
+                slot_normal[row, 0] = nx
+                slot_normal[row, 1] = ny
+                slot_normal[row, 2] = nz
+                shear[row, 0] = tx
+                shear[row, 1] = ty
+                shear[row, 2] = tz
+                dashpot[row, 0] = ndx
+                dashpot[row, 1] = ndy
+                dashpot[row, 2] = ndz
+                etan[row] = e_new
+                fslot[row, 0] = fx
+                fslot[row, 1] = fy
+                fslot[row, 2] = fz
+                if rolling:  # rolling and twisting resistance: the mesh is j, it turns at omega
+                    for c in range(roll.shape[1]):
+                        roll[row, c] = old_roll[o, c] if o >= 0 else 0.0
+                    touched, mx, my, mz, e_r, r_p, r_v = rolling_contact(
+                        pm, roll[row], nx, ny, nz, delta, rp, inertia[p], m[p], rp, 0.0, 0.0, 0.0,
+                        mesh_omega[mk, 0] - w[p, 0], mesh_omega[mk, 1] - w[p, 1],
+                        mesh_omega[mk, 2] - w[p, 2], dt)
+                    if touched:
+                        torque[p, 0] -= mx
+                        torque[p, 1] -= my
+                        torque[p, 2] -= mz
+                        run[mk, 3] += mx
+                        run[mk, 4] += my
+                        run[mk, 5] += mz
+                        run[mk, 6] -= (mx * mesh_omega[mk, 0] + my * mesh_omega[mk, 1]
+                                           + mz * mesh_omega[mk, 2])
+                        er_s += e_r
+                        dr_p += r_p
+                        dr_v += r_v
+                if wear_k[mk] > 0.0:
+                    wear_row[row] = dt * finnie_rate(
+                        tri, t, v[p, 0] - ux, v[p, 1] - uy, v[p, 2] - uz, nx, ny, nz,
+                        math.sqrt(fx * fx + fy * fy + fz * fz), wear_k[mk])
+                row += 1
+                force[p, 0] -= fx
+                force[p, 1] -= fy
+                force[p, 2] -= fz
+                torque[p, 0] -= a * (ny * fz - nz * fy)
+                torque[p, 1] -= a * (nz * fx - nx * fz)
+                torque[p, 2] -= a * (nx * fy - ny * fx)
+                run[mk, 0] += fx
+                run[mk, 1] += fy
+                run[mk, 2] += fz
+                run[mk, 3] += cy * fz - cz * fy
+                run[mk, 4] += cz * fx - cx * fz
+                run[mk, 5] += cx * fy - cy * fx
+                run[mk, 6] -= fx * ux + fy * uy + fz * uz
+                run[mk, 7] += 1.0
+                e_n += c_en
+                e_t += c_et
+                d_fric += c_fric
+                d_dash += c_dash
+            for q in range(row, e):
+                active[q] = 0
+                fslot[q, 0] = 0.0
+                fslot[q, 1] = 0.0
+                fslot[q, 2] = 0.0
+                if rolling:
+                    for c in range(roll.shape[1]):
+                        roll[q, c] = 0.0
+            s = e
+        sums[ch, 0] = e_n
+        sums[ch, 1] = e_t
+        sums[ch, 2] = d_fric
+        sums[ch, 3] = d_dash
+        sums[ch, 4] = er_s
+        sums[ch, 5] = dr_p
+        sums[ch, 6] = dr_v
+        sums[ch, 7] = drift_max
+        sums[ch, 8] = n_short
     mesh_force[:] = 0.0
     mesh_torque[:] = 0.0
     mesh_power[:] = 0.0
     mesh_contacts[:] = 0
-    e_n = 0.0
-    e_t = 0.0
-    d_fric = 0.0
-    d_dash = 0.0
-    er_s = 0.0
-    dr_p = 0.0
-    dr_v = 0.0
-    # one sphere's candidates: geometry, kept flags, and its old slots
-    g = np.empty((MAX_CANDIDATES, 9))
-    feat = np.empty(MAX_CANDIDATES, dtype=np.int64)
-    keep = np.empty(MAX_CANDIDATES, dtype=np.bool_)
-    old = np.empty((MAX_CANDIDATES, 11))
-    old_roll = np.empty((MAX_CANDIDATES, roll.shape[1]))
-    old_mesh = np.empty(MAX_CANDIDATES, dtype=np.int64)
-    taken = np.empty(MAX_CANDIDATES, dtype=np.bool_)
-    new_of = np.empty(MAX_CANDIDATES, dtype=np.int64)
-    s = 0
-    while s < n_cand:
-        p = cand_p[s]
-        e = _sphere_rows_end(cand_p, s)
-        n = e - s
-        px, py, pz, rp = x[p, 0], x[p, 1], x[p, 2], r[p]
-        # 1-2. each candidate triangle's contact, one per surface
-        _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep)
-        if track:  # the contacts now and those closing in the next step, covered?
-            speed = math.sqrt(v[p, 0] ** 2 + v[p, 1] ** 2 + v[p, 2] ** 2)
-            reach = lookahead * speed + 2.0 * cover_ctl[2]
-            if _sphere_cover(p, s, n, cand_t, vid, tri_mesh, g, feat, keep, near, rp, reach,
-                             cover_start, meshes.cover_mesh, meshes.cover_ref,
-                             meshes.cover_extra, cover_ctl[0], False, taken_ref, cover_row):
-                n_short += 1
-            drift_max = max(drift_max, cover_row[0])
-        # 3. the old slots of this sphere
-        n_old = 0
-        for k in range(n):
-            row = s + k
-            if active[row] == 1:
-                old[n_old, 0] = slot_normal[row, 0]
-                old[n_old, 1] = slot_normal[row, 1]
-                old[n_old, 2] = slot_normal[row, 2]
-                old[n_old, 3] = shear[row, 0]
-                old[n_old, 4] = shear[row, 1]
-                old[n_old, 5] = shear[row, 2]
-                old[n_old, 6] = dashpot[row, 0]
-                old[n_old, 7] = dashpot[row, 1]
-                old[n_old, 8] = dashpot[row, 2]
-                old[n_old, 9] = etan[row]
-                if rolling:
-                    for c in range(roll.shape[1]):
-                        old_roll[n_old, c] = roll[row, c]
-                old_mesh[n_old] = slot_mesh[row]
-                taken[n_old] = False
-                n_old += 1
-        # 4. each kept contact takes the old slot of its mesh with the closest normal
-        for k in range(n):
-            new_of[k] = -1
-            if not keep[k]:
-                continue
-            mk = tri_mesh[cand_t[s + k]]
-            best = MATCH_COS
-            for o in range(n_old):
-                if taken[o] or old_mesh[o] != mk:
-                    continue
-                cos = -(g[k, 1] * old[o, 0] + g[k, 2] * old[o, 1] + g[k, 3] * old[o, 2])
-                if cos > best:
-                    best = cos
-                    new_of[k] = o
-            if new_of[k] >= 0:
-                taken[new_of[k]] = True
-        # 5. slots no contact took have ended: their stored energy is released, and the
-        # last half step of their spring and dashpot work (as a pair that opens: the
-        # relative velocity at the contact point, at the arm r along the old normal)
-        for o in range(n_old):
-            if taken[o]:
-                continue
-            mk = old_mesh[o]
-            nx, ny, nz = old[o, 0], old[o, 1], old[o, 2]
-            vix = v[p, 0] + rp * (w[p, 1] * nz - w[p, 2] * ny)
-            viy = v[p, 1] + rp * (w[p, 2] * nx - w[p, 0] * nz)
-            viz = v[p, 2] + rp * (w[p, 0] * ny - w[p, 1] * nx)
-            cx = px + rp * nx - mesh_center[mk, 0]
-            cy = py + rp * ny - mesh_center[mk, 1]
-            cz = pz + rp * nz - mesh_center[mk, 2]
-            ux = mesh_vel[mk, 0] + mesh_surface[mk, 0] + mesh_omega[mk, 1] * cz - mesh_omega[mk, 2] * cy
-            uy = mesh_vel[mk, 1] + mesh_surface[mk, 1] + mesh_omega[mk, 2] * cx - mesh_omega[mk, 0] * cz
-            uz = mesh_vel[mk, 2] + mesh_surface[mk, 2] + mesh_omega[mk, 0] * cy - mesh_omega[mk, 1] * cx
-            pm = params_from_row(params, mesh_law[mk])
-            (_, _, _, _, _, c_fric, c_dash, _, _, _, _, _, _, _, _, _) = contact_response(
-                pm, pm.mu_wall, nx, ny, nz, -1.0, rp, m[p], ux - vix, uy - viy,
-                uz - viz, dt, old[o, 3], old[o, 4], old[o, 5], old[o, 6], old[o, 7],
-                old[o, 8], old[o, 9])
-            d_fric += c_fric
-            d_dash += c_dash
-            if rolling:  # (its rolling and twisting springs released, as a pair's)
-                _, _, _, _, _, r_p, r_v = rolling_contact(
-                    pm, old_roll[o], nx, ny, nz, -1.0, rp, inertia[p], m[p], rp, 0.0, 0.0,
-                    0.0, mesh_omega[mk, 0] - w[p, 0], mesh_omega[mk, 1] - w[p, 1],
-                    mesh_omega[mk, 2] - w[p, 2], dt)
-                dr_p += r_p
-                dr_v += r_v
-        # 6. the forces, written into this sphere's rows from its first one
-        row = s
-        for k in range(n):
-            if not keep[k]:
-                continue
-            t = cand_t[s + k]
-            mk = tri_mesh[t]
-            delta, dist = g[k, 0], g[k, 4]
-            # the contact normal points from the sphere to the mesh
-            nx, ny, nz = -g[k, 1], -g[k, 2], -g[k, 3]
-            qx, qy, qz = g[k, 5], g[k, 6], g[k, 7]
-            pm = params_from_row(params, mesh_law[mk])
-            o = new_of[k]
-            if o >= 0:
-                ox, oy, oz = old[o, 3], old[o, 4], old[o, 5]
-                fdx, fdy, fdz = old[o, 6], old[o, 7], old[o, 8]
-                e_old = old[o, 9]
-            else:
-                ox, oy, oz, fdx, fdy, fdz, e_old = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-            a = dist  # the arm: from the centre to the contact point on the triangle
-            vix = v[p, 0] + a * (w[p, 1] * nz - w[p, 2] * ny)
-            viy = v[p, 1] + a * (w[p, 2] * nx - w[p, 0] * nz)
-            viz = v[p, 2] + a * (w[p, 0] * ny - w[p, 1] * nx)
-            # the mesh's velocity at the contact point
-            cx = qx - mesh_center[mk, 0]
-            cy = qy - mesh_center[mk, 1]
-            cz = qz - mesh_center[mk, 2]
-            ux = mesh_vel[mk, 0] + mesh_surface[mk, 0] + mesh_omega[mk, 1] * cz - mesh_omega[mk, 2] * cy
-            uy = mesh_vel[mk, 1] + mesh_surface[mk, 1] + mesh_omega[mk, 2] * cx - mesh_omega[mk, 0] * cz
-            uz = mesh_vel[mk, 2] + mesh_surface[mk, 2] + mesh_omega[mk, 0] * cy - mesh_omega[mk, 1] * cx
-            (fx, fy, fz, c_en, c_et, c_fric, c_dash, _, _, tx, ty, tz, ndx, ndy, ndz,
-             e_new) = contact_response(
-                pm, pm.mu_wall, nx, ny, nz, delta, rp, m[p], ux - vix, uy - viy,
-                uz - viz, dt, ox, oy, oz, fdx, fdy, fdz, e_old)
-            active[row] = 1
-            slot_mesh[row] = mk
-            slot_tri[row] = t
-            slot_normal[row, 0] = nx
-            slot_normal[row, 1] = ny
-            slot_normal[row, 2] = nz
-            shear[row, 0] = tx
-            shear[row, 1] = ty
-            shear[row, 2] = tz
-            dashpot[row, 0] = ndx
-            dashpot[row, 1] = ndy
-            dashpot[row, 2] = ndz
-            etan[row] = e_new
-            fslot[row, 0] = fx
-            fslot[row, 1] = fy
-            fslot[row, 2] = fz
-            if rolling:  # rolling and twisting resistance: the mesh is j, it turns at omega
-                for c in range(roll.shape[1]):
-                    roll[row, c] = old_roll[o, c] if o >= 0 else 0.0
-                touched, mx, my, mz, e_r, r_p, r_v = rolling_contact(
-                    pm, roll[row], nx, ny, nz, delta, rp, inertia[p], m[p], rp, 0.0, 0.0, 0.0,
-                    mesh_omega[mk, 0] - w[p, 0], mesh_omega[mk, 1] - w[p, 1],
-                    mesh_omega[mk, 2] - w[p, 2], dt)
-                if touched:
-                    torque[p, 0] -= mx
-                    torque[p, 1] -= my
-                    torque[p, 2] -= mz
-                    mesh_torque[mk, 0] += mx
-                    mesh_torque[mk, 1] += my
-                    mesh_torque[mk, 2] += mz
-                    mesh_power[mk] -= (mx * mesh_omega[mk, 0] + my * mesh_omega[mk, 1]
-                                       + mz * mesh_omega[mk, 2])
-                    er_s += e_r
-                    dr_p += r_p
-                    dr_v += r_v
-            if wear_k[mk] > 0.0:
-                wear[t] += dt * finnie_rate(tri, t, v[p, 0] - ux, v[p, 1] - uy, v[p, 2] - uz,
-                                            nx, ny, nz, math.sqrt(fx * fx + fy * fy + fz * fz),
-                                            wear_k[mk])
-            row += 1
-            force[p, 0] -= fx
-            force[p, 1] -= fy
-            force[p, 2] -= fz
-            torque[p, 0] -= a * (ny * fz - nz * fy)
-            torque[p, 1] -= a * (nz * fx - nx * fz)
-            torque[p, 2] -= a * (nx * fy - ny * fx)
-            mesh_force[mk, 0] += fx
-            mesh_force[mk, 1] += fy
-            mesh_force[mk, 2] += fz
-            mesh_torque[mk, 0] += cy * fz - cz * fy
-            mesh_torque[mk, 1] += cz * fx - cx * fz
-            mesh_torque[mk, 2] += cx * fy - cy * fx
-            mesh_power[mk] -= fx * ux + fy * uy + fz * uz
-            mesh_contacts[mk] += 1
-            e_n += c_en
-            e_t += c_et
-            d_fric += c_fric
-            d_dash += c_dash
-        for q in range(row, e):
-            active[q] = 0
-            fslot[q, 0] = 0.0
-            fslot[q, 1] = 0.0
-            fslot[q, 2] = 0.0
-            if rolling:
-                for c in range(roll.shape[1]):
-                    roll[q, c] = 0.0
-        s = e
-    cover_out[0] = drift_max
+    for ch in range(n_chunks):
+        for mk in range(n_mesh):
+            for k in range(3):
+                mesh_force[mk, k] += per_mesh[ch, mk, k]
+                mesh_torque[mk, k] += per_mesh[ch, mk, 3 + k]
+            mesh_power[mk] += per_mesh[ch, mk, 6]
+            mesh_contacts[mk] += int(per_mesh[ch, mk, 7])
+    if wear_on:  # (in row order: as one run would add them)
+        for row in range(n_cand):
+            if wear_row[row] != 0.0:
+                wear[slot_tri[row]] += wear_row[row]
+    cover_out[0] = sums[:, 7].max() if n_chunks > 0 else 0.0
     cover_out[1] = 0.0
-    cover_out[2] = n_short
-    return e_n, e_t, d_fric, d_dash, er_s, dr_p, dr_v
+    cover_out[2] = sums[:, 8].sum()
+    return (sums[:, 0].sum(), sums[:, 1].sum(), sums[:, 2].sum(), sums[:, 3].sum(),
+            sums[:, 4].sum(), sums[:, 5].sum(), sums[:, 6].sum())
+#: the mesh contacts' loop, threaded over runs of spheres and serial
+mesh_forces, mesh_forces_serial = compile_parallel_and_serial(_mesh_loop)
 
 
 @njit
