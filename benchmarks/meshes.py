@@ -7,9 +7,11 @@ particle diameter wide, most of it far from the particles (a large CAD floor); a
 the same number of triangles packed under the particles only (squares about a third
 of a diameter: each sphere within reach of some 15 triangles). Each run is its own process; the
 cases are interleaved, ``--repeat`` times; medians of particle-steps per second, the
-ratio to the plane wall, and the time of one candidate search (the cell-grid search
-that finds the triangles near each sphere at a neighbour-list rebuild) on the final
-state.
+ratio to the plane wall, the time of one candidate search (the triangles near each
+sphere, found through a grid of the triangles, built anew here as for a moving mesh;
+a fixed mesh's is kept from one rebuild to the next) on the final state, and, settled,
+the time of a step and of the mesh contacts' loop alone, against the plane's step
+(the mesh contacts' cost beside the step's pair work).
 
     python benchmarks/meshes.py [--n 20000] [--steps 2000] [--fine 224] [--repeat 3]
 """
@@ -64,6 +66,19 @@ sim.run(steps=20)
 t = time.perf_counter()
 sim.run(steps=steps)
 elapsed = time.perf_counter() - t
+# the settled state: a step, and the mesh contacts' loop alone (threaded as the step's)
+t = time.perf_counter()
+sim.run(steps=100)
+step_s = (time.perf_counter() - t) / 100
+loop_s = 0.0
+if floor != "plane":
+    from demstep.kernels.meshes import mesh_forces
+    chunks = sim.pairs.force_band.shape[0] if sim.threaded() else 1
+    mesh_forces(sim.spheres, sim.meshes, sim.law.params(), 1e-3, chunks)
+    t = time.perf_counter()
+    for _ in range(100):
+        mesh_forces(sim.spheres, sim.meshes, sim.law.params(), 1e-3, chunks)
+    loop_s = (time.perf_counter() - t) / 100
 search = float("nan")
 if floor != "plane":
     t0 = time.perf_counter()
@@ -71,7 +86,8 @@ if floor != "plane":
         build_candidates(sim.meshes, sim.x, sim.r, sim.skin, lambda k: k)
     search = (time.perf_counter() - t0) / 3
 print(json.dumps({"rate": len(x) * steps / elapsed, "n": len(x), "triangles": len(sim.meshes.tri),
-                  "search_s": search, "contacts": sim.n_contacts}))
+                  "search_s": search, "contacts": sim.n_contacts, "step_s": step_s,
+                  "loop_s": loop_s, "candidates": len(sim.meshes.cand_p)}))
 """
 
 FLOORS = ("plane", "mesh-2", "mesh-large", "mesh-fine")
@@ -90,6 +106,8 @@ def main(argv=None):
         subprocess.run([sys.executable, "-c", CASE, src, floor, "400", "20", "8"], check=True,
                        capture_output=True)
     runs = {f: [] for f in FLOORS}
+    steps_of = {f: [] for f in FLOORS}
+    loops_of = {f: [] for f in FLOORS}
     info = {}
     for _ in range(args.repeat):
         for floor in FLOORS:
@@ -98,6 +116,8 @@ def main(argv=None):
                                  capture_output=True, text=True)
             row = json.loads(out.stdout.strip().splitlines()[-1])
             runs[floor].append(row["rate"])
+            steps_of[floor].append(row["step_s"])
+            loops_of[floor].append(row["loop_s"])
             info[floor] = row
     med = {f: statistics.median(v) for f, v in runs.items()}
     result = {"n": args.n, "steps": args.steps, "runs": runs, "median_psps": med,
@@ -106,11 +126,16 @@ def main(argv=None):
         print(json.dumps(result))
         return
     print(f"{info['plane']['n']} spheres settling, {args.steps} steps, medians of {args.repeat}")
-    print(f"{'floor':<12}{'triangles':>10}{'M p-s/s':>10}{'/ plane':>9}{'search ms':>11}{'contacts':>10}")
+    print(f"{'floor':<12}{'triangles':>10}{'M p-s/s':>10}{'/ plane':>9}{'search ms':>11}"
+          f"{'contacts':>10}{'cands':>8}{'step ms':>9}{'mesh ms':>9}{'/ plane step':>13}")
+    plane_step = statistics.median(steps_of["plane"])
     for f in FLOORS:
+        step = statistics.median(steps_of[f])
+        loop = statistics.median(loops_of[f])
         print(f"{f:<12}{info[f]['triangles']:>10}{med[f] / 1e6:>10.2f}"
               f"{med[f] / med['plane']:>9.3f}{1e3 * info[f]['search_s']:>11.1f}"
-              f"{info[f]['contacts']:>10}")
+              f"{info[f]['contacts']:>10}{info[f]['candidates']:>8}{1e3 * step:>9.3f}"
+              f"{1e3 * loop:>9.3f}{loop / plane_step:>13.3f}")
 
 
 if __name__ == "__main__":

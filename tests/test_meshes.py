@@ -307,7 +307,79 @@ def test_the_candidate_search_finds_every_triangle_a_brute_force_search_finds():
     assert len(expected) > 500
     assert set(zip(cand_p.tolist(), cand_t.tolist())) == expected
     assert len(cand_p) == len(expected)  # (each pair once)
-    assert np.all(np.diff(cand_p) >= 0)  # sorted by particle
+    assert np.all(np.diff(cand_p * n_tri + cand_t) > 0)  # sorted by particle, then triangle
+
+
+def test_the_triangle_grid_is_kept_while_the_meshes_stay_and_built_anew_when_they_move():
+    """A grid kept across searches (a TriangleGrid): built once for a fixed mesh, again
+    when a mesh has moved, when the reach grows (a larger particle) or a mesh is
+    switched off; its candidates are the brute-force ones every time."""
+    from demstep.engine.meshes import TriangleGrid, build_candidates, meshes_bundle
+    from demstep.kernels.meshes import triangle_distances
+
+    rng = np.random.default_rng(3)
+    walls = [MeshWall(flat_mesh(n=10, size=1.0, z=0.0), name="a"),
+             MeshWall(flat_mesh(n=3, size=1.0, z=0.3), name="b")]
+    bundle = meshes_bundle(walls, LinearSpring(k_n=1.0))
+    x = rng.uniform(-0.6, 0.6, (2000, 3))
+    r = np.full(2000, 0.03)
+    grid = TriangleGrid()
+
+    def brute(b, radii, enabled=(True, True)):
+        n_tri = len(b.tri)
+        p_all = np.repeat(np.arange(len(x)), n_tri)
+        t_all = np.tile(np.arange(n_tri), len(x))
+        near = (triangle_distances(x, p_all, b.tri, t_all) < radii[p_all] + 0.01) \
+            & np.asarray(enabled)[b.tri_mesh[t_all]]
+        return set(zip(p_all[near].tolist(), t_all[near].tolist()))
+
+    def found(b, radii, enabled=None):
+        p, t = build_candidates(b, x, radii, 0.01, lambda k: k, enabled, grid)
+        return set(zip(p.tolist(), t.tolist()))
+
+    assert found(bundle, r) == brute(bundle, r) and grid.n_builds == 1
+    assert found(bundle, r) == brute(bundle, r) and grid.n_builds == 1  # (kept)
+    moved = bundle._replace(tri=bundle.tri + np.tile([0.0, 0.0, 0.05], 3),
+                            shift=bundle.shift + [0.0, 0.0, 0.05])
+    assert found(moved, r) == brute(moved, r) and grid.n_builds == 2
+    big = r.copy()
+    big[7] = 0.2  # (a larger particle: a longer reach)
+    assert found(moved, big) == brute(moved, big) and grid.n_builds == 3
+    assert found(moved, big, (True, False)) == brute(moved, big, (True, False))
+    assert grid.n_builds == 4
+
+
+def test_a_moving_mesh_is_searched_in_its_own_frame_and_binned_once():
+    """A mesh that turns about a tilted axis and translates (and a fixed one beside
+    it): after every move the candidates are the brute-force ones at the corners now
+    (the particles carried into the moving mesh's frame as read), and its grid, like
+    the fixed one's, was built once."""
+    from demstep.engine.meshes import TriangleGrid, build_candidates, meshes_bundle
+    from demstep.kernels.meshes import move_meshes, triangle_distances
+
+    rng = np.random.default_rng(5)
+    walls = [MeshWall(flat_mesh(n=8, size=1.0, z=0.0), name="blade",
+                      velocity=[0.3, -0.1, 0.2], omega=[1.0, 2.0, 0.5],
+                      center=[0.1, 0.0, 0.05]),
+             MeshWall(flat_mesh(n=4, size=1.0, z=-0.4), name="floor")]
+    b = meshes_bundle(walls, LinearSpring(k_n=1.0))
+    x = rng.uniform(-0.8, 0.8, (3000, 3))
+    r = np.full(3000, 0.02)
+    grid = TriangleGrid()
+    for step in range(6):
+        n_tri = len(b.tri)
+        p_all = np.repeat(np.arange(len(x)), n_tri)
+        t_all = np.tile(np.arange(n_tri), len(x))
+        near = triangle_distances(x, p_all, b.tri, t_all) < r[p_all] + 0.01
+        # (pairs within 1e-12 of the limit may go either way by round-off)
+        cand_p, cand_t = build_candidates(b, x, r, 0.01, lambda k: k, None, grid)
+        got = set(zip(cand_p.tolist(), cand_t.tolist()))
+        assert got == set(zip(p_all[near].tolist(), t_all[near].tolist()))
+        assert np.all(np.diff(cand_p * n_tri + cand_t) > 0)
+        for _ in range(40):
+            move_meshes(b.tri, b.tri0, b.tri_mesh, b.motion, b.vel, b.omega, b.axis,
+                        b.center, b.shift, b.turn, 0.01)
+    assert b.turn[0] > 2.0 and grid.n_builds == 2
 
 
 def test_a_sphere_dropped_on_a_conveyor_belt_rolls_off_at_two_sevenths_of_its_speed():
@@ -441,3 +513,21 @@ def test_the_threaded_mesh_loop_gives_the_serial_one():
     assert np.array_equal(a.meshes.wear, b.meshes.wear)
     np.testing.assert_allclose(a.mesh_force, b.mesh_force, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(a.ledger.acc, b.ledger.acc, rtol=1e-12, atol=1e-15)
+
+
+def test_a_turned_mesh_stopped_and_translated_keeps_its_pose():
+    """A mesh turned about x, then its rotation stopped (omega 0) and a velocity given:
+    its corners move on by v dt from where the turn left them (its axis is kept: the
+    corners follow from the total turn about it; taking z for a zero omega would throw
+    them to another pose)."""
+    x = np.array([[5.0, 5.0, 5.0]])
+    sim = Simulation(Particles.from_density(x, np.array([R]), DENSITY), LAWS["linear"],
+                     meshes=[MeshWall(flat_mesh(n=2, size=1.0), name="lid", omega=[2.0, 0, 0])],
+                     timestep=TimeStep.fixed(1e-3))
+    sim.run(steps=300)
+    turned = sim.meshes.tri.copy()
+    assert np.abs(turned[:, 2::3]).max() > 0.1  # (it turned out of the plane z = 0)
+    sim.set_mesh_motion(0, omega=[0.0, 0.0, 0.0], velocity=[0.1, 0.0, 0.0])
+    sim.run(steps=10)
+    expect = turned + np.tile([0.1 * 10 * 1e-3, 0.0, 0.0], 3)
+    np.testing.assert_allclose(sim.meshes.tri, expect, rtol=0, atol=1e-12)

@@ -246,6 +246,8 @@ class Meshes(NamedTuple):
     (T, 3) (shared by the triangles of a mesh), the mesh of each ``tri_mesh`` (T,).
     Meshes: ``motion`` (M,) (0 fixed, 1 moving), velocity ``vel`` (M, 3) [L/T], angular
     velocity ``omega`` (M, 3) [1/T] about ``center`` (M, 3) [L] (moving with the mesh),
+    the unit ``axis`` (M, 3) of the rotation (omega's direction, kept when omega is set
+    to 0: the corners follow from the total turn about it),
     a surface velocity ``surface`` (M, 3) [L/T] (a conveyor belt: the contacts see the
     surface move, the triangles stay),
     the translation ``shift`` (M, 3) [L] and the turn ``turn`` (M,) [rad] since the
@@ -282,6 +284,7 @@ class Meshes(NamedTuple):
     motion: np.ndarray
     vel: np.ndarray
     omega: np.ndarray
+    axis: np.ndarray
     surface: np.ndarray
     center: np.ndarray
     shift: np.ndarray
@@ -316,7 +319,7 @@ class Meshes(NamedTuple):
     #: the fields of a contact slot: one row per candidate, carried with it
     SLOTS = ("active", "slot_mesh", "slot_tri", "normal", "shear", "dashpot", "etan", "fslot",
              "roll")
-    STATE = ("tri", "vel", "omega", "surface", "center", "shift", "turn", "law", "force", "torque",
+    STATE = ("tri", "vel", "omega", "axis", "surface", "center", "shift", "turn", "law", "force", "torque",
              "power", "power_prev", "moved", "cand_p", "cand_t", "cover_ctl", "wear") + SLOTS
 
     @property

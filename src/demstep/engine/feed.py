@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 
 from demstep.contact.geometry import minimum_image_arrays
 from demstep.contact.laws.base import check_number
-from demstep.engine.meshes import build_candidates
+from demstep.engine.meshes import TriangleGrid, build_candidates
 from demstep.engine.population import add_particles, remove_particles
 from demstep.errors import InputError
 from demstep.feed.distributions import RadiusDistribution
@@ -281,6 +281,8 @@ class Feed:
         self.next_id = int(sim.particle_ids().max(initial=-1)) + 1 if len(sim.r) else 0
         #: the step they last acted at (-1: not yet)
         self.last_step = -1
+        #: the meshes' triangles binned for the placement's overlap check
+        self.triangle_grid = TriangleGrid()
 
     def __bool__(self) -> bool:
         return bool(self.inserters or self.outlets)
@@ -416,7 +418,7 @@ def place(sim, region: Region, radii: np.ndarray, rng, attempts: int, extrude=No
             rows = np.flatnonzero(ok)
             hit, _ = build_candidates(sim.meshes, np.ascontiguousarray(cand[rows]),
                                       np.ascontiguousarray(r[rows]), 0.0, lambda p: p,
-                                      sim.mesh_enabled)
+                                      sim.mesh_enabled, sim.feed.triangle_grid)
             ok[rows[np.unique(hit)]] = False
         # among themselves and those placed before them in this event, in order
         ok &= np.isfinite(cand).all(axis=1)

@@ -16,7 +16,7 @@ import numba
 import numpy as np
 
 from demstep.energy import A_ROLLING, E_STRAIN_R
-from demstep.engine.meshes import build_candidates, carry_slots
+from demstep.engine.meshes import TriangleGrid, build_candidates, carry_slots
 from demstep.kernels import dem
 from demstep.kernels.clumps import place_members
 from demstep.scratch import Workspace
@@ -46,6 +46,8 @@ class NeighbourLists:
         self._chunks_for: int | None = None
         #: the rolling loop's pair geometry (P, 4), kept across rebuilds while large enough
         self._geo_store = np.empty((0, 4))
+        #: the meshes' triangles binned in a grid, kept while they do not move
+        self.triangle_grid = TriangleGrid()
 
     def rebuild(self):
         """New neighbour lists (particles wrapped into the periodic box first), the
@@ -138,7 +140,7 @@ class NeighbourLists:
                                      shear_energy=wenergy, roll=wroll, cover=wcover)
         if sim.meshes.tri.shape[0] > 0:  # the triangles near each sphere, slots carried
             cand_p, cand_t = build_candidates(sim.meshes, sim.x, sim.r, sim.skin, sim.particle_id,
-                                              sim.mesh_enabled)
+                                              sim.mesh_enabled, self.triangle_grid)
             sim.meshes = carry_slots(sim.meshes, cand_p, cand_t)
             sim.meshes.moved[0] = 0.0
         if sim.auto.new_pairs_closing(cover, wcover):

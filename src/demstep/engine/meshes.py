@@ -7,7 +7,8 @@ blade). The Simulation keeps them in one :class:`~demstep.state.Meshes` bundle (
 triangles of every mesh, their vertex ids, the motion, the outputs, and the candidate
 (particle, triangle) rows with their contact slots: :mod:`demstep.kernels.meshes`).
 :func:`build_candidates` finds, at every rebuild of the neighbour lists, the triangles
-within the skin of each sphere (a k-d tree of the centres, queried around each triangle),
+within the skin of each sphere (each sphere looks at the triangles listed in its cell
+of a grid over the meshes, a :class:`TriangleGrid` kept while the meshes do not move),
 and :func:`carry_slots` carries each sphere's contacts over to its new rows.
 """
 
@@ -19,7 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from demstep.errors import InputError
-from demstep.kernels.meshes import MAX_CANDIDATES, candidate_pairs, mesh_contact_geometry
+from demstep.kernels.meshes import (MAX_CANDIDATES, grid_candidates, mesh_contact_geometry,
+                                    triangle_grid)
 from demstep.mesh import TriangleMesh
 from demstep.state import ROLL_WIDTH, Meshes
 
@@ -115,6 +117,7 @@ def meshes_bundle(walls: list[MeshWall], law) -> Meshes:
         motion=np.array([MESH_MOVING if w.moving else MESH_FIXED for w in walls], np.int64),
         vel=np.array([w.velocity for w in walls]).reshape(n, 3),
         omega=np.array([w.omega for w in walls]).reshape(n, 3),
+        axis=np.array([rotation_axis(w.omega) for w in walls]).reshape(n, 3),
         surface=np.array([w.surface_velocity for w in walls]).reshape(n, 3),
         center=np.array([w.center for w in walls]).reshape(n, 3),
         shift=z3.copy(), turn=np.zeros(n),
@@ -130,6 +133,13 @@ def meshes_bundle(walls: list[MeshWall], law) -> Meshes:
         wear=np.zeros(len(tri)), **no_mesh_cover())
 
 
+def rotation_axis(omega, default=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """The unit axis of a rotation vector ``omega`` (3,) [1/T]; ``default`` for 0."""
+    omega = np.asarray(omega, dtype=np.float64)
+    size = float(np.linalg.norm(omega))
+    return omega / size if size > 0.0 else np.asarray(default, dtype=np.float64)
+
+
 def no_mesh_cover() -> dict:
     """The Meshes fields of the 'auto' step's cover when it is not followed (no
     certificate): empty rows, no drift limit (:class:`demstep.state.Meshes`)."""
@@ -138,18 +148,103 @@ def no_mesh_cover() -> dict:
                 cover_ctl=np.array([0.0, np.inf, 0.0, 0.0]), cover_out=np.zeros(3))
 
 
+def body_frame(meshes: Meshes, k: int, x) -> np.ndarray:
+    """The points ``x`` (N, 3) [L] in the frame of mesh ``k`` as read (where its corners
+    are ``tri0``): its corners now are R (tri0 - o) + c, c its centre now, o = c - shift
+    the centre as read and R the turn about its axis (as
+    :func:`demstep.kernels.meshes.move_meshes` has them), so y = R^T (x - c) + o."""
+    c = meshes.center[k]
+    o = c - meshes.shift[k]
+    axis = meshes.axis[k]
+    ang = float(meshes.turn[k])
+    d = np.asarray(x, dtype=np.float64) - c
+    if ang != 0.0:  # (Rodrigues, by -ang: R^T)
+        cos, sin = math.cos(ang), -math.sin(ang)
+        d = (d * cos + np.cross(axis, d) * sin
+             + axis * (d @ axis)[:, None] * (1.0 - cos))
+    return np.ascontiguousarray(d + o)
+
+
+class TriangleGrid:
+    """The triangles near each cell of grids over the meshes
+    (:func:`demstep.kernels.meshes.triangle_grid`), kept from one search to the next:
+    one grid of the meshes that do not move, kept while their triangles, the reach and
+    the enabled meshes are the same; one per moving mesh over its triangles as read
+    (``tri0``), searched with the particles carried into its frame
+    (:func:`body_frame`), kept while the reach is the same: a moving mesh is binned
+    once too."""
+
+    #: a grid has at most 8 cells per triangle plus this many (its cells grow until it
+    #: fits), and at most 16 entries per triangle plus this many
+    MAX_CELLS_EXTRA = 100_000
+
+    def __init__(self):
+        self.grids = {}
+        #: grids built (a diagnostic: once for each mesh, and the fixed ones together)
+        self.n_builds = 0
+
+    def groups(self, meshes: Meshes, reach: float, enabled) -> list:
+        """[(frame, corners, (lo, cell, ncell, start, triangles))]: ``frame`` None for
+        the grid of the meshes that do not move (``corners`` ``meshes.tri``), else the
+        moving mesh's index (``corners`` ``meshes.tri0``); only the triangles of the
+        ``enabled`` meshes (None: all) [``reach``: r_max + skin, L]."""
+        on = (np.ones(meshes.n, dtype=bool) if enabled is None
+              else np.asarray(enabled, dtype=bool))
+        moving = (meshes.motion != MESH_FIXED) & on
+        out = []
+        fixed_use = (on & ~moving)[meshes.tri_mesh]
+        if fixed_use.any():
+            tri = meshes.tri
+            # (the corners of a mesh at rest follow from the corners as read, its shift
+            # and turn: a sample of the corners guards against anything else)
+            rest = on & ~moving
+            sample = tri[fixed_use][::max(1, int(fixed_use.sum()) // 64)]
+            key = (float(reach), fixed_use.tobytes(), meshes.shift[rest].tobytes(),
+                   meshes.turn[rest].tobytes(), sample.tobytes())
+            out.append((None, tri, self._get(None, key, tri, fixed_use, reach)))
+        for k in np.flatnonzero(moving):
+            use = meshes.tri_mesh == k
+            key = (float(reach), int(k), use.tobytes())
+            out.append((int(k), meshes.tri0, self._get(int(k), key, meshes.tri0, use, reach)))
+        return out
+
+    def _get(self, name, key, tri, use, reach):
+        held = self.grids.get(name)
+        if held is None or held[0] != key:
+            held = self.grids[name] = (key, self._build(tri, use, float(reach)))
+            self.n_builds += 1
+        return held[1]
+
+    def _build(self, tri, use, reach):
+        corners = tri[use].reshape(-1, 3)
+        lo = corners.min(axis=0) - reach
+        extent = corners.max(axis=0) + reach - lo
+        cell = max(reach, 1e-12 * float(extent.max()), 1e-300)
+        n_used = int(use.sum())
+        max_cells = 8 * n_used + self.MAX_CELLS_EXTRA
+        while True:
+            while np.prod(np.floor(extent / cell) + 1.0) > max_cells:
+                cell *= 1.5
+            ncell = (np.floor(extent / cell) + 1).astype(np.int64)
+            start, cell_tri = triangle_grid(tri, use, lo, cell, ncell, reach)
+            if len(cell_tri) <= 16 * n_used + self.MAX_CELLS_EXTRA:
+                return lo, cell, ncell, start, cell_tri
+            cell *= 1.5  # (large triangles over many cells: coarser)
+
+
 def build_candidates(meshes: Meshes, x, r, skin: float, particle_id,
-                     enabled=None) -> tuple:
+                     enabled=None, grid: TriangleGrid | None = None) -> tuple:
     """The (particle, triangle) pairs whose distance is below r + ``skin`` [L], sorted by
     particle then triangle: (cand_p, cand_t), the triangles of the meshes where
-    ``enabled`` (M,) is true only (None: every mesh). The particles are binned in a grid of
-    cells (side 2 r_max + skin, at most about 8 N + 1000 cells, as the pair search's),
-    and each triangle looks at the cells its bounding box, grown by r_max + skin,
-    covers, computing the exact distance to the particles in them
-    (:func:`demstep.kernels.meshes.candidate_pairs`): a mesh of many small triangles
-    costs a few cells per triangle, a large triangle the cells along it. More than
-    :data:`MAX_CANDIDATES` triangles near one sphere is refused (a mesh far finer than
-    the particles), naming the particle."""
+    ``enabled`` (M,) is true only (None: every mesh). The triangles are binned in grids
+    of cells (side r_max + skin or more; each triangle listed in the cells whose centre
+    lies within r_max + skin plus half a diagonal of it), and each particle looks at
+    the triangles of its own cell (:func:`demstep.kernels.meshes.grid_candidates`): the
+    cost is the particles near a mesh times the triangles near each, whatever the
+    mesh's size. The grids are kept in ``grid`` (a :class:`TriangleGrid`; None: grids
+    for this search only): the meshes at rest in one grid, each moving mesh in a grid
+    of its own frame. More than :data:`MAX_CANDIDATES` triangles near one sphere is
+    refused (a mesh far finer than the particles), naming the particle."""
     n_tri = len(meshes.tri)
     if enabled is not None and not np.any(enabled):
         n_tri = 0
@@ -157,19 +252,22 @@ def build_candidates(meshes: Meshes, x, r, skin: float, particle_id,
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     x = np.ascontiguousarray(x, dtype=np.float64)
     r = np.ascontiguousarray(r, dtype=np.float64)
-    lo = x.min(axis=0)
-    extent = np.maximum(x.max(axis=0) - lo, 0.0)
-    cell = 2.0 * float(r.max()) + float(skin)
-    max_cells = 8 * len(r) + 1000
-    while np.prod(np.floor(extent / cell) + 1.0) > max_cells:
-        cell *= 1.5
-    ncell = (np.floor(extent / cell) + 1).astype(np.int64)
-    cand_p, cand_t = candidate_pairs(x, r, float(skin), meshes.tri, lo, cell, ncell)
-    if enabled is not None and not np.all(enabled):
-        keep = np.asarray(enabled, dtype=bool)[meshes.tri_mesh[cand_t]]
-        cand_p, cand_t = cand_p[keep], cand_t[keep]
-    order = np.lexsort((cand_t, cand_p))
-    cand_p, cand_t = cand_p[order], cand_t[order]
+    reach = float(r.max()) + float(skin)
+    if grid is None:
+        grid = TriangleGrid()
+    found = []
+    for frame, corners, (lo, cell, ncell, start, cell_tri) in grid.groups(meshes, reach,
+                                                                          enabled):
+        points = x if frame is None else body_frame(meshes, frame, x)
+        found.append(grid_candidates(points, r, float(skin), corners, lo, cell, ncell, start,
+                                     cell_tri))
+    if len(found) == 1:
+        cand_p, cand_t = found[0]
+    else:
+        cand_p = np.concatenate([f[0] for f in found])
+        cand_t = np.concatenate([f[1] for f in found])
+        order = np.lexsort((cand_t, cand_p))
+        cand_p, cand_t = cand_p[order], cand_t[order]
     if len(cand_p):
         per = np.bincount(cand_p)
         if per.max() > MAX_CANDIDATES:
@@ -264,6 +362,8 @@ def set_mesh_motion(sim, index: int, velocity=None, omega=None, friction=None,
                                  f"{new.tolist()}")
         wall.omega = new
         meshes.omega[index] = new
+        if np.any(new != 0.0):
+            meshes.axis[index] = rotation_axis(new)
     if surface_velocity is not None:
         wall.surface_velocity = _vector3(surface_velocity, f"mesh {wall.name!r}: surface_velocity")
         meshes.surface[index] = wall.surface_velocity

@@ -69,7 +69,7 @@ from demstep.engine.auto_step import AutoStep
 from demstep.engine.bonding import add_bonds, bond_stiffness_max
 from demstep.engine.boundaries import walls_bundle
 from demstep.engine.lists import NeighbourLists
-from demstep.engine.meshes import mesh_law_rows, meshes_bundle, set_mesh_motion
+from demstep.engine.meshes import mesh_law_rows, meshes_bundle, rotation_axis, set_mesh_motion
 from demstep.engine.ordering import SpatialOrder, order_as, reorder
 from demstep.engine.population import adopt_particle_set, switch_mesh
 from demstep.engine.restore import SCALARS, checked_state, scalar_arrays
@@ -496,6 +496,10 @@ class Simulation:
         # before surface velocities: none; before the 'auto' step covered meshes: none)
         data.setdefault("meshes.cover_ctl", np.array([0.0, np.inf, 0.0, 0.0]))
         data.setdefault("meshes.wear", np.zeros(len(self.meshes.tri)))  # (before wear)
+        if "meshes.omega" in data:  # (before the axis was kept: omega's, z for none)
+            data.setdefault("meshes.axis", np.array(
+                [rotation_axis(om) for om in np.asarray(data["meshes.omega"]).reshape(-1, 3)]
+            ).reshape(-1, 3))
         if "meshes.cand_p" in data:  # (before rolling resistance on meshes: none)
             data.setdefault("meshes.roll", np.zeros((len(data["meshes.cand_p"]), ROLL_WIDTH)))
         missing = [k for k in needed if k not in data]

@@ -1172,8 +1172,8 @@ def _advance(n_steps, ctl, sph, bodies, pairs, bonds, walls, meshes, box, ledger
             boundary_step += abs(dt * box_speed[k])
         if meshes.tri.shape[0] > 0:  # moving meshes: their corners' moves
             mesh_step = move_meshes(meshes.tri, meshes.tri0, meshes.tri_mesh, meshes.motion,
-                                    meshes.vel, meshes.omega, meshes.center, meshes.shift,
-                                    meshes.turn, dt)
+                                    meshes.vel, meshes.omega, meshes.axis, meshes.center,
+                                    meshes.shift, meshes.turn, dt)
             meshes.moved[0] += mesh_step
             meshes.cover_ctl[2] = mesh_step
             boundary_move += meshes.moved[0]

@@ -661,11 +661,12 @@ mesh_forces, mesh_forces_serial = compile_parallel_and_serial(_mesh_loop)
 
 
 @njit
-def move_meshes(tri, tri0, tri_mesh, motion, mesh_vel, mesh_omega, mesh_center, mesh_shift,
-                mesh_turn, dt):
+def move_meshes(tri, tri0, tri_mesh, motion, mesh_vel, mesh_omega, mesh_axis, mesh_center,
+                mesh_shift, mesh_turn, dt):
     """Move the meshes over a step of ``dt`` [T]: a mesh that moves (``motion`` 1)
-    translates by v dt (its centre with it) and turns by |omega| dt about the axis of
-    omega through its centre; its triangles' corners ``tri`` are recomputed from their
+    translates by v dt (its centre with it) and turns by |omega| dt about its axis
+    ``mesh_axis`` (the unit axis of its rotation, kept when omega is set to 0) through
+    its centre; its triangles' corners ``tri`` are recomputed from their
     positions as read ``tri0`` with the total shift and turn (no drift of round-off).
     Returns the largest distance [L] a corner moved."""
     n_mesh = motion.shape[0]
@@ -682,12 +683,8 @@ def move_meshes(tri, tri0, tri_mesh, motion, mesh_vel, mesh_omega, mesh_center, 
         mk = tri_mesh[t]
         if motion[mk] == 0:
             continue
-        om = math.sqrt(mesh_omega[mk, 0] ** 2 + mesh_omega[mk, 1] ** 2 + mesh_omega[mk, 2] ** 2)
         ang = mesh_turn[mk]
-        if om > 0.0:
-            kx, ky, kz = mesh_omega[mk, 0] / om, mesh_omega[mk, 1] / om, mesh_omega[mk, 2] / om
-        else:
-            kx, ky, kz = 0.0, 0.0, 1.0
+        kx, ky, kz = mesh_axis[mk, 0], mesh_axis[mk, 1], mesh_axis[mk, 2]
         c, sn = math.cos(ang), math.sin(ang)
         # the centre as read: the centre now minus the shift
         ox = mesh_center[mk, 0] - mesh_shift[mk, 0]
@@ -728,32 +725,6 @@ def triangle_distances(x, p, tri, t):
 
 
 @njit
-def _grid_cells(x, lo, cell, ncell):
-    """The cell of every centre (N,) in a grid of ``ncell`` (3,) cells of side ``cell``
-    from ``lo``, and the particles sorted by cell: (start (C + 1,), order (N,))."""
-    n = x.shape[0]
-    n_cells = ncell[0] * ncell[1] * ncell[2]
-    of = np.empty(n, dtype=np.int64)
-    count = np.zeros(n_cells + 1, dtype=np.int64)
-    for p in range(n):
-        c = 0
-        for k in range(3):
-            i = int((x[p, k] - lo[k]) / cell)
-            i = min(max(i, 0), ncell[k] - 1)
-            c = c * ncell[k] + i
-        of[p] = c
-        count[c + 1] += 1
-    for c in range(n_cells):
-        count[c + 1] += count[c]
-    fill = count[:-1].copy()
-    order = np.empty(n, dtype=np.int64)
-    for p in range(n):
-        order[fill[of[p]]] = p
-        fill[of[p]] += 1
-    return count, order
-
-
-@njit
 def _triangle_cell_range(tri, t, lo, cell, ncell, reach):
     """The cells (per axis: first, last) that the box of triangle t grown by ``reach``
     [L] covers, clipped to the grid; empty (first > last) when it misses the grid."""
@@ -768,51 +739,102 @@ def _triangle_cell_range(tri, t, lo, cell, ncell, reach):
 
 
 @njit
-def _near_triangle(x, r, skin, tri, t, lo, cell, ncell, start, order, reach, out, count_only):
-    """The particles within r + ``skin`` of triangle t, found in the cells its grown box
-    covers: their number, written to ``out`` unless ``count_only``."""
-    first, last = _triangle_cell_range(tri, t, lo, cell, ncell, reach)
-    found = 0
-    for i in range(first[0], last[0] + 1):
-        for j in range(first[1], last[1] + 1):
-            for k in range(first[2], last[2] + 1):
-                c = (i * ncell[1] + j) * ncell[2] + k
-                for q in range(start[c], start[c + 1]):
-                    p = order[q]
-                    qx, qy, qz, _ = closest_point_on_triangle(
-                        x[p, 0], x[p, 1], x[p, 2], tri[t, 0], tri[t, 1], tri[t, 2],
-                        tri[t, 3], tri[t, 4], tri[t, 5], tri[t, 6], tri[t, 7], tri[t, 8])
-                    d2 = (x[p, 0] - qx) ** 2 + (x[p, 1] - qy) ** 2 + (x[p, 2] - qz) ** 2
-                    limit = r[p] + skin
-                    if d2 < limit * limit:
-                        if not count_only:
-                            out[found] = p
-                        found += 1
-    return found
+def _cell_of(x, p, lo, cell, ncell):
+    """The cell of the centre of particle p in the grid (``lo``, ``cell``, ``ncell``),
+    -1 outside it."""
+    c = 0
+    for k in range(3):
+        f = (x[p, k] - lo[k]) / cell
+        if not (f >= 0.0 and f < ncell[k]):
+            return -1
+        c = c * ncell[k] + min(int(f), ncell[k] - 1)
+    return c
 
 
 @njit
-def candidate_pairs(x, r, skin, tri, lo, cell, ncell):
+def triangle_grid(tri, use, lo, cell, ncell, reach):
+    """The triangles near each cell of a grid of ``ncell`` (3,) cells of side ``cell``
+    [L] from ``lo``: every triangle t with ``use[t]`` is listed in each cell whose
+    centre lies within ``reach`` + half the cell's diagonal of it (so every point of
+    the cell within ``reach`` of t finds it), in triangle order. Returns (start
+    (C + 1,), triangles (E,)): the list of cell c is triangles[start[c]:start[c + 1]]."""
+    n_cells = ncell[0] * ncell[1] * ncell[2]
+    limit = reach + 0.5 * cell * math.sqrt(3.0)
+    limit2 = limit * limit
+    start = np.zeros(n_cells + 1, dtype=np.int64)
+    fill = np.empty(0, dtype=np.int64)
+    out = np.empty(0, dtype=np.int64)
+    for sweep in range(2):  # count, then fill
+        for t in range(tri.shape[0]):
+            if not use[t]:
+                continue
+            first, last = _triangle_cell_range(tri, t, lo, cell, ncell, reach)
+            for i in range(first[0], last[0] + 1):
+                cx = lo[0] + (i + 0.5) * cell
+                for j in range(first[1], last[1] + 1):
+                    cy = lo[1] + (j + 0.5) * cell
+                    for k in range(first[2], last[2] + 1):
+                        cz = lo[2] + (k + 0.5) * cell
+                        qx, qy, qz, _ = closest_point_on_triangle(
+                            cx, cy, cz, tri[t, 0], tri[t, 1], tri[t, 2], tri[t, 3],
+                            tri[t, 4], tri[t, 5], tri[t, 6], tri[t, 7], tri[t, 8])
+                        if (cx - qx) ** 2 + (cy - qy) ** 2 + (cz - qz) ** 2 > limit2:
+                            continue
+                        c = (i * ncell[1] + j) * ncell[2] + k
+                        if sweep == 0:
+                            start[c + 1] += 1
+                        else:
+                            out[fill[c]] = t
+                            fill[c] += 1
+        if sweep == 0:
+            for c in range(n_cells):
+                start[c + 1] += start[c]
+            fill = start[:-1].copy()
+            out = np.empty(start[n_cells], dtype=np.int64)
+    return start, out
+
+
+@njit(inline="always")
+def _cell_hits(x, r, skin, tri, p, c, start, cell_tri, cand_p, cand_t, at, write):
+    """The triangles of cell c's list within r + ``skin`` of particle p: their number,
+    written from ``at`` on when ``write``."""
+    limit = r[p] + skin
+    found = 0
+    for q in range(start[c], start[c + 1]):
+        t = cell_tri[q]
+        qx, qy, qz, _ = closest_point_on_triangle(
+            x[p, 0], x[p, 1], x[p, 2], tri[t, 0], tri[t, 1], tri[t, 2], tri[t, 3],
+            tri[t, 4], tri[t, 5], tri[t, 6], tri[t, 7], tri[t, 8])
+        if (x[p, 0] - qx) ** 2 + (x[p, 1] - qy) ** 2 + (x[p, 2] - qz) ** 2 < limit * limit:
+            if write:
+                cand_p[at + found] = p
+                cand_t[at + found] = t
+            found += 1
+    return found
+
+
+@njit(parallel=True)
+def grid_candidates(x, r, skin, tri, lo, cell, ncell, start, cell_tri):
     """Every (particle, triangle) pair whose distance (centre to the triangle's closest
-    point) is below r + ``skin`` [L], through a grid of cells of side ``cell`` over the
-    particles (``lo``, ``ncell``): each triangle visits the cells its bounding box,
-    grown by r_max + skin, covers. Returns (cand_p, cand_t) in triangle order."""
-    start, order = _grid_cells(x, lo, cell, ncell)
-    reach = skin
-    if r.shape[0]:
-        reach += r.max()
-    n_tri = tri.shape[0]
-    counts = np.zeros(n_tri + 1, dtype=np.int64)
-    scratch = np.empty(0, dtype=np.int64)
-    for t in range(n_tri):
-        counts[t + 1] = _near_triangle(x, r, skin, tri, t, lo, cell, ncell, start, order,
-                                       reach, scratch, True)
-    for t in range(n_tri):
-        counts[t + 1] += counts[t]
-    cand_p = np.empty(counts[n_tri], dtype=np.int64)
-    cand_t = np.empty(counts[n_tri], dtype=np.int64)
-    for t in range(n_tri):
-        _near_triangle(x, r, skin, tri, t, lo, cell, ncell, start, order, reach,
-                       cand_p[counts[t]:counts[t + 1]], False)
-        cand_t[counts[t]:counts[t + 1]] = t
+    point) is below r + ``skin`` [L], each particle looking at the triangles its cell
+    lists (:func:`triangle_grid`, built with a reach of at least r + skin). Returns
+    (cand_p, cand_t), sorted by particle then triangle."""
+    n = x.shape[0]
+    cell_of = np.empty(n, dtype=np.int64)
+    counts = np.zeros(n + 1, dtype=np.int64)
+    none = np.empty(0, dtype=np.int64)
+    for p in prange(n):
+        c = _cell_of(x, p, lo, cell, ncell)
+        cell_of[p] = c
+        if c >= 0:
+            counts[p + 1] = _cell_hits(x, r, skin, tri, p, c, start, cell_tri, none, none, 0,
+                                       False)
+    for p in range(n):
+        counts[p + 1] += counts[p]
+    cand_p = np.empty(counts[n], dtype=np.int64)
+    cand_t = np.empty(counts[n], dtype=np.int64)
+    for p in prange(n):
+        if cell_of[p] >= 0 and counts[p + 1] > counts[p]:
+            _cell_hits(x, r, skin, tri, p, cell_of[p], start, cell_tri, cand_p, cand_t,
+                       counts[p], True)
     return cand_p, cand_t
