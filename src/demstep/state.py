@@ -256,7 +256,9 @@ class Meshes(NamedTuple):
     torque about the centre ``torque`` (M, 3), the power the mesh puts into the
     particles now and at the last step ``power``, ``power_prev`` (M,) [M L^2/T^3],
     touching particles ``contacts``; ``moved`` (1,): how far a corner moved since the
-    lists were built [L]. Candidates: ``cand_p``, ``cand_t`` (K,); slots: ``active``
+    lists were built [L]. Candidates: ``cand_p``, ``cand_t`` (K,) and each one's distance
+    at the build ``cand_d`` (K,) [L] (rows farther than the sphere and the meshes have
+    moved since are not computed; zeros: every row is; not saved); slots: ``active``
     (K,), their mesh ``slot_mesh`` and triangle ``slot_tri`` (K,), contact normal
     ``normal`` (K, 3), tangential spring and dashpot forces ``shear``, ``dashpot``
     (K, 3), stored tangential energy ``etan`` (K,), the contact's force on the mesh
@@ -298,6 +300,7 @@ class Meshes(NamedTuple):
     moved: np.ndarray
     cand_p: np.ndarray
     cand_t: np.ndarray
+    cand_d: np.ndarray
     active: np.ndarray
     slot_mesh: np.ndarray
     slot_tri: np.ndarray

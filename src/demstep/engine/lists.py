@@ -139,9 +139,10 @@ class NeighbourLists:
         sim.wall_state = ws._replace(p=wp, wall=ww, shear=wshear, dashpot=wdash,
                                      shear_energy=wenergy, roll=wroll, cover=wcover)
         if sim.meshes.tri.shape[0] > 0:  # the triangles near each sphere, slots carried
-            cand_p, cand_t = build_candidates(sim.meshes, sim.x, sim.r, sim.skin, sim.particle_id,
-                                              sim.mesh_enabled, self.triangle_grid)
-            sim.meshes = carry_slots(sim.meshes, cand_p, cand_t)
+            cand_p, cand_t, cand_d = build_candidates(
+                sim.meshes, sim.x, sim.r, sim.skin, sim.particle_id, sim.mesh_enabled,
+                self.triangle_grid, with_distance=True)
+            sim.meshes = carry_slots(sim.meshes, cand_p, cand_t, cand_d)
             sim.meshes.moved[0] = 0.0
         if sim.auto.new_pairs_closing(cover, wcover):
             sim.counters[dem.COUNT_UNCOVERED] += 1.0  # (covered before the next step)

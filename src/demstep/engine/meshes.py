@@ -124,7 +124,7 @@ def meshes_bundle(walls: list[MeshWall], law) -> Meshes:
         law=mesh_law_rows(walls, law) if law is not None else np.zeros((n, 0)),
         force=z3.copy(), torque=z3.copy(), power=np.zeros(n), power_prev=np.zeros(n),
         contacts=np.zeros(n, np.int64), moved=np.zeros(1),
-        cand_p=np.zeros(0, np.int64), cand_t=np.zeros(0, np.int64),
+        cand_p=np.zeros(0, np.int64), cand_t=np.zeros(0, np.int64), cand_d=np.zeros(0),
         active=np.zeros(0, np.int64), slot_mesh=np.zeros(0, np.int64),
         slot_tri=np.zeros(0, np.int64), normal=np.zeros((0, 3)), shear=np.zeros((0, 3)),
         dashpot=np.zeros((0, 3)), etan=np.zeros(0), fslot=np.zeros((0, 3)),
@@ -233,7 +233,8 @@ class TriangleGrid:
 
 
 def build_candidates(meshes: Meshes, x, r, skin: float, particle_id,
-                     enabled=None, grid: TriangleGrid | None = None) -> tuple:
+                     enabled=None, grid: TriangleGrid | None = None,
+                     with_distance: bool = False) -> tuple:
     """The (particle, triangle) pairs whose distance is below r + ``skin`` [L], sorted by
     particle then triangle: (cand_p, cand_t), the triangles of the meshes where
     ``enabled`` (M,) is true only (None: every mesh). The triangles are binned in grids
@@ -244,12 +245,14 @@ def build_candidates(meshes: Meshes, x, r, skin: float, particle_id,
     mesh's size. The grids are kept in ``grid`` (a :class:`TriangleGrid`; None: grids
     for this search only): the meshes at rest in one grid, each moving mesh in a grid
     of its own frame. More than :data:`MAX_CANDIDATES` triangles near one sphere is
-    refused (a mesh far finer than the particles), naming the particle."""
+    refused (a mesh far finer than the particles), naming the particle. With
+    ``with_distance``, also each row's distance [L] (cand_d)."""
     n_tri = len(meshes.tri)
     if enabled is not None and not np.any(enabled):
         n_tri = 0
     if n_tri == 0 or len(r) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        empty = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+        return empty + (np.zeros(0),) if with_distance else empty
     x = np.ascontiguousarray(x, dtype=np.float64)
     r = np.ascontiguousarray(r, dtype=np.float64)
     reach = float(r.max()) + float(skin)
@@ -262,12 +265,11 @@ def build_candidates(meshes: Meshes, x, r, skin: float, particle_id,
         found.append(grid_candidates(points, r, float(skin), corners, lo, cell, ncell, start,
                                      cell_tri))
     if len(found) == 1:
-        cand_p, cand_t = found[0]
+        cand_p, cand_t, cand_d = found[0]
     else:
-        cand_p = np.concatenate([f[0] for f in found])
-        cand_t = np.concatenate([f[1] for f in found])
+        cand_p, cand_t, cand_d = (np.concatenate([f[k] for f in found]) for k in range(3))
         order = np.lexsort((cand_t, cand_p))
-        cand_p, cand_t = cand_p[order], cand_t[order]
+        cand_p, cand_t, cand_d = cand_p[order], cand_t[order], cand_d[order]
     if len(cand_p):
         per = np.bincount(cand_p)
         if per.max() > MAX_CANDIDATES:
@@ -275,12 +277,13 @@ def build_candidates(meshes: Meshes, x, r, skin: float, particle_id,
             raise InputError(f"meshes: {int(per.max())} triangles lie within the skin of "
                              f"particle {particle_id(p)} (at most {MAX_CANDIDATES}): the mesh "
                              f"is far finer than the particles; coarsen it")
-    return cand_p, cand_t
+    return (cand_p, cand_t, cand_d) if with_distance else (cand_p, cand_t)
 
 
-def carry_slots(meshes: Meshes, cand_p, cand_t) -> Meshes:
-    """The bundle with the new candidate rows and each sphere's active contact slots
-    carried over to the first of its new rows (the rest empty)."""
+def carry_slots(meshes: Meshes, cand_p, cand_t, cand_d=None) -> Meshes:
+    """The bundle with the new candidate rows (their distances ``cand_d`` [L] at the
+    build; None: zeros, every row computed at each step) and each sphere's active
+    contact slots carried over to the first of its new rows (the rest empty)."""
     k = len(cand_p)
     slots = {f: np.zeros((k,) + getattr(meshes, f).shape[1:], getattr(meshes, f).dtype)
              for f in Meshes.SLOTS}
@@ -297,7 +300,8 @@ def carry_slots(meshes: Meshes, cand_p, cand_t) -> Meshes:
         src = old[room]
         for f in Meshes.SLOTS:
             slots[f][dest] = getattr(meshes, f)[src]
-    return meshes._replace(cand_p=cand_p, cand_t=cand_t, **slots)
+    cand_d = np.zeros(k) if cand_d is None else np.ascontiguousarray(cand_d, dtype=np.float64)
+    return meshes._replace(cand_p=cand_p, cand_t=cand_t, cand_d=cand_d, **slots)
 
 
 def touching_meshes(meshes: list[TriangleMesh], x, r, contact_tol: float = 0.0):
@@ -310,7 +314,7 @@ def touching_meshes(meshes: list[TriangleMesh], x, r, contact_tol: float = 0.0):
     x = np.ascontiguousarray(x, dtype=np.float64)
     reach = np.ascontiguousarray(np.asarray(r, dtype=np.float64) * (1.0 + contact_tol))
     cand_p, cand_t = build_candidates(bundle, x, reach, 0.0, lambda p: p)
-    bundle = bundle._replace(cand_p=cand_p, cand_t=cand_t)
+    bundle = bundle._replace(cand_p=cand_p, cand_t=cand_t, cand_d=np.zeros(len(cand_p)))
     p, mk, normal, dist, _ = mesh_contacts(bundle, x, reach)
     return p, mk, normal, dist
 

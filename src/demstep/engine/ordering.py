@@ -156,7 +156,7 @@ def reorder(sim, order) -> None:
         p = inv[meshes.cand_p]
         rows = np.lexsort((np.arange(len(p)), p))
         sim.meshes = meshes._replace(cand_p=p[rows], **{
-            f: getattr(meshes, f)[rows] for f in ("cand_t",) + Meshes.SLOTS})
+            f: getattr(meshes, f)[rows] for f in ("cand_t", "cand_d") + Meshes.SLOTS})
     bonds = sim.bonds
     if bonds.n:
         i, j, sign = ends_in_order(inv[bonds.i], inv[bonds.j])

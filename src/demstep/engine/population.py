@@ -164,7 +164,7 @@ def remove_particles(sim, remove) -> tuple[int, float]:
     if len(me.cand_p):
         rows = inv[me.cand_p] >= 0
         sim.meshes = me._replace(cand_p=inv[me.cand_p[rows]], **{
-            f: getattr(me, f)[rows] for f in ("cand_t",) + Meshes.SLOTS})
+            f: getattr(me, f)[rows] for f in ("cand_t", "cand_d") + Meshes.SLOTS})
     sim.pairs_changed()
     sim.auto.removed(keep, inv)  # (what is left keeps its certificate)
     return count, mass

@@ -515,6 +515,9 @@ class Simulation:
             bundle = getattr(self, name)
             setattr(self, name, bundle._replace(**{
                 f: np.ascontiguousarray(data[f"{name}.{f}"]) for f in bundle.STATE}))
+        # (the candidates' distances at the build are not saved: every row is computed
+        # until the next build, which gives the same forces)
+        self.meshes = self.meshes._replace(cand_d=np.zeros(len(self.meshes.cand_p)))
         self.ledger.acc[:] = 0.0  # older checkpoints: fewer terms (a prefix of the layout)
         self.ledger.energy[:] = 0.0
         self.ledger.acc[:len(data["ledger.acc"])] = data["ledger.acc"]

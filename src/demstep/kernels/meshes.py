@@ -101,14 +101,23 @@ def _sphere_rows_end(cand_p, s):
 
 
 @njit(inline="always")
-def _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep):
+def _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep, cand_d,
+                     beyond, moved):
     """The contacts of sphere ``p`` with its ``n`` candidate triangles (rows s ... s + n
     - 1 of ``cand_t``): per row k, ``g[k]`` = (delta, unit normal from the triangle to
     the centre (3), distance to the closest point, the closest point (3)), the feature
     touched ``feat[k]`` and ``keep[k]``: whether the row is one of the sphere's contacts
-    after the one-contact-per-surface rule (module docstring)."""
+    after the one-contact-per-surface rule (module docstring). A row whose distance at
+    the lists' build ``cand_d`` exceeds ``beyond`` [L] is not computed: the sphere and
+    the mesh have moved ``moved`` [L] at most since, so it is farther than ``beyond`` -
+    ``moved`` now; its delta is given as the bound r - that (the rest of its ``g`` is
+    not read: it is kept by no rule)."""
     px, py, pz, rp = x[p, 0], x[p, 1], x[p, 2], r[p]
     for k in range(n):
+        if cand_d[s + k] > beyond:
+            g[k, 0] = rp - (cand_d[s + k] - moved)
+            feat[k] = FACE
+            continue
         t = cand_t[s + k]
         (delta, nx, ny, nz, dist, qx, qy, qz, feature) = triangle_contact(
             px, py, pz, rp, tri[t, 0], tri[t, 1], tri[t, 2], tri[t, 3], tri[t, 4],
@@ -263,7 +272,7 @@ def mesh_cover_check(x, v, r, meshes, steps, boundary, dt, need):
         p = cand_p[s]
         e = _sphere_rows_end(cand_p, s)
         _sphere_contacts(x, r, p, s, e - s, cand_t, meshes.tri, meshes.vid, meshes.tri_mesh,
-                         g, feat, keep)
+                         g, feat, keep, cand_p, np.inf, 0.0)  # (every row computed)
         speed = math.sqrt(v[p, 0] ** 2 + v[p, 1] ** 2 + v[p, 2] ** 2)
         reach = steps * speed * dt + boundary
         if _sphere_cover(p, s, e - s, cand_t, meshes.vid, meshes.tri_mesh, g, feat, keep, near,
@@ -297,7 +306,8 @@ def mesh_contact_geometry(x, r, cand_p, cand_t, tri, vid, tri_mesh):
     while s < n_cand:
         p = cand_p[s]
         e = _sphere_rows_end(cand_p, s)
-        _sphere_contacts(x, r, p, s, e - s, cand_t, tri, vid, tri_mesh, g, feat, keep)
+        _sphere_contacts(x, r, p, s, e - s, cand_t, tri, vid, tri_mesh, g, feat, keep,
+                         cand_p, np.inf, 0.0)  # (every row computed)
         for k in range(e - s):
             if keep[k]:
                 rows[c] = s + k
@@ -399,6 +409,7 @@ def _mesh_loop(sph, meshes, params, dt, n_chunks):
     shear, dashpot, etan, fslot = meshes.shear, meshes.dashpot, meshes.etan, meshes.fslot
     wear_k, wear = meshes.wear_k, meshes.wear
     roll = meshes.roll
+    x_ref, cand_d, mesh_moved = sph.x_ref, meshes.cand_d, meshes.moved[0]
     rolling = params.roll_mode != ROLL_NONE
     inertia = sph.inertia
     mesh_force, mesh_torque = meshes.force, meshes.torque
@@ -449,7 +460,15 @@ def _mesh_loop(sph, meshes, params, dt, n_chunks):
             n = e - s
             px, py, pz, rp = x[p, 0], x[p, 1], x[p, 2], r[p]
             # 1-2. each candidate triangle's contact, one per surface
-            _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep)
+            # rows that were beyond the contact (and the cover's look-ahead) at the build
+            # by more than the sphere and the meshes have moved since are not computed
+            dx, dy, dz = px - x_ref[p, 0], py - x_ref[p, 1], pz - x_ref[p, 2]
+            moved = math.sqrt(dx * dx + dy * dy + dz * dz) + mesh_moved
+            beyond = rp + moved + (lookahead * math.sqrt(v[p, 0] ** 2 + v[p, 1] ** 2
+                                                           + v[p, 2] ** 2)
+                                   + 2.0 * cover_ctl[2] if track else 0.0)
+            _sphere_contacts(x, r, p, s, n, cand_t, tri, vid, tri_mesh, g, feat, keep,
+                             cand_d, beyond, moved)
             if track:  # the contacts now and those closing in the next step, covered?
                 speed = math.sqrt(v[p, 0] ** 2 + v[p, 1] ** 2 + v[p, 2] ** 2)
                 reach = lookahead * speed + 2.0 * cover_ctl[2]
@@ -795,9 +814,9 @@ def triangle_grid(tri, use, lo, cell, ncell, reach):
 
 
 @njit(inline="always")
-def _cell_hits(x, r, skin, tri, p, c, start, cell_tri, cand_p, cand_t, at, write):
+def _cell_hits(x, r, skin, tri, p, c, start, cell_tri, cand_p, cand_t, cand_d, at, write):
     """The triangles of cell c's list within r + ``skin`` of particle p: their number,
-    written from ``at`` on when ``write``."""
+    written (with the distance) from ``at`` on when ``write``."""
     limit = r[p] + skin
     found = 0
     for q in range(start[c], start[c + 1]):
@@ -805,10 +824,12 @@ def _cell_hits(x, r, skin, tri, p, c, start, cell_tri, cand_p, cand_t, at, write
         qx, qy, qz, _ = closest_point_on_triangle(
             x[p, 0], x[p, 1], x[p, 2], tri[t, 0], tri[t, 1], tri[t, 2], tri[t, 3],
             tri[t, 4], tri[t, 5], tri[t, 6], tri[t, 7], tri[t, 8])
-        if (x[p, 0] - qx) ** 2 + (x[p, 1] - qy) ** 2 + (x[p, 2] - qz) ** 2 < limit * limit:
+        d2 = (x[p, 0] - qx) ** 2 + (x[p, 1] - qy) ** 2 + (x[p, 2] - qz) ** 2
+        if d2 < limit * limit:
             if write:
                 cand_p[at + found] = p
                 cand_t[at + found] = t
+                cand_d[at + found] = math.sqrt(d2)
             found += 1
     return found
 
@@ -818,23 +839,25 @@ def grid_candidates(x, r, skin, tri, lo, cell, ncell, start, cell_tri):
     """Every (particle, triangle) pair whose distance (centre to the triangle's closest
     point) is below r + ``skin`` [L], each particle looking at the triangles its cell
     lists (:func:`triangle_grid`, built with a reach of at least r + skin). Returns
-    (cand_p, cand_t), sorted by particle then triangle."""
+    (cand_p, cand_t, cand_d), sorted by particle then triangle, cand_d the distance [L]."""
     n = x.shape[0]
     cell_of = np.empty(n, dtype=np.int64)
     counts = np.zeros(n + 1, dtype=np.int64)
     none = np.empty(0, dtype=np.int64)
+    no_d = np.empty(0)
     for p in prange(n):
         c = _cell_of(x, p, lo, cell, ncell)
         cell_of[p] = c
         if c >= 0:
-            counts[p + 1] = _cell_hits(x, r, skin, tri, p, c, start, cell_tri, none, none, 0,
-                                       False)
+            counts[p + 1] = _cell_hits(x, r, skin, tri, p, c, start, cell_tri, none, none,
+                                       no_d, 0, False)
     for p in range(n):
         counts[p + 1] += counts[p]
     cand_p = np.empty(counts[n], dtype=np.int64)
     cand_t = np.empty(counts[n], dtype=np.int64)
+    cand_d = np.empty(counts[n])
     for p in prange(n):
         if cell_of[p] >= 0 and counts[p + 1] > counts[p]:
             _cell_hits(x, r, skin, tri, p, cell_of[p], start, cell_tri, cand_p, cand_t,
-                       counts[p], True)
-    return cand_p, cand_t
+                       cand_d, counts[p], True)
+    return cand_p, cand_t, cand_d
