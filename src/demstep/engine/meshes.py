@@ -327,7 +327,7 @@ def mesh_contacts(meshes: Meshes, x, r):
     r - distance [L] (> 0)."""
     rows, delta, normal, dist = mesh_contact_geometry(
         np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(r, dtype=np.float64),
-        meshes.cand_p, meshes.cand_t, meshes.tri, meshes.vid, meshes.tri_mesh)
+        meshes.cand_p, meshes.cand_t, meshes.cand_d, meshes.tri, meshes.vid, meshes.tri_mesh)
     return (meshes.cand_p[rows], meshes.tri_mesh[meshes.cand_t[rows]], normal, dist,
             delta)
 

@@ -272,7 +272,7 @@ def mesh_cover_check(x, v, r, meshes, steps, boundary, dt, need):
         p = cand_p[s]
         e = _sphere_rows_end(cand_p, s)
         _sphere_contacts(x, r, p, s, e - s, cand_t, meshes.tri, meshes.vid, meshes.tri_mesh,
-                         g, feat, keep, cand_p, np.inf, 0.0)  # (every row computed)
+                         g, feat, keep, meshes.cand_d, np.inf, 0.0)  # (every row computed)
         speed = math.sqrt(v[p, 0] ** 2 + v[p, 1] ** 2 + v[p, 2] ** 2)
         reach = steps * speed * dt + boundary
         if _sphere_cover(p, s, e - s, cand_t, meshes.vid, meshes.tri_mesh, g, feat, keep, near,
@@ -288,11 +288,12 @@ def mesh_cover_check(x, v, r, meshes, steps, boundary, dt, need):
 
 
 @njit
-def mesh_contact_geometry(x, r, cand_p, cand_t, tri, vid, tri_mesh):
+def mesh_contact_geometry(x, r, cand_p, cand_t, cand_d, tri, vid, tri_mesh):
     """The contacts of the spheres with the meshes now, by the engine's rule (one per
     surface; no history): for each, its candidate row (C,), overlap delta [L], unit
     normal from the sphere to the mesh (C, 3) and distance from the centre to the
-    closest point [L]. ``cand_p``, ``cand_t``: candidate rows sorted by particle."""
+    closest point [L]. ``cand_p``, ``cand_t``: candidate rows sorted by particle (every
+    row computed: ``cand_d``, their distances at the build, only sized like them)."""
     n_cand = cand_p.shape[0]
     rows = np.empty(n_cand, dtype=np.int64)
     delta = np.empty(n_cand)
@@ -307,7 +308,7 @@ def mesh_contact_geometry(x, r, cand_p, cand_t, tri, vid, tri_mesh):
         p = cand_p[s]
         e = _sphere_rows_end(cand_p, s)
         _sphere_contacts(x, r, p, s, e - s, cand_t, tri, vid, tri_mesh, g, feat, keep,
-                         cand_p, np.inf, 0.0)  # (every row computed)
+                         cand_d, np.inf, 0.0)  # (every row computed)
         for k in range(e - s):
             if keep[k]:
                 rows[c] = s + k
