@@ -59,8 +59,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "validation"))
-from liggghts_tutorials import (demstep_stage_seconds, engine_commit, one_thread,  # noqa: E402
-                                read_demstep_vtu)
+from liggghts_tutorials import (demstep_stage_seconds, engine_commit,  # noqa: E402
+                                liggghts_thermo_table, one_thread, read_demstep_vtu)
 
 CASE = ROOT / "examples" / "rotating_drum_validation.toml"
 STL = ROOT / "validation" / "drum" / "drum.stl"
@@ -198,26 +198,6 @@ run    {int(round(settle / DT))}
     return "\n".join(lines) + "\n"
 
 
-def liggghts_rows(log: str) -> dict[int, dict]:
-    rows, header = {}, None
-    for line in log.splitlines():
-        words = line.split()
-        if words[:2] == ["Step", "Atoms"]:
-            header = words
-            continue
-        if words[:2] == ["Loop", "time"]:
-            header = None
-            continue
-        if header is None or len(words) != len(header):
-            continue
-        try:
-            values = [float(v) for v in words]
-        except ValueError:
-            continue
-        rows.setdefault(int(values[0]), dict(zip(header, values)))
-    return rows
-
-
 def read_dump(path: Path) -> np.ndarray:
     lines = path.read_text().splitlines()
     i = next(k for k, line in enumerate(lines) if line.startswith("ITEM: ATOMS"))
@@ -236,7 +216,8 @@ def run_liggghts(x, r, settle, rates, work: Path, tag: str) -> dict:
     seconds = time.perf_counter() - start
     if proc.returncode != 0:
         sys.exit(f"liggghts failed: {proc.stdout[-3000:]}{proc.stderr[-2000:]}")
-    rows = liggghts_rows((dest / "log.liggghts").read_text())
+    rows = {int(s): row for s, row in
+            liggghts_thermo_table((dest / "log.liggghts").read_text()).items()}
     torque = {s: row["v_tyO"] if "v_tyO" in row else row["tyO"] for s, row in rows.items()}
     atoms = {s: int(row["Atoms"]) for s, row in rows.items()}
     frames = {int(p.stem[4:]): read_dump(p) for p in (dest / "post").glob("dump*.txt")}

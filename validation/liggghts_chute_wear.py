@@ -388,20 +388,16 @@ def impact_cases() -> dict:
             "sliding_1ms": (1.0 * AXIS, 0.00005, SLIDE_STEPS)}
 
 
-def liggghts_impact(name: str, x: np.ndarray, v: np.ndarray, steps: int, work: Path) -> dict:
-    dest = work / f"liggghts-impact-{name}"
-    shutil.copytree(TUTORIAL / "meshes", dest / "meshes")
-    (dest / "post").mkdir()
-    atoms = "\n".join(f"create_atoms 1 single {p[0]:.17g} {p[1]:.17g} {p[2]:.17g} units box"
-                      for p in x)
-    (dest / "in.impact").write_text(f"""# the chute_wear tutorial's material and mesh; spheres thrown at the trough
-atom_style    granular
+def liggghts_head(region: str) -> str:
+    """The start of a LIGGGHTS input with the chute_wear tutorial's material, contact
+    model, wear constant and step, in a box ``region`` ('xlo xhi ylo yhi zlo zhi' [m])."""
+    return f"""atom_style    granular
 atom_modify   map array
 boundary      f f f
 newton        off
 communicate   single vel yes
 units         si
-region        domain block -0.5 0.1 -0.2 0.2 -0.4 0.15 units box
+region        domain block {region} units box
 create_box    1 domain
 neighbor      0.002 bin
 neigh_modify  delay 0
@@ -413,7 +409,17 @@ fix  m5 all property/global k_finnie peratomtypepair 1 1.0
 pair_style  gran model hertz tangential history
 pair_coeff  * *
 timestep    0.00001
-fix  gravi all gravity 9.81 vector 0.0 0.0 -1.0
+"""
+
+
+def liggghts_impact(name: str, x: np.ndarray, v: np.ndarray, steps: int, work: Path) -> dict:
+    dest = work / f"liggghts-impact-{name}"
+    shutil.copytree(TUTORIAL / "meshes", dest / "meshes")
+    (dest / "post").mkdir()
+    atoms = "\n".join(f"create_atoms 1 single {p[0]:.17g} {p[1]:.17g} {p[2]:.17g} units box"
+                      for p in x)
+    (dest / "in.impact").write_text(f"""# the chute_wear tutorial's material and mesh; spheres thrown at the trough
+{liggghts_head('-0.5 0.1 -0.2 0.2 -0.4 0.15')}fix  gravi all gravity 9.81 vector 0.0 0.0 -1.0
 fix  cad all mesh/surface/stress file meshes/simple_chute.stl type 1 wear finnie
 fix  granwalls all wall/gran model hertz tangential history mesh n_meshes 1 meshes cad
 {atoms}
@@ -546,25 +552,7 @@ def plate_liggghts(name: str, stl: str, x0, v, gravity: bool, steps: int, work: 
     (dest / "plate.stl").write_text(stl)
     every = 1 if steps <= PLATE_STEPS else steps
     (dest / "in.plate").write_text(f"""# one sphere on a plate: the chute_wear tutorial's material and wear law
-atom_style    granular
-atom_modify   map array
-boundary      f f f
-newton        off
-communicate   single vel yes
-units         si
-region        domain block -0.1 0.1 -0.1 0.1 -0.05 0.05 units box
-create_box    1 domain
-neighbor      0.002 bin
-neigh_modify  delay 0
-fix  m1 all property/global youngsModulus peratomtype 5.e6
-fix  m2 all property/global poissonsRatio peratomtype 0.45
-fix  m3 all property/global coefficientRestitution peratomtypepair 1 0.3
-fix  m4 all property/global coefficientFriction peratomtypepair 1 0.5
-fix  m5 all property/global k_finnie peratomtypepair 1 1.0
-pair_style  gran model hertz tangential history
-pair_coeff  * *
-timestep    0.00001
-{"fix  gravi all gravity 9.81 vector 0.0 0.0 -1.0" if gravity else ""}
+{liggghts_head('-0.1 0.1 -0.1 0.1 -0.05 0.05')}{"fix  gravi all gravity 9.81 vector 0.0 0.0 -1.0" if gravity else ""}
 fix  cad all mesh/surface/stress file plate.stl type 1 wear finnie
 fix  granwalls all wall/gran model hertz tangential history mesh n_meshes 1 meshes cad
 create_atoms 1 single {x0[0]:.17g} {x0[1]:.17g} {x0[2]:.17g} units box

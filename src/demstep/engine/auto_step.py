@@ -151,21 +151,14 @@ class AutoStep:
         critical mode (a warm start: dropped with clumps, whose modes are per body)."""
         sim = self.sim
         n = len(order)
-        for attr in ("_cover", "added"):  # (same form: keys and overlaps)
-            record = getattr(self, attr)
-            if not record:
-                continue
-            renamed = {}
-            for name, (keys, assumed) in record.items():
-                if name == "pairs":
-                    a, b = inv[keys // n], inv[keys % n]
-                    keys = self.pair_keys(np.minimum(a, b), np.maximum(a, b))
-                else:
-                    base = self.walls_per_key
-                    keys = self.wall_keys(inv[keys // base], keys % base)
-                rows = np.argsort(keys, kind="stable")
-                renamed[name] = (keys[rows], np.asarray(assumed)[rows])
-            setattr(self, attr, renamed)
+        base = self.walls_per_key
+
+        def pairs(keys):
+            a, b = inv[keys // n], inv[keys % n]
+            return self.pair_keys(np.minimum(a, b), np.maximum(a, b)), slice(None)
+
+        self._rekey(pairs, lambda keys: (self.wall_keys(inv[keys // base], keys % base),
+                                         slice(None)))
         cert = self.certificate
         if cert is not None:
             cert.renumber(order, inv)
@@ -188,23 +181,18 @@ class AutoStep:
         sim = self.sim
         n_old, n = len(inv), len(keep)
         base = self.walls_per_key
-        for attr in ("_cover", "added"):
-            record = getattr(self, attr)
-            if not record:
-                continue
-            renamed = {}
-            for name, (keys, assumed) in record.items():
-                keys, assumed = np.asarray(keys, np.int64), np.asarray(assumed)
-                if name == "pairs":
-                    a, b = inv[keys // n_old], inv[keys % n_old]
-                    ok = (a >= 0) & (b >= 0)
-                    keys = pair_keys(n, a[ok], b[ok])  # (the order kept: a < b still)
-                else:
-                    p = inv[keys // base]
-                    ok = p >= 0
-                    keys = wall_keys(base, p[ok], (keys % base)[ok])
-                renamed[name] = sorted_keys(keys, assumed[ok])
-            setattr(self, attr, renamed)
+
+        def pairs(keys):
+            a, b = inv[keys // n_old], inv[keys % n_old]
+            ok = (a >= 0) & (b >= 0)
+            return pair_keys(n, a[ok], b[ok]), ok  # (the order kept: a < b still)
+
+        def walls(keys):
+            p = inv[keys // base]
+            ok = p >= 0
+            return wall_keys(base, p[ok], (keys % base)[ok]), ok
+
+        self._rekey(pairs, walls)
         if self.certificate is not None:
             self.certificate.remove(keep, inv)
         if self.mesh_added is not None:
@@ -233,17 +221,9 @@ class AutoStep:
         if cert is None or cert.has_bodies or n_old == 0:
             self.forget()
             return False
-        for attr in ("_cover", "added"):
-            record = getattr(self, attr)
-            if not record:
-                continue
-            renamed = {}
-            for name, (keys, assumed) in record.items():
-                keys = np.asarray(keys, np.int64)
-                if name == "pairs":  # (the key i n + j depends on n)
-                    keys = pair_keys(n, keys // n_old, keys % n_old)
-                renamed[name] = (keys, np.asarray(assumed))
-            setattr(self, attr, renamed)
+        # (the key i n + j of a pair depends on n; a wall contact's does not)
+        self._rekey(lambda keys: (pair_keys(n, keys // n_old, keys % n_old), slice(None)),
+                    lambda keys: (keys, slice(None)))
         new = slice(n_old, n)
         inv_I = sim.inv_I[new] if sim.rotation else np.zeros(n - n_old)
         cert.extend(sim.r[new], sim.inv_m[new], inv_I)
@@ -268,6 +248,22 @@ class AutoStep:
         if sim.timestep.mode == "auto" and sim.dt is not None and sim.lists.built \
                 and not self.accept():
             self.propose_dt(force=True, scheduled=False)
+
+    def _rekey(self, pairs, walls):
+        """The records of covered and added contacts (``_cover``, ``added``: keys and
+        overlaps) renamed: ``pairs(keys)`` and ``walls(keys)`` give the new keys of a
+        record's pairs or wall contacts and which of them are kept (a mask or a slice);
+        the keys sorted again with their overlaps."""
+        for attr in ("_cover", "added"):
+            record = getattr(self, attr)
+            if not record:
+                continue
+            renamed = {}
+            for name, (keys, assumed) in record.items():
+                keys, assumed = np.asarray(keys, np.int64), np.asarray(assumed)
+                keys, ok = (pairs if name == "pairs" else walls)(keys)
+                renamed[name] = sorted_keys(keys, assumed[ok])
+            setattr(self, attr, renamed)
 
     def forget(self):
         """Drop what names particles by index (the certificate, the critical mode, the
