@@ -3,6 +3,7 @@
     python benchmarks/peers.py --problem dense|settle --n 100000 --threads 1 \
         [--repeat 3] [--steps 1000] [--codes demstep,liggghts,yade] [--json]
     python benchmarks/peers.py --check [--n 500]      # do the codes agree? (small case)
+    python benchmarks/peers.py --check --problem hopper|drum --n 3000 --steps 3000
 
 Problems (identical input in every code; positions are generated once and written to
 files the peers read):
@@ -73,6 +74,117 @@ HERTZ_YOUNG = 2.0 * (1.0 - HERTZ_POISSON**2) * 1.0e6 / (2.0 * math.sqrt(0.25 * 0
 SHUFFLE_SEED = 0
 
 
+#: the problems bounded by triangle meshes, and their springs' stiffness k_n = k_s [N/m]
+MESH_PROBLEMS = ("hopper", "drum")
+MESH_PROBLEM_K = 1.0e7
+#: facets around the hopper's and the drum's axis
+MESH_FACETS = 96
+#: simple-cubic fill of the mesh problems: spacing (in diameters) and jitter (std, in
+#: diameters) of the grid, and the gap kept from every wall
+FILL_SPACING, FILL_JITTER, FILL_GAP = 1.05, 0.01, 0.05
+
+
+def _fill(inside, lo, hi, n_target, radius, rng):
+    """The ``n_target`` lowest points (by z) of a jittered simple-cubic grid in the box
+    [lo, hi] for which ``inside(points, margin)`` holds with the margin radius + gap
+    (centres that far from every wall)."""
+    d = 2.0 * radius
+    axes = [np.arange(lo[k] + radius, hi[k] - radius, FILL_SPACING * d) for k in range(3)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    g = g[inside(g, radius + FILL_GAP * d + 3 * FILL_JITTER * d)]
+    if len(g) < n_target:
+        raise SystemExit(f"--n {n_target}: only {len(g)} spheres fit the mesh problem's fill")
+    g = g[np.argsort(g[:, 2], kind="stable")[:n_target]]
+    g += rng.normal(0.0, FILL_JITTER * d, g.shape)
+    return g
+
+
+def _mesh_entry(name, mesh, omega=(0.0, 0.0, 0.0), center=(0.0, 0.0, 0.0)):
+    return {"name": name, "vertices": np.asarray(mesh.vertices, float).tolist(),
+            "triangles": np.asarray(mesh.triangles, int).tolist(), "omega": list(omega),
+            "center": list(center)}
+
+
+def hopper_problem(n_target: int, radius: float):
+    """A conical hopper (``MESH_FACETS`` facets, half-angle 30 deg from the vertical,
+    outlet radius 8 r in z = 0) under a vertical bin of the same facets (one mesh,
+    ~4 x MESH_FACETS triangles), filled from the outlet up by a jittered simple-cubic
+    grid; under it a catch box of plane walls (a floor 12 r below the outlet, four
+    sides just outside the bin). The outlet is open: the bed collapses
+    from the loose grid onto the cone and starts to flow out."""
+    from demstep.mesh import mesh_from_arrays
+    from demstep.mesh.shapes import cylinder, hopper
+
+    d = 2.0 * radius
+    r_out = 4.0 * d
+    r_top = max(3.0 * r_out, 0.6 * n_target ** (1.0 / 3.0) * d)
+    h_cone = (r_top - r_out) / math.tan(math.radians(30.0))
+    inscribed = math.cos(math.pi / MESH_FACETS)
+    slope = (r_top - r_out) / h_cone
+
+    def inside(p, margin):
+        rho = np.hypot(p[:, 0], p[:, 1])
+        wall = inscribed * np.where(p[:, 2] < h_cone, r_out + slope * p[:, 2], r_top)
+        # distance to the cone ~ (wall radius - rho) cos(30 deg)
+        reach = np.where(p[:, 2] < h_cone, margin / math.cos(math.radians(30.0)), margin)
+        return (rho < wall - reach) & (p[:, 2] > margin)
+
+    height = h_cone + 4.0 * r_top + 10.0 * d
+    x = _fill(inside, [-r_top, -r_top, 0.0], [r_top, r_top, height], n_target, radius,
+              np.random.default_rng(3))
+    h_bin = max(d, float(x[:, 2].max()) + 2.0 * d - h_cone)
+    cone = hopper(MESH_FACETS, r_out, r_top, h_cone)
+    tube = cylinder(MESH_FACETS, r_top, h_bin).flipped()
+    mesh = mesh_from_arrays(np.concatenate([cone.vertices, np.asarray(tube.vertices) + [0, 0, h_cone]]),
+                            np.concatenate([cone.triangles, np.asarray(tube.triangles) + len(cone.vertices)]),
+                            name="hopper")
+    floor = -12.0 * radius
+    # a square catch box under the hopper: the floor and four side planes just outside
+    # the bin (no contact with the spheres inside it)
+    side = r_top + d
+    walls = [{"axis": 2, "pos": floor, "sense": 1},
+             {"axis": 0, "pos": -side, "sense": 1}, {"axis": 0, "pos": side, "sense": -1},
+             {"axis": 1, "pos": -side, "sense": 1}, {"axis": 1, "pos": side, "sense": -1}]
+    lo = [-r_top - 2 * d, -r_top - 2 * d, floor - 2 * d]
+    hi = [r_top + 2 * d, r_top + 2 * d, h_cone + h_bin + 2 * d]
+    shape = {"outlet_radius": r_out, "top_radius": r_top, "cone_height": h_cone,
+             "bin_height": h_bin, "triangles": len(mesh.triangles)}
+    return x, walls, [_mesh_entry("hopper", mesh)], lo, hi, shape
+
+
+def drum_problem(n_target: int, radius: float):
+    """A closed drum (a cylinder of ``MESH_FACETS`` facets and two fan caps, its axis
+    along y through the origin, as long as its radius) turning about its axis at a
+    Froude number omega^2 R / g of 1e-3 (the rolling regime), filled from the bottom up
+    (about 40 % of its volume) by a jittered simple-cubic grid that settles as the drum
+    turns."""
+    from demstep.mesh import mesh_from_arrays
+    from demstep.mesh.shapes import cylinder
+
+    d = 2.0 * radius
+    r_drum = max(8.0 * d, (n_target * FILL_SPACING**3 / (0.4 * math.pi * 0.85)) ** (1.0 / 3.0) * d)
+    length = r_drum
+    inscribed = math.cos(math.pi / MESH_FACETS)
+
+    def inside(p, margin):
+        return ((np.hypot(p[:, 0], p[:, 2]) < inscribed * r_drum - margin)
+                & (np.abs(p[:, 1]) < 0.5 * length - margin))
+
+    x = _fill(inside, [-r_drum, -0.5 * length, -r_drum], [r_drum, 0.5 * length, r_drum],
+              n_target, radius, np.random.default_rng(4))
+    tube = cylinder(MESH_FACETS, r_drum, length, caps=True)
+    v = np.asarray(tube.vertices)
+    # the z axis onto y (a rotation about x), centred on the origin
+    v = np.column_stack([v[:, 0], v[:, 2] - 0.5 * length, -v[:, 1]])
+    mesh = mesh_from_arrays(v, np.asarray(tube.triangles), name="drum")
+    omega = math.sqrt(1.0e-3 * 9.81 / r_drum)
+    lo = [-r_drum - 2 * d, -0.5 * length - 2 * d, -r_drum - 2 * d]
+    hi = [r_drum + 2 * d, 0.5 * length + 2 * d, r_drum + 2 * d]
+    shape = {"drum_radius": r_drum, "length": length, "omega": omega,
+             "fill_top": float(x[:, 2].max()), "triangles": len(mesh.triangles)}
+    return x, [], [_mesh_entry("drum", mesh, omega=(0.0, omega, 0.0))], lo, hi, shape
+
+
 def make_problem(problem: str, n_target: int, skin: float | None = None, law: str = "linear",
                  order: str = "lattice"):
     """Positions (N, 3) and a JSON-able spec of the problem (same for every code).
@@ -120,8 +232,17 @@ def make_problem(problem: str, n_target: int, skin: float | None = None, law: st
         domain_lo = [-1.0, -1.0, -1.0]
         domain_hi = [length + 1.0, length + 1.0, nz * spacing + 2.0]
         shape = [nxy, nxy, nz]
+    elif problem in MESH_PROBLEMS:
+        radius = 0.5
+        restitution = 0.5
+        gravity = [0.0, 0.0, -9.81]
+        # stiffer springs than ``settle``: the deep beds load their bottom contacts with
+        # the weight of some 40 spheres (k_n d / (m g) = 780: overlaps of ~2 % of d there)
+        k_n = k_s = MESH_PROBLEM_K
+        x, walls, meshes, domain_lo, domain_hi, shape = (
+            hopper_problem(n_target, radius) if problem == "hopper" else drum_problem(n_target, radius))
     else:
-        raise SystemExit(f"unknown problem {problem!r}: dense or settle")
+        raise SystemExit(f"unknown problem {problem!r}: dense, settle, hopper or drum")
     mass = density * 4.0 / 3.0 * math.pi * radius**3
     dt = 0.1 * math.sqrt(mass / k_n)
     spec = {"problem": problem, "n": int(len(x)), "shape": shape, "radius": radius,
@@ -129,9 +250,12 @@ def make_problem(problem: str, n_target: int, skin: float | None = None, law: st
             "restitution": restitution, "gravity": gravity, "dt": dt, "walls": walls,
             "skin": 0.15 * radius if skin is None else float(skin),
             "domain_lo": domain_lo, "domain_hi": domain_hi, "law": law,
-            "youngs_modulus": HERTZ_YOUNG, "poisson_ratio": HERTZ_POISSON}
+            "youngs_modulus": HERTZ_YOUNG, "poisson_ratio": HERTZ_POISSON,
+            "meshes": meshes if problem in MESH_PROBLEMS else []}
     if law not in ("linear", "hertz"):
         raise SystemExit(f"unknown law {law!r}: linear or hertz")
+    if law == "hertz" and problem in MESH_PROBLEMS:
+        raise SystemExit(f"--law hertz: the {problem} problem is set up for linear springs only")
     if order == "shuffled":
         x = x[np.random.default_rng(SHUFFLE_SEED).permutation(len(x))]
     elif order != "lattice":
@@ -182,8 +306,15 @@ def demstep_simulation(x, spec, timestep):
         normal = np.zeros(3)
         normal[w["axis"]] = w["sense"]
         walls.append(Wall(point, normal))
+    meshes = []
+    for m in spec.get("meshes", []):
+        from demstep.engine.meshes import MeshWall
+        from demstep.mesh import mesh_from_arrays
+
+        meshes.append(MeshWall(mesh_from_arrays(m["vertices"], m["triangles"], name=m["name"]),
+                               name=m["name"], omega=m["omega"], center=m["center"]))
     return Simulation(particles, law, walls, gravity=spec["gravity"], timestep=timestep,
-                      skin=spec["skin"])
+                      skin=spec["skin"], meshes=meshes)
 
 
 DEMSTEP_CHILD = r"""
@@ -250,6 +381,15 @@ def liggghts_data(folder: Path, x, spec):
         np.savetxt(f, rows, fmt=["%d", "%d", "%.17g", "%.17g", "%.17g", "%.17g", "%.17g"])
 
 
+def write_stl(path: Path, vertices, triangles):
+    """An ASCII STL of the triangles (meshio's writer), as LIGGGHTS' ``fix mesh/surface``
+    reads it."""
+    import meshio
+
+    meshio.write_points_cells(str(path), np.asarray(vertices, float),
+                              [("triangle", np.asarray(triangles))], file_format="stl", binary=False)
+
+
 def liggghts_input(spec, warmup, steps, dump):
     """The LIGGGHTS script. Atom type 1: the spheres; type 2: the walls' material (so that
     the sphere-wall dashpot can differ from the sphere-sphere one, as in demstep)."""
@@ -299,6 +439,22 @@ def liggghts_input(spec, warmup, steps, dump):
         plane = "xyz"[w["axis"]] + "plane"
         lines.append(f"fix wall{i} all wall/gran {model} primitive type 2 {plane} {w['pos']!r} "
                      f"tangential_damping off")
+    if spec.get("meshes"):
+        # the same triangles (written by liggghts_command), the walls' material, moving
+        # meshes turned about their centre at the same rate
+        names = []
+        for i, m in enumerate(spec["meshes"]):
+            lines.append(f"fix cad{i} all mesh/surface file mesh{i}.stl type 2")
+            names.append(f"cad{i}")
+        lines.append(f"fix meshwalls all wall/gran {model} mesh n_meshes {len(names)} meshes "
+                     f"{' '.join(names)} tangential_damping off")
+        for i, m in enumerate(spec["meshes"]):
+            w = math.sqrt(sum(c * c for c in m["omega"]))
+            if w > 0:
+                axis = " ".join(repr(c / w) for c in m["omega"])
+                origin = " ".join(repr(float(c)) for c in m["center"])
+                lines.append(f"fix move{i} all move/mesh mesh cad{i} rotate origin {origin} "
+                             f"axis {axis} period {2.0 * math.pi / w!r}")
     gx, gy, gz = spec["gravity"]
     gmag = math.sqrt(gx * gx + gy * gy + gz * gz)
     if gmag > 0:
@@ -344,6 +500,8 @@ def liggghts_cpu(folder: Path):
 
 def liggghts_command(folder, x, spec, threads, warmup, steps, dump):
     liggghts_data(folder, x, spec)
+    for i, m in enumerate(spec.get("meshes", [])):
+        write_stl(folder / f"mesh{i}.stl", np.asarray(m["vertices"]), np.asarray(m["triangles"]))
     (folder / "in.bench").write_text(liggghts_input(spec, warmup, steps, dump))
     (folder / "cpustat.sh").write_text(CPUSTAT_SH)
     env = dict(os.environ, OMP_NUM_THREADS="1")
@@ -694,9 +852,13 @@ def observables(x0, x, v, spec):
         top = next(w for w in spec["walls"] if w["axis"] == 0 and w["sense"] == -1)
         overlap = np.maximum(0.0, r - (top["pos"] - x[:, 0]))
         out["wall_force_xplus"] = float(kn * overlap.sum())  # elastic normal force on x+
-    else:
+    elif spec["problem"] == "settle":
         floor = next(w for w in spec["walls"] if w["axis"] == 2)
         out["floor_contacts"] = int((x[:, 2] - floor["pos"] < r).sum())
+    elif spec["problem"] == "hopper":
+        out["discharged"] = int((x[:, 2] < 0.0).sum())  # below the outlet
+    else:  # drum: the bed's centre, which the turning drum carries up its rising side
+        out["mean_x"] = float(x[:, 0].mean())
     return out
 
 
@@ -704,7 +866,7 @@ def check(args):
     workdir = Path(tempfile.mkdtemp(prefix="demstep-check-"))
     codes = [c for c in args.codes.split(",") if c and available(c)]
     report = {}
-    for problem in ("dense", "settle"):
+    for problem in (args.problem,) if args.problem in MESH_PROBLEMS else ("dense", "settle"):
         x0, spec = make_problem(problem, args.n, args.skin, args.law)
         finals = {}
         for code in codes:
@@ -717,7 +879,7 @@ def check(args):
                 x, v = np.load(folder / f"final_{code}_x.npy"), np.load(folder / f"final_{code}_v.npy")
             finals[code] = (x, v)
             obs = observables(x0, x, v, spec)
-            if code == "demstep":
+            if code == "demstep" and problem == "dense":
                 wf = np.load(folder / "final_demstep_wall_force.npy")
                 k = next(i for i, w in enumerate(spec["walls"]) if w["axis"] == 0 and w["sense"] == -1)
                 obs["demstep_wall_force_xplus_total"] = float(wf[k, 0])
@@ -748,7 +910,7 @@ def print_check(report):
 # ----------------------------------------------------------------------------- main
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--problem", choices=("dense", "settle"), default="dense")
+    ap.add_argument("--problem", choices=("dense", "settle") + MESH_PROBLEMS, default="dense")
     ap.add_argument("--law", choices=("linear", "hertz"), default="linear")
     ap.add_argument("--order", choices=("lattice", "shuffled"), default="lattice",
                     help="the spheres' order in memory and in the peers' input files")
