@@ -25,7 +25,9 @@ What differs from the LIGGGHTS harness
   factor is 1.01 instead of 1.2 because every case starts at a model prediction
   (the non-symmetric linearised map below), which only saves trials: the bracket is
   still measured on both sides.
-* States: ``fcc`` 3 x 3 x 3 cubic FCC cells (108 spheres, box 4.5 m, d = 1.5/sqrt 2),
+* States: ``slab`` (walls): see :func:`make_slab_state` (``lammps_slab_o1e-3.dump``;
+  ``fix wall/gran granular`` with the pair's model, linear springs only).
+  ``fcc`` 3 x 3 x 3 cubic FCC cells (108 spheres, box 4.5 m, d = 1.5/sqrt 2),
   radius d/2 (1 + o) with overlap o = 1e-3 and 1e-2 of d (``lammps_fcc_o1e-3.dump``,
   ``lammps_fcc_o1e-2.dump``, written by LAMMPS itself at rest); ``poly``: the jammed
   polydisperse states of the LIGGGHTS harness (``poly-linear.dump``,
@@ -162,7 +164,7 @@ class Case:
     @property
     def name(self) -> str:
         d = "undamped" if self.damping == "none" else f"{self.damping}-e{E_TARGET:g}"
-        st = self.state if self.state.startswith("fcc") else "poly"
+        st = self.state if self.state[:3] in ("fcc", "sla") else "poly"
         return f"{st}-{self.model}-{d}-{'rot' if self.rotation else 'norot'}"
 
 
@@ -176,6 +178,9 @@ def all_cases() -> list[Case]:
                 else ("velocity", "tsuji")
             cases += [Case(st, model, d, True) for d in damps]
             cases.append(Case(st, model, "velocity", False))
+    st = "slab_o1e-3"
+    cases += [Case(st, "linear", "none", True), Case(st, "linear", "none", False),
+              Case(st, "linear", "velocity", True), Case(st, "linear", "mass_velocity", True)]
     for model in ("linear", "hertz"):
         st = f"poly-{model}"
         cases += [Case(st, model, "none", True), Case(st, model, "none", False)]
@@ -185,7 +190,8 @@ def all_cases() -> list[Case]:
 
 
 def state_path(name: str) -> Path:
-    return STATES / (f"lammps_{name}.dump" if name.startswith("fcc") else f"{name}.dump")
+    lam = name.startswith("fcc") or name.startswith("slab")
+    return STATES / (f"lammps_{name}.dump" if lam else f"{name}.dump")
 
 
 def contact_table(state: dict) -> dict:
@@ -194,12 +200,29 @@ def contact_table(state: dict) -> dict:
     x = np.stack([state["x"], state["y"], state["z"]], 1)
     r, m = state["radius"], state["mass"]
     box = state["box"][:, 1] - state["box"][:, 0]
+    walls = state["bounds"][2] != "pp"
+    if walls:
+        box = box.copy()
+        box[2] = 1.0e12                 # walls at z = lo, hi: no periodic image in z
     i, j, delta = pair_contacts(x, r, box)
     d = x[j] - x[i]
     d -= box * np.round(d / box)
     dist = np.sqrt((d * d).sum(1))
-    return {"i": i, "j": j, "n": d / dist[:, None], "delta": delta, "dist": dist, "r": r, "m": m,
-            "rs": r[i] * r[j] / (r[i] + r[j]), "ms": m[i] * m[j] / (m[i] + m[j])}
+    ct = {"i": i, "j": j, "n": d / dist[:, None], "delta": delta, "dist": dist, "r": r, "m": m,
+          "rs": r[i] * r[j] / (r[i] + r[j]), "ms": m[i] * m[j] / (m[i] + m[j])}
+    # wall contacts (flat walls z = lo, z = hi): sphere, normal from the sphere to the
+    # wall, overlap; LAMMPS' wall contact: R* = r, m* = m_i, slip and torque arm r
+    lo, hi = state["box"][2]
+    wi, wn, wd = [], [], []
+    if walls:
+        for k in range(len(r)):
+            for plane, nz in ((lo, -1.0), (hi, 1.0)):
+                ov = r[k] - abs(x[k, 2] - plane)
+                if ov > 0:
+                    wi.append(k), wn.append([0.0, 0.0, nz]), wd.append(ov)
+    ct["wall"] = {"i": np.array(wi, dtype=int), "n": np.array(wn).reshape(-1, 3),
+                  "delta": np.array(wd)}
+    return ct
 
 
 def case_parameters(case: Case, ct: dict) -> dict:
@@ -237,6 +260,17 @@ def case_parameters(case: Case, ct: dict) -> dict:
     p.update(eta_n=(E_TARGET if case.damping == "tsuji" else eta), eta_effective=eta,
              xgammat=xgt, m_ref=float(sphere_mass(ct["r"].mean())))
     p["per_contact"] = {"kn": kn, "kt": kt, "gamma_n": gn, "gamma_t": xgt * gn}
+    w = ct["wall"]
+    if len(w["i"]):
+        if case.model != "linear":
+            raise ValueError("walls: linear springs only here")
+        mw = ct["m"][w["i"]]
+        aw = np.sqrt(ct["r"][w["i"]] * w["delta"])
+        uw = {"none": 0 * mw, "velocity": 1 + 0 * mw, "mass_velocity": mw,
+              "viscoelastic": aw * mw, "tsuji": np.sqrt(mw * KN)}[case.damping]
+        p["wall_per_contact"] = {"kn": np.full(len(mw), KN), "kt": np.full(len(mw), KT),
+                                 "gamma_n": eta * uw, "gamma_t": xgt * eta * uw}
+        p["wall_gamma_n"] = float(np.mean(eta * uw))
     p["gamma_n_uniform"] = bool(np.ptp(gn) <= 1e-12 * max(1e-300, float(np.abs(gn).max())))
     p["gamma_n"] = float(gn.mean()) if len(gn) else 0.0
     p["gamma_t"] = xgt * p["gamma_n"]
@@ -255,8 +289,8 @@ def pair_lines(p: dict) -> list[str]:
     return ["pair_style granular", f"pair_coeff * * {coeff} damping {damp}"]
 
 
-def header_lines(data_file: str) -> list[str]:
-    return ["units si", "atom_style sphere", "atom_modify map array", "boundary p p p",
+def header_lines(data_file: str, boundary: str = "p p p") -> list[str]:
+    return ["units si", "atom_style sphere", "atom_modify map array", f"boundary {boundary}",
             "newton off", "comm_modify vel yes", f"read_data {data_file}",
             f"neighbor {SKIN!r} bin", "neigh_modify delay 0"]
 
@@ -296,12 +330,21 @@ def trial_lines(dt: float, steps: int, rotation: bool) -> list[str]:
     ]
 
 
+def wall_lines(p: dict, lo: float, hi: float) -> list[str]:
+    """``fix wall/gran granular`` planes z = lo and z = hi with the pair's model."""
+    coeff = pair_lines(p)[1].split(None, 3)[3]
+    return [f"fix walls all wall/gran granular {coeff} zplane {lo!r} {hi!r}"]
+
+
 class LammpsRunner(lt.Runner):
     """The LIGGGHTS harness' Runner (perturbed data file written once, fixed seed; its
     ``trial`` parses the thermo output) with a LAMMPS input."""
 
     def script(self, dt: float, steps: int) -> str:
-        return "\n".join(header_lines("perturbed.data") + pair_lines(self.params)
+        walls = self.state["bounds"][2] != "pp"
+        extra = wall_lines(self.params, *self.state["box"][2]) if walls else []
+        return "\n".join(header_lines("perturbed.data", "p p f" if walls else "p p p")
+                         + pair_lines(self.params) + extra
                          + trial_lines(dt, steps, self.case.rotation)) + "\n"
 
 
@@ -337,6 +380,51 @@ def make_fcc_state(overlap: float, name: str, workdir: Path) -> Path:
     return dest
 
 
+def make_slab_state(overlap: float, name: str, workdir: Path) -> Path:
+    """FCC slab: 3 x 3 cubic cells in x, y (periodic, 4.5 m), 6 (001) layers in z between
+    two flat walls. Pair overlap ``overlap`` d; linear springs: a bottom sphere's 4 upper
+    neighbours push it down with 4 kn delta / sqrt 2, so the wall overlap is 2 sqrt 2 delta
+    (an equilibrium of linear springs only)."""
+    a = FCC_CELL
+    d = a / math.sqrt(2.0)
+    r0 = 0.5 * d * (1.0 + overlap)
+    delta = 2.0 * r0 - d
+    dw = 2.0 * math.sqrt(2.0) * delta
+    layers = 2 * FCC_CELLS
+    pts = []
+    for k in range(layers):
+        off = 0.0 if k % 2 == 0 else 0.5 * a
+        for ix in range(FCC_CELLS):
+            for iy in range(FCC_CELLS):
+                for bx, by in ((0.0, 0.0), (0.5 * a, 0.5 * a)):
+                    pts.append([(ix * a + bx + off) % (a * FCC_CELLS),
+                                iy * a + by, r0 - dw + 0.5 * a * k])
+    x = np.array(pts)
+    r = np.full(len(x), r0)
+    top = float(x[:, 2].max() + r0 - dw)
+    box = [a * FCC_CELLS, a * FCC_CELLS, top]
+    folder = workdir / f"state-{name}"
+    folder.mkdir(parents=True, exist_ok=True)
+    write_data(folder / "state.data", x, r, box)
+    p = {"model": "linear", "damping": "none", "eta_n": 0.0, "kn": KN, "kt": KT, "xgammat": 0.0,
+         "mu": MU}
+    lines = header_lines("state.data", "p p f") + pair_lines(p) + wall_lines(p, 0.0, top) + [
+        "fix integr all nve/sphere", "timestep 1e-4",
+        f"dump dstate all custom 1 state.dump {DUMP_COLUMNS} fx fy fz",
+        'dump_modify dstate sort id format line "%d %d' + " %.17g" * 14 + '"',
+        "run 0"]
+    rc, out = run_lammps("\n".join(lines) + "\n", folder)
+    if rc != 0:
+        raise RuntimeError(f"{name}: LAMMPS failed ({rc}):\n{out[-3000:]}")
+    st = read_dump(folder / "state.dump")
+    fres = np.sqrt(st["fx"] ** 2 + st["fy"] ** 2 + st["fz"] ** 2).max()
+    if fres > 1e-9 * KN * delta:
+        raise RuntimeError(f"{name}: not an equilibrium (residual force {fres:g} N)")
+    dest = state_path(name)
+    shutil.copy(folder / "state.dump", dest)
+    return dest
+
+
 # ---------------------------------------------------------------------------- linearised maps
 def assemble(npart, ct, kn, kt, rotation, arm_t, arm_s):
     """Dense sum_c B_t^T D B_s; ``arm_t``/``arm_s``: (ai, aj) of the torque and the slip
@@ -356,6 +444,21 @@ def assemble(npart, ct, kn, kt, rotation, arm_t, arm_s):
 
     E = np.einsum("cki,ckl,clj->cij", B(arm_t), D, B(arm_s))
     dof = np.concatenate([i[:, None] * nd + np.arange(nd), j[:, None] * nd + np.arange(nd)], 1)
+    K = np.zeros((npart * nd, npart * nd))
+    np.add.at(K, (dof[:, :, None], dof[:, None, :]), E)
+    return K
+
+
+def _wall_blocks(npart, i, n, kn, kt, rotation, arm):
+    """Dense sum over wall contacts of B^T D B, B = [-I, [arm n]x] on sphere i."""
+    nd = 6 if rotation else 3
+    c = len(i)
+    nn = n[:, :, None] * n[:, None, :]
+    D = kn[:, None, None] * nn + kt[:, None, None] * (np.eye(3) - nn)
+    eye = np.broadcast_to(np.eye(3), (c, 3, 3))
+    B = np.concatenate([-eye] + ([_skew(arm[:, None] * n)] if rotation else []), axis=2)
+    E = np.einsum("cki,ckl,clj->cij", B, D, B)
+    dof = i[:, None] * nd + np.arange(nd)
     K = np.zeros((npart * nd, npart * nd))
     np.add.at(K, (dof[:, :, None], dof[:, None, :]), E)
     return K
@@ -394,6 +497,16 @@ def model_matrices(case: Case, p: dict, ct: dict, variant: str, geometric: bool)
         idx = (np.arange(npart)[:, None] * nd + np.arange(3)).reshape(-1)
         K[np.ix_(idx, idx)] += Kg
     C = assemble(npart, ct, pc["gamma_n"], pc["gamma_t"], rot, at, as_)
+    w = ct["wall"]
+    if len(w["i"]):
+        # sphere i against a fixed wall: B = [-I, [arm n]x] (n from the sphere to the wall);
+        # LAMMPS: slip and torque arm r (symmetric); demstep's 'sym' (liggghts
+        # convention): r - delta/2; 'full', 'nonsym', 'geomean': r.
+        rw = r[w["i"]]
+        arm = rw - 0.5 * w["delta"] if variant == "sym" else rw
+        wp = p["wall_per_contact"]
+        for mat, kk, ks in ((K, wp["kn"], wp["kt"]), (C, wp["gamma_n"], wp["gamma_t"])):
+            mat += _wall_blocks(npart, w["i"], w["n"], kk, ks, rot, arm)
     m = ct["m"]
     cols = [m, m, m] + ([0.4 * m * r * r] * 3 if rot else [])
     return K, C, np.stack(cols, 1).reshape(-1)
@@ -456,6 +569,8 @@ def demstep_args(case: Case, p: dict, dump: Path) -> list[str]:
         args += ["--model", "hertz", "--youngs", repr(YOUNGS), "--poisson", repr(POISSON)]
     if case.damping != "none":
         args += ["--gamma-n", repr(p["gamma_n"]), "--gamma-t", repr(p["gamma_t"])]
+    if case.state.startswith("slab"):
+        args += ["--wall", "z-", "--wall", "z+"]
     return args
 
 
@@ -512,6 +627,10 @@ def main(argv=None) -> int:
         if (args.regen_states or not state_path(name).exists()) and any(c.state == name for c in cases):
             log(f"state {name}: {make_fcc_state(o, name, workdir)}")
 
+    if (args.regen_states or not state_path("slab_o1e-3").exists()) and \
+            any(c.state == "slab_o1e-3" for c in cases):
+        log(f"state slab_o1e-3: {make_slab_state(1.0e-3, 'slab_o1e-3', workdir)}")
+
     report = json.loads(args.out.read_text()) if args.out.exists() else {"cases": {}}
     report["lammps_version"] = lammps_version()
     report["protocol"] = {"steps": args.steps, "tol": args.tol, "growth_factor": lt.GROWTH_FACTOR,
@@ -524,7 +643,7 @@ def main(argv=None) -> int:
         ct = contact_table(st)
         p = case_parameters(case, ct)
         t0 = time.perf_counter()
-        an = analyse(case, p, ct, verify=case.state.startswith("fcc"))
+        an = analyse(case, p, ct, verify=not case.state.startswith("poly"))
         ds, why = run_demstep(demstep_args(case, p, dump))
         rec = {"case": case.name, "state": case.state, "dump": str(dump.relative_to(REPO)),
                "n": int(len(st["radius"])), "contacts": int(len(ct["i"])),
