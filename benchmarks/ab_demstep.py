@@ -37,7 +37,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--a", required=True, help="src folder of version A (before)")
     ap.add_argument("--b", required=True, help="src folder of version B (after)")
-    ap.add_argument("--problem", choices=("dense", "settle"), default="dense")
+    ap.add_argument("--problem", choices=("dense", "settle", "hopper", "drum"), default="dense")
     ap.add_argument("--n", type=int, default=100_000)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--steps", type=int, default=1000)

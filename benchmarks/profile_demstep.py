@@ -5,12 +5,11 @@
 Builds the problem of ``peers.py``, runs ``--warmup`` steps (compilation, a realistic
 contact state), then times, on copies of the simulation's arrays:
 ``pair_forces`` (the copy for the problem's law and box, as the step calls it),
-``reduce_forces`` (more than one thread), ``wall_forces``,
-``integrate_plain`` (undamped) or ``integrate`` (each called ``--reps`` times, the
-threaded or the serial version as the engine chooses) and one neighbour-list rebuild (``Simulation._rebuild`` and its
-parts), and compares their sum with the time per step of ``sim.run``. Kernel arguments
-are matched by parameter name, so the script follows signature changes as long as
-the names stay those of the engine's attributes.
+``reduce_forces`` (more than one thread), ``wall_forces``, ``mesh_forces`` (the
+problems with meshes; each called ``--reps`` times on copies of the engine's state,
+the threaded or the serial version as the engine chooses) and one neighbour-list
+rebuild (and its parts), and compares their sum with the time per step of
+``sim.run`` (the rest: the integration and the bookkeeping).
 """
 
 from __future__ import annotations
@@ -29,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--problem", choices=("dense", "settle"), default="dense")
+    ap.add_argument("--problem", choices=("dense", "settle", "hopper", "drum"), default="dense")
     ap.add_argument("--n", type=int, default=100_000)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--reps", type=int, default=30)
@@ -56,55 +55,46 @@ def main(argv=None):
     t_step = (time.perf_counter() - t) / args.reps
     rebuilds_per_step = (sim.lists.n_rebuilds - r0) / args.reps
 
+    import copy
+
+    from demstep.kernels.meshes import mesh_forces, mesh_forces_serial
+
     params = sim.law.params()
     parallel = sim.threaded()
     pairs = sim.lists.work_space(parallel)
-    chunks, spans, force_band, torque_band, geo = (pairs.chunks, pairs.spans, pairs.force_band,
-                                                   pairs.torque_band, pairs.geo)
-    names = {
-        "periodic_len": sim.periodic_len, "law": int(params.law),
-        "params": params, "box_rate": np.zeros(3),
-        "dt": sim.dt, "dt_prev": sim.dt, "f_app": sim.applied_force,
-        "local_damping": sim.damping.local, "global_damping": sim.damping.viscous,
-        "first": False, "acc_out": np.empty(8), "box_sums": np.zeros((4, 3)),
-        "store_dashpot": params.has_dashpots, "store_damping": False,
-        "chunks": chunks, "spans": spans, "force_band": force_band,
-        "torque_band": torque_band,
-        "geo": geo, "n_chunks": len(chunks) - 1, "sphere_body": sim.bodies.sphere_body,
-        "cover": np.zeros(0),  # (a fixed step: no cover tracked)
-    }
+    chunks = pairs.force_band.shape[0] if parallel else 1
+    out = {"problem": args.problem, "n": len(x), "threads": numba.get_num_threads(),
+           "pairs": int(len(sim.pi)), "contacts": sim.n_contacts, "wall_pairs": int(len(sim.wp)),
+           "mesh_rows": int(len(sim.meshes.cand_p)) if sim.meshes is not None else 0,
+           "step_s": t_step, "rebuilds_per_step": rebuilds_per_step, "kernels_s": {}}
 
-    def arg(name):
-        if name in names:
-            return names[name]
-        value = getattr(sim, name)
-        return value.copy() if isinstance(value, np.ndarray) else value
-
-    def bench(kernel):
-        sig = inspect.signature(kernel.py_func)
-        values = [arg(p) for p in sig.parameters]
-        kernel(*values)  # compiled already; first call checks types
+    def bench(kernel, *values):
+        """Seconds per call of ``kernel`` on deep copies of ``values`` (the engine's
+        state is left alone)."""
+        values = [copy.deepcopy(v) for v in values]
+        kernel(*values)  # compiled already; the first call checks the types
         t = time.perf_counter()
         for _ in range(args.reps):
             kernel(*values)
         return (time.perf_counter() - t) / args.reps
 
-    out = {"problem": args.problem, "n": len(x), "threads": numba.get_num_threads(),
-           "pairs": int(len(sim.pi)), "contacts": sim.n_contacts, "wall_pairs": int(len(sim.wp)),
-           "step_s": t_step, "rebuilds_per_step": rebuilds_per_step, "kernels_s": {}}
-    suffix = "" if parallel else "_serial"
-    # the integrator the engine calls after the first step: the plain copy when undamped
-    undamped = sim.damping.local == 0.0 and sim.damping.viscous == 0.0
-    kernels = ["pair_forces", "wall_forces", "integrate_plain" if undamped else "integrate"]
-    if len(chunks) > 2:
-        kernels.insert(1, "reduce_forces")
-    for name in kernels:
-        if name == "pair_forces":  # the copy compiled for this law and box, as the step's
-            kernel = dem.pair_loop_for(parallel, bool(params.has_dashpots),
-                                       bool(np.any(sim.periodic_len > 0)))
-        else:
-            kernel = getattr(dem, name + suffix)
-        out["kernels_s"][name] = bench(kernel)
+    # the kernels of one step, as :func:`demstep.kernels.dem._advance` calls them (the
+    # pair loop: the copy compiled for this law and box); the integration is the rest
+    pair_loop = dem.pair_loop_for(parallel, bool(params.has_dashpots),
+                                  bool(np.any(sim.periodic_len > 0)))
+    out["kernels_s"]["pair_forces"] = bench(pair_loop, sim.spheres, pairs, sim.periodic_len,
+                                            np.zeros(3), params, sim.dt, bool(params.has_dashpots),
+                                            np.zeros((4, 3)))
+    if chunks > 1:
+        out["kernels_s"]["reduce_forces"] = bench(dem.reduce_forces, pairs.force_band,
+                                                  pairs.torque_band, pairs.spans,
+                                                  sim.spheres.force, sim.spheres.torque)
+    wall_loop = dem.wall_forces if parallel else dem.wall_forces_serial
+    out["kernels_s"]["wall_forces"] = bench(wall_loop, sim.spheres, sim.wall_state, params,
+                                            sim.dt, chunks)
+    if sim.meshes is not None and len(sim.meshes.tri):
+        out["kernels_s"]["mesh_forces"] = bench(mesh_forces if parallel else mesh_forces_serial,
+                                                sim.spheres, sim.meshes, params, sim.dt, chunks)
 
     # one neighbour rebuild and its parts
     parts = {}

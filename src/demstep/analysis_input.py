@@ -621,13 +621,19 @@ def from_particles(particles: Particles, model: ContactModel, types=None, period
 def from_file(path, model: ContactModel, fmt: str = "auto", density: float | None = None,
               box=None, periodic_axes=None, walls=(), contact_tol=DEFAULT_CONTACT_TOL,
               damping=None, impact_velocity=None, snapshot: int = -1,
-              meshes=()) -> AnalysisInput:
+              meshes=(), lammps_model=None) -> AnalysisInput:
     """A particle file (CSV, LIGGGHTS/LAMMPS dump, YADE text). ``box`` (dim, 2) and
-    ``periodic_axes`` (a string of axis letters) override the file's box and flags."""
+    ``periodic_axes`` (a string of axis letters) override the file's box and flags.
+    ``lammps_model`` (a :class:`~demstep.integrations.lammps_model.GranularModel`, with
+    ``model`` None): the contacts' springs and dashpots as LAMMPS' ``pair_style
+    granular`` computes them (pairs and plane walls; no meshes, no clumps)."""
     path = Path(path)
     data = read_particle_file(path, format=fmt, snapshot=snapshot)
     dim = data.dim
     notes = [f"read {path} ({data.x.shape[0]} particles, {dim}D)"]
+    if lammps_model is not None:
+        return _from_lammps_model(path, data, lammps_model, density, box, periodic_axes,
+                                  walls, damping, notes)
     if data.m is None:
         if density is None and model.law_class.uses_materials and model.materials:
             dens = [m.density for m in model.materials.values()]
@@ -645,29 +651,8 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
     else:
         m = np.array([particle_mass(r, model.material(t).density, dim)
                       for r, t in zip(data.r, types)])
-    box_arr = data.box
-    flags = data.periodic if data.periodic is not None else np.zeros(dim, dtype=bool)
-    if box is not None:
-        box_arr = np.asarray(box, dtype=np.float64).reshape(-1, 2)
-        if box_arr.shape != (dim, 2):
-            raise InputError(f"box: expected {2 * dim} numbers (lo hi per axis) for {dim}D, "
-                             f"got {box_arr.size}")
-        if np.any(box_arr[:, 1] <= box_arr[:, 0]):
-            raise InputError(f"box: every hi must exceed its lo, got {box_arr.tolist()}")
-    if periodic_axes is not None:
-        flags = np.array(["xyz"[a] in periodic_axes for a in range(dim)])
-        bad = set(periodic_axes) - set("xyz"[:dim])
-        if bad:
-            raise InputError(f"periodic: axes must be among {', '.join('xyz'[:dim])}, got "
-                             f"{','.join(sorted(bad))}")
-    periodic = None
-    x = data.x
-    if flags.any():
-        if box_arr is None:
-            raise InputError(f"periodic: {path} has no box: give --box")
-        periodic, x = periodic_lengths(box_arr, flags, x, data.r, str(path))
-        notes.append("periodic along " + ", ".join(f"{'xyz'[a]} (L = {periodic[a]:g})"
-                                                     for a in range(dim) if periodic[a]))
+    box_arr, periodic, x, note = _box_and_periodic(path, data, box, periodic_axes)
+    notes += note
     bodies = None
     body = data.extra.get("body")
     if body is not None and (body >= 0).any():
@@ -685,6 +670,65 @@ def from_file(path, model: ContactModel, fmt: str = "auto", density: float | Non
                          contact_tol, damping, data.v, impact_velocity, str(path), notes,
                          bodies, meshes)
     if bodies is None and particles.n >= SPATIAL_ORDER_MIN:
+        _put_in_spatial_order(out)
+    return out
+
+
+def _box_and_periodic(path, data, box, periodic_axes):
+    """The box (dim, 2) or None, the periodic lengths (None: no periodic axis), the
+    positions (shifted into the box on periodic axes) and notes of a particle file read
+    as ``data``, ``box`` and ``periodic_axes`` overriding the file's."""
+    dim = data.dim
+    box_arr = data.box
+    flags = data.periodic if data.periodic is not None else np.zeros(dim, dtype=bool)
+    if box is not None:
+        box_arr = np.asarray(box, dtype=np.float64).reshape(-1, 2)
+        if box_arr.shape != (dim, 2):
+            raise InputError(f"box: expected {2 * dim} numbers (lo hi per axis) for {dim}D, "
+                             f"got {box_arr.size}")
+        if np.any(box_arr[:, 1] <= box_arr[:, 0]):
+            raise InputError(f"box: every hi must exceed its lo, got {box_arr.tolist()}")
+    if periodic_axes is not None:
+        flags = np.array(["xyz"[a] in periodic_axes for a in range(dim)])
+        bad = set(periodic_axes) - set("xyz"[:dim])
+        if bad:
+            raise InputError(f"periodic: axes must be among {', '.join('xyz'[:dim])}, got "
+                             f"{','.join(sorted(bad))}")
+    periodic, x, notes = None, data.x, []
+    if flags.any():
+        if box_arr is None:
+            raise InputError(f"periodic: {path} has no box: give --box")
+        periodic, x = periodic_lengths(box_arr, flags, x, data.r, str(path))
+        notes.append("periodic along " + ", ".join(f"{'xyz'[a]} (L = {periodic[a]:g})"
+                                                     for a in range(dim) if periodic[a]))
+    return box_arr, periodic, x, notes
+
+
+def _from_lammps_model(path, data, model, density, box, periodic_axes, walls, damping,
+                       notes) -> AnalysisInput:
+    """:func:`from_file` with LAMMPS' ``pair_style granular`` contacts
+    (:func:`demstep.integrations.lammps_model.lammps_contacts`)."""
+    from demstep.integrations.lammps_model import lammps_contacts
+
+    if data.extra.get("body") is not None and (data.extra["body"] > 0).any():
+        raise InputError(f"{path}: clumps (a body/mol column) are not certified with "
+                         f"--lammps-model")
+    if data.m is not None:
+        m = data.m
+        notes.append("masses from the file's mass column")
+    elif density is not None:
+        m = particle_mass(data.r, density, data.dim)
+    else:
+        raise InputError(f"{path}: no mass column: give --density")
+    box_arr, periodic, x, note = _box_and_periodic(path, data, box, periodic_axes)
+    notes += note
+    particles = Particles(x, data.r, m, particle_inertia(m, data.r, data.dim))
+    contacts = lammps_contacts(particles, model, periodic, _walls(walls, box_arr, data.dim))
+    notes.append(model.describe() + f" ({contacts.n} contacts)")
+    types = data.types if data.types is not None else np.ones(len(data.r), dtype=np.int64)
+    out = AnalysisInput(particles, contacts, damping if damping is not None else GlobalDamping(),
+                        types, velocities=data.v, notes=notes)
+    if particles.n >= SPATIAL_ORDER_MIN:
         _put_in_spatial_order(out)
     return out
 

