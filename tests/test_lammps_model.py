@@ -1,0 +1,172 @@
+"""LAMMPS' pair granular as the certificate's springs and dashpots
+(demstep.integrations.lammps_model), checked against what each formula means: the
+tangent stiffness as the derivative of LAMMPS' force, Mindlin's ratio, the restitution
+a Tsuji dashpot gives a linear spring, and the non-symmetric contact LAMMPS integrates
+(its eigenvalues from a dense solver) against the certificate's symmetric arms."""
+
+import math
+
+import numpy as np
+import pytest
+
+from demstep.errors import InputError
+from demstep.integrations.lammps_model import GranularModel, lammps_contacts, tsuji_alpha
+from demstep.particles import Particles
+from demstep.timestep.estimates import exact_dt
+
+HERTZ = "hertz/material 5e7 0.2 0.3 tangential mindlin NULL 1.0 0.5"
+
+
+def springs(text, r_star=0.25, m_star=100.0, delta=1e-3, wall=False):
+    model = GranularModel.parse(text)
+    out = model.springs(np.array([r_star]), np.array([m_star]), np.array([delta]), wall=wall)
+    return {k: float(v[0]) for k, v in out.items()}
+
+
+def test_the_normal_stiffness_is_the_derivative_of_lammps_force():
+    """S_n = dF/d delta of F = 4/3 E* sqrt(R*) delta^(3/2) (hertz/material, E* of two
+    equal materials) and F = kn sqrt(R* delta) delta (hertz), by finite differences."""
+    e, nu, r_star, delta, h = 5e7, 0.3, 0.25, 1e-3, 1e-9
+    e_star = 1.0 / (2.0 * (1.0 - nu**2) / e)
+    force = lambda d: 4.0 / 3.0 * e_star * math.sqrt(r_star) * d**1.5  # noqa: E731
+    slope = (force(delta + h) - force(delta - h)) / (2 * h)
+    assert springs(HERTZ, r_star, 1.0, delta)["k_n"] == pytest.approx(slope, rel=1e-7)
+    force = lambda d: 2e6 * math.sqrt(r_star * d) * d  # noqa: E731
+    slope = (force(delta + h) - force(delta - h)) / (2 * h)
+    assert springs("hertz 2e6 0 tangential linear_history 1e5 0 0.5", r_star, 1.0,
+                   delta)["k_n"] == pytest.approx(slope, rel=1e-7)
+    assert springs("hooke 3e5 0 tangential linear_history 1e5 0 0.5")["k_n"] == 3e5
+
+
+def test_mindlin_null_has_mindlins_ratio_to_the_normal_stiffness():
+    """k_t / k_n = 2 (1 - nu) / (2 - nu) for two spheres of one material (Mindlin)."""
+    for nu in (0.2, 0.3, 0.45):
+        s = springs(f"hertz/material 5e7 0.2 {nu} tangential mindlin NULL 1.0 0.5")
+        assert s["k_s"] / s["k_n"] == pytest.approx(2 * (1 - nu) / (2 - nu), rel=1e-12)
+
+
+def test_damping_models_scale_as_lammps_documents_them():
+    a = math.sqrt(0.25 * 1e-3)
+    base = "hooke 1e6 {eta} tangential linear_history 1e6 0.5 0.5 damping {model}"
+    assert springs(base.format(eta=20.0, model="velocity"))["c_n"] == 20.0
+    assert springs(base.format(eta=0.3, model="mass_velocity"))["c_n"] == pytest.approx(30.0)
+    assert springs(base.format(eta=7.0, model="viscoelastic"))["c_n"] == pytest.approx(7 * a * 100)
+    s = springs(base.format(eta=7.0, model="viscoelastic"))
+    assert s["c_t"] == pytest.approx(0.5 * s["c_n"])  # xgammat: a ratio of gamma_n
+    # the default damping is viscoelastic
+    assert springs("hooke 1e6 7 tangential linear_history 1e6 1 0.5")["c_n"] == \
+        pytest.approx(7 * a * 100)
+
+
+def test_tsuji_on_a_linear_spring_gives_the_restitution_lammps_measured():
+    """LAMMPS' tsuji with e = 0.5 on a hooke spring: a damping ratio alpha(e)/2, so a
+    restitution of 0.58 (measured in LAMMPS: docs/validation-lammps.md)."""
+    s = springs("hooke 1e6 0.5 tangential linear_history 1e6 0 0.5 damping tsuji", m_star=100.0)
+    zeta = s["c_n"] / (2.0 * math.sqrt(100.0 * 1e6))
+    assert zeta == pytest.approx(tsuji_alpha(0.5) / 2.0, rel=1e-12)
+    restitution = math.exp(-math.pi * zeta / math.sqrt(1.0 - zeta**2))
+    assert 0.575 < restitution < 0.585
+    assert tsuji_alpha(1.0) == pytest.approx(0.0, abs=1e-3)  # elastic: no dashpot
+
+
+def test_rolling_and_twisting_springs():
+    a2 = 0.25 * 1e-3
+    s = springs(HERTZ + " rolling sds 1e3 10 0.1 twisting marshall")
+    assert s["k_r"] == pytest.approx(1e3 * 0.25**2)
+    assert s["c_r"] == pytest.approx(10 * 0.25**2)
+    assert s["k_w"] == pytest.approx(0.5 * s["k_s"] * a2)
+    assert s["c_w"] == pytest.approx(0.5 * s["c_t"] * a2)
+    s = springs(HERTZ + " twisting sds 3 2 0.1")
+    assert (s["k_w"], s["c_w"], s["k_r"]) == (3.0, 2.0, 0.0)
+
+
+def test_wall_constants_of_this_lammps_release():
+    """fix wall/gran's hertz/material coefficient 4/3 E / (2 (1 - nu)) and mindlin NULL
+    E (2 - nu)(1 + nu) / 4 x a (not the pair style's)."""
+    e, nu, r, delta = 5e7, 0.3, 0.5, 1e-3
+    a = math.sqrt(r * delta)
+    s = springs(HERTZ, r, 1.0, delta, wall=True)
+    assert s["k_n"] == pytest.approx(1.5 * 4.0 / 3.0 * e / (2 * (1 - nu)) * a)
+    assert s["k_s"] == pytest.approx(e * (2 - nu) * (1 + nu) / 4.0 * a)
+
+
+@pytest.mark.parametrize("text, named", [
+    ("jkr 5e7 0.2 0.3 1.0 tangential linear_history 1e6 0 0.5", "jkr"),
+    ("hooke 1e6 0 tangential mindlin_rescale 1e6 0 0.5", "mindlin_rescale"),
+    ("hooke 1e6 0 tangential linear_history_classic 1e6 0 0.5", "linear_history_classic"),
+    ("hooke 1e6 0 tangential mindlin NULL 0 0.5", "hertz/material"),
+    ("hooke 1e6 0", "tangential"),
+    ("hooke 1e6 0 tangential linear_history 1e6 0 0.5 damping coulomb", "coulomb"),
+    ("hooke 1e6 0 tangential linear_history 1e6 0 0.5 rolling nohistory", "nohistory"),
+    ("hooke 1e6 0 tangential linear_history 1e6 0 0.5 synchronized_verlet", "synchronized_verlet"),
+    ("hooke abc 0 tangential linear_history 1e6 0 0.5", "abc"),
+    ("hooke -1 0 tangential linear_history 1e6 0 0.5", "-1"),
+    ("hertz/material 5e7 0.2 0.7 tangential linear_history 1e6 0 0.5", "0.7"),
+    ("hooke 1e6 1.5 tangential linear_history 1e6 0 0.5 damping tsuji", "1.5"),
+    ("hooke 1e6 0 tangential linear_history 1e6", "3 value"),
+])
+def test_what_the_certificate_does_not_cover_is_refused_by_name(text, named):
+    with pytest.raises(InputError) as err:
+        GranularModel.parse(text)
+    assert named in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_one_contact_of_lammps_has_the_top_eigenvalue_of_the_geometric_mean_arms():
+    """LAMMPS' slip velocity takes the radii r, its torques the arm r - delta/2: a
+    non-symmetric stiffness. Built here dof by dof (two spheres, 12 dofs), its
+    eigenvalues (dense, non-symmetric) against the certificate's exact step with the
+    arms sqrt(r (r - delta/2))."""
+    r = np.array([0.5, 0.3])
+    m = 2500 * 4 / 3 * np.pi * r**3
+    inertia = 0.4 * m * r**2
+    delta = 0.02
+    x = np.array([[0.0, 0.0, 0.0], [r.sum() - delta, 0.0, 0.0]])
+    k_n, k_t = 1e6, 7e5
+    model = GranularModel.parse(f"hooke {k_n} 0 tangential linear_history {k_t} 0 0.5")
+    particles = Particles(x, r, m, inertia)
+    contacts = lammps_contacts(particles, model)
+    assert contacts.n == 1
+    dt = exact_dt(particles, contacts, True)
+
+    n = np.array([1.0, 0.0, 0.0])  # i -> j
+
+    def cross(v):
+        return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+    # relative displacement of j's contact point w.r.t. i's, dofs (u_i, th_i, u_j, th_j):
+    # slip: arms r; torques: arms r - delta/2 (as LAMMPS)
+    def strain(arm_i, arm_j):
+        b = np.zeros((3, 12))
+        b[:, 0:3] = -np.eye(3)
+        b[:, 3:6] = cross(arm_i * n)  # -(theta_i x arm n) = (arm n) x theta_i
+        b[:, 6:9] = np.eye(3)
+        b[:, 9:12] = cross(arm_j * n)  # theta_j x (-arm n)
+        return b
+
+    stiff = k_n * np.outer(n, n) + k_t * (np.eye(3) - np.outer(n, n))
+    b_slip = strain(r[0], r[1])
+    b_torque = strain(r[0] - delta / 2, r[1] - delta / 2)
+    k = b_torque.T @ stiff @ b_slip
+    assert not np.allclose(k, k.T)  # LAMMPS' contact is not symmetric
+    mass = np.repeat([m[0], inertia[0], m[1], inertia[1]], 3)
+    lam = np.linalg.eigvals(k / mass[:, None])
+    assert np.abs(lam.imag).max() < 1e-9 * np.abs(lam.real).max()
+    assert dt == pytest.approx(2.0 / math.sqrt(lam.real.max()), rel=1e-9)
+    # the radii alone (demstep's other conventions) would not be it
+    k_full = b_slip.T @ stiff @ b_slip
+    lam_full = np.linalg.eigvals(k_full / mass[:, None]).real.max()
+    assert abs(2.0 / math.sqrt(lam_full) / dt - 1.0) > 1e-4
+
+
+def test_walls_take_the_full_radius_and_the_particles_mass():
+    from demstep.walls import Wall
+
+    r, m = np.array([0.5]), np.array([100.0])
+    particles = Particles(np.array([[0.0, 0.0, 0.49]]), r, m, 0.4 * m * r**2)
+    model = GranularModel.parse("hooke 1e6 0.1 tangential linear_history 1e6 1 0.5 "
+                                "damping mass_velocity")
+    c = lammps_contacts(particles, model, walls=[Wall([0, 0, 0], [0, 0, 1])])
+    assert c.n == 1 and c.j[0] == -1
+    assert c.arm_i[0] == 0.5 and c.c_n[0] == pytest.approx(0.1 * 100.0)
+    assert np.allclose(c.normal[0], [0, 0, -1])
