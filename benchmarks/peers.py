@@ -1,7 +1,7 @@
-"""Side-by-side DEM benchmark: demstep against LIGGGHTS and YADE on the same problems.
+"""Side-by-side DEM benchmark: demstep against LIGGGHTS, LAMMPS and YADE on the same problems.
 
     python benchmarks/peers.py --problem dense|settle|hopper|drum --n 100000 --threads 1 \
-        [--repeat 3] [--steps 1000] [--codes demstep,liggghts,yade] [--json]
+        [--repeat 3] [--steps 1000] [--codes demstep,liggghts,yade,lammps] [--json]
     python benchmarks/peers.py --check [--n 500]      # do the codes agree? (small case)
     python benchmarks/peers.py --check --problem hopper|drum --n 3000 --steps 3000
 
@@ -36,7 +36,22 @@ restitution 0.5 (settle, hopper, drum).
 E = 5.93e7 Pa and nu = 0.25, so that the tangent normal stiffness of the dense
 packing's overlap (0.002 r, R* = r/2) is k_n = 1e6; same dt; restitution as above
 (LIGGGHTS' Tsuji form, which demstep's Hertz dashpot follows); no YADE row.
-The exact peer settings are in :func:`liggghts_input` and :data:`YADE_SCRIPT`.
+The exact peer settings are in :func:`liggghts_input`, :func:`lammps_input` and
+:data:`YADE_SCRIPT`.
+LAMMPS (``lmp``, ``pair_style granular``; ``dense`` and ``settle`` with linear springs
+only): ``units si``, ``atom_style sphere`` read from a data file, ``boundary f f f``,
+``comm_modify vel yes``, ``neighbor SKIN bin`` with ``neigh_modify delay 0 every 1
+check yes`` (the default delay 10 would miss contacts), ``newton`` and ``atom_modify
+sort`` at their defaults; ``pair_coeff * * hooke k_n ETA tangential linear_history k_s 0
+mu damping velocity``, which gives F_n = k_n delta + ETA v_n (ETA absolute: demstep's
+c_n, 0 on ``dense``) and a tangential dashpot of 0 x ETA (demstep has none); the walls
+``fix wall/gran granular`` with the same model and ETA = c_pw, one fix per axis with its
+lower and upper plane; ``fix gravity G vector`` (the force's direction); ``fix
+nve/sphere``. LAMMPS' sphere-sphere torque arm is r - delta/2 (its slip velocity takes
+r): 0.1 % on ``dense``'s overlaps. No ``--law hertz`` row: LAMMPS' Hertz dashpots
+(``tsuji``, ``viscoelastic``) are not LIGGGHTS' and demstep's, and the 2021 ``fix
+wall/gran hertz/material`` takes E / (2 (1 - nu)) for the wall's E*; no mesh problems
+(LAMMPS 2021 has no STL mesh walls).
 ``--order shuffled``: the same spheres in a fixed random order, in memory and in the
 peers' input files, as particles inserted at random places come from another code.
 LIGGGHTS sorts its atoms spatially itself (``atom_modify sort``, on by default);
@@ -45,8 +60,8 @@ demstep's child puts them in spatial order as ``demstep run`` does with a partic
 
 Only the stepping is timed: every code first runs ``--warmup`` steps (numba compiles
 or loads its cache, neighbour lists are built), then ``--steps`` steps are timed:
-demstep ``sim.run(steps=...)``, LIGGGHTS the "Loop time" of its second ``run``,
-YADE ``O.run(steps, True)``. Each measurement is its own process; its peak memory is
+demstep ``sim.run(steps=...)``, LIGGGHTS and LAMMPS the "Loop time" of their second
+``run``, YADE ``O.run(steps, True)``. Each measurement is its own process; its peak memory is
 the largest sum of the resident set sizes of its process tree (sampled every 0.1 s,
 MPI launchers excluded) or the kernel's ru_maxrss of the child, whichever is larger;
 a report gives the largest over the runs (``rss_mb``) and each run's
@@ -72,7 +87,7 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-CODES = ("demstep", "liggghts", "yade")
+CODES = ("demstep", "liggghts", "yade", "lammps")
 LAUNCHERS = {"mpirun", "mpiexec", "orterun", "prterun", "prte", "orted", "prted"}
 RESULT_TAG = "BENCH_RESULT "
 
@@ -529,17 +544,135 @@ def liggghts_command(folder, x, spec, threads, warmup, steps, dump):
 LOOP_RE = re.compile(r"Loop time of ([0-9.eE+-]+) on (\d+) procs for (\d+) steps with (\d+) atoms")
 
 
-def liggghts_result(stdout, steps):
+def liggghts_result(stdout, steps, name="LIGGGHTS"):
+    """The timed run's "Loop time" line (LIGGGHTS' and LAMMPS' have the same format)."""
     loops = LOOP_RE.findall(stdout)
     timed = [lp for lp in loops if int(lp[2]) == steps]
     if not timed:
-        raise RuntimeError("LIGGGHTS: no 'Loop time' line for the timed run:\n" + stdout[-3000:])
+        raise RuntimeError(f"{name}: no 'Loop time' line for the timed run:\n" + stdout[-3000:])
     t, procs, nsteps, natoms = timed[-1]
     out = {"elapsed": float(t), "steps": int(nsteps), "n": int(natoms), "threads": int(procs)}
     m = re.search(r"Neighbor list builds = (\d+)", stdout.split("Loop time")[-1])
     if m:
         out["rebuilds"] = int(m.group(1))
     return out
+
+
+# ----------------------------------------------------------------------------- LAMMPS
+def lammps_skip(spec):
+    """Why LAMMPS does not run the problem ``spec`` (None: it does)."""
+    if spec["problem"] in MESH_PROBLEMS:
+        return (f"lammps: the {spec['problem']} problem's triangle meshes are not set up in "
+                "LAMMPS (its 2021 release has no STL mesh walls)")
+    if spec.get("law", "linear") == "hertz":
+        return ("lammps: --law hertz not set up: LAMMPS' Hertz dashpots (tsuji, viscoelastic) are "
+                "not LIGGGHTS'/demstep's, and its 2021 fix wall/gran hertz/material takes "
+                "E/(2(1-nu)) for the wall's E*, not E/(2(1-nu^2))")
+    return None
+
+
+def _g(v):
+    return "%.17g" % float(v)
+
+
+def lammps_data(folder: Path, x, spec):
+    """LAMMPS data file, atom_style sphere: id type diameter density x y z (one atom
+    type: the walls' coefficients are their fixes')."""
+    lo, hi = spec["domain_lo"], spec["domain_hi"]
+    rows = np.empty((len(x), 7))
+    rows[:, 0] = np.arange(1, len(x) + 1)
+    rows[:, 1] = 1
+    rows[:, 2] = 2.0 * spec["radius"]
+    rows[:, 3] = spec["density"]
+    rows[:, 4:] = x
+    with open(folder / "data.bench", "w") as f:
+        f.write("demstep peers benchmark (LAMMPS atom_style sphere)\n\n")
+        f.write(f"{len(x)} atoms\n1 atom types\n\n")
+        for k, a in enumerate("xyz"):
+            f.write(f"{_g(lo[k])} {_g(hi[k])} {a}lo {a}hi\n")
+        f.write("\nAtoms # sphere\n\n")
+        np.savetxt(f, rows, fmt=["%d", "%d", "%.17g", "%.17g", "%.17g", "%.17g", "%.17g"])
+
+
+def lammps_input(spec, warmup, steps, dump):
+    """The LAMMPS script (pair_style granular, linear springs only: see :func:`lammps_skip`).
+    ``hooke KN ETA ... damping velocity``: F_n = KN delta + ETA v_n, ETA absolute, so
+    ETA = demstep's c_n (c_pp between spheres, c_pw on the walls, 0 without
+    restitution); ``tangential linear_history KT XGAMMAT MU``: the tangential dashpot is
+    XGAMMAT x ETA, and demstep has none (XGAMMAT = 0)."""
+    reason = lammps_skip(spec)
+    if reason:
+        raise SystemExit(reason)
+    kn, ks, mu, muw = spec["k_n"], spec["k_s"], spec["mu"], spec["mu_wall"]
+    eta_pp, eta_pw = (0.0, 0.0) if spec["restitution"] is None else (spec["c_pp"], spec["c_pw"])
+
+    def model(eta, friction):
+        return (f"hooke {_g(kn)} {_g(eta)} tangential linear_history {_g(ks)} 0 {_g(friction)} "
+                "damping velocity")
+
+    lines = [
+        "units si",
+        "atom_style sphere",
+        "boundary f f f",
+        "comm_modify vel yes",
+        "read_data data.bench",
+        f"neighbor {_g(spec['skin'])} bin",
+        # LAMMPS' default (delay 10 every 1 check yes) would let contacts close unseen
+        "neigh_modify delay 0 every 1 check yes",
+        "pair_style granular",
+        f"pair_coeff * * {model(eta_pp, mu)}",
+    ]
+    # one fix per axis with its lower and upper plane (a sphere meets the nearer one only:
+    # the boxes are wider than a diameter), NULL for a missing one
+    by_axis = {}
+    for w in spec["walls"]:
+        side = "lo" if w["sense"] > 0 else "hi"
+        planes = by_axis.setdefault(w["axis"], {})
+        if side in planes:
+            raise SystemExit(f"lammps: two {side} walls on axis {w['axis']}")
+        planes[side] = w["pos"]
+    for axis, planes in sorted(by_axis.items()):
+        if "lo" in planes and "hi" in planes and planes["hi"] - planes["lo"] < 4.0 * spec["radius"]:
+            raise SystemExit("lammps: walls closer than two diameters in one fix wall/gran")
+        lo, hi = (_g(planes[k]) if k in planes else "NULL" for k in ("lo", "hi"))
+        plane = "xyz"[axis] + "plane"
+        lines.append(f"fix wall{plane[0]} all wall/gran granular {model(eta_pw, muw)} {plane} {lo} {hi}")
+    gx, gy, gz = spec["gravity"]
+    gmag = math.sqrt(gx * gx + gy * gy + gz * gz)
+    if gmag > 0:
+        # the vector is the force's direction
+        lines.append(f"fix gravi all gravity {_g(gmag)} vector {_g(gx / gmag)} {_g(gy / gmag)} {_g(gz / gmag)}")
+    lines += [
+        "fix integr all nve/sphere",
+        f"timestep {_g(spec['dt'])}",
+        "thermo_style custom step atoms ke",
+        "thermo_modify lost ignore norm no",
+        f"thermo {max(1, steps)}",
+    ]
+    if warmup:
+        lines.append(f"run {warmup}")
+    # CPU time of the timed run: /proc/<lmp>/stat before and after (process 0 only)
+    lines += ["shell sh cpustat.sh cpu_before.txt", f"run {steps}", "shell sh cpustat.sh cpu_after.txt"]
+    if dump:  # the final state, after the timed run
+        lines.append("write_dump all custom final.dump id x y z vx vy vz modify sort id")
+    return "\n".join(lines) + "\n"
+
+
+def lammps_executable():
+    return shutil.which("lmp") or shutil.which("lmp_serial") or shutil.which("lmp_mpi")
+
+
+def lammps_command(folder, x, spec, threads, warmup, steps, dump):
+    lammps_data(folder, x, spec)
+    (folder / "in.bench").write_text(lammps_input(spec, warmup, steps, dump))
+    exe = lammps_executable()
+    (folder / "cpustat.sh").write_text(CPUSTAT_SH.replace("*liggghts*", f"*{Path(exe).name[:15]}*"))
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [exe, "-nocite", "-in", "in.bench", "-log", "log.bench"]
+    if threads > 1:
+        env.update(OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1")
+        cmd = [shutil.which("mpirun"), "-np", str(threads), "--oversubscribe"] + cmd
+    return cmd, env, threads
 
 
 # ----------------------------------------------------------------------------- YADE
@@ -713,6 +846,8 @@ def available(code):
         return shutil.which("liggghts") is not None
     if code == "yade":
         return shutil.which("yade") is not None
+    if code == "lammps":
+        return lammps_executable() is not None
     return False
 
 
@@ -729,6 +864,8 @@ def run_once(code, workdir, x, spec, threads, warmup, steps, dump, demstep_src, 
         cmd, env, used = demstep_command(folder, threads, warmup, steps, dump, demstep_src)
     elif code == "liggghts":
         cmd, env, used = liggghts_command(folder, x, spec, threads, warmup, steps, dump)
+    elif code == "lammps":
+        cmd, env, used = lammps_command(folder, x, spec, threads, warmup, steps, dump)
     else:
         cmd, env, used = yade_command(folder, threads, warmup, steps, dump)
     if idle_wait > 0:
@@ -743,6 +880,14 @@ def run_once(code, workdir, x, spec, threads, warmup, steps, dump, demstep_src, 
             raise RuntimeError(f"LIGGGHTS lost {spec['n'] - res['n']} of {spec['n']} atoms "
                                f"(left the domain) in {folder}")
         cpu = liggghts_cpu(folder)
+        if cpu is not None and res["threads"] == 1:
+            res["cpu_s"] = cpu
+    elif code == "lammps":
+        res = liggghts_result(out, steps, "LAMMPS")
+        if res["n"] != spec["n"]:
+            raise RuntimeError(f"LAMMPS lost {spec['n'] - res['n']} of {spec['n']} atoms "
+                               f"(left the domain) in {folder}")
+        cpu = liggghts_cpu(folder)  # the same /proc/<pid>/stat files
         if cpu is not None and res["threads"] == 1:
             res["cpu_s"] = cpu
     else:
@@ -761,12 +906,15 @@ def benchmark(args):
     if args.problem in MESH_PROBLEMS and "yade" in codes:
         codes.remove("yade")
         notes.append(f"yade: the {args.problem} problem's meshes are not set up in YADE")
+    if "lammps" in codes and lammps_skip(spec):
+        codes.remove("lammps")
+        notes.append(lammps_skip(spec))
     todo = []
     for code in codes:
         if not available(code):
             notes.append(f"{code}: not installed, skipped")
-        elif code == "liggghts" and args.threads > 1 and not mpi_available():
-            notes.append("liggghts: MPI code and no mpirun found: not measured with > 1 process")
+        elif code in ("liggghts", "lammps") and args.threads > 1 and not mpi_available():
+            notes.append(f"{code}: MPI code and no mpirun found: not measured with > 1 process")
         else:
             todo.append(code)
     # repeats interleaved (code A, B, C, A, B, C, ...) so that any load from other
@@ -815,13 +963,15 @@ def benchmark(args):
                 entry[key] = runs[code][-1][key]
         results.append(entry)
     by = {r["code"]: r for r in results}
-    ratio = None
+    ratio = ratio_lammps = None
     if "demstep" in by and "liggghts" in by:
         ratio = by["demstep"]["psps_median"] / by["liggghts"]["psps_median"]
+    if "demstep" in by and "lammps" in by:
+        ratio_lammps = by["demstep"]["psps_median"] / by["lammps"]["psps_median"]
     if not args.keep:
         shutil.rmtree(workdir, ignore_errors=True)
     return {"problem": args.problem, "n": spec["n"], "threads": args.threads, "results": results,
-            "ratio_vs_liggghts": ratio}, notes, spec
+            "ratio_vs_liggghts": ratio, "ratio_vs_lammps": ratio_lammps}, notes, spec
 
 
 def print_table(report, notes, spec):
@@ -841,6 +991,8 @@ def print_table(report, notes, spec):
               f"{fl:>12s} {cpu:>10s}")
     if report["ratio_vs_liggghts"] is not None:
         print(f"demstep / LIGGGHTS = {report['ratio_vs_liggghts']:.3f} (wall clock)")
+    if report.get("ratio_vs_lammps") is not None:
+        print(f"demstep / LAMMPS = {report['ratio_vs_lammps']:.3f} (wall clock)")
     print("foreign load: CPU used by other processes during a run / (wall time x CPUs); "
           "p-s/CPU-s: particle-steps per CPU second of the timed run (1 thread)")
     for note in notes:
@@ -887,10 +1039,13 @@ def check(args):
         x0, spec = make_problem(problem, args.n, args.skin, args.law)
         finals = {}
         for code in codes:
+            if code == "lammps" and lammps_skip(spec):
+                print("note:", lammps_skip(spec), file=sys.stderr)
+                continue
             res = run_once(code, workdir, x0, spec, 1, 0, args.steps, True, args.demstep_src,
                            args.timeout)
             folder = Path(res["folder"])
-            if code == "liggghts":
+            if code in ("liggghts", "lammps"):  # the same dump format
                 x, v = read_liggghts_dump(folder / "final.dump", spec["n"])
             else:
                 x, v = np.load(folder / f"final_{code}_x.npy"), np.load(folder / f"final_{code}_v.npy")
@@ -932,7 +1087,8 @@ def main(argv=None):
     ap.add_argument("--order", choices=("lattice", "shuffled"), default="lattice",
                     help="the spheres' order in memory and in the peers' input files")
     ap.add_argument("--n", type=int, default=None, help="target number of spheres (nearest feasible)")
-    ap.add_argument("--threads", type=int, default=1, help="demstep numba threads, LIGGGHTS MPI ranks, YADE OpenMP threads")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="demstep numba threads, LIGGGHTS and LAMMPS MPI ranks, YADE OpenMP threads")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--warmup", type=int, default=10, help="untimed steps before the timed run")
