@@ -170,3 +170,49 @@ def test_walls_take_the_full_radius_and_the_particles_mass():
     assert c.n == 1 and c.j[0] == -1
     assert c.arm_i[0] == 0.5 and c.c_n[0] == pytest.approx(0.1 * 100.0)
     assert np.allclose(c.normal[0], [0, 0, -1])
+
+
+# ---------------------------------------------------------------- against LAMMPS itself
+ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+THRESHOLDS = ROOT / "validation" / "results" / "lammps_thresholds.json"
+
+
+def _measured_cases():
+    import json
+
+    if not THRESHOLDS.exists():
+        return []
+    cases = json.loads(THRESHOLDS.read_text())["cases"]
+    return sorted(name for name, c in cases.items() if c.get("threshold"))
+
+
+@pytest.mark.parametrize("name", _measured_cases())
+def test_the_exact_step_is_never_above_lammps_measured_threshold(name):
+    """On every state whose threshold LAMMPS' own runs measured by bisection
+    (validation/lammps_thresholds.py: periodic FCC at two overlaps, jammed polydisperse,
+    a slab between fix wall/gran planes; linear and Hertz; the four dampings; rotation
+    free and locked), the exact step of --lammps-model with the same pair_coeff text
+    lies at most at the top of LAMMPS' bracket and at most 0.5 % below it, and the
+    coupled element bound below it."""
+    import ast
+    import json
+    import sys
+
+    from demstep.analysis_input import from_file
+    from demstep.timestep.estimates import element_coupled_dt
+
+    sys.path.insert(0, str(ROOT / "validation"))
+    from lammps_thresholds import pair_lines
+
+    case = json.loads(THRESHOLDS.read_text())["cases"][name]
+    p = case["parameters"]
+    p = ast.literal_eval(p) if isinstance(p, str) else p
+    text = pair_lines(p)[1].split("* *", 1)[1]
+    walls = ["z-", "z+"] if case["state"].startswith("slab") else ()
+    data = from_file(ROOT / case["dump"] if not case["dump"].startswith("/") else case["dump"],
+                     None, lammps_model=GranularModel.parse(text), walls=walls)
+    dt = exact_dt(data.particles, data.contacts, case["rotation"])
+    low, high = case["threshold"]["bracket"]
+    assert dt <= high
+    assert dt >= 0.995 * low
+    assert element_coupled_dt(data.particles, data.contacts, case["rotation"]) < dt
