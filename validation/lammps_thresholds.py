@@ -111,6 +111,7 @@ TOL = 2.5e-4
 HINT_OFFSET = 1.0005       # the first trial at 1.0005 x the model's step (never exactly on it)
 TRIAL_TIMEOUT = 600.0
 SKIN = 0.05
+QEP_MAX = 1000            # above this many DOFs the damped step by secant, not the QEP
 
 
 # ---------------------------------------------------------------------------- LAMMPS
@@ -333,7 +334,7 @@ def trial_lines(dt: float, steps: int, rotation: bool) -> list[str]:
 def wall_lines(p: dict, lo: float, hi: float) -> list[str]:
     """``fix wall/gran granular`` planes z = lo and z = hi with the pair's model."""
     coeff = pair_lines(p)[1].split(None, 3)[3]
-    return [f"fix walls all wall/gran granular {coeff} zplane {lo!r} {hi!r}"]
+    return [f"fix walls all wall/gran granular {coeff} zplane {float(lo)!r} {float(hi)!r}"]
 
 
 class LammpsRunner(lt.Runner):
@@ -524,6 +525,9 @@ def critical_step(K, C, mdiag) -> dict:
         out["h"] = out["h_undamped"]
         return out
     n = len(mdiag)
+    if n > QEP_MAX:
+        out["h"] = _damped_step_secant(K, C, mdiag, out["h_undamped"])
+        return out
     Z, I = np.zeros((n, n)), np.eye(n)
     A = np.block([[Z, I], [4.0 * np.diag(mdiag), -2.0 * C]])
     Bm = np.block([[I, Z], [Z, K]])
@@ -532,6 +536,38 @@ def critical_step(K, C, mdiag) -> dict:
     real = h[(np.abs(h.imag) <= 1e-9 * np.abs(h)) & (h.real > 0)].real
     out["h"] = float(real.min())
     return out
+
+
+def _damped_step_secant(K, C, mdiag, h_undamped: float, rtol: float = 1e-10) -> float:
+    """Large states: the smallest h with max Re eig(M^-1 (h^2 K + 2 h C)) = 4 (real
+    eigenvalue), by a bracketed secant / bisection on [0, h_undamped] (g(0) = -4 < 0,
+    g(h_undamped) >= 0 since C adds a positive semi-definite part)."""
+    mi = 1.0 / mdiag
+    MK, MC = mi[:, None] * K, mi[:, None] * C
+
+    def g(h):
+        lam = sl.eigvals(h * h * MK + 2.0 * h * MC)
+        return float(lam.real.max()) - 4.0
+
+    lo, glo, hi, ghi = 0.0, -4.0, h_undamped, g(h_undamped)
+    side = 0
+    h = hi
+    for _ in range(80):                      # Illinois variant of regula falsi
+        h = hi - ghi * (hi - lo) / (ghi - glo)
+        gh = g(h)
+        if gh > 0:
+            hi, ghi = h, gh
+            if side == 1:
+                glo *= 0.5
+            side = 1
+        else:
+            lo, glo = h, gh
+            if side == -1:
+                ghi *= 0.5
+            side = -1
+        if abs(gh) <= 1e-12 * 4.0 or (hi - lo) <= rtol * hi:
+            break
+    return float(h)
 
 
 def spectral_radius(K, C, mdiag, h) -> float:
@@ -588,7 +624,7 @@ def run_demstep(args: list[str]) -> tuple[dict | None, str]:
 # ---------------------------------------------------------------------------- main
 def _clean(obj):
     if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items() if k != "per_contact"}
+        return {k: _clean(v) for k, v in obj.items() if k not in ("per_contact", "wall_per_contact")}
     if isinstance(obj, (list, tuple)):
         return [_clean(v) for v in obj]
     if isinstance(obj, np.generic):
