@@ -85,17 +85,26 @@ def child(body: str) -> dict:
 
 def test_the_state_read_from_lammps_is_the_dumps():
     """The certified step of the running instance equals the one of the same dump file
-    (demstep dt --lammps-model), to round-off, rotation free and locked."""
+    and of LAMMPS' own data file of it (demstep dt --lammps-model), to round-off,
+    rotation free and locked."""
     from demstep.analysis_input import from_file
     from demstep.integrations.lammps_model import GranularModel
     from demstep.timestep.estimates import exact_dt
 
     got = child("""
-free = LammpsCertifier(instance(), MODEL, safety=1.0).certify()
+lmp = instance()
+free = LammpsCertifier(lmp, MODEL, safety=1.0).certify()
+written = tempfile.mktemp(suffix=".data")
+lmp.command(f"write_data {written}")
 locked = LammpsCertifier(instance("fix integ all nve"), MODEL, safety=1.0).certify()
-done(dt=free.dt, contacts=free.contacts, locked=locked.dt)
+done(dt=free.dt, contacts=free.contacts, locked=locked.dt, data=written)
 """)
     data = from_file(DUMP, None, lammps_model=GranularModel.parse(MODEL))
+    # LAMMPS' own data file (write_data) of the same state: the same certificate
+    written = from_file(got["data"], None, periodic_axes="xyz",
+                        lammps_model=GranularModel.parse(MODEL))
+    assert exact_dt(written.particles, written.contacts, True) == pytest.approx(got["dt"],
+                                                                                rel=1e-9)
     assert got["contacts"] == data.contacts.n == 648
     assert got["dt"] == pytest.approx(exact_dt(data.particles, data.contacts, True), rel=1e-9)
     assert got["locked"] == pytest.approx(exact_dt(data.particles, data.contacts, False),

@@ -216,3 +216,61 @@ def test_the_exact_step_is_never_above_lammps_measured_threshold(name):
     assert dt <= high
     assert dt >= 0.995 * low
     assert element_coupled_dt(data.particles, data.contacts, case["rotation"]) < dt
+
+
+# ---------------------------------------------------------------- LAMMPS data files
+DATA = """LAMMPS data file via write_data, version 29 Sep 2021
+
+3 atoms
+1 atom types
+
+0 10 xlo xhi
+-1 1 ylo yhi
+0.0 2.0e+00 zlo zhi
+
+Atoms # sphere
+
+3 1 1.0 2000.0 9.5 0.0 1.0 -1 0 0
+1 1 1.2 2500.0 1.0 0.0 1.0 0 0 0
+2 2 0.8 2500.0 2.0 0.5 1.0 0 0 1
+
+Velocities
+
+1 0.1 0 0 0 0 1
+2 0 0 0 0 0 0
+3 0 0.2 0 0 0 0
+"""
+
+
+def test_a_lammps_data_file_of_atom_style_sphere(tmp_path):
+    from demstep.io.formats import read_particle_file
+
+    path = tmp_path / "state.data"
+    path.write_text(DATA)
+    d = read_particle_file(path)
+    assert d.ids.tolist() == [1, 2, 3] and d.types.tolist() == [1, 2, 1]
+    assert np.allclose(d.r, [0.6, 0.4, 0.5])
+    assert np.allclose(d.m, [2500 * np.pi / 6 * 1.2**3, 2500 * np.pi / 6 * 0.8**3,
+                             2000 * np.pi / 6])
+    # image flags unwrap with the box lengths
+    assert np.allclose(d.x, [[1.0, 0.0, 1.0], [2.0, 0.5, 3.0], [-0.5, 0.0, 1.0]])
+    assert np.allclose(d.v[2], [0, 0.2, 0]) and np.allclose(d.w[0], [0, 0, 1])
+    assert np.allclose(d.box, [[0, 10], [-1, 1], [0, 2]])
+
+
+@pytest.mark.parametrize("change, named", [
+    (("Atoms # sphere", "Atoms # atomic"), "atomic"),
+    (("0 10 xlo xhi\n", ""), "xlo xhi"),
+    (("3 1 1.0 2000.0", "2 1 1.0 2000.0"), "id 2"),
+    (("1 1 1.2 2500.0", "1 1 0 2500.0"), "diameter"),
+    (("1 1 1.2 2500.0 1.0 0.0 1.0 0 0 0", "1 1 1.2 2500.0 1.0 0.0"), "Atoms (sphere)"),
+    (("3 0 0.2 0 0 0 0\n", ""), "atom id 3"),
+])
+def test_bad_lammps_data_files_are_refused_in_one_line(tmp_path, change, named):
+    from demstep.io.formats import read_particle_file
+
+    path = tmp_path / "bad.data"
+    path.write_text(DATA.replace(*change))
+    with pytest.raises(InputError) as err:
+        read_particle_file(path)
+    assert named in str(err.value) and "\n" not in str(err.value)

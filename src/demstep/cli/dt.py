@@ -29,7 +29,7 @@ DEFAULT_RADIUS = 20.0
 #: 3D with rotation, about 6 contacts per particle, Lanczos with 32 vectors), with margin
 BYTES_PER_PARTICLE = 4000
 #: formats of the positional input
-INPUT_FORMATS = ("auto", "csv", "liggghts", "yade", "case", "checkpoint")
+INPUT_FORMATS = ("auto", "csv", "liggghts", "yade", "lammps-data", "case", "checkpoint")
 #: image formats of --plot (matplotlib)
 PLOT_FORMATS = (".png", ".pdf", ".svg")
 

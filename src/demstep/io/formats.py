@@ -23,6 +23,7 @@ Three text formats carry particle centres [L] and radii [L]:
   the clump of each sphere ``body`` (or LAMMPS' molecule id ``mol``, 0: none).
   Rows are sorted by ``id``. A dump without a ``z`` column is read as 2D. A column
   read twice is refused.
+* **LAMMPS data files** (``write_data``) of ``atom_style sphere``: :func:`read_lammps_data`.
 * **YADE** text exports (``yade.export.text``, read by ``ymport.text``): one particle
   per line, ``x y z r`` separated by blanks, further columns (e.g. a material id)
   ignored, ``#`` starts a comment. A ``#format x_y_z_r...`` header names the columns
@@ -52,12 +53,13 @@ from demstep.io.textfile import csv_rows, open_text
 from demstep.errors import MAX_MAGNITUDE, MIN_MAGNITUDE, InputError, magnitude_problem
 
 #: format names understood by :func:`read_particle_file` / :func:`write_particle_file`
-FORMATS = ("csv", "liggghts", "yade")
+FORMATS = ("csv", "liggghts", "yade", "lammps-data")
 
 _EXTENSIONS = {
     ".csv": "csv",
     ".liggghts": "liggghts", ".dump": "liggghts", ".lammpstrj": "liggghts",
     ".txt": "yade", ".yade": "yade", ".spheres": "yade",
+    ".data": "lammps-data", ".lmpdata": "lammps-data",
 }
 
 
@@ -693,11 +695,110 @@ def write_yade_text(path, x, r) -> Path:
     return _write_text_atomically(path, "\n".join(lines) + "\n")
 
 
+# ------------------------------------------------------------ LAMMPS data files
+#: the header keywords of a LAMMPS data file that name a box bound
+_DATA_BOUNDS = {"xlo xhi": 0, "ylo yhi": 1, "zlo zhi": 2}
+#: the sections of a LAMMPS data file demstep reads; the others are skipped
+_DATA_SECTIONS = ("Atoms", "Velocities")
+#: every section name a data file may hold (to know where a section ends)
+_DATA_ALL_SECTIONS = ("Atoms", "Velocities", "Masses", "Bonds", "Angles", "Dihedrals",
+                      "Impropers", "Ellipsoids", "Lines", "Triangles", "Bodies",
+                      "Pair Coeffs", "PairIJ Coeffs", "Bond Coeffs", "Angle Coeffs",
+                      "Dihedral Coeffs", "Improper Coeffs")
+
+
+def read_lammps_data(path) -> ParticleData:
+    """A LAMMPS data file (``write_data``, ``read_data``) of ``atom_style sphere``: the
+    ``Atoms`` section's rows ``id type diameter density x y z`` (optionally ``ix iy iz``
+    image flags, applied with the box lengths), the box from its ``xlo xhi`` lines,
+    masses = density x pi d^3 / 6, and the ``Velocities`` section's ``id vx vy vz wx wy
+    wz`` when present; rows sorted by id. Periodicity is not in the file (it is the
+    input script's ``boundary``): give it as ``--periodic``. An ``Atoms`` section of
+    another style (its ``# style`` comment) is refused in one line."""
+    path = Path(path)
+    box = np.full((3, 2), np.nan)
+    section = None
+    rows, numbers, vel = [], [], {}
+    with open_text(path) as lines:
+        for line_no, text in enumerate(lines, start=1):
+            if line_no == 1:  # (the title line)
+                continue
+            body = text.split("#", 1)[0].strip()
+            if not body:
+                continue
+            head = body.split()
+            if body in _DATA_ALL_SECTIONS:
+                section = body
+                if body == "Atoms":
+                    style = text.split("#", 1)[1].strip() if "#" in text else "sphere"
+                    if style != "sphere":
+                        raise InputError(f"{path}:{line_no}: Atoms section of atom_style "
+                                         f"{style!r}; demstep reads atom_style sphere")
+                continue
+            if section is None:
+                for key, axis in _DATA_BOUNDS.items():
+                    if body.endswith(key) and len(head) == 4:
+                        box[axis] = [_number(head[0], path, line_no, key.split()[0]),
+                                     _number(head[1], path, line_no, key.split()[1])]
+                continue
+            if section == "Atoms":
+                if len(head) not in (7, 10):
+                    raise InputError(f"{path}:{line_no}: Atoms (sphere): expected 'id type "
+                                     f"diameter density x y z [ix iy iz]', got {len(head)} "
+                                     f"values")
+                rows.append(head)
+                numbers.append(line_no)
+            elif section == "Velocities":
+                if len(head) != 7:
+                    raise InputError(f"{path}:{line_no}: Velocities (sphere): expected 'id vx "
+                                     f"vy vz wx wy wz', got {len(head)} values")
+                vel[_integer(head[0], path, line_no, "id")] = [
+                    _number(v, path, line_no, c) for v, c in zip(head[1:], ("vx", "vy", "vz",
+                                                                            "wx", "wy", "wz"))]
+    if not rows:
+        raise InputError(f"{path}: no Atoms section (a LAMMPS data file of atom_style sphere)")
+    if np.isnan(box).any():
+        missing = [k for k, a in _DATA_BOUNDS.items() if np.isnan(box[a]).any()]
+        raise InputError(f"{path}: no '{missing[0]}' line (the box)")
+    n = len(rows)
+    ids = np.empty(n, dtype=np.int64)
+    types = np.empty(n, dtype=np.int64)
+    d = np.empty(n)
+    rho = np.empty(n)
+    x = np.empty((n, 3))
+    for k, (head, line_no) in enumerate(zip(rows, numbers)):
+        ids[k] = _integer(head[0], path, line_no, "id")
+        types[k] = _integer(head[1], path, line_no, "type")
+        d[k] = _number(head[2], path, line_no, "diameter")
+        rho[k] = _number(head[3], path, line_no, "density")
+        x[k] = [_number(v, path, line_no, c) for v, c in zip(head[4:7], "xyz")]
+        if len(head) == 10:
+            image = [_integer(v, path, line_no, c) for v, c in zip(head[7:], ("ix", "iy", "iz"))]
+            x[k] += np.array(image) * (box[:, 1] - box[:, 0])
+    _check_positive(d, path, numbers, "diameter", "diameter (a point particle has none)")
+    _check_positive(rho, path, numbers, "density", "density")
+    dup = np.flatnonzero(np.bincount(ids - ids.min()) > 1) if n else []
+    if len(dup):
+        raise InputError(f"{path}: atom id {int(dup[0] + ids.min())} appears twice")
+    order = np.argsort(ids, kind="stable")
+    r = 0.5 * d[order]
+    m = rho[order] * np.pi / 6.0 * d[order] ** 3
+    v = w = None
+    if vel:
+        missing = [int(i) for i in ids if int(i) not in vel]
+        if missing:
+            raise InputError(f"{path}: Velocities has no row for atom id {missing[0]}")
+        table = np.array([vel[int(i)] for i in ids[order]])
+        v, w = table[:, :3].copy(), table[:, 3:].copy()
+    return ParticleData(np.ascontiguousarray(x[order]), r, m, v, w, ids=ids[order],
+                        types=types[order], box=box, periodic=None, source=str(path))
+
+
 # ------------------------------------------------------------------- dispatch
 
 def detect_format(path) -> str:
     """The format of ``path``: by extension (.csv; .liggghts/.dump/.lammpstrj;
-    .txt/.yade/.spheres), else by content (a first line 'ITEM:' is a LIGGGHTS dump,
+    .txt/.yade/.spheres; .data/.lmpdata: a LAMMPS data file), else by content (a first line 'ITEM:' is a LIGGGHTS dump,
     a comma in the first line CSV, else YADE text)."""
     path = Path(path)
     suffix = path.suffix.lower()
@@ -727,6 +828,8 @@ def read_particle_file(path, format: str = "auto", snapshot: int = -1) -> Partic
         return read_liggghts_dump(path, snapshot=snapshot)
     if format == "yade":
         return read_yade_text(path)
+    if format == "lammps-data":
+        return read_lammps_data(path)
     raise InputError(f"format: must be auto, {', '.join(FORMATS)}, got {format!r}")
 
 
@@ -735,6 +838,9 @@ def write_particle_file(path, x, r, m=None, format: str = "auto") -> Path:
     path = Path(path)
     if format == "auto":
         format = _EXTENSIONS.get(path.suffix.lower(), "csv")
+    if format == "lammps-data":
+        raise InputError(f"{path}: format lammps-data is read only (LAMMPS writes it: "
+                         f"write_data)")
     if format == "csv":
         return write_csv(path, x, r, m)
     if format == "liggghts":
