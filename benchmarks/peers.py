@@ -365,7 +365,7 @@ sim = demstep_simulation(x, spec, TimeStep.fixed(spec["dt"]))
 if warmup:
     sim.run(steps=warmup)
 t_setup = time.perf_counter() - t_setup
-rebuilds0 = getattr(sim, "n_rebuilds", 0)
+rebuilds0 = sim.lists.n_rebuilds
 c0, t0 = time.process_time(), time.perf_counter()
 sim.run(steps=steps)
 elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -376,7 +376,7 @@ if dump:
 print("BENCH_RESULT " + json.dumps({
     "elapsed": elapsed, "cpu_s": cpu, "steps": steps, "n": len(x), "threads": numba.get_num_threads(),
     "threading_layer": numba.threading_layer(), "setup_s": t_setup,
-    "rebuilds": getattr(sim, "n_rebuilds", 0) - rebuilds0, "contacts": sim.n_contacts,
+    "rebuilds": sim.lists.n_rebuilds - rebuilds0, "contacts": sim.n_contacts,
     "demstep": str(Path(demstep.__file__).parent)}), flush=True)
 """
 
