@@ -29,8 +29,9 @@ def auto_case(name, safety, every=200, checkpoint_every=400):
 
 
 @pytest.mark.parametrize("safety", [1.0, 0.9])
-@pytest.mark.parametrize("name,max_steps", [("hex_biaxial_2d.toml", 1600),
-                                            ("polydisperse_settling_3d.toml", 2400)])
+@pytest.mark.parametrize("name,max_steps", [
+    pytest.param("hex_biaxial_2d.toml", 1600, marks=pytest.mark.slow),  # (70 s each)
+    ("polydisperse_settling_3d.toml", 2400)])
 def test_examples_in_auto_mode_stay_below_the_exact_step(tmp_path, name, max_steps, safety):
     """Each stage runs at most max_steps (contacts form in both: consolidation against
     servo walls, gravity settling); every checkpoint's dt is at most the exact damped

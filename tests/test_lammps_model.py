@@ -247,7 +247,7 @@ def test_a_lammps_data_file_of_atom_style_sphere(tmp_path):
 
     path = tmp_path / "state.data"
     path.write_text(DATA)
-    d = read_particle_file(path)
+    d = read_particle_file(path)  # (recognised by its 'N atoms' header)
     assert d.ids.tolist() == [1, 2, 3] and d.types.tolist() == [1, 2, 1]
     assert np.allclose(d.r, [0.6, 0.4, 0.5])
     assert np.allclose(d.m, [2500 * np.pi / 6 * 1.2**3, 2500 * np.pi / 6 * 0.8**3,

@@ -73,6 +73,7 @@ def test_the_case_reads_the_tutorials_trough_material_stream_and_wear():
     assert case.output.history_every == 1000
 
 
+@pytest.mark.slow  # (a minute and more of the tutorial run: `pytest -m slow`)
 def test_the_first_packets_fall_onto_the_trough_and_wear_it(tmp_path):
     """The case as it is, run for 0.15 s (15,000 steps; history every 500). The stream
     inserts 0.1 kg/s: at each row the mass inserted follows the rate, within one

@@ -84,6 +84,7 @@ def bucket_corners(sim):
     return np.asarray(sim.meshes.tri)[np.asarray(sim.meshes.tri_mesh) == 0].reshape(-1, 3, 3)
 
 
+@pytest.mark.slow  # (a minute and more of the tutorial run: `pytest -m slow`)
 def test_the_bucket_touches_nothing_until_its_stage_switches_it_on():
     """One sphere put 5 mm into the underside of the bucket's top plate (the insertion
     ignores a disabled mesh), the stages shortened to 10, 9, 1, 10 and 10 steps: no

@@ -43,6 +43,7 @@ is not text is refused at once, a line of NUL bytes or longer than
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,7 +60,6 @@ _EXTENSIONS = {
     ".csv": "csv",
     ".liggghts": "liggghts", ".dump": "liggghts", ".lammpstrj": "liggghts",
     ".txt": "yade", ".yade": "yade", ".spheres": "yade",
-    ".data": "lammps-data", ".lmpdata": "lammps-data",
 }
 
 
@@ -698,6 +698,8 @@ def write_yade_text(path, x, r) -> Path:
 # ------------------------------------------------------------ LAMMPS data files
 #: the header keywords of a LAMMPS data file that name a box bound
 _DATA_BOUNDS = {"xlo xhi": 0, "ylo yhi": 1, "zlo zhi": 2}
+#: a LAMMPS data file's count of atoms (its header, after the title line)
+_DATA_ATOMS = re.compile(r"^\d+\s+atoms\s*(#.*)?$")
 #: the sections of a LAMMPS data file demstep reads; the others are skipped
 _DATA_SECTIONS = ("Atoms", "Velocities")
 #: every section name a data file may hold (to know where a section ends)
@@ -798,20 +800,25 @@ def read_lammps_data(path) -> ParticleData:
 
 def detect_format(path) -> str:
     """The format of ``path``: by extension (.csv; .liggghts/.dump/.lammpstrj;
-    .txt/.yade/.spheres; .data/.lmpdata: a LAMMPS data file), else by content (a first line 'ITEM:' is a LIGGGHTS dump,
-    a comma in the first line CSV, else YADE text)."""
+    .txt/.yade/.spheres), else by content: a first line 'ITEM:' is a LIGGGHTS dump, a
+    line 'N atoms' among the first lines after the title a LAMMPS data file, a comma in
+    the first line CSV, else YADE text."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in _EXTENSIONS:
         return _EXTENSIONS[suffix]
-    first = ""
+    head = []
     with open_text(path) as lines:
         for text in lines:
             if text.strip():
-                first = text.strip()
+                head.append(text.strip())
+            if len(head) >= 4:
                 break
+    first = head[0] if head else ""
     if first.upper().startswith("ITEM:"):
         return "liggghts"
+    if any(_DATA_ATOMS.match(line) for line in head[1:]):
+        return "lammps-data"
     if "," in first:
         return "csv"
     return "yade"
