@@ -66,6 +66,7 @@ def test_the_case_reads_the_tutorials_meshes_material_and_stream():
     assert sum(s.duration for s in case.stages) == pytest.approx(1.4)   # 140,000 steps
 
 
+@pytest.mark.slow  # (the tutorial run: `pytest -m slow`)
 def test_spheres_dropped_on_the_belt_are_carried_towards_minus_x():
     """The case as it is but for the inserter: eight spheres put just over the middle of
     the belt, falling at 1 m/s, and 3,000 steps (30 ms). Each lands, bounces (restitution

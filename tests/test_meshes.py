@@ -506,8 +506,8 @@ def test_the_threaded_mesh_loop_gives_the_serial_one():
 
     a, b = make(True), make(False)
     for sim in (a, b):
-        sim.run(steps=3000)
-    assert a.meshes.contacts[0] > 100 and a.meshes.wear.max() > 0.0
+        sim.run(steps=1000)
+    assert a.meshes.contacts[0] > 40 and a.meshes.wear.max() > 0.0  # (the bed lands)
     for name in ("x", "v", "w", "force", "torque"):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
     assert np.array_equal(a.meshes.wear, b.meshes.wear)
