@@ -391,23 +391,29 @@ def demstep_command(folder, threads, warmup, steps, dump, demstep_src):
 
 
 # ----------------------------------------------------------------------------- LIGGGHTS
-def liggghts_data(folder: Path, x, spec):
-    """LAMMPS data file, atom_style granular: id type diameter density x y z."""
+def write_data_file(folder: Path, x, spec, types: int, style: str = ""):
+    """The LAMMPS data file ``data.bench`` both LIGGGHTS (atom_style granular) and LAMMPS
+    (atom_style sphere) read: id type diameter density x y z, every sphere of type 1;
+    ``types`` atom types declared (LIGGGHTS: 2, the walls' material the second),
+    ``style`` the Atoms section's style comment ("sphere" for LAMMPS)."""
     lo, hi = spec["domain_lo"], spec["domain_hi"]
-    d = 2.0 * spec["radius"]
     rows = np.empty((len(x), 7))
     rows[:, 0] = np.arange(1, len(x) + 1)
     rows[:, 1] = 1
-    rows[:, 2] = d
+    rows[:, 2] = 2.0 * spec["radius"]
     rows[:, 3] = spec["density"]
     rows[:, 4:] = x
     with open(folder / "data.bench", "w") as f:
         f.write("demstep peers benchmark\n\n")
-        f.write(f"{len(x)} atoms\n2 atom types\n\n")
+        f.write(f"{len(x)} atoms\n{types} atom types\n\n")
         for k, a in enumerate("xyz"):
-            f.write(f"{lo[k]!r} {hi[k]!r} {a}lo {a}hi\n")
-        f.write("\nAtoms\n\n")
+            f.write(f"{_g(lo[k])} {_g(hi[k])} {a}lo {a}hi\n")
+        f.write(f"\nAtoms{' # ' + style if style else ''}\n\n")
         np.savetxt(f, rows, fmt=["%d", "%d", "%.17g", "%.17g", "%.17g", "%.17g", "%.17g"])
+
+
+def _g(v):
+    return "%.17g" % float(v)
 
 
 def write_stl(path: Path, vertices, triangles):
@@ -528,7 +534,7 @@ def liggghts_cpu(folder: Path):
 
 
 def liggghts_command(folder, x, spec, threads, warmup, steps, dump):
-    liggghts_data(folder, x, spec)
+    write_data_file(folder, x, spec, types=2)
     for i, m in enumerate(spec.get("meshes", [])):
         write_stl(folder / f"mesh{i}.stl", np.asarray(m["vertices"]), np.asarray(m["triangles"]))
     (folder / "in.bench").write_text(liggghts_input(spec, warmup, steps, dump))
@@ -569,29 +575,6 @@ def lammps_skip(spec):
                 "not LIGGGHTS'/demstep's, and its 2021 fix wall/gran hertz/material takes "
                 "E/(2(1-nu)) for the wall's E*, not E/(2(1-nu^2))")
     return None
-
-
-def _g(v):
-    return "%.17g" % float(v)
-
-
-def lammps_data(folder: Path, x, spec):
-    """LAMMPS data file, atom_style sphere: id type diameter density x y z (one atom
-    type: the walls' coefficients are their fixes')."""
-    lo, hi = spec["domain_lo"], spec["domain_hi"]
-    rows = np.empty((len(x), 7))
-    rows[:, 0] = np.arange(1, len(x) + 1)
-    rows[:, 1] = 1
-    rows[:, 2] = 2.0 * spec["radius"]
-    rows[:, 3] = spec["density"]
-    rows[:, 4:] = x
-    with open(folder / "data.bench", "w") as f:
-        f.write("demstep peers benchmark (LAMMPS atom_style sphere)\n\n")
-        f.write(f"{len(x)} atoms\n1 atom types\n\n")
-        for k, a in enumerate("xyz"):
-            f.write(f"{_g(lo[k])} {_g(hi[k])} {a}lo {a}hi\n")
-        f.write("\nAtoms # sphere\n\n")
-        np.savetxt(f, rows, fmt=["%d", "%d", "%.17g", "%.17g", "%.17g", "%.17g", "%.17g"])
 
 
 def lammps_input(spec, warmup, steps, dump):
@@ -663,7 +646,7 @@ def lammps_executable():
 
 
 def lammps_command(folder, x, spec, threads, warmup, steps, dump):
-    lammps_data(folder, x, spec)
+    write_data_file(folder, x, spec, types=1, style="sphere")
     (folder / "in.bench").write_text(lammps_input(spec, warmup, steps, dump))
     exe = lammps_executable()
     (folder / "cpustat.sh").write_text(CPUSTAT_SH.replace("*liggghts*", f"*{Path(exe).name[:15]}*"))

@@ -114,13 +114,7 @@ class GranularModel:
         if not tokens:
             raise InputError("lammps model: empty; expected e.g. 'hooke 1e6 0.5 tangential "
                              "linear_history 1e6 1.0 0.5'")
-        name = tokens.pop(0)
-        if name in REFUSED:
-            raise InputError(f"lammps model: normal model {name!r} is not certified "
-                             f"({REFUSED[name]})")
-        if name not in NORMAL_MODELS:
-            raise InputError(f"lammps model: unknown normal model {name!r} (certified: "
-                             f"{', '.join(NORMAL_MODELS)})")
+        name = cls._known("normal", tokens.pop(0), NORMAL_MODELS)
         normal = tuple(_number(t, f"{name} coefficient {k + 1}")
                        for k, t in enumerate(cls._take(tokens, NORMAL_MODELS[name], name)))
         fields = {"damping": "viscoelastic", "rolling": None, "twisting": None,
@@ -135,13 +129,8 @@ class GranularModel:
                                      f"{', '.join(DAMPING_MODELS)}")
                 fields["damping"] = model
             elif key == "tangential":
-                model = cls._take(tokens, 1, "tangential")[0]
-                if model in REFUSED:
-                    raise InputError(f"lammps model: tangential {model!r} is not certified "
-                                     f"({REFUSED[model]})")
-                if model not in TANGENTIAL_MODELS:
-                    raise InputError(f"lammps model: unknown tangential model {model!r} "
-                                     f"(certified: {', '.join(TANGENTIAL_MODELS)})")
+                model = cls._known("tangential", cls._take(tokens, 1, "tangential")[0],
+                                   TANGENTIAL_MODELS)
                 values = cls._take(tokens, TANGENTIAL_MODELS[model], f"tangential {model}")
                 tangential = (model, tuple(
                     _number(t, f"tangential {model} coefficient {k + 1}",
@@ -178,6 +167,19 @@ class GranularModel:
         model = cls(name, normal, tangential[0], tangential[1], **fields)
         model._check()
         return model
+
+    @staticmethod
+    def _known(kind: str, name: str, certified) -> str:
+        """``name`` when it is one of the ``certified`` models of ``kind``; a model
+        LAMMPS has and the certificate does not (:data:`REFUSED`), or an unknown one,
+        refused in one line."""
+        if name in REFUSED:
+            raise InputError(f"lammps model: {kind} model {name!r} is not certified "
+                             f"({REFUSED[name]})")
+        if name not in certified:
+            raise InputError(f"lammps model: unknown {kind} model {name!r} (certified: "
+                             f"{', '.join(certified)})")
+        return name
 
     @staticmethod
     def _take(tokens: list, count: int, what: str) -> list:
