@@ -1295,6 +1295,31 @@ def scale_into(w, factor, out):
 
 
 @njit
+def lanczos_recurrence(v, w, v_prev, beta_prev):
+    """One step of plain Lanczos on w = A v, in place: alpha = v.w, then
+    w <- w - alpha v - beta_prev v_prev; returns (alpha, |w|^2). Two passes over the
+    vectors and no temporaries (the random-start check of
+    :mod:`demstep.timestep.guarantee`)."""
+    alpha = _dot(v, w)
+    n = w.shape[0]
+    s0 = 0.0
+    s1 = 0.0
+    m = n - n % 2
+    for p in range(0, m, 2):
+        t0 = w[p] - alpha * v[p] - beta_prev * v_prev[p]
+        t1 = w[p + 1] - alpha * v[p + 1] - beta_prev * v_prev[p + 1]
+        w[p] = t0
+        w[p + 1] = t1
+        s0 += t0 * t0
+        s1 += t1 * t1
+    for p in range(m, n):
+        t0 = w[p] - alpha * v[p] - beta_prev * v_prev[p]
+        w[p] = t0
+        s0 += t0 * t0
+    return alpha, s0 + s1
+
+
+@njit
 def _rayleigh_residual(y, Ay):
     """(theta, |Ay - theta y|) for a unit vector y."""
     theta = _dot(y, Ay)

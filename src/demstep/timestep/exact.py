@@ -55,6 +55,8 @@ from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.eigen import (DENSE_LIMIT, EIGSH_TOL, LANCZOS_ARRAYS, WARM_START_MIX,
                                     Eigenpair, Workspace, check_certified_tol, top_eigenpair)
 from demstep.timestep.elements import coupled_element_lambda, dofs_per_particle
+from demstep.timestep.guarantee import (CLAIM_SLACK, DENSE_ROUNDING, FAILURE, Guarantee,
+                                        ProbableBound, check_failure, probable_upper_bound)
 from demstep.timestep.mass_split import element_mass
 from demstep.timestep.stability import damped_sigma
 
@@ -117,6 +119,8 @@ class Springs(NamedTuple):
     k_w: np.ndarray | None = None
 
 
+#: candidate roots :func:`certify_step` tries on a damped problem before the closed form
+DAMPED_CANDIDATES = 6
 #: contacts per part of :meth:`ScaledContactOperator.damping_bound`'s element bounds
 DAMPING_BOUND_PART = 1 << 16
 
@@ -427,7 +431,13 @@ class ExactStep:
     ``lambda_undamped`` [1/T^2]: the Ritz value of lambda_max(M^-1 K) (to ``undamped_tol``);
     ``mode`` (size,): the critical mode, unit and mass-scaled (q = M^1/2 u);
     ``iterations``: safeguarded iterations (0 undamped); ``damped``: whether damping
-    entered; ``matvecs``: products with the operator (0 on the dense path)."""
+    entered; ``matvecs``: products with the operator (0 on the dense path);
+    ``dt_certified`` [T]: the step with a guarantee (:mod:`demstep.timestep.guarantee`),
+    None unless asked for; ``guarantee``: what ``dt_certified`` guarantees (a proof on
+    the dense path, a failure probability from the random-start check on the Lanczos
+    path); ``check``: that check's record (None on the dense path). ``dt`` itself bounds
+    the root the solver converged to (the top one when the solver found it: its
+    guarantee is :data:`ESTIMATE`)."""
 
     dt: float
     dt_undamped: float
@@ -439,6 +449,16 @@ class ExactStep:
     operator: ScaledContactOperator
     matvecs: int = 0
     undamped_tol: float = EIGSH_TOL
+    dt_certified: float | None = None
+    guarantee: Guarantee | None = None
+    check: ProbableBound | None = None
+
+
+#: what ``ExactStep.dt`` guarantees on the Lanczos path
+ESTIMATE = Guarantee("estimate", "bounds the top eigenvalue the solver found (Ritz value + "
+                     "residual); not proven to be the largest")
+#: what the dense path proves
+DENSE_PROOF = Guarantee("proof", "dense symmetric eigensolver, with its rounding bound")
 
 
 def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bool,
@@ -448,7 +468,8 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
                         loose_tol: float = LOOSE_TOL, threads: int | None = None,
                         solver: str = "lanczos", bodies=None,
                         workspace: Workspace | None = None,
-                        undamped_tol: float | None = None) -> ExactStep:
+                        undamped_tol: float | None = None, guarantee: bool = False,
+                        failure: float = FAILURE, seed: int | None = None) -> ExactStep:
     """Exact (and certified) critical step, with contact dashpots and global damping when
     present; ``v0`` (a previous ``mode``) is a start the damped iteration tries (the
     solves that certify start from the fixed random vector: :data:`CHAIN_MIX`).
@@ -468,18 +489,86 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
     residual of the undamped solve (None: ``tol``), for a caller that needs only the
     damped step: that solve then only starts the damped iteration, and ``dt_undamped``
     comes from it (still from an upper bound on lambda_max: below the undamped critical
-    step, by up to about 4 ``undamped_tol``; recorded in :attr:`ExactStep.undamped_tol`)."""
+    step, by up to about 4 ``undamped_tol``; recorded in :attr:`ExactStep.undamped_tol`);
+    ``guarantee``: also compute :attr:`ExactStep.dt_certified` (:func:`certify_step`),
+    with probability of failure ``failure`` over a start drawn from ``seed`` (None: fresh
+    entropy, recorded in the result)."""
     tol = check_certified_tol("tol", tol)
+    failure = check_failure(failure)
     undamped_tol = tol if undamped_tol is None else check_certified_tol("undamped_tol",
                                                                         undamped_tol)
     op = ScaledContactOperator(particles, contacts, rotation, damping, bodies, threads=threads,
                                workspace=workspace)
     try:
-        return _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver,
-                           undamped_tol)
+        result = _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver,
+                             undamped_tol)
+        if guarantee:
+            certify_step(result, dense_limit, failure, seed)
+        return result
     finally:
         if workspace is None:
             op.workspace.release(*LANCZOS_ARRAYS)
+
+
+def certify_step(result: ExactStep, dense_limit: int = DENSE_LIMIT, failure: float = FAILURE,
+                 seed: int | None = None) -> ExactStep:
+    """Sets ``result.dt_certified`` and its ``guarantee`` (and returns ``result``).
+
+    The bound on the top eigenvalue comes from the dense eigenvalue plus its rounding
+    bound on the dense path (DENSE_ROUNDING n^1.5 eps lambda_max >= DENSE_ROUNDING n eps
+    |A|_F: a proof), else from the random-start check
+    (:func:`demstep.timestep.guarantee.probable_upper_bound`: with probability >= 1 -
+    ``failure``). Undamped, the check confirms lambda_max(K^) <= (1 + CLAIM_SLACK) 4 /
+    dt^2, or returns a larger bound, which then counts (the solver missed the top).
+    Damped, a candidate t a little above the certified root 2 / dt is proven an upper
+    bound on sigma_max by lambda_max(A(t)) <= t^2 (the pencil at t, with the a1 shift;
+    the claim's slack comes from the growth of t^2, at least (t - s) s faster than
+    lambda_max(A(t)) near the root s); when the bound U does not prove it, the next
+    candidate is sqrt(U + a1 t) (1 + 2 slack), up to :data:`DAMPED_CANDIDATES` times, then
+    the closed form s'^2 = U + (s' - t) Lambda_C from the last bound U (lambda_max(A)
+    grows at most with slope Lambda_C >= lambda_max(C^) beyond t)."""
+    op = result.operator
+    n = op.size
+    s = 2.0 / result.dt if result.dt > 0 and np.isfinite(result.dt) else 0.0
+    if not s > 0:  # no stiffness on the moving DOFs: stable at any step
+        result.dt_certified, result.guarantee = result.dt, DENSE_PROOF
+        return result
+    dense = n <= dense_limit
+    rounding = DENSE_ROUNDING * n ** 1.5 * np.finfo(np.float64).eps
+    if not result.damped:
+        if dense:
+            upper = s * s * (1.0 + rounding)
+            result.guarantee = DENSE_PROOF
+        else:
+            check = probable_upper_bound(op.pencil(0.0).matvec_into, n, failure, seed,
+                                         target=s * s * (1.0 + CLAIM_SLACK))
+            upper = check.upper
+            result.check, result.guarantee = check, check.guarantee()
+        result.dt_certified = float(2.0 / np.sqrt(upper))
+        return result
+    a1 = op.damping.mass
+    slack = max(rounding, 1e-10) if dense else CLAIM_SLACK
+    t = s * (1.0 + 2.0 * slack)
+    for _ in range(DAMPED_CANDIDATES):
+        claim = t * t - a1 * t  # (the pencil's top, without the a1 shift)
+        if dense:
+            upper = op.top(t, dense_limit=dense_limit).upper * (1.0 + rounding)
+            result.guarantee = DENSE_PROOF
+        else:
+            check = probable_upper_bound(op.pencil(t).matvec_into, n, failure, seed,
+                                         target=claim)
+            upper = check.upper
+            result.check, result.guarantee = check, check.guarantee()
+        if upper <= claim:
+            result.dt_certified = float(2.0 / t)
+            return result
+        # t is not proven: the next candidate from the bound, sqrt(U + a1 t) >= the root
+        # of the pencil at t (an increasing map with the root sigma_max as fixed point)
+        t = max(t * (1.0 + 2.0 * slack), np.sqrt(upper + a1 * t) * (1.0 + 2.0 * slack))
+    lam_c = op.damping_bound()
+    bound = upper + a1 * t
+    result.dt_certified = float(2.0 / damped_sigma(max(bound - t * lam_c, 0.0), lam_c))
+    return result
 
 
 def _exact_step(op, v0, dense_limit, rtol, max_iter, tol, loose_tol, solver,
