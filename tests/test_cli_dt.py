@@ -30,8 +30,35 @@ def test_json_shape_lattice(capsys):
     # undamped: every method but exact-undamped (a lattice also gives exact-periodic)
     assert [e["method"] for e in data["estimates"]] == [m for m in METHODS if m != "exact-undamped"]
     for e in data["estimates"]:
-        assert set(e) == {"method", "dt", "alpha", "conservative", "kind"}
+        assert set(e) == {"method", "dt", "alpha", "conservative", "kind", "guarantee"}
         assert e["dt"] > 0 and e["alpha"] == pytest.approx(e["dt"] / np.sqrt(data["m_min"] / data["k_max"]))
+    kinds = {e["method"]: e["guarantee"]["kind"] for e in data["estimates"]}
+    # 96 DOFs: the dense path, a proof; the elements a rigorous lower bound; rules none
+    assert kinds["certified"] == "proof" and kinds["element-coupled"] == "lower-bound"
+    assert kinds["exact"] == "estimate" and kinds["nodal"] == kinds["itasca"] == "rule"
+    by = {e["method"]: e["dt"] for e in data["estimates"]}
+    assert by["exact"] * (1 - 1e-9) <= by["certified"] <= by["exact"]
+
+
+def test_certified_step_is_probabilistic_with_a_seed_that_reproduces_it(capsys):
+    """Above the dense limit the certified step carries a failure probability and the
+    seed of its random start; the same seed gives the same certificate, --failure sets
+    the probability, and a bad one is refused naming it."""
+    argv = ["dt", "--lattice", "fcc", "--size", "4", "--json", "--methods", "certified,exact"]
+    runs = []
+    for extra in (["--seed", "17"], ["--seed", "17"], ["--seed", "17", "--failure", "1e-3"]):
+        code, out, err = run(argv + extra, capsys)
+        assert code == 0, err
+        runs.append({e["method"]: e for e in json.loads(out)["estimates"]})
+    g = runs[0]["certified"]["guarantee"]
+    assert g["kind"] == "probability" and g["failure"] == 1e-9 and g["seed"] == 17
+    assert runs[0]["certified"] == runs[1]["certified"]
+    assert runs[2]["certified"]["guarantee"]["failure"] == 1e-3
+    assert runs[2]["certified"]["guarantee"]["steps"] <= g["steps"]
+    exact = runs[0]["exact"]["dt"]
+    assert exact * (1 - 1e-4) <= runs[0]["certified"]["dt"] < exact
+    code, out, err = run(argv[:-3] + ["--failure", "0.9"], capsys)
+    assert code != 0 and "failure" in err and "0.9" in err
 
 
 def test_csv_file_and_table(tmp_path, capsys):

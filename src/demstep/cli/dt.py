@@ -156,6 +156,12 @@ def add_dt_parser(sub):
                      "(default 1e-10, at most 1e-3); the step, from an upper bound on the "
                      "largest eigenvalue found, lies at most about 4 x TOL below the "
                      "critical one")
+    ana.add_argument("--failure", type=number("failure", 0, strict=True), default=None,
+                     help="failure probability of the 'certified' step where it is "
+                          "probabilistic (default 1e-9; at most 0.5)")
+    ana.add_argument("--seed", type=int, default=None,
+                     help="seed of the random start of the 'certified' check (default: "
+                          "fresh entropy, printed; give it to reproduce a certificate)")
     ana.add_argument("--impact-velocity", type=number("impact-velocity", 0, strict=True),
                      default=None, help="Hertz time (hertz model only): the impact "
                      "velocity [L/T] (default: twice the largest particle speed in the "
@@ -508,7 +514,8 @@ def cmd_dt(args) -> int:
                                  mass_split=args.mass_split, damping=data.damping,
                                  methods=methods, lattice=data.lattice, density=data.density,
                                  materials=data.materials, bodies=data.bodies,
-                                 exact_tol=args.exact_tol)
+                                 exact_tol=args.exact_tol, seed=args.seed,
+                                 **({} if args.failure is None else {"failure": args.failure}))
     report.notes[:0] = data.notes
     danger = critical_mode_report(report, data, args.top)
     if args.json:
@@ -616,13 +623,23 @@ def format_report(report, danger=None) -> str:
             parts.append(f"stiffness-proportional a2 = {report.damping.stiffness:g}")
         lines.append("damping: " + ", ".join(parts) + " -- every estimate is the damped one "
                      "(the engine's scheme, damping on the half-step velocity)")
-    lines.append(f"{'method':<17}{'dt':>14}{'alpha':>10}  conservative vs exact")
+    lines.append(f"{'method':<17}{'dt':>14}{'alpha':>10}  {'guarantee':<14}"
+                 "conservative vs exact")
     for e in report.estimates:
         cons = "-" if e.conservative is None else ("yes" if e.conservative else "NO")
         tag = "  (material rule)" if e.kind == "rule" else ""
-        lines.append(f"{e.method:<17}{e.dt:>14.6g}{e.alpha:>10.4f}  {cons}{tag}")
-    lines.append("alpha = dt / sqrt(m_min / K_max); exact: the certified critical step of this "
-                 "state" + (" with its damping" if report.damped else ""))
+        lines.append(f"{e.method:<17}{e.dt:>14.6g}{e.alpha:>10.4f}  "
+                     f"{_guarantee_tag(e.guarantee):<14}{cons}{tag}")
+    lines.append("alpha = dt / sqrt(m_min / K_max); exact: the critical step of this state"
+                 + (" with its damping" if report.damped else "") + ", from the top "
+                 "eigenvalue the solver found")
+    certified = next((e for e in report.estimates if e.method == "certified"), None)
+    if certified is not None and certified.guarantee is not None:
+        lines.append(f"certified: {certified.guarantee.describe()}")
+        check = report.exact.check if report.exact is not None else None
+        if check is not None and not check.reached:
+            lines.append("  the random-start check found a larger eigenvalue than the exact "
+                         "solve: 'exact' is above the critical step here; trust 'certified'")
     if danger and danger["particles"]:
         lines.append("")
         lines.append("Where the danger is -- the particles carrying most of the critical mode:")
@@ -647,6 +664,15 @@ def format_report(report, danger=None) -> str:
             lines.append(f"  {q['i']:>9}{other:>10}{q['k_n']:>12.4g}{q['k_t']:>12.4g}"
                          f"{q['c_n']:>11.4g}{q['c_t']:>11.4g}{roll}{_share(q['share'])}")
     return "\n".join(lines)
+
+
+def _guarantee_tag(g) -> str:
+    """The guarantee column: proof, p >= 1-1e-09, lower bound, estimate or rule."""
+    if g is None:
+        return "-"
+    if g.kind == "probability":
+        return f"p >= 1-{g.failure:.0e}"
+    return {"lower-bound": "lower bound"}.get(g.kind, g.kind)
 
 
 def _share(value: float, width: int = 8) -> str:

@@ -39,15 +39,16 @@ from demstep.timestep.assembly import inverse_sqrt_mass, lumped_mass, stiffness_
 from demstep.timestep.bloch import bloch_lambda_max
 from demstep.timestep.clumps import body_element_dt, body_stiffness_diagonal, owner_mass_diagonal
 from demstep.timestep.damping import GlobalDamping
-from demstep.timestep.eigen import EIGSH_TOL, check_certified_tol
+from demstep.timestep.eigen import DENSE_LIMIT, EIGSH_TOL, check_certified_tol
 from demstep.timestep.elements import (coupled_element_damped_dt, dofs_per_particle,
                                        paper_element_lambda)
 from demstep.timestep.exact import exact_critical_step
+from demstep.timestep.guarantee import FAILURE, Guarantee
 from demstep.timestep.mass_split import element_mass
 from demstep.timestep.rules import RAYLEIGH_FRACTIONS, hertz_time, rayleigh_time
 from demstep.timestep.stability import GUIDANCE_ALPHA, alpha_of, damped_dt, dt_from_lambda
 
-METHODS = ("exact", "exact-undamped", "exact-periodic", "element-coupled", "element-paper",
+METHODS = ("certified", "exact", "exact-undamped", "exact-periodic", "element-coupled", "element-paper",
            "nodal", "itasca", "guidance")
 #: material rules (Hertz contacts, given E and nu)
 RULES = ("rayleigh-time",) + tuple(f"rayleigh-{round(100 * f)}%" for f in RAYLEIGH_FRACTIONS) \
@@ -76,7 +77,8 @@ class Estimate:
     """One method's critical step ``dt`` [T] and ``alpha`` = dt / sqrt(m_min/K_max);
     ``conservative`` says whether dt <= the exact (damped) step (None when there is
     none); ``kind`` is 'estimate' or 'rule' (a material time scale); ``note`` says how
-    it was computed where that is not obvious."""
+    it was computed where that is not obvious; ``guarantee``
+    (:class:`~demstep.timestep.guarantee.Guarantee`) what the step guarantees."""
 
     method: str
     dt: float
@@ -84,6 +86,7 @@ class Estimate:
     conservative: bool | None = None
     kind: str = "estimate"
     note: str = ""
+    guarantee: Guarantee | None = None
 
 
 @dataclass
@@ -138,7 +141,9 @@ class TimeStepReport:
                 "damping": {"dashpots": self.dashpots, "mass": self.damping.mass,
                             "stiffness": self.damping.stiffness},
                 "estimates": [{"method": e.method, "dt": e.dt, "alpha": e.alpha,
-                               "conservative": e.conservative, "kind": e.kind}
+                               "conservative": e.conservative, "kind": e.kind,
+                               "guarantee": (e.guarantee.to_json()
+                                             if e.guarantee is not None else None)}
                               for e in self.estimates],
                 "notes": self.notes}
 
@@ -306,7 +311,8 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
                         lattice=None, density: float | None = None,
                         materials: Materials | None = None, rayleigh=None,
                         v0: np.ndarray | None = None, bodies=None,
-                        exact_tol: float | None = None) -> TimeStepReport:
+                        exact_tol: float | None = None, failure: float = FAILURE,
+                        seed: int | None = None) -> TimeStepReport:
     """Every estimate for ``particles`` with ``contacts`` (their stiffnesses and dashpots).
 
     ``damping``: :class:`GlobalDamping` (or ``rayleigh`` = (a1, a2), the same thing).
@@ -327,7 +333,10 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     ``bodies``
     (:class:`~demstep.timestep.clumps.RigidBodies`): clumps (``element-paper`` and
     ``exact-periodic`` are not defined for them; m_min is the lightest free sphere or
-    body).
+    body). ``certified`` is the exact step with a guarantee
+    (:func:`demstep.timestep.exact.certify_step`): a proof on small systems, else
+    probability >= 1 - ``failure`` over a random start drawn from ``seed`` (None: fresh
+    entropy, recorded). Every estimate names its guarantee (:func:`guarantee_of`).
     """
     if contacts.n == 0:
         raise InputError("contacts: the assembly has no contacts (check radii, positions "
@@ -380,7 +389,7 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     report.m_min, report.k_max = m_min, k_max
     dim = particles.dim
     exact = None
-    if "exact" in methods or "exact-undamped" in methods:
+    if "exact" in methods or "exact-undamped" in methods or "certified" in methods:
         from demstep.timestep.exact import FIRST_TOL
 
         options = {} if exact_tol is None else {"tol": check_certified_tol("exact_tol",
@@ -389,7 +398,8 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
             # the undamped solve only starts the damped iteration (FIRST_TOL)
             options["undamped_tol"] = max(FIRST_TOL, options.get("tol", 0.0))
         exact = exact_critical_step(particles, contacts, rotation, d, v0=v0, bodies=bodies,
-                                    **options)
+                                    guarantee="certified" in methods, failure=failure,
+                                    seed=seed, **options)
         report.exact = exact
         if exact_tol is not None:
             report.notes.append(f"exact: solved to a relative residual of {exact_tol:g} (the "
@@ -399,6 +409,7 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
                                 f"residual of {exact.undamped_tol:g}, to start the damped "
                                 "iteration (list exact-undamped for its step)")
     compute = {
+        "certified": lambda: exact.dt_certified,
         "exact": lambda: exact.dt,
         "exact-undamped": lambda: exact.dt_undamped,
         "exact-periodic": lambda: _periodic_dt(lattice, contacts, density, rotation, d),
@@ -412,12 +423,16 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     for m in methods:
         if m in compute:
             dt = float(compute[m]())
-            report.estimates.append(Estimate(m, dt, float(alpha_of(dt, m_min, k_max))))
+            report.estimates.append(Estimate(m, dt, float(alpha_of(dt, m_min, k_max)),
+                                             guarantee=guarantee_of(m, exact, rotation,
+                                                                    mass_split)))
     if materials is not None:
         for name, dt in material_rules(particles, materials).items():
             if name in methods or set(methods) & set(RULES) == set():
                 report.estimates.append(Estimate(name, dt, float(alpha_of(dt, m_min, k_max)),
-                                                 kind="rule"))
+                                                 kind="rule",
+                                                 guarantee=guarantee_of(name, exact, rotation,
+                                                                        mass_split)))
     if exact is not None:
         ref = exact.dt
         for e in report.estimates:
@@ -446,6 +461,34 @@ def material_rules(particles: Particles, materials: Materials) -> dict:
         out["hertz-time"] = hertz_time(particles.m[free], particles.r[free],
                                        materials.e_star[free], materials.impact_velocity)
     return out
+
+
+def guarantee_of(method: str, exact, rotation: bool, mass_split: str) -> Guarantee:
+    """What ``method``'s step guarantees (``exact``: the ExactStep, when computed)."""
+    from demstep.timestep.exact import ESTIMATE
+
+    if method == "certified":
+        return exact.guarantee
+    if method == "exact-undamped" and exact.damped:
+        return Guarantee("estimate", "the undamped step: above the damped critical one")
+    if method in ("exact", "exact-undamped"):
+        if exact.operator.size <= DENSE_LIMIT:
+            return Guarantee("estimate", "dense eigensolver, to rounding ('certified' adds "
+                             "the rounding bound)")
+        return ESTIMATE
+    if method == "exact-periodic":
+        return Guarantee("estimate", "Bloch analysis of the infinite lattice, maximised "
+                         "over a refined grid of wave vectors (no proof of the maximum)")
+    if method == "element-coupled":
+        return Guarantee("lower-bound", "Rayleigh's theorem on the coupled contact elements")
+    if method == "element-paper":
+        if not rotation and mass_split == "uniform":
+            return Guarantee("lower-bound", "the paper's elements, translations only")
+        return Guarantee("rule", "the paper's elements: no bound once rotation couples "
+                         "or with a zoned mass split")
+    if method == "nodal":
+        return Guarantee("rule", "nodal stiffness rule (YADE's GlobalStiffnessTimeStepper)")
+    return Guarantee("rule", "a fraction of a time scale of the contact or the material")
 
 
 def _periodic_dt(lattice, contacts, density, rotation, damping: GlobalDamping):
