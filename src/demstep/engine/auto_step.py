@@ -73,6 +73,11 @@ class AutoStep:
         self.certificate: StepCertificate | None = None
         #: the last critical mode (the warm start of the next solve)
         self.mode: np.ndarray | None = None
+        #: what the last exact estimate guarantees
+        #: (:class:`~demstep.timestep.guarantee.Guarantee`: a proof on small systems,
+        #: else a failure probability with the seed of its random start; None: none yet,
+        #: or an element-coupled estimate, a rigorous lower bound)
+        self.guarantee = None
         #: the contacts the last estimate covered ({'pairs': (keys, overlaps), 'walls':
         #: ...}; None before the first estimate): :attr:`cover`
         self._cover: dict | None = None
@@ -557,13 +562,16 @@ class AutoStep:
             return self.element_coupled_dt(contacts, sim.rotation, keep=lambda dt: True,
                                            mesh_caps=mesh_caps)[0]
         bodies = sim.rigid_bodies()
+        # the step certified with its guarantee (the random-start check of
+        # demstep.timestep.guarantee on large systems), not the solver's own bound
         result = exact_critical_step(sim.particles_now(check=False), contacts, sim.rotation,
                                      global_damping(sim), v0=self.mode, bodies=bodies,
-                                     workspace=self.workspace, tol=float(tol))
+                                     workspace=self.workspace, tol=float(tol), guarantee=True)
         self.mode = result.mode
-        self.record_certificate(2.0 / result.dt, result.operator.damping_bound(), contacts,
-                                bodies, mesh_caps)
-        return result.dt
+        self.guarantee = result.guarantee
+        self.record_certificate(2.0 / result.dt_certified, result.operator.damping_bound(),
+                                contacts, bodies, mesh_caps)
+        return result.dt_certified
 
     #: 'auto': the step held by the motion limit sits this far below it (so that it is
     #: not changed at every chunk of steps while the particles speed up or slow down)
