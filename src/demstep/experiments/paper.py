@@ -36,7 +36,7 @@ from demstep.errors import InputError
 from demstep.experiments.clump_stability import clump_study
 from demstep.experiments.fcc_plane_strain import FCCConfig, build_fcc, run_stage2
 from demstep.experiments.report import write_report
-from demstep.experiments.stability import damping_study, stability_threshold
+from demstep.experiments.stability import DAMPING_STEPS, damping_study, stability_threshold
 from demstep.io.atomic import remove_orphans, write_text_atomic
 from demstep.io.checkpoint import load_checkpoint, save_checkpoint
 from demstep.io.lock import FolderLock, check_folder_creatable, make_folder
@@ -60,6 +60,8 @@ class PaperSettings:
     alphas_no_rotation: tuple = ALPHAS_NO_ROTATION
     stability_rtol: float = 2e-3
     stability_steps: int = 3000
+    #: trial runs of the damping study: heavily damped critical modes grow slowly
+    damping_steps: int = DAMPING_STEPS
     stability_names: tuple = ("square", "hex", "sc", "bcc", "fcc", "rhombic", "fcc-specimen")
     damping_restitutions: tuple = (1.0, 0.9, 0.5, 0.2)
     clump_cases: tuple = (("dimer", 1.0), ("trimer", 0.75), ("square", 1.0), ("cube8", 0.75))
@@ -74,6 +76,7 @@ class PaperSettings:
             s.strain = 0.004
             s.stability_rtol = 1e-2
             s.stability_steps = 2000
+            s.damping_steps = 5000
         s.fcc = asdict(FCCConfig(strain=s.strain))
         return s
 
@@ -289,7 +292,7 @@ def _run_paper_locked(out: Path, settings: PaperSettings, show_progress: bool) -
             stability.append(res)
     _write_json(out / "data" / "stability.json", stability)
     # 4. damping and the critical step
-    dp_items = [(e, settings.stability_rtol, settings.stability_steps)
+    dp_items = [(e, settings.stability_rtol, settings.damping_steps)
                 for e in settings.damping_restitutions]
     dp_results = _map(damping_task, dp_items, settings, progress, "damping study")
     damping = [{"restitution": e, "status": "failed", "message": str(res)}
