@@ -147,3 +147,20 @@ def test_the_coulomb_cap_hid_the_instability_of_a_large_start():
     assert is_unstable(SPECIMEN, alpha, 3000, law_options=dashpots, perturbation=1e-7)
     assert is_unstable(SPECIMEN, alpha, 3000, law_options={**dashpots, "mu": 100.0},
                        perturbation=1e-4)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("restitution", [0.5, 0.2])
+def test_paper_specimen_map_crosses_one_at_the_damped_exact_step(restitution):
+    """The FCC specimen of `demstep paper`'s damping section (150 spheres, 3150
+    coordinates; about two and a half minutes each): the engine's map has spectral radius <= 1 at the
+    damped exact step and > 1 at 0.02 % above it (measured 1 + 5.8e-4 at restitution 0.5,
+    1 + 4.5e-4 at 0.2)."""
+    dashpots = dict(restitution=restitution, restitution_tangential=restitution)
+    sim = build_specimen(SPECIMEN, 0.1, law_options=dashpots)
+    sim.v[:] = 0.0
+    sim.w[:] = 0.0
+    engine_map = EngineMap(sim)
+    exact = sim.critical_dt("exact", rotation=True)
+    assert spectral_radius(engine_map.matrix(exact * (1 - 1e-6)), exclude=1e-3) <= 1.0 + 1e-9
+    assert spectral_radius(engine_map.matrix(exact * (1 + 2e-4)), exclude=1e-3) > 1.0 + 2e-4
