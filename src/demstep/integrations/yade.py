@@ -250,10 +250,12 @@ def read_scene(O=None, cundall_mode: str = "amplify") -> YadeScene:
     walls = set()
     rotation_free = False
     partly = []
+    shapes = {}
     for b in O.bodies:
         if b is None:
             continue
         shape = _name(b.shape)
+        shapes[b.id] = shape
         blocked = set(b.state.blockedDOFs)
         is_fixed = (not b.dynamic) or blocked >= set("xyzXYZ")
         if shape == "Clump":
@@ -333,6 +335,13 @@ def read_scene(O=None, cundall_mode: str = "amplify") -> YadeScene:
     # --- interactions
     periodic = bool(O.periodic)
     hsize = np.array(O.cell.hSize, dtype=np.float64).reshape(3, 3) if periodic else None
+    slip_full = {shape: _slip_radius_flag(geoms, shape) for shape in FUNCTOR_SHAPE}
+    xs = [tuple(p) for p in x]
+    # the torque's arm r - delta/2 (CundallStrack's sphericalBodies, or any periodic cell)
+    spherical = {name: periodic or bool(getattr(f, "sphericalBodies", False))
+                 for name, f in laws.items()}
+    always_moment = {name: bool(getattr(f, "always_use_moment_law", False))
+                     for name, f in laws.items()}
     rows = {k: [] for k in ("i", "j", "normal", "arm_i", "arm_j", "k_n", "k_s", "wall",
                             "c_n", "c_t", "k_r", "k_w", "overlap")}
     for inter in O.interactions:
@@ -349,7 +358,6 @@ def read_scene(O=None, cundall_mode: str = "amplify") -> YadeScene:
         if law_name not in laws:
             raise InputError(f"yade: interaction ({id1}, {id2}): {pname} without its law "
                              f"functor {law_name} is not certified")
-        law = laws[law_name]
         delta = float(geom.penetrationDepth)
         cohesive = pname == "CohFrictPhys" and not phys.cohesionBroken
         if not (delta > 0.0 or cohesive):
@@ -365,25 +373,27 @@ def read_scene(O=None, cundall_mode: str = "amplify") -> YadeScene:
                                  f"sphere, wall, facet or box")
         if side[0] < 0 and side[1] < 0:
             continue  # (two fixed bodies)
-        n = np.array(tuple(geom.normal), dtype=np.float64)
-        cp = np.array(tuple(geom.contactPoint), dtype=np.float64)
-        shift = (hsize @ np.array(tuple(inter.cellDist), dtype=np.float64)
-                 if periodic else np.zeros(3))
-        other_shape = {0: _name(O.bodies[id2].shape), 1: _name(O.bodies[id1].shape)}
+        n = tuple(geom.normal)
+        cp = tuple(geom.contactPoint)
+        shift = (tuple(hsize @ np.array(tuple(inter.cellDist), dtype=np.float64))
+                 if periodic else (0.0, 0.0, 0.0))
+        other_shape = (shapes[id2], shapes[id1])
         arms = []
-        for k, (p, sign) in enumerate(((side[0], 1.0), (side[1], -1.0))):
+        for k, p in enumerate(side):
             if p < 0:
                 arms.append(0.0)
                 continue
-            pos = x[p] + (shift if k == 1 else 0.0)
-            to_cp = abs(float((cp - pos) @ n))
+            pos = xs[p]
+            if k == 1:
+                pos = (pos[0] + shift[0], pos[1] + shift[1], pos[2] + shift[2])
+            to_cp = abs((cp[0] - pos[0]) * n[0] + (cp[1] - pos[1]) * n[1]
+                        + (cp[2] - pos[2]) * n[2])
             rad = r[p]
             if pname == "ViscElPhys":
                 slip, torque = to_cp, to_cp
             else:
-                slip = rad if _slip_radius_flag(geoms, other_shape[k]) else to_cp
-                spherical = (periodic or (pname == "FrictPhys" and law.sphericalBodies))
-                torque = rad - 0.5 * delta if spherical else to_cp
+                slip = rad if slip_full.get(other_shape[k], False) else to_cp
+                torque = rad - 0.5 * delta if spherical[law_name] else to_cp
             arms.append(math.sqrt(slip * torque))
         kr = kw = cn = ct = 0.0
         if pname == "ViscElPhys":
@@ -395,14 +405,14 @@ def read_scene(O=None, cundall_mode: str = "amplify") -> YadeScene:
                 raise InputError(f"yade: interaction ({id1}, {id2}): ViscElPhys cn, cs = "
                                  f"{cn!r}, {ct!r}: not certified")
         elif pname == "CohFrictPhys":
-            if phys.momentRotationLaw and (not phys.cohesionBroken or law.always_use_moment_law):
+            if phys.momentRotationLaw and (not phys.cohesionBroken or always_moment[law_name]):
                 kr, kw = float(phys.kr), float(phys.ktw)
         if side[0] >= 0 and side[1] >= 0:
             i, j, normal, ai, aj, wall = side[0], side[1], n, arms[0], arms[1], -1
         elif side[0] >= 0:
             i, j, normal, ai, aj, wall = side[0], -1, n, arms[0], 0.0, id2
         else:
-            i, j, normal, ai, aj, wall = side[1], -1, -n, arms[1], 0.0, id1
+            i, j, normal, ai, aj, wall = side[1], -1, (-n[0], -n[1], -n[2]), arms[1], 0.0, id1
         for key, value in (("i", i), ("j", j), ("normal", normal), ("arm_i", ai),
                            ("arm_j", aj), ("k_n", phys.kn), ("k_s", phys.ks), ("wall", wall),
                            ("c_n", cn), ("c_t", ct), ("k_r", kr), ("k_w", kw),
