@@ -6,6 +6,8 @@ Cases (each in a fresh subprocess, so that its peak memory, ru_maxrss, is its ow
 * ``exact`` / ``exact-damped``: the certified exact step with rotation, without and with
   contact dashpots (restitution 0.5 on normal and tangential springs, demstep's
   convention c = 2 beta sqrt(m* k)); the issue's target is damped <= 2x undamped;
+* ``certified`` / ``certified-damped``: the same with the random-start check of the
+  certified step (:mod:`demstep.timestep.guarantee`; seed 1): its extra cost;
 * ``cli``: ``demstep dt DUMP --restitution 0.5 --methods exact,element-coupled`` on a
   LIGGGHTS dump written beforehand (reading, contact detection and the damped exact
   step: the whole command, timed from outside; target 1e6 spheres < 2 min, < 6 GB).
@@ -57,7 +59,7 @@ else:
     x, r = jittered_polydisperse(n, 3, seed=1, overlap=0.12 if packing == "loose" else 0.45)
 p = Particles.from_density(x, r, 2000.0)
 t = time.perf_counter(); c = find_contacts(p, 1e6); t_contacts = time.perf_counter() - t
-if what == "exact-damped":
+if what in ("exact-damped", "certified-damped"):
     e = 0.5
     beta = -math.log(e) / math.sqrt(math.pi ** 2 + math.log(e) ** 2)
     inv = 1.0 / p.m
@@ -66,14 +68,20 @@ if what == "exact-damped":
 fn = {"element": lambda: (element_coupled_dt(p, c, True), element_paper_dt(p, c, True),
                           nodal_dt(p, c, True)),
       "exact": lambda: exact_critical_step(p, c, True, tol=tol),
-      "exact-damped": lambda: exact_critical_step(p, c, True, tol=tol)}[what]
+      "exact-damped": lambda: exact_critical_step(p, c, True, tol=tol),
+      "certified": lambda: exact_critical_step(p, c, True, tol=tol, guarantee=True, seed=1),
+      "certified-damped": lambda: exact_critical_step(p, c, True, tol=tol, guarantee=True,
+                                                      seed=1)}[what]
 times = []
 for _ in range(repeat):
     t = time.perf_counter(); res = fn(); times.append(time.perf_counter() - t)
 extra = {}
-if what.startswith("exact"):
+if what.startswith(("exact", "certified")):
     extra = {"dt": res.dt, "dt_undamped": res.dt_undamped, "iterations": res.iterations, "tol": tol,
              "matvecs": getattr(res, "matvecs", None)}
+if what.startswith("certified"):
+    extra.update(dt_certified=res.dt_certified, guarantee=res.guarantee.kind,
+                 check_steps=res.check.steps if res.check else 0)
 import numba
 extra["threads"] = numba.get_num_threads()
 print(json.dumps({"what": what, "packing": packing, "n": p.n, "contacts": c.n,
