@@ -338,8 +338,10 @@ def test_engine_threshold_matches_damped_exact_step(name, dashpots, rotation):
     bisection tolerance is 0.2 %), and far below the undamped one with tangential
     dashpots. Friction high enough that neither the slider nor the Coulomb cap of the
     tangential dashpot acts while the unstable mode grows: the linear system the step
-    analyses (with mu = 0.5 the cap binds before the growth criterion and the engine
-    stays stable up to 0.7 % above the step, on the safe side)."""
+    analyses (with mu = 0.5 and a large start, 1e-4 of the overlap, the cap binds before
+    the growth criterion and the engine looked stable up to 0.7 % above the step; from
+    the specimens' small start the threshold is the same with mu = 0.5:
+    tests/test_damped_threshold.py)."""
     from demstep.experiments.stability import specimen_estimates, stability_threshold
 
     dashpots = {**dashpots, "mu": 100.0}
