@@ -89,7 +89,7 @@ def test_the_state_read_from_lammps_is_the_dumps():
     rotation free and locked."""
     from demstep.analysis_input import from_file
     from demstep.integrations.lammps_model import GranularModel
-    from demstep.timestep.estimates import exact_dt
+    from demstep.timestep.estimates import certified_dt
 
     got = child("""
 lmp = instance()
@@ -103,11 +103,11 @@ done(dt=free.dt, contacts=free.contacts, locked=locked.dt, data=written)
     # LAMMPS' own data file (write_data) of the same state: the same certificate
     written = from_file(got["data"], None, periodic_axes="xyz",
                         lammps_model=GranularModel.parse(MODEL))
-    assert exact_dt(written.particles, written.contacts, True) == pytest.approx(got["dt"],
+    assert certified_dt(written.particles, written.contacts, True) == pytest.approx(got["dt"],
                                                                                 rel=1e-9)
     assert got["contacts"] == data.contacts.n == 648
-    assert got["dt"] == pytest.approx(exact_dt(data.particles, data.contacts, True), rel=1e-9)
-    assert got["locked"] == pytest.approx(exact_dt(data.particles, data.contacts, False),
+    assert got["dt"] == pytest.approx(certified_dt(data.particles, data.contacts, True), rel=1e-9)
+    assert got["locked"] == pytest.approx(certified_dt(data.particles, data.contacts, False),
                                           rel=1e-9)
     assert got["locked"] > 1.2 * got["dt"]
 

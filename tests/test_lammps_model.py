@@ -274,3 +274,43 @@ def test_bad_lammps_data_files_are_refused_in_one_line(tmp_path, change, named):
     with pytest.raises(InputError) as err:
         read_particle_file(path)
     assert named in str(err.value) and "\n" not in str(err.value)
+
+
+def test_the_live_step_stays_in_its_band_without_going_back_and_forth():
+    """LammpsCertifier.apply keeps LAMMPS' step within [safety / (1 + grow)^2, safety]
+    times the certified one: a step above is lowered at once and a step far below
+    raised, both to the band's middle; a step just set is left alone by the next checks
+    of the same certificate (no back and forth), and moves again only when the
+    certificate does (here without LAMMPS: the instance and the certificates are
+    stand-ins)."""
+    from demstep.integrations.lammps import Certificate, LammpsCertifier
+
+    class Instance:
+        def __init__(self, dt):
+            self.dt, self.commands = dt, []
+
+        def command(self, text):
+            self.commands.append(text)
+            self.dt = float(text.split()[1])
+
+    lmp = Instance(0.9)
+    cert = object.__new__(LammpsCertifier)
+    cert.lmp, cert.safety, cert.grow, cert.history, cert.log = lmp, 0.8, 0.05, [], [].append
+    certified = [1.0]
+    cert.certify = lambda: Certificate(0, certified[0], "exact", lmp.dt, 10, 0.01, 0.0)
+    middle = 0.8 / 1.05
+    cert.apply()
+    assert lmp.dt == pytest.approx(middle)  # lowered at once
+    for _ in range(5):
+        assert cert.apply().dt_set is None  # the same certificate: left alone
+    assert len(lmp.commands) == 1
+    certified[0] = 1.04  # (within the band: the step set is still allowed)
+    assert cert.apply().dt_set is None
+    certified[0] = 1.2  # the band's bottom 0.8 x 1.2 / 1.1025 = 0.871 > 0.762: raised
+    cert.apply()
+    assert lmp.dt == pytest.approx(1.2 * middle)
+    assert cert.apply().dt_set is None
+    certified[0] = 1.1  # top 0.88 < 0.914: lowered at once
+    cert.apply()
+    assert lmp.dt == pytest.approx(1.1 * middle)
+    assert all(c.reason for c in cert.history if c.dt_set is not None)

@@ -11,7 +11,8 @@ lower but cheaper. Two ways to use it:
 * a Python-driven run, :meth:`LammpsCertifier.run`: LAMMPS advances ``every`` steps at
   a time (``run N pre no post no``) and between them the step is certified, and
   lowered at once when it is above ``safety`` times the certified one (raised only
-  when it could grow by more than ``grow``); each change is logged with its reason;
+  when it is below that by more than (1 + ``grow``)^2); each change is logged with its
+  reason;
 * a check from inside a run, ``fix python/invoke N end_of_step FUNC`` calling
   :meth:`LammpsCertifier.check`: LAMMPS (29 Sep 2021) allows no command during a run,
   so the step cannot be changed there; a step above ``safety`` times the certified one
@@ -164,10 +165,9 @@ class LammpsCertifier:
     one; ``method``: "exact" or "element" (the coupled element bound); ``walls``:
     :class:`~demstep.walls.Wall` planes of the input's ``fix wall/gran granular`` (their
     coordinates as LAMMPS has them, normals into the packing) and ``wall_model`` their
-    ``fix wall/gran`` text (None: ``model``); ``grow``: the step is raised only when
-    ``safety`` times the certified one is more than (1 + grow) times the current, and
-    lowered to ``safety`` / (1 + grow) times it (a step that keeps falling changes
-    about every ``grow``); ``log``: a
+    ``fix wall/gran`` text (None: ``model``); ``grow``: the step is kept within
+    [safety / (1 + grow)^2, safety] times the certified one, and set to safety / (1 +
+    grow) times it when it leaves that band (:meth:`apply`); ``log``: a
     function taking each line (None: print)."""
 
     lmp: object
@@ -222,7 +222,7 @@ class LammpsCertifier:
     def certify(self) -> Certificate:
         """The certified critical step of the instance's state now."""
         from demstep.timestep.contacts import ContactSet
-        from demstep.timestep.estimates import element_coupled_dt, exact_dt
+        from demstep.timestep.estimates import certified_dt, element_coupled_dt
         from demstep.walls import Wall
 
         start = time.perf_counter()
@@ -244,7 +244,7 @@ class LammpsCertifier:
                                    f"limit, and the certificate gives no step")
         r = state.particles.r
         if self.method == "exact":
-            dt = exact_dt(state.particles, contacts, self.rotation)
+            dt = certified_dt(state.particles, contacts, self.rotation)
         else:
             dt = element_coupled_dt(state.particles, contacts, self.rotation)
         if not (math.isfinite(dt) and dt > 0.0):
@@ -270,17 +270,20 @@ class LammpsCertifier:
         return cert
 
     def apply(self) -> Certificate:
-        """Between runs: certify and set LAMMPS' step to ``safety`` times the certified
-        one when it is above it, or when it could grow by more than ``grow``."""
+        """Between runs: certify and keep LAMMPS' step within the band [safety / (1 +
+        grow)^2, safety] times the certified one; a step outside it (above: at once;
+        below: the certified step allows a longer one) is set to the band's middle,
+        safety / (1 + grow) times the certified step (a step set there is not moved
+        again until the certificate changes by a factor 1 + grow: no back and forth)."""
         cert = self.certify()
-        target = self.safety * cert.dt
+        top = self.safety * cert.dt
+        target = top / (1.0 + self.grow)
         previous = self.history[-1] if self.history else None
         self.history.append(cert)
-        if cert.dt_lammps > target:
+        if cert.dt_lammps > top:
             cert.reason = (f"above {self.safety:g} x the certified step"
                            + self._why(previous, cert))
-            target /= 1.0 + self.grow  # (a step that keeps falling: lowered every grow)
-        elif target > (1.0 + self.grow) * cert.dt_lammps:
+        elif cert.dt_lammps * (1.0 + self.grow) ** 2 < top:
             cert.reason = "the certified step allows a longer one" + self._why(previous, cert)
         else:
             return cert

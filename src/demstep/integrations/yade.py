@@ -437,16 +437,17 @@ def read_scene(O=None, cundall_mode: str = "amplify") -> YadeScene:
 
 
 def certified_step(scene: YadeScene, method: str = "exact") -> float:
-    """The certified critical step [T] of ``scene``: ``method`` "exact" (the exact,
-    damped when there are dashpots) or "element" (the coupled element bound); inf
-    without contacts."""
-    from demstep.timestep.estimates import element_coupled_dt, exact_dt
+    """The certified critical step [T] of ``scene``: ``method`` "exact" (the exact step,
+    damped when there are dashpots, with its guarantee:
+    :func:`demstep.timestep.estimates.certified_dt`) or "element" (the coupled element
+    bound); inf without contacts."""
+    from demstep.timestep.estimates import certified_dt, element_coupled_dt
 
     if scene.contacts.n == 0:
         return math.inf
     if method == "exact":
-        return float(exact_dt(scene.particles, scene.contacts, scene.rotation,
-                              bodies=scene.bodies))
+        return float(certified_dt(scene.particles, scene.contacts, scene.rotation,
+                                  bodies=scene.bodies))
     return float(element_coupled_dt(scene.particles, scene.contacts, scene.rotation,
                                     bodies=scene.bodies))
 

@@ -194,10 +194,21 @@ def element_coupled_dt(particles, contacts, rotation, mass_split="uniform", damp
 
 
 def exact_dt(particles, contacts, rotation, damping=None, bodies=None) -> float:
-    """The certified exact critical step [T] (damped when the contacts have dashpots or
-    ``damping`` is given; :func:`demstep.timestep.exact.exact_critical_step`)."""
+    """The exact critical step [T] (damped when the contacts have dashpots or ``damping``
+    is given; :func:`demstep.timestep.exact.exact_critical_step`): from the top root the
+    solver found, with no proof that it is the largest (:func:`certified_dt` has one)."""
     return exact_critical_step(particles, contacts, rotation, _damping(damping),
                                bodies=bodies).dt
+
+
+def certified_dt(particles, contacts, rotation, damping=None, bodies=None,
+                 failure: float = FAILURE, seed: int | None = None) -> float:
+    """The certified critical step [T]: the exact step with its guarantee (a proof on
+    small systems, else probability >= 1 - ``failure`` over a random start drawn from
+    ``seed``; :func:`demstep.timestep.exact.certify_step`)."""
+    return exact_critical_step(particles, contacts, rotation, _damping(damping),
+                               bodies=bodies, guarantee=True, failure=failure,
+                               seed=seed).dt_certified
 
 
 def nodal_dt(particles, contacts, rotation, damping=None, bodies=None) -> float:
