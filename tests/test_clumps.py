@@ -20,6 +20,7 @@ from demstep.particles import Particles
 from demstep.timestep.assembly import assemble_stiffness
 from demstep.timestep.clumps import RigidBodies, body_element_dt
 from demstep.timestep.damping import GlobalDamping
+from demstep.timestep.guarantee import CLAIM_SLACK
 from demstep.timestep.exact import exact_critical_step
 from demstep.walls import Wall
 
@@ -987,7 +988,10 @@ def test_solves_under_the_motion_limit_run_to_a_looser_residual():
         estimate = solve(method, horizon, tol, prepared)
         if estimate is not None:
             tight = sim.critical_dt(method, horizon=horizon)  # (to the package's 1e-10)
-            assert tight * (1 - 8 * tol) <= estimate <= tight * (1 + 1e-8)
+            # ('auto' runs on the certified step: below the solve's own by the random-
+            # start check's claim slack, at most 2 CLAIM_SLACK on a damped root)
+            lowest = tight * (1 - 8 * tol) / (1 + 2 * CLAIM_SLACK)
+            assert lowest <= estimate <= tight * (1 + 1e-8)
             seen["loose" if loose else "tight"] += 1
         return estimate
 

@@ -37,18 +37,23 @@ from __future__ import annotations
 import numpy as np
 
 from demstep.engine import TimeStep
+from demstep.contact.geometry import minimum_image_arrays
 from demstep.errors import InputError
 
 
 def _normals(sim) -> np.ndarray:
     """Unit normals i -> j of the pairs, periodic images taken into account."""
     x = np.asarray(sim.x)
-    d = x[sim.pj] - x[sim.pi]
-    length = np.asarray(sim.periodic_len, dtype=float)
-    for axis in range(d.shape[1]):
-        if axis < len(length) and length[axis] > 0:
-            d[:, axis] -= length[axis] * np.round(d[:, axis] / length[axis])
+    d = minimum_image_arrays(x[sim.pj] - x[sim.pi], _lengths(sim, x.shape[1]))
     return d / np.linalg.norm(d, axis=1)[:, None]
+
+
+def _lengths(sim, dim: int) -> np.ndarray:
+    """The periodic lengths per axis [L] (0: not periodic), ``dim`` of them."""
+    length = np.zeros(dim)
+    given = np.asarray(sim.periodic_len, dtype=float).ravel()[:dim]
+    length[:len(given)] = np.where(given > 0, given, 0.0)
+    return length
 
 
 def _tangents(n: np.ndarray, dim: int) -> list:
@@ -96,11 +101,8 @@ class EngineMap:
                        "ft": scale_x * float(sim.stiffness_max())}
 
     def _distances(self, x):
-        d = x[self.pairs[1]] - x[self.pairs[0]]
-        length = np.asarray(self.sim.periodic_len, dtype=float)
-        for axis in range(d.shape[1]):
-            if axis < len(length) and length[axis] > 0:
-                d[:, axis] -= length[axis] * np.round(d[:, axis] / length[axis])
+        d = minimum_image_arrays(x[self.pairs[1]] - x[self.pairs[0]],
+                                 _lengths(self.sim, x.shape[1]))
         return np.linalg.norm(d, axis=1)
 
     def _read(self) -> dict:
