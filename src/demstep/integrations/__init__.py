@@ -5,5 +5,9 @@
   certificate takes (``demstep dt --lammps-model``);
 * :mod:`demstep.integrations.lammps`: the step of a running LAMMPS instance certified
   and set, from a Python-driven run or from ``fix python/invoke``
-  (``pip install demstep[lammps]``; Debian's ``python3-lammps`` and ``liblammps-dev``).
+  (LAMMPS' Python module from Debian's ``python3-lammps`` and ``liblammps-dev``: no
+  extra to install from pip);
+* :mod:`demstep.integrations.yade`: the step of a running YADE scene certified and set
+  from a ``PyRunner`` in ``O.engines`` (YADE's own Python, in a venv that sees
+  Debian's packages and demstep: docs/yade.md).
 """
