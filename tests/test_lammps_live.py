@@ -186,8 +186,8 @@ done(dt=dt, lowered=lowered, now=now, again=again, raised=raised, lines=lines)
     dt = got["dt"]
     assert got["lowered"] == pytest.approx(0.8 * dt / 1.05)
     assert got["now"] == pytest.approx(0.8 * dt / 1.05)
-    assert got["again"] is None  # within grow of the target: left alone
-    assert got["raised"] == pytest.approx(0.8 * dt)
+    assert got["again"] is None  # within the band: left alone
+    assert got["raised"] == pytest.approx(0.8 * dt / 1.05)  # raised to the band's middle
     assert len(got["lines"]) == 2 and "above 0.8 x the certified step" in got["lines"][0]
 
 
