@@ -163,7 +163,8 @@ def main():
     for packing in args.packings.split(","):
         for n in sizes:
             for what, tol in ((w, float(t)) for w in args.cases.split(",")
-                              for t in (args.tols.split(",") if w.startswith("exact") else "1")):
+                              for t in (args.tols.split(",") if w.startswith(("exact", "certified"))
+                                        else "1")):
                 for label, src, n_threads in variants:
                     res = run_case(n, packing, what, args.repeat if n < 1_000_000 else 1, src,
                                    n_threads, tol)
