@@ -3,6 +3,7 @@ probability statement and dense eigenvalues, and the certified step on assemblie
 to hide a stiff mode from the solver's fixed start (a decoupled stiff pair orthogonal to
 it, one very stiff particle, a stiff cluster, a clump pressed into a wall)."""
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -17,7 +18,8 @@ from demstep.timestep.clumps import RigidBodies
 from demstep.timestep.contacts import ContactSet, find_contacts
 from demstep.timestep.damping import GlobalDamping
 from demstep.timestep.eigen import DENSE_LIMIT, _random_unit
-from demstep.timestep.exact import ScaledContactOperator, exact_critical_step
+from demstep.timestep.exact import (ScaledContactOperator, certified_without_basis,
+                                    exact_critical_step)
 from demstep.timestep.guarantee import (CLAIM_SLACK, _log_lanczos_poly, a_posteriori_upper,
                                         a_priori_eps, probable_upper_bound,
                                         sphere_share_quantile)
@@ -317,3 +319,39 @@ def test_the_dense_path_is_a_proof_below_the_truth(damping):
     truth = 2.0 / float(np.max(np.linalg.eigvals(L).real))
     assert truth * (1.0 - 1e-8) <= result.dt_certified <= truth
     assert damped_sigma(1.0, 0.0) == 1.0  # (the root formula the certificate uses)
+
+
+@pytest.mark.parametrize("damped", [False, True])
+def test_the_certified_step_without_a_basis_is_below_the_truth(damped):
+    """certified_without_basis (three vectors, no Lanczos basis): undamped, the same
+    bound as a confirmed claim (within the slack of the truth); damped, the fixed point
+    from below and a proven candidate: below the dense truth, within 4 slacks of it. On
+    the hidden pair too (no fixed start to hide from)."""
+    for p, c in (stiff_spot_assembly("cluster"), hidden_dimer(1.1, True)):
+        if damped:
+            c = replace(c, c_n=0.3 * np.sqrt(c.k_n), c_t=0.3 * np.sqrt(c.k_s))
+            truth = 2.0 / damped_truth(p, c, True)
+        else:
+            truth = 2.0 / np.sqrt(np.linalg.eigvalsh(dense_operator(p, c, True))[-1])
+        result = certified_without_basis(p, c, True, seed=4)
+        assert result.mode is None and result.dt == result.dt_certified
+        assert result.guarantee.kind == "probability"
+        assert truth * (1.0 - 4.0 * CLAIM_SLACK) <= result.dt_certified <= truth
+
+
+def test_low_memory_in_demstep_dt_certifies_without_exact(capsys):
+    from demstep.cli import main
+
+    argv = ["dt", "--lattice", "fcc", "--size", "4", "--json", "--seed", "3"]
+    assert main(argv) == 0
+    full = {e["method"]: e for e in json.loads(capsys.readouterr().out)["estimates"]}
+    assert main(argv + ["--low-memory"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    low = {e["method"]: e for e in data["estimates"]}
+    assert "exact" not in low and any("low memory" in n for n in data["notes"])
+    assert data["critical_mode"] is None
+    assert low["certified"]["guarantee"]["kind"] == "probability"
+    exact = full["exact"]["dt"]
+    assert exact * (1 - CLAIM_SLACK) <= low["certified"]["dt"] <= exact
+    assert main(argv + ["--low-memory", "--mode-vtk", "m.vtu"]) != 0
+    assert "mode-vtk" in capsys.readouterr().err

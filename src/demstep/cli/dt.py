@@ -28,6 +28,9 @@ DEFAULT_RADIUS = 20.0
 #: bytes of memory per particle of the analysis, measured (benchmarks/timestep_scaling.py:
 #: 3D with rotation, about 6 contacts per particle, Lanczos with 32 vectors), with margin
 BYTES_PER_PARTICLE = 4000
+#: the same with --low-memory (no Lanczos basis: three vectors): measured 2.0 KB per
+#: particle on an FCC block of 5e5 spheres (benchmarks/RESULTS.md, section 17), with margin
+LOW_MEMORY_BYTES_PER_PARTICLE = 2500
 #: formats of the positional input
 INPUT_FORMATS = ("auto", "csv", "liggghts", "yade", "lammps-data", "case", "checkpoint")
 #: image formats of --plot (matplotlib)
@@ -162,6 +165,10 @@ def add_dt_parser(sub):
     ana.add_argument("--seed", type=int, default=None,
                      help="seed of the random start of the 'certified' check (default: "
                           "fresh entropy, printed; give it to reproduce a certificate)")
+    ana.add_argument("--low-memory", action="store_true",
+                     help="certify from the random-start checks alone, without the exact "
+                          "solver's Lanczos basis (about a tenth of its memory; no "
+                          "'exact', no critical mode)")
     ana.add_argument("--impact-velocity", type=number("impact-velocity", 0, strict=True),
                      default=None, help="Hertz time (hertz model only): the impact "
                      "velocity [L/T] (default: twice the largest particle speed in the "
@@ -206,10 +213,12 @@ def available_memory_gb() -> float:
     return psutil.virtual_memory().available / 1e9
 
 
-def check_memory(n_particles: int, limit_gb: float | None, what: str):
+def check_memory(n_particles: int, limit_gb: float | None, what: str,
+                 low_memory: bool = False):
     """Refuse, before allocating, an analysis estimated above ``limit_gb`` (default: the
-    memory available now)."""
-    need = n_particles * BYTES_PER_PARTICLE / 1e9
+    memory available now); ``low_memory``: the analysis without the solver's basis."""
+    per = LOW_MEMORY_BYTES_PER_PARTICLE if low_memory else BYTES_PER_PARTICLE
+    need = n_particles * per / 1e9
     limit = available_memory_gb() if limit_gb is None else limit_gb
     if need > limit:
         raise InputError(f"memory: {what} ({n_particles:,} particles) needs about {need:.3g} GB, "
@@ -361,7 +370,7 @@ def load_input(args):
         _check_source_options(args, "lattice")
         lat = lattice(args.lattice, args.radius)
         check_memory(len(lat.basis) * args.size ** lat.dim, args.max_memory,
-                     f"the {args.lattice} lattice of size {args.size}")
+                     f"the {args.lattice} lattice of size {args.size}", args.low_memory)
         model = _model(args, "demstep")
         density = DEFAULT_DENSITY if args.density is None else args.density
         return ti.from_lattice(args.lattice, args.size, args.radius, density, model,
@@ -398,7 +407,7 @@ def load_input(args):
             return ti.from_case(path, args.stage, args.contact_tol, args.impact_velocity)
         _check_run_position(path, args.case)
         return ti.from_checkpoint(path, args.case, args.impact_velocity)
-    check_memory(_estimate_rows(path), args.max_memory, f"{path}")
+    check_memory(_estimate_rows(path), args.max_memory, f"{path}", args.low_memory)
     if args.lammps_model is not None:
         return _load_lammps_model(args, path, fmt, damping)
     if args.density is not None:
@@ -503,6 +512,9 @@ def cmd_dt(args) -> int:
 
         check_certified_tol("exact-tol", args.exact_tol)
     methods = None if args.methods is None else [m.strip() for m in args.methods.split(",")]
+    if args.mode_vtk and args.low_memory:
+        raise InputError("mode-vtk: the critical mode comes from the exact solver's basis, "
+                         "which --low-memory does without")
     if args.mode_vtk and methods is not None and not {"exact", "exact-undamped"} & set(methods):
         raise InputError(f"mode-vtk: the critical mode comes from the exact method, not in "
                          f"--methods {args.methods}")
@@ -515,6 +527,7 @@ def cmd_dt(args) -> int:
                                  methods=methods, lattice=data.lattice, density=data.density,
                                  materials=data.materials, bodies=data.bodies,
                                  exact_tol=args.exact_tol, seed=args.seed,
+                                 low_memory=args.low_memory,
                                  **({} if args.failure is None else {"failure": args.failure}))
     report.notes[:0] = data.notes
     danger = critical_mode_report(report, data, args.top)
@@ -560,7 +573,7 @@ def critical_mode_report(report, data, top: int) -> dict | None:
     strain energy; how far the mode spreads: its participation number 1 / sum(share^2)
     over the particles (1: one particle carries it all; N: all carry it alike) and the
     share the listed particles carry together."""
-    if report.exact is None:
+    if report.exact is None or report.exact.mode is None:
         return None
     op = report.exact.operator
     trans, rot, contact_share = op.mode_shares(report.exact.mode)

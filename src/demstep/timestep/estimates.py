@@ -323,7 +323,7 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
                         materials: Materials | None = None, rayleigh=None,
                         v0: np.ndarray | None = None, bodies=None,
                         exact_tol: float | None = None, failure: float = FAILURE,
-                        seed: int | None = None) -> TimeStepReport:
+                        seed: int | None = None, low_memory: bool = False) -> TimeStepReport:
     """Every estimate for ``particles`` with ``contacts`` (their stiffnesses and dashpots).
 
     ``damping``: :class:`GlobalDamping` (or ``rayleigh`` = (a1, a2), the same thing).
@@ -348,6 +348,10 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     (:func:`demstep.timestep.exact.certify_step`): a proof on small systems, else
     probability >= 1 - ``failure`` over a random start drawn from ``seed`` (None: fresh
     entropy, recorded). Every estimate names its guarantee (:func:`guarantee_of`).
+    ``low_memory``: ``certified`` from the random-start checks alone, without the exact
+    solver's Lanczos basis (:func:`demstep.timestep.exact.certified_without_basis`:
+    three vectors instead of ~40); ``exact`` and ``exact-undamped`` are then not
+    computed (a note says so) and there is no critical mode.
     """
     if contacts.n == 0:
         raise InputError("contacts: the assembly has no contacts (check radii, positions "
@@ -400,7 +404,19 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
     report.m_min, report.k_max = m_min, k_max
     dim = particles.dim
     exact = None
-    if "exact" in methods or "exact-undamped" in methods or "certified" in methods:
+    if low_memory:
+        for name in ("exact", "exact-undamped"):
+            if name in methods:
+                methods.remove(name)
+                report.notes.append(f"{name}: not computed with low memory (the solver's "
+                                    "basis); 'certified' comes from the random-start checks")
+        if "certified" in methods:
+            from demstep.timestep.exact import certified_without_basis
+
+            exact = certified_without_basis(particles, contacts, rotation, d, bodies=bodies,
+                                            failure=failure, seed=seed)
+            report.exact = exact
+    elif "exact" in methods or "exact-undamped" in methods or "certified" in methods:
         from demstep.timestep.exact import FIRST_TOL
 
         options = {} if exact_tol is None else {"tol": check_certified_tol("exact_tol",
@@ -445,7 +461,7 @@ def estimate_time_steps(particles: Particles, contacts: ContactSet, rotation: bo
                                                  guarantee=guarantee_of(name, exact, rotation,
                                                                         mass_split)))
     if exact is not None:
-        ref = exact.dt
+        ref = exact.dt  # (with low memory: the certified step, there is no other)
         for e in report.estimates:
             e.conservative = bool(e.dt <= ref * (1.0 + CONSERVATIVE_RTOL))
     if requested is not None:

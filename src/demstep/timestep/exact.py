@@ -121,6 +121,8 @@ class Springs(NamedTuple):
 
 #: candidate roots :func:`certify_step` tries on a damped problem before the closed form
 DAMPED_CANDIDATES = 6
+#: checks of the damped fixed point at most in :func:`certified_without_basis`
+FIXED_POINT_ITERATIONS = 40
 #: contacts per part of :meth:`ScaledContactOperator.damping_bound`'s element bounds
 DAMPING_BOUND_PART = 1 << 16
 
@@ -508,6 +510,76 @@ def exact_critical_step(particles: Particles, contacts: ContactSet, rotation: bo
     finally:
         if workspace is None:
             op.workspace.release(*LANCZOS_ARRAYS)
+
+
+def certified_without_basis(particles: Particles, contacts: ContactSet, rotation: bool,
+                            damping: GlobalDamping | None = None, bodies=None,
+                            threads: int | None = None, failure: float = FAILURE,
+                            seed: int | None = None) -> ExactStep:
+    """The certified step from the random-start check alone
+    (:func:`demstep.timestep.guarantee.probable_upper_bound`), with no Lanczos basis: the
+    memory of three vectors instead of the exact solver's ~40 (for an assembly whose
+    basis does not fit). The check runs until its bound U on lambda_max(K^) is within
+    :data:`~demstep.timestep.guarantee.CLAIM_SLACK` of its own top Ritz value;
+    undamped, dt = 2 / sqrt(U). Damped, the fixed point t = sqrt(lambda_max(A(t))) is
+    approached from below on the checks' Ritz values (the map grows with slope c/(2
+    sigma) < 1 at the root: linear convergence, slower the heavier the damping; at most
+    :data:`FIXED_POINT_ITERATIONS` checks), then a candidate (1 + 2 CLAIM_SLACK) above
+    is proven an upper bound on sigma_max by a check of lambda_max(A(t)) <= t^2, as in
+    :func:`certify_step`. The result has no mode (``mode`` None) and ``dt`` equals
+    ``dt_certified`` (there is no separate estimate); ``lambda_undamped`` is the
+    undamped check's bound; ``matvecs`` counts every check's products. The seeds of the
+    checks are all ``seed`` (each check is a new draw when None)."""
+    failure = check_failure(failure)
+    op = ScaledContactOperator(particles, contacts, rotation, damping, bodies, threads=threads)
+    if contacts.n == 0 and not op.damping.mass:
+        raise InputError("contacts: the assembly has no contacts")
+    tiny = np.finfo(np.float64).tiny  # (a target below any bound: the check's own)
+    check = probable_upper_bound(op.pencil(0.0).matvec_into, op.size, failure, seed,
+                                 target=tiny)
+    steps = check.steps
+    upper = check.upper
+    dt_undamped = 2.0 / np.sqrt(upper) if upper > 0 else np.inf
+    damped = contacts.damped or op.damping.active
+    if not damped or not upper > 0:
+        return ExactStep(float(dt_undamped), float(dt_undamped), float(np.sqrt(upper)),
+                         check.ritz, None, 0, bool(damped), op, steps, EIGSH_TOL,
+                         float(dt_undamped), check.guarantee(), check)
+    # damped: the fixed point t = sqrt(lambda_max(A(t))) (A(t) = the pencil + a1 t) from
+    # below, on the checks' Ritz values (each a lower bound: the iterates stay below
+    # sigma_max), then candidates just above it proven as certify_step does
+    a1 = op.damping.mass
+    t = float(np.sqrt(check.ritz))
+    iterations = 0
+    for iterations in range(1, FIXED_POINT_ITERATIONS + 1):
+        check = probable_upper_bound(op.pencil(t).matvec_into, op.size, failure, seed,
+                                     target=tiny)
+        steps += check.steps
+        new = float(np.sqrt(check.ritz + a1 * t))
+        if new <= t * (1.0 + CLAIM_SLACK):
+            t = max(t, new)
+            break
+        t = new
+    slack = CLAIM_SLACK
+    for _ in range(DAMPED_CANDIDATES):
+        t = t * (1.0 + 2.0 * slack)
+        claim = t * t - a1 * t
+        check = probable_upper_bound(op.pencil(t).matvec_into, op.size, failure, seed,
+                                     target=claim)
+        steps += check.steps
+        if check.upper <= claim:
+            sigma = t
+            break
+        t = float(np.sqrt(check.upper + a1 * t))
+    else:  # the closed form from the last bound (lambda_max(A) grows at most with Lambda_C)
+        lam_c = op.damping_bound()
+        bound = check.upper + a1 * t
+        sigma = float(damped_sigma(max(bound - t * lam_c, 0.0), lam_c))
+    guarantee = Guarantee("probability", "random-start Lanczos bounds, no basis", failure,
+                          check.seed, steps)
+    return ExactStep(float(2.0 / sigma), float(dt_undamped), sigma, float(upper), None,
+                     iterations, True, op, steps, EIGSH_TOL, float(2.0 / sigma), guarantee,
+                     check)
 
 
 def certify_step(result: ExactStep, dense_limit: int = DENSE_LIMIT, failure: float = FAILURE,
