@@ -47,7 +47,7 @@ from demstep.timestep.contacts import find_contacts
 from demstep.packings import jittered_polydisperse, lattice
 from demstep.particles import Particles
 from demstep.timestep.estimates import element_coupled_dt, element_paper_dt, nodal_dt
-from demstep.timestep.exact import exact_critical_step
+from demstep.timestep.exact import certified_without_basis, exact_critical_step
 
 n, packing, what, repeat = int(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
 tol = float(sys.argv[5])
@@ -59,7 +59,7 @@ else:
     x, r = jittered_polydisperse(n, 3, seed=1, overlap=0.12 if packing == "loose" else 0.45)
 p = Particles.from_density(x, r, 2000.0)
 t = time.perf_counter(); c = find_contacts(p, 1e6); t_contacts = time.perf_counter() - t
-if what in ("exact-damped", "certified-damped"):
+if what in ("exact-damped", "certified-damped", "nobasis-damped"):
     e = 0.5
     beta = -math.log(e) / math.sqrt(math.pi ** 2 + math.log(e) ** 2)
     inv = 1.0 / p.m
@@ -71,15 +71,17 @@ fn = {"element": lambda: (element_coupled_dt(p, c, True), element_paper_dt(p, c,
       "exact-damped": lambda: exact_critical_step(p, c, True, tol=tol),
       "certified": lambda: exact_critical_step(p, c, True, tol=tol, guarantee=True, seed=1),
       "certified-damped": lambda: exact_critical_step(p, c, True, tol=tol, guarantee=True,
-                                                      seed=1)}[what]
+                                                      seed=1),
+      "nobasis": lambda: certified_without_basis(p, c, True, seed=1),
+      "nobasis-damped": lambda: certified_without_basis(p, c, True, seed=1)}[what]
 times = []
 for _ in range(repeat):
     t = time.perf_counter(); res = fn(); times.append(time.perf_counter() - t)
 extra = {}
-if what.startswith(("exact", "certified")):
+if what.startswith(("exact", "certified", "nobasis")):
     extra = {"dt": res.dt, "dt_undamped": res.dt_undamped, "iterations": res.iterations, "tol": tol,
              "matvecs": getattr(res, "matvecs", None)}
-if what.startswith("certified"):
+if what.startswith(("certified", "nobasis")):
     extra.update(dt_certified=res.dt_certified, guarantee=res.guarantee.kind,
                  check_steps=res.check.steps if res.check else 0)
 import numba
@@ -163,7 +165,8 @@ def main():
     for packing in args.packings.split(","):
         for n in sizes:
             for what, tol in ((w, float(t)) for w in args.cases.split(",")
-                              for t in (args.tols.split(",") if w.startswith(("exact", "certified"))
+                              for t in (args.tols.split(",")
+                                        if w.startswith(("exact", "certified", "nobasis"))
                                         else "1")):
                 for label, src, n_threads in variants:
                     res = run_case(n, packing, what, args.repeat if n < 1_000_000 else 1, src,
