@@ -45,6 +45,7 @@ import numpy as np
 
 from demstep.errors import InputError
 from demstep.integrations.lammps_model import GranularModel, lammps_contacts
+from demstep.integrations.stepping import band_change, check_settings, why
 
 #: where Debian's python3-lammps puts the module
 DEBIAN_DIST_PACKAGES = "/usr/lib/python3/dist-packages"
@@ -181,12 +182,7 @@ class LammpsCertifier:
     history: list = field(default_factory=list)
 
     def __post_init__(self):
-        if not (isinstance(self.safety, (int, float)) and 0.0 < self.safety <= 1.0):
-            raise InputError(f"safety: must lie in (0, 1], got {self.safety!r}")
-        if self.method not in ("exact", "element"):
-            raise InputError(f"method: must be 'exact' or 'element', got {self.method!r}")
-        if not (isinstance(self.grow, (int, float)) and self.grow >= 0.0):
-            raise InputError(f"grow: must be >= 0, got {self.grow!r}")
+        check_settings(self.safety, self.method, self.grow)
         self.granular = GranularModel.parse(self.model)
         self.wall_granular = (self.granular if self.wall_model is None
                               else GranularModel.parse(self.wall_model))
@@ -276,33 +272,18 @@ class LammpsCertifier:
         safety / (1 + grow) times the certified step (a step set there is not moved
         again until the certificate changes by a factor 1 + grow: no back and forth)."""
         cert = self.certify()
-        top = self.safety * cert.dt
-        target = top / (1.0 + self.grow)
         previous = self.history[-1] if self.history else None
         self.history.append(cert)
-        if cert.dt_lammps > top:
-            cert.reason = (f"above {self.safety:g} x the certified step"
-                           + self._why(previous, cert))
-        elif cert.dt_lammps * (1.0 + self.grow) ** 2 < top:
-            cert.reason = "the certified step allows a longer one" + self._why(previous, cert)
-        else:
+        change = band_change(cert.dt_lammps, cert.dt, self.safety, self.grow)
+        if change is None:
             return cert
+        target, reason = change
+        cert.reason = reason + why(previous, cert)
         self.lmp.command(f"timestep {target!r}")
         cert.dt_set = target
         self._say(f"step {cert.step}: timestep {cert.dt_lammps:.6g} -> {target:.6g} "
                   f"({cert.reason})")
         return cert
-
-    @staticmethod
-    def _why(previous, cert) -> str:
-        """What changed since the previous certificate: the certified step, the contacts
-        and the largest overlap."""
-        if previous is None:
-            return (f": certified {cert.dt:.6g} ({cert.method}), {cert.contacts} contacts, "
-                    f"largest overlap {cert.max_overlap:.3g} r")
-        return (f": certified {previous.dt:.6g} -> {cert.dt:.6g} ({cert.method}), contacts "
-                f"{previous.contacts} -> {cert.contacts}, largest overlap "
-                f"{previous.max_overlap:.3g} -> {cert.max_overlap:.3g} r")
 
     def run(self, steps: int, every: int):
         """Advance ``steps`` steps, ``every`` at a time, the step certified and set

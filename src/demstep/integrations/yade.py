@@ -86,6 +86,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from demstep.errors import InputError
+from demstep.integrations.stepping import band_change, check_settings, why
 
 #: the IPhys classes the certificate models, with the law functor that must apply them
 PHYS_LAWS = {"FrictPhys": "Law2_ScGeom_FrictPhys_CundallStrack",
@@ -490,12 +491,7 @@ class YadeCertifier:
     history: list = field(default_factory=list)
 
     def __post_init__(self):
-        if not (isinstance(self.safety, (int, float)) and 0.0 < self.safety <= 1.0):
-            raise InputError(f"safety: must lie in (0, 1], got {self.safety!r}")
-        if self.method not in ("exact", "element"):
-            raise InputError(f"method: must be 'exact' or 'element', got {self.method!r}")
-        if not (isinstance(self.grow, (int, float)) and self.grow >= 0.0):
-            raise InputError(f"grow: must be >= 0, got {self.grow!r}")
+        check_settings(self.safety, self.method, self.grow)
         if self.cundall not in CUNDALL_MODES:
             raise InputError(f"cundall: must be one of {', '.join(CUNDALL_MODES)}, got "
                              f"{self.cundall!r}")
@@ -540,28 +536,16 @@ class YadeCertifier:
                 self._say(f"iteration {cert.step}: no contacts: nothing limits the step, "
                           f"O.dt {cert.dt_yade:.6g} left as it is")
             return cert
-        top = self.safety * cert.dt
-        target = top / (1.0 + self.grow)
-        if cert.dt_yade > top:
-            cert.reason = f"above {self.safety:g} x the certified step" + self._why(previous, cert)
-        elif cert.dt_yade < top / (1.0 + self.grow) ** 2:
-            cert.reason = "the certified step allows a longer one" + self._why(previous, cert)
-        else:
+        change = band_change(cert.dt_yade, cert.dt, self.safety, self.grow)
+        if change is None:
             return cert
+        target, reason = change
+        cert.reason = reason + why(previous, cert)
         self.omega.dt = target
         cert.dt_set = target
         self._say(f"iteration {cert.step}: O.dt {cert.dt_yade:.6g} -> {target:.6g} "
                   f"({cert.reason})")
         return cert
-
-    @staticmethod
-    def _why(previous, cert) -> str:
-        if previous is None or not math.isfinite(previous.dt):
-            return (f": certified {cert.dt:.6g} ({cert.method}), {cert.contacts} contacts, "
-                    f"largest overlap {cert.max_overlap:.3g} r")
-        return (f": certified {previous.dt:.6g} -> {cert.dt:.6g} ({cert.method}), contacts "
-                f"{previous.contacts} -> {cert.contacts}, largest overlap "
-                f"{previous.max_overlap:.3g} -> {cert.max_overlap:.3g} r")
 
     def engine(self, iterPeriod: int = 100, label: str = "demstep"):
         """A ``PyRunner`` for ``O.engines`` that calls :meth:`apply` every ``iterPeriod``
